@@ -1,0 +1,165 @@
+"""The only module in :mod:`pipeline` that touches disk: decode originals safely, write artifacts.
+
+Array convention everywhere in the pipeline: ``uint8``, shape ``(H, W)`` for grey or
+``(H, W, 3)`` in **RGB** order, row 0 at the top, x to the right.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from .errors import ImageReadError, ImageTooLargeError
+
+# A 1200 dpi scan of a 7 x 3.5 inch card is ~35 MP; 150 MP leaves room for any real scan
+# while refusing decompression bombs (a 100 KB PNG can claim 50,000 x 50,000 pixels).
+DEFAULT_MAX_PIXELS = 150_000_000
+
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".jps"})
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    width: int
+    height: int
+    format: str  # PIL's name for the decoded format: JPEG, PNG, TIFF, ...
+    mode: str  # PIL mode of the file: L, RGB, I;16, ...
+    byte_size: int
+
+
+def _open_checked(path: Path, max_pixels: int) -> Image.Image:
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError as exc:
+        raise ImageReadError(f"no such file: {path}") from exc
+    except OSError as exc:
+        raise ImageReadError(f"cannot stat {path}: {exc.strerror or exc}") from exc
+    if size == 0:
+        raise ImageReadError("empty file (0 bytes)")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            image = Image.open(path)
+    except PermissionError as exc:
+        raise ImageReadError(f"permission denied: {path}") from exc
+    except UnidentifiedImageError as exc:
+        raise ImageReadError("not an image (no decoder recognises its contents)") from exc
+    except Image.DecompressionBombError as exc:
+        raise ImageTooLargeError(str(exc)) from exc
+    except OSError as exc:
+        raise ImageReadError(f"cannot open: {exc}") from exc
+    width, height = image.size
+    if width < 1 or height < 1:
+        image.close()
+        raise ImageReadError(f"image has no pixels ({width}x{height})")
+    if width * height > max_pixels:
+        image.close()
+        raise ImageTooLargeError(
+            f"{width}x{height} = {width * height:,} pixels exceeds the cap of {max_pixels:,} "
+            "(possible decompression bomb; raise KEYSTONE_MAX_PIXELS if the scan is real)"
+        )
+    return image
+
+
+def _decode(image: Image.Image) -> None:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            image.load()
+    except (OSError, SyntaxError, ValueError) as exc:
+        # PIL reports truncated JPEGs/PNGs as OSError("image file is truncated ...").
+        raise ImageReadError(f"corrupt or truncated image data: {exc}") from exc
+
+
+def probe_image(path: str | os.PathLike[str], max_pixels: int = DEFAULT_MAX_PIXELS) -> ImageInfo:
+    """Check that ``path`` is a complete, decodable image within the pixel cap.
+
+    Decodes every pixel (a header-only check misses truncated files). Raises
+    :class:`ImageReadError` (or :class:`ImageTooLargeError`) with a reason for people.
+    """
+    path = Path(path)
+    image = _open_checked(path, max_pixels)
+    with image:
+        fmt, mode, (width, height) = image.format or "unknown", image.mode, image.size
+        _decode(image)
+    return ImageInfo(width=width, height=height, format=fmt, mode=mode, byte_size=path.stat().st_size)
+
+
+def _to_uint8(image: Image.Image) -> np.ndarray:
+    mode = image.mode
+    if mode in ("I;16", "I;16B", "I;16L", "I;16N", "I", "F"):
+        # 16/32-bit and float scans: stretch the used range to 0..255 rather than truncate.
+        array = np.asarray(image, dtype=np.float64)
+        finite = np.isfinite(array)
+        if not finite.any():
+            raise ImageReadError("image holds no finite pixel values")
+        lo, hi = float(array[finite].min()), float(array[finite].max())
+        scale = 255.0 / (hi - lo) if hi > lo else 0.0
+        array = np.where(finite, (array - lo) * scale, 0.0)
+        return np.clip(np.rint(array), 0, 255).astype(np.uint8)
+    if mode in ("L", "1", "LA", "P") and not (mode == "P" and "transparency" in image.info):
+        if mode == "P" and image.getpalette() is not None:
+            rgb = np.asarray(image.convert("RGB"))
+            if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]):
+                return np.ascontiguousarray(rgb[..., 0])
+            return rgb
+        return np.asarray(image.convert("L"))
+    return np.asarray(image.convert("RGB"))
+
+
+def read_image(path: str | os.PathLike[str], max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
+    """Decode an original into a ``uint8`` array: ``(H, W)`` grey or ``(H, W, 3)`` RGB.
+
+    16-bit and float images are stretched to their used range. EXIF orientation is not
+    applied: originals are analysed as scanned, and orientation fixes are the judge stage's.
+    """
+    image = _open_checked(Path(path), max_pixels)
+    with image:
+        _decode(image)
+        return np.ascontiguousarray(_to_uint8(image))
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """``(H, W)`` uint8 luminance of a grey or RGB array (ITU-R 601 weights, as OpenCV)."""
+    if image.ndim == 2:
+        return image
+    import cv2
+
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def write_png(path: str | os.PathLike[str], image: np.ndarray) -> None:
+    """Write ``image`` (grey or RGB uint8) as PNG atomically: a crash never leaves half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            Image.fromarray(np.ascontiguousarray(image)).save(handle, format="PNG", compress_level=3)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_jpeg(path: str | os.PathLike[str], image: np.ndarray, max_side: int | None = None, quality: int = 90) -> None:
+    """Write a display JPEG atomically, downscaled (area filter) so its longer side <= ``max_side``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    picture = Image.fromarray(np.ascontiguousarray(image))
+    if max_side is not None and max(picture.size) > max_side:
+        picture.thumbnail((max_side, max_side), Image.Resampling.BOX)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            picture.save(handle, format="JPEG", quality=quality)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,74 @@
+"""Decoding originals: every format we ingest, 16-bit scans, and typed errors for bad files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from pipeline.errors import ImageReadError, ImageTooLargeError
+from pipeline.io import probe_image, read_image, to_grey, write_jpeg, write_png
+
+
+def test_rgb_grey_and_16_bit(tmp_path: Path):
+    rgb = np.random.default_rng(0).integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    Image.fromarray(rgb).save(tmp_path / "a.png")
+    assert np.array_equal(read_image(tmp_path / "a.png"), rgb)
+
+    ramp16 = (np.arange(600, dtype=np.uint16).reshape(20, 30) * 100 + 1000)
+    Image.fromarray(ramp16).save(tmp_path / "b.tif")
+    grey = read_image(tmp_path / "b.tif")
+    assert grey.dtype == np.uint8 and grey.shape == (20, 30)
+    assert (grey.min(), grey.max()) == (0, 255)  # stretched over the used range, not truncated
+    assert np.all(np.diff(grey.ravel().astype(int)) >= 0)
+
+    info = probe_image(tmp_path / "b.tif")
+    assert (info.width, info.height, info.format) == (30, 20, "TIFF")
+
+
+def test_jps_is_a_jpeg(tmp_path: Path):
+    Image.fromarray(np.full((16, 32, 3), 128, np.uint8)).save(tmp_path / "pair.jps", format="JPEG")
+    assert read_image(tmp_path / "pair.jps").shape == (16, 32, 3)
+
+
+@pytest.mark.parametrize(
+    "content,match",
+    [(b"", "empty file"), (b"hello", "not an image"), (b"\xff\xd8\xff\xe0" + b"\0" * 50, "not an image|corrupt|cannot open")],
+)
+def test_bad_files_raise_typed_errors(tmp_path: Path, content: bytes, match: str):
+    path = tmp_path / "bad.jpg"
+    path.write_bytes(content)
+    with pytest.raises(ImageReadError, match=match):
+        read_image(path)
+
+
+def test_truncated_file(tmp_path: Path):
+    rng = np.random.default_rng(1)
+    Image.fromarray(rng.integers(0, 256, (200, 200, 3), dtype=np.uint8)).save(tmp_path / "full.jpg")
+    data = (tmp_path / "full.jpg").read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(data[: len(data) // 3])
+    with pytest.raises(ImageReadError, match="truncated"):
+        probe_image(tmp_path / "cut.jpg")
+
+
+def test_pixel_cap(tmp_path: Path):
+    Image.fromarray(np.zeros((100, 100), np.uint8)).save(tmp_path / "x.png")
+    with pytest.raises(ImageTooLargeError, match="10,000 pixels exceeds the cap of 9,999"):
+        read_image(tmp_path / "x.png", max_pixels=9_999)
+
+
+def test_missing_file(tmp_path: Path):
+    with pytest.raises(ImageReadError, match="no such file"):
+        probe_image(tmp_path / "nope.png")
+
+
+def test_writers_are_atomic_and_round_trip(tmp_path: Path):
+    image = np.random.default_rng(2).integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    write_png(tmp_path / "deep" / "x.png", image)
+    assert np.array_equal(read_image(tmp_path / "deep" / "x.png"), image)
+    write_jpeg(tmp_path / "y.jpg", image, max_side=30)
+    assert read_image(tmp_path / "y.jpg").shape == (20, 30, 3)
+    assert list(tmp_path.rglob("*.tmp")) == []
+    assert to_grey(image).shape == (40, 60)

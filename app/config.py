@@ -1,0 +1,52 @@
+"""Configuration: defaults, then environment variables (``KEYSTONE_*``), then a test mapping.
+
+``KEYSTONE_DATABASE_URL``  SQLAlchemy URL; default ``sqlite:///<instance>/keystone.sqlite3``.
+``KEYSTONE_DATA_DIR``      originals store and derived artifacts; default ``<instance>/data``.
+``KEYSTONE_SECRET_KEY``    session signing key; default a random key persisted in the instance folder.
+``KEYSTONE_MAX_PIXELS``    decode cap per image (decompression-bomb guard); default 150 MP.
+``KEYSTONE_INSTANCE_PATH`` where the instance folder lives; default Flask's.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from pathlib import Path
+from typing import Any
+
+from pipeline.io import DEFAULT_MAX_PIXELS
+
+
+def _persistent_secret(instance_path: Path) -> str:
+    # A random key written once keeps logins valid across restarts without asking the
+    # operator to invent one; an explicit KEYSTONE_SECRET_KEY always wins.
+    key_file = instance_path / "secret_key"
+    if key_file.exists():
+        return key_file.read_text().strip()
+    instance_path.mkdir(parents=True, exist_ok=True)
+    key = secrets.token_hex(32)
+    fd = os.open(key_file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as handle:
+        handle.write(key)
+    return key
+
+
+def config_from_environment(instance_path: str) -> dict[str, Any]:
+    instance = Path(instance_path)
+    env = os.environ
+    database_url = env.get("KEYSTONE_DATABASE_URL") or f"sqlite:///{instance / 'keystone.sqlite3'}"
+    return {
+        "SQLALCHEMY_DATABASE_URI": database_url,
+        "KEYSTONE_DATA_DIR": env.get("KEYSTONE_DATA_DIR") or str(instance / "data"),
+        "SECRET_KEY": env.get("KEYSTONE_SECRET_KEY") or _persistent_secret(instance),
+        "KEYSTONE_MAX_PIXELS": int(env.get("KEYSTONE_MAX_PIXELS", DEFAULT_MAX_PIXELS)),
+        "SESSION_COOKIE_HTTPONLY": True,
+        "SESSION_COOKIE_SAMESITE": "Lax",
+        # Secure cookies need HTTPS; `keystone serve` on loopback is plain HTTP, so the
+        # operator turns this on behind TLS (KEYSTONE_SECURE_COOKIES=1).
+        "SESSION_COOKIE_SECURE": env.get("KEYSTONE_SECURE_COOKIES", "0") == "1",
+        "REMEMBER_COOKIE_HTTPONLY": True,
+        "REMEMBER_COOKIE_SECURE": env.get("KEYSTONE_SECURE_COOKIES", "0") == "1",
+        "WTF_CSRF_TIME_LIMIT": None,
+        "CATALOG_PAGE_SIZE": 48,
+    }

@@ -1,0 +1,182 @@
+"""The models everything references: collections, cards, stage results, people and roles.
+
+Feature-specific models live with their feature (``annotation/``, ``review/``, ``exports/``).
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from flask_login import UserMixin
+from sqlalchemy import (
+    BigInteger,
+    CheckConstraint,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+from werkzeug.security import check_password_hash, generate_password_hash
+
+from .db import JSONType, db, utcnow
+
+ROLES: tuple[str, ...] = ("annotator", "curator", "exporter", "admin")
+STAGE_STATUSES: tuple[str, ...] = ("done", "skipped", "failed")
+# A card's current state: where it stands in the flow, derived from its latest stage results.
+CARD_STATES: tuple[str, ...] = ("ingested", "pass", "review", "culled", "failed")
+
+
+def _in(column: str, values: tuple[str, ...]) -> str:
+    return f"{column} IN ({', '.join(repr(v) for v in values)})"
+
+
+class Collection(db.Model):
+    __tablename__ = "collections"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    name: Mapped[str] = mapped_column(String(200), unique=True)
+    description: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    cards: Mapped[list[Card]] = relationship(back_populates="collection")
+
+
+class Card(db.Model):
+    """One scanned stereo card. The original is stored once, by content, and never modified."""
+
+    __tablename__ = "cards"
+    __table_args__ = (CheckConstraint(_in("state", CARD_STATES), name="state"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    collection_id: Mapped[int] = mapped_column(ForeignKey("collections.id"), index=True)
+    content_hash: Mapped[str] = mapped_column(String(64), unique=True)  # sha256 hex of the bytes
+    stored_path: Mapped[str] = mapped_column(String(500))  # relative to KEYSTONE_DATA_DIR
+    source_name: Mapped[str] = mapped_column(String(500))  # the ingested file's name
+    source_path: Mapped[str] = mapped_column(Text)  # where it was ingested from
+    accession: Mapped[str | None] = mapped_column(String(100), index=True)
+    width: Mapped[int] = mapped_column(Integer)  # pixels
+    height: Mapped[int] = mapped_column(Integer)  # pixels
+    image_format: Mapped[str] = mapped_column(String(20))
+    byte_size: Mapped[int] = mapped_column(BigInteger)
+    source_metadata: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)
+    state: Mapped[str] = mapped_column(String(20), default="ingested", index=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)
+
+    collection: Mapped[Collection] = relationship(back_populates="cards")
+    stage_results: Mapped[list[StageResult]] = relationship(
+        back_populates="card", cascade="all, delete-orphan", order_by="StageResult.id"
+    )
+
+    def latest_results(self) -> dict[str, StageResult]:
+        """The most recent result per stage (any parameters)."""
+        latest: dict[str, StageResult] = {}
+        for result in self.stage_results:
+            latest[result.stage] = result
+        return latest
+
+
+class StageResult(db.Model):
+    """What one stage did to one card with one set of parameters."""
+
+    __tablename__ = "stage_results"
+    __table_args__ = (
+        UniqueConstraint("card_id", "stage", "param_hash", name="card_stage_params"),
+        CheckConstraint(_in("status", STAGE_STATUSES), name="status"),
+        Index("ix_stage_results_stage_status", "stage", "status"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    card_id: Mapped[int] = mapped_column(ForeignKey("cards.id", ondelete="CASCADE"), index=True)
+    stage: Mapped[str] = mapped_column(String(30))
+    param_hash: Mapped[str] = mapped_column(String(32))
+    status: Mapped[str] = mapped_column(String(10))
+    outcome: Mapped[str | None] = mapped_column(String(30))
+    reason: Mapped[str | None] = mapped_column(Text)
+    metrics: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)
+    artifacts: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)  # name -> path under data dir
+    started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    seconds: Mapped[float | None] = mapped_column(Float)
+    code_version: Mapped[str] = mapped_column(String(40), default="")
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    card: Mapped[Card] = relationship(back_populates="stage_results")
+
+    def as_status(self) -> dict[str, Any]:
+        return {"status": self.status, "outcome": self.outcome, "reason": self.reason, "metrics": self.metrics}
+
+
+class MetadataRecord(db.Model):
+    """One catalogue row from a metadata CSV, kept whether or not its image has arrived yet."""
+
+    __tablename__ = "metadata_records"
+    __table_args__ = (UniqueConstraint("collection_id", "record_key", name="collection_record"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    collection_id: Mapped[int] = mapped_column(ForeignKey("collections.id"), index=True)
+    # Normalised key: "accession:<number>" or "file:<lower-case file name>".
+    record_key: Mapped[str] = mapped_column(String(600))
+    accession: Mapped[str | None] = mapped_column(String(100), index=True)
+    file_name: Mapped[str | None] = mapped_column(String(500), index=True)
+    fields: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)
+    source_file: Mapped[str] = mapped_column(Text)
+    row_number: Mapped[int] = mapped_column(Integer)
+    card_id: Mapped[int | None] = mapped_column(ForeignKey("cards.id", ondelete="SET NULL"), index=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class Person(UserMixin, db.Model):
+    """Anyone who uses the app. Crowd workers from invite links may have no password."""
+
+    __tablename__ = "people"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    username: Mapped[str] = mapped_column(String(120), unique=True)
+    display_name: Mapped[str] = mapped_column(String(200), default="")
+    password_hash: Mapped[str | None] = mapped_column(String(300))
+    active: Mapped[bool] = mapped_column(default=True)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    role_rows: Mapped[list[PersonRole]] = relationship(
+        back_populates="person", cascade="all, delete-orphan", lazy="selectin"
+    )
+
+    @property
+    def roles(self) -> set[str]:
+        return {row.role for row in self.role_rows}
+
+    def has_role(self, *roles: str) -> bool:
+        # Admins may do everything any other role may.
+        return "admin" in self.roles or bool(self.roles.intersection(roles))
+
+    def grant(self, role: str) -> None:
+        if role not in ROLES:
+            raise ValueError(f"unknown role {role!r}; expected one of {', '.join(ROLES)}")
+        if role not in self.roles:
+            self.role_rows.append(PersonRole(role=role))
+
+    def set_password(self, password: str) -> None:
+        self.password_hash = generate_password_hash(password)
+
+    def check_password(self, password: str) -> bool:
+        return self.password_hash is not None and check_password_hash(self.password_hash, password)
+
+    @property
+    def is_active(self) -> bool:  # flask-login
+        return self.active
+
+
+class PersonRole(db.Model):
+    __tablename__ = "person_roles"
+    __table_args__ = (CheckConstraint(_in("role", ROLES), name="role"),)
+
+    person_id: Mapped[int] = mapped_column(ForeignKey("people.id", ondelete="CASCADE"), primary_key=True)
+    role: Mapped[str] = mapped_column(String(20), primary_key=True)
+
+    person: Mapped[Person] = relationship(back_populates="role_rows")

@@ -1,0 +1,57 @@
+"""Schema management: Alembic migrations are the only way the schema changes.
+
+``keystone init`` applies them; commands that need the catalogue call :func:`ensure_schema`,
+which upgrades to head (a no-op when current). A test checks models and migrations agree.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import MetaData
+from sqlalchemy.engine import Engine
+
+MIGRATIONS_DIR = Path(__file__).with_name("migrations")
+
+
+def target_metadata() -> MetaData:
+    """All models' metadata: importing the feature model modules registers their tables."""
+    from . import models  # noqa: F401
+    from .db import db
+
+    return db.metadata
+
+
+def alembic_config(engine: Engine) -> Config:
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    config.set_main_option("sqlalchemy.url", engine.url.render_as_string(hide_password=False).replace("%", "%%"))
+    return config
+
+
+def head_revision(engine: Engine) -> str | None:
+    return ScriptDirectory.from_config(alembic_config(engine)).get_current_head()
+
+
+def current_revision(engine: Engine) -> str | None:
+    with engine.connect() as connection:
+        return MigrationContext.configure(connection).get_current_revision()
+
+
+def upgrade(engine: Engine, revision: str = "head") -> None:
+    config = alembic_config(engine)
+    with engine.begin() as connection:
+        config.attributes["connection"] = connection
+        command.upgrade(config, revision)
+
+
+def ensure_schema(engine: Engine) -> bool:
+    """Upgrade to head if needed; returns True when migrations were applied."""
+    if current_revision(engine) == head_revision(engine):
+        return False
+    upgrade(engine)
+    return True

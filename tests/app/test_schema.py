@@ -1,0 +1,54 @@
+"""Migrations are the schema: applying them gives exactly what the models declare."""
+
+from __future__ import annotations
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from sqlalchemy import inspect, text
+
+from app.db import db
+from app.schema import current_revision, ensure_schema, head_revision, target_metadata, upgrade
+
+pytestmark = pytest.mark.both_databases
+
+
+def test_models_and_migrations_agree(app):
+    with app.app_context(), db.engine.connect() as connection:
+        context = MigrationContext.configure(connection, opts={"compare_type": True})
+        diff = compare_metadata(context, target_metadata())
+    assert diff == []
+
+
+def test_migrations_reach_head_and_ensure_is_idempotent(app):
+    with app.app_context():
+        assert current_revision(db.engine) == head_revision(db.engine) == "0001"
+        assert ensure_schema(db.engine) is False
+        tables = set(inspect(db.engine).get_table_names())
+    assert {"collections", "cards", "stage_results", "people", "person_roles", "metadata_records"} <= tables
+
+
+def test_downgrade_to_base_and_back(app):
+    with app.app_context():
+        upgrade(db.engine, "head")
+        from alembic import command
+
+        from app.schema import alembic_config
+
+        config = alembic_config(db.engine)
+        with db.engine.begin() as connection:
+            config.attributes["connection"] = connection
+            command.downgrade(config, "base")
+        assert "cards" not in inspect(db.engine).get_table_names()
+        upgrade(db.engine)
+        assert "cards" in inspect(db.engine).get_table_names()
+
+
+def test_sqlite_connection_settings(app):
+    if app.config["SQLALCHEMY_DATABASE_URI"].startswith("postgresql"):
+        pytest.skip("SQLite pragmas only")
+    with app.app_context(), db.engine.connect() as connection:
+        assert connection.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+        assert connection.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+        assert connection.exec_driver_sql("PRAGMA busy_timeout").scalar() == 30_000
+        connection.execute(text("SELECT 1"))

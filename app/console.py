@@ -1,0 +1,67 @@
+"""What every command shares: JSON output, the data dir, the schema check, progress bars."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import click
+from flask import current_app
+
+
+def emit_json(document: Any) -> None:
+    """Print one JSON document on stdout (and nothing else goes to stdout with --json)."""
+    click.echo(json.dumps(document, indent=2, default=str))
+
+
+def data_dir() -> Path:
+    return Path(current_app.config["KEYSTONE_DATA_DIR"]).resolve()
+
+
+def ensure_database() -> bool:
+    """Make the data dir and bring the schema to head; True when migrations ran."""
+    from .db import db
+    from .schema import ensure_schema
+
+    data_dir().mkdir(parents=True, exist_ok=True)
+    return ensure_schema(db.engine)
+
+
+class _Progress:
+    """Progress reporting a stage can drive without knowing whether anyone is watching."""
+
+    def __init__(self, progress: Any = None, task: Any = None) -> None:
+        self._progress, self._task = progress, task
+
+    def start(self, total: int) -> None:
+        if self._progress is not None:
+            self._progress.update(self._task, total=total)
+
+    def advance(self, *_: Any) -> None:
+        if self._progress is not None:
+            self._progress.advance(self._task)
+
+
+@contextmanager
+def progress_bar(description: str, enabled: bool) -> Iterator[_Progress]:
+    """A rich progress bar on stderr when it is a terminal; silent otherwise."""
+    if not enabled or not sys.stderr.isatty():
+        yield _Progress()
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(
+        TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+        console=Console(stderr=True),
+    ) as progress:
+        yield _Progress(progress, progress.add_task(description, total=None))
+
+
+def say(message: str, as_json: bool) -> None:
+    """Human messages go to stderr under --json so stdout stays one JSON document."""
+    click.echo(message, err=as_json)

@@ -1,0 +1,345 @@
+"""Ingest: copy scans into the content-addressed store and register them as cards.
+
+The store lives under ``KEYSTONE_DATA_DIR/originals/<hash[:2]>/<sha256><ext>``; files are
+written through a temporary name and renamed, then made read-only, so an original is never
+half-written and never modified. Each card is committed on its own, so an interrupted ingest
+loses at most the file in flight: running the same command again skips what is stored
+(duplicates by content hash are a no-op that says so) and carries on.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import stat
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import click
+from flask import current_app
+from flask.cli import with_appcontext
+from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
+
+from pipeline.errors import ImageReadError
+from pipeline.io import IMAGE_SUFFIXES, probe_image
+
+from .db import db
+from .metadata import MetadataFormatError, MetadataRow, card_keys, read_metadata, row_keys
+from .models import Card, Collection, MetadataRecord
+
+DEFAULT_COLLECTION = "default"
+HASH_CHUNK = 1 << 20
+
+
+@dataclass
+class IngestReport:
+    ingested: list[dict[str, Any]] = field(default_factory=list)
+    duplicates: list[dict[str, Any]] = field(default_factory=list)
+    rejected: list[dict[str, str]] = field(default_factory=list)
+    metadata: dict[str, int] = field(default_factory=lambda: {"rows": 0, "matched": 0, "unmatched": 0})
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "ingested": len(self.ingested),
+            "duplicates": len(self.duplicates),
+            "rejected": self.rejected,
+            "cards": self.ingested,
+            "duplicate_files": self.duplicates,
+            "metadata": self.metadata,
+        }
+
+
+def sha256_file(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for chunk in iter(lambda: handle.read(HASH_CHUNK), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def discover_files(paths: Iterable[str | Path], report: IngestReport) -> Iterator[Path]:
+    """Yield image files under ``paths`` (recursively, sorted), rejecting unusable paths.
+
+    A file named explicitly with an unsupported extension is rejected; inside folders such
+    files (a README, a metadata CSV) are passed over silently.
+    """
+    for raw in paths:
+        path = Path(raw)
+        if not path.exists() and not path.is_symlink():
+            report.rejected.append({"path": str(path), "reason": "no such file or folder"})
+        elif path.is_dir():
+            try:
+                children = sorted(p for p in path.rglob("*") if p.is_file() or p.is_symlink())
+            except OSError as exc:
+                report.rejected.append({"path": str(path), "reason": f"cannot list folder: {exc.strerror or exc}"})
+                continue
+            for child in children:
+                if child.suffix.lower() in IMAGE_SUFFIXES:
+                    yield child
+        elif path.suffix.lower() not in IMAGE_SUFFIXES:
+            report.rejected.append(
+                {"path": str(path), "reason": f"unsupported file type {path.suffix or '(none)'!r}; expected one of "
+                 + ", ".join(sorted(IMAGE_SUFFIXES))}
+            )
+        else:
+            yield path
+
+
+def store_original(source: Path, content_hash: str, data_dir: Path) -> Path:
+    """Copy ``source`` into the store atomically and make it read-only; returns the relative path."""
+    relative = Path("originals") / content_hash[:2] / f"{content_hash}{source.suffix.lower()}"
+    target = data_dir / relative
+    if target.exists():  # left by an interrupted run, or shared by name: same bytes by construction
+        return relative
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".ingest-", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as out, source.open("rb") as src:
+            shutil.copyfileobj(src, out, HASH_CHUNK)
+            out.flush()
+            os.fsync(out.fileno())
+        if sha256_file(Path(tmp)) != content_hash:
+            raise OSError("the file changed while it was being copied")
+        os.chmod(tmp, stat.S_IRUSR | stat.S_IRGRP | stat.S_IROTH)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return relative
+
+
+def get_or_create_collection(name: str) -> Collection:
+    collection = db.session.scalar(select(Collection).where(Collection.name == name))
+    if collection is None:
+        collection = Collection(name=name)
+        db.session.add(collection)
+        db.session.flush()
+    return collection
+
+
+def _store_metadata_rows(collection_id: int, source: Path, rows: list[MetadataRow]) -> list[int]:
+    """Upsert rows by record key (a later CSV refines an earlier one); returns their ids."""
+    ids = []
+    existing = {
+        record.record_key: record
+        for record in db.session.scalars(select(MetadataRecord).where(MetadataRecord.collection_id == collection_id))
+    }
+    for row in rows:
+        record = existing.get(row.record_key)
+        if record is None:
+            record = MetadataRecord(collection_id=collection_id, record_key=row.record_key)
+            db.session.add(record)
+            existing[row.record_key] = record
+        record.accession = row.accession
+        record.file_name = row.file_name
+        record.fields = row.fields
+        record.source_file = str(source)
+        record.row_number = row.row_number
+        db.session.flush()
+        ids.append(record.id)
+    return ids
+
+
+def _apply_metadata(card: Card, record: MetadataRecord) -> None:
+    record.card_id = card.id
+    card.source_metadata = {**(card.source_metadata or {}), **record.fields}
+    if record.accession:
+        card.accession = record.accession
+
+
+def _link_metadata(collection_id: int) -> None:
+    """Attach unlinked metadata records of the collection to the cards they name."""
+    unlinked = list(
+        db.session.scalars(
+            select(MetadataRecord).where(MetadataRecord.collection_id == collection_id, MetadataRecord.card_id.is_(None))
+        )
+    )
+    if not unlinked:
+        return
+    by_key: dict[str, Card] = {}
+    for card in db.session.scalars(select(Card).where(Card.collection_id == collection_id)):
+        for key in card_keys(card.source_name):
+            by_key.setdefault(key, card)
+    for record in unlinked:
+        row = MetadataRow(record.row_number, record.accession, record.file_name, record.fields)
+        card = next((by_key[k] for k in row_keys(row) if k in by_key), None)
+        if card is not None:
+            _apply_metadata(card, record)
+
+
+def ingest(
+    paths: Iterable[str | Path],
+    *,
+    data_dir: Path,
+    collection_name: str = DEFAULT_COLLECTION,
+    metadata_csv: Path | None = None,
+    max_pixels: int,
+    on_start: Callable[[int], None] | None = None,
+    on_file: Callable[[Path], None] | None = None,
+) -> IngestReport:
+    report = IngestReport()
+    collection = get_or_create_collection(collection_name)
+    collection_id = collection.id
+    db.session.commit()
+
+    metadata_ids: list[int] = []
+    if metadata_csv is not None:
+        metadata_ids = _ingest_metadata(collection_id, metadata_csv, report)
+
+    files = list(discover_files(paths, report))
+    if on_start is not None:
+        on_start(len(files))
+    for path in files:
+        _ingest_one(path, collection_id, data_dir, max_pixels, report)
+        if on_file is not None:
+            on_file(path)
+
+    _link_metadata(collection_id)
+    db.session.commit()
+    if metadata_ids:
+        records = db.session.scalars(select(MetadataRecord).where(MetadataRecord.id.in_(metadata_ids))).all()
+        report.metadata["matched"] = sum(1 for r in records if r.card_id is not None)
+        unmatched = sorted((r for r in records if r.card_id is None), key=lambda r: r.row_number)
+        report.metadata["unmatched"] = len(unmatched)
+        for record in unmatched:
+            label = f"accession {record.accession}" if record.accession else f"file {record.file_name}"
+            report.rejected.append(
+                {
+                    "path": f"{metadata_csv}:{record.row_number}",
+                    "reason": f"metadata row {record.row_number} ({label}) matches no ingested image; "
+                    "the row is kept and will attach when the image is ingested",
+                }
+            )
+    return report
+
+
+def _ingest_metadata(collection_id: int, metadata_csv: Path, report: IngestReport) -> list[int]:
+    try:
+        parsed = read_metadata(metadata_csv)
+    except (OSError, MetadataFormatError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        report.rejected.append({"path": str(metadata_csv), "reason": f"cannot read metadata: {reason}"})
+        return []
+    for number, reason in parsed.errors:
+        report.rejected.append({"path": f"{metadata_csv}:{number}", "reason": f"malformed metadata row: {reason}"})
+    report.metadata["rows"] = len(parsed.rows)
+    ids = _store_metadata_rows(collection_id, metadata_csv, parsed.rows)
+    db.session.commit()
+    return ids
+
+
+def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int, report: IngestReport) -> None:
+    try:
+        if path.is_symlink() and not path.exists():
+            raise ImageReadError("broken symbolic link")
+        if not os.access(path, os.R_OK):
+            raise ImageReadError("permission denied")
+        content_hash = sha256_file(path)
+    except ImageReadError as exc:
+        report.rejected.append({"path": str(path), "reason": str(exc)})
+        return
+    except OSError as exc:
+        report.rejected.append({"path": str(path), "reason": f"unreadable: {exc.strerror or exc}"})
+        return
+
+    existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
+    if existing is not None:
+        report.duplicates.append(_duplicate_entry(path, existing))
+        return
+    try:
+        info = probe_image(path, max_pixels=max_pixels)
+        relative = store_original(path, content_hash, data_dir)
+    except ImageReadError as exc:
+        report.rejected.append({"path": str(path), "reason": str(exc)})
+        return
+    except OSError as exc:
+        report.rejected.append({"path": str(path), "reason": f"cannot store: {exc.strerror or exc}"})
+        return
+
+    card = Card(
+        collection_id=collection_id,
+        content_hash=content_hash,
+        stored_path=str(relative),
+        source_name=path.name,
+        source_path=str(path.resolve()),
+        width=info.width,
+        height=info.height,
+        image_format=info.format,
+        byte_size=info.byte_size,
+        source_metadata={},
+    )
+    db.session.add(card)
+    try:
+        db.session.flush()
+        for record in db.session.scalars(
+            select(MetadataRecord).where(
+                MetadataRecord.collection_id == collection_id,
+                MetadataRecord.record_key.in_(card_keys(card.source_name)),
+            )
+        ):
+            _apply_metadata(card, record)
+        db.session.commit()
+    except IntegrityError:
+        # Another ingest stored the same bytes between our check and our commit.
+        db.session.rollback()
+        existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
+        if existing is None:
+            raise
+        report.duplicates.append(_duplicate_entry(path, existing))
+        return
+    report.ingested.append({"id": card.id, "path": str(path), "content_hash": content_hash})
+
+
+def _duplicate_entry(path: Path, existing: Card) -> dict[str, Any]:
+    return {
+        "path": str(path),
+        "card_id": existing.id,
+        "reason": f"same content as card {existing.id} ({existing.source_name}); nothing to do",
+    }
+
+
+@click.command("ingest")
+@click.argument("paths", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--metadata", "metadata_csv", type=click.Path(path_type=Path),
+              help="Museum metadata CSV (eMuseum export, tidy or transposed, or a plain CSV keyed by "
+                   "file_name or accession).")
+@click.option("--collection", "collection_name", default=DEFAULT_COLLECTION, show_default=True,
+              help="Collection the cards belong to (created if new).")
+@click.option("--json", "as_json", is_flag=True, help="Print the report as one JSON document.")
+@with_appcontext
+def ingest_command(paths: tuple[Path, ...], metadata_csv: Path | None, collection_name: str, as_json: bool) -> None:
+    """Copy scans (files or folders, recursively: jpg, png, tif, jps) into the catalogue.
+
+    Duplicates by content are a no-op; rerunning an interrupted ingest carries on where it
+    stopped. Exits 1 when any file or metadata row was rejected (each is listed with a reason).
+    """
+    from .console import data_dir, emit_json, ensure_database, progress_bar, say
+
+    if not paths and metadata_csv is None:
+        raise click.UsageError("give at least one PATH or --metadata CSV")
+    ensure_database()
+    with progress_bar("ingest", enabled=not as_json) as progress:
+        report = ingest(
+            paths, data_dir=data_dir(), collection_name=collection_name, metadata_csv=metadata_csv,
+            max_pixels=int(current_app.config["KEYSTONE_MAX_PIXELS"]),
+            on_start=progress.start, on_file=progress.advance,
+        )
+    if as_json:
+        emit_json(report.as_json())
+    else:
+        say(f"ingested {len(report.ingested)}, duplicates {len(report.duplicates)}, "
+            f"rejected {len(report.rejected)}", as_json)
+        for entry in report.duplicates:
+            say(f"  duplicate  {entry['path']}: {entry['reason']}", as_json)
+        for entry in report.rejected:
+            say(f"  rejected   {entry['path']}: {entry['reason']}", as_json)
+        if metadata_csv is not None:
+            meta = report.metadata
+            say(f"metadata rows {meta['rows']}: matched {meta['matched']}, unmatched {meta['unmatched']}", as_json)
+    if report.rejected:
+        raise SystemExit(1)

@@ -1,0 +1,325 @@
+"""The driver: choose the cards a stage still owes, run them through an executor, write results.
+
+Workers only compute and return :class:`pipeline.records.StageRecord`; this module alone
+writes to the database, in batches, so a crash costs only the cards in flight and the
+uncommitted batch. Rerunning skips every card that already has a ``done`` or ``skipped``
+result for the same stage and parameters; ``failed`` cards are retried.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import click
+from flask.cli import with_appcontext
+from sqlalchemy import exists, func, select
+from sqlalchemy.orm import selectinload
+
+from pipeline.filter import FilterParams
+from pipeline.records import STAGES, CardTask, StageRecord, param_hash
+from pipeline.runner import RestartingProcessPool, run_tasks
+from pipeline.stages import filter_task
+
+from .db import db
+from .models import CARD_STATES, Card, StageResult
+
+WRITE_BATCH = 50
+WRITE_INTERVAL_S = 2.0
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    name: str
+    params: Any
+    task: Callable[[CardTask], StageRecord]
+    # The card states this stage applies to; other cards are not its business.
+    eligible_states: tuple[str, ...]
+
+
+def available_stages() -> dict[str, StageSpec]:
+    params = FilterParams()
+    return {
+        "filter": StageSpec(
+            name="filter",
+            params=params,
+            task=functools.partial(filter_task, params=params),
+            eligible_states=("ingested", "pass", "review", "culled", "failed"),
+        ),
+    }
+
+
+@dataclass
+class StageReport:
+    stage: str
+    param_hash: str
+    processed: int = 0
+    skipped_existing: int = 0
+    done: int = 0
+    failed: int = 0
+    outcomes: dict[str, int] = field(default_factory=dict)
+    failures: list[dict[str, Any]] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "stage": self.stage,
+            "param_hash": self.param_hash,
+            "processed": self.processed,
+            "already_done": self.skipped_existing,
+            "done": self.done,
+            "failed": self.failed,
+            "outcomes": self.outcomes,
+            "failures": self.failures,
+            "seconds": round(self.seconds, 3),
+            "cards_per_second": round(self.processed / self.seconds, 3) if self.seconds > 0 else None,
+        }
+
+
+def card_work_dir(data_dir: Path, content_hash: str, stage: str, phash: str) -> Path:
+    """Artifacts are keyed by card content and stage parameters, never by database id."""
+    return data_dir / "derived" / content_hash[:2] / content_hash / stage / phash
+
+
+@contextmanager
+def make_executor(kind: str, workers: int, scheduler: str | None) -> Iterator[Executor | None]:
+    if kind == "dask":
+        try:
+            from distributed import Client
+        except ImportError as exc:
+            raise RuntimeError(
+                "the dask executor needs dask.distributed: pip install 'dask[distributed]'"
+            ) from exc
+        client = Client(scheduler) if scheduler else Client(n_workers=workers, threads_per_worker=1, processes=True)
+        try:
+            yield client.get_executor()
+        finally:
+            client.close()
+    elif kind == "local":
+        if workers <= 1:
+            yield None
+            return
+        with RestartingProcessPool(workers) as pool:
+            yield pool
+    else:
+        raise ValueError(f"unknown executor {kind!r}; expected local or dask")
+
+
+def pending_cards(spec: StageSpec, phash: str) -> tuple[list[Card], int]:
+    """Cards that still need ``spec`` with these parameters, and how many are already finished."""
+    finished = exists().where(
+        StageResult.card_id == Card.id,
+        StageResult.stage == spec.name,
+        StageResult.param_hash == phash,
+        StageResult.status.in_(("done", "skipped")),
+    )
+    eligible = Card.state.in_(spec.eligible_states)
+    todo = list(db.session.scalars(select(Card).where(eligible, ~finished).order_by(Card.id)))
+    already = db.session.scalar(select(func.count()).select_from(Card).where(eligible, finished)) or 0
+    return todo, already
+
+
+def run_stage(
+    spec: StageSpec,
+    *,
+    data_dir: Path,
+    executor: Executor | None,
+    on_start: Callable[[int], None] | None = None,
+    on_record: Callable[[StageRecord], None] | None = None,
+) -> StageReport:
+    phash = param_hash(spec.params)
+    report = StageReport(stage=spec.name, param_hash=phash)
+    cards, report.skipped_existing = pending_cards(spec, phash)
+    tasks = [
+        CardTask(
+            card_id=card.id,
+            content_hash=card.content_hash,
+            image_path=str(data_dir / card.stored_path),
+            work_dir=str(card_work_dir(data_dir, card.content_hash, spec.name, phash)),
+            data_dir=str(data_dir),
+        )
+        for card in cards
+    ]
+    db.session.commit()  # release the read transaction while workers compute
+    if on_start is not None:
+        on_start(len(tasks))
+
+    clock = time.perf_counter()
+    batch: list[StageRecord] = []
+    last_write = time.monotonic()
+    for record in run_tasks(spec.task, tasks, executor, stage=spec.name, param_hash=phash):
+        batch.append(record)
+        _count(report, record)
+        if on_record is not None:
+            on_record(record)
+        if len(batch) >= WRITE_BATCH or time.monotonic() - last_write > WRITE_INTERVAL_S:
+            write_records(batch)
+            batch, last_write = [], time.monotonic()
+    if batch:
+        write_records(batch)
+    report.seconds = time.perf_counter() - clock
+    return report
+
+
+def _count(report: StageReport, record: StageRecord) -> None:
+    report.processed += 1
+    if record.status == "failed":
+        report.failed += 1
+        report.failures.append({"card_id": record.card_id, "reason": record.reason})
+    else:
+        report.done += 1
+        if record.outcome:
+            report.outcomes[record.outcome] = report.outcomes.get(record.outcome, 0) + 1
+
+
+def write_records(records: list[StageRecord]) -> None:
+    """Upsert results (one row per card, stage and parameters) and update card states."""
+    existing = {
+        (row.card_id, row.stage, row.param_hash): row
+        for row in db.session.scalars(
+            select(StageResult).where(StageResult.card_id.in_({r.card_id for r in records}))
+        )
+    }
+    cards = {card.id: card for card in db.session.scalars(select(Card).where(Card.id.in_({r.card_id for r in records})))}
+    for record in records:
+        row = existing.get((record.card_id, record.stage, record.param_hash))
+        if row is None:
+            row = StageResult(card_id=record.card_id, stage=record.stage, param_hash=record.param_hash)
+            db.session.add(row)
+        row.status = record.status
+        row.outcome = record.outcome
+        row.reason = record.reason
+        row.metrics = record.metrics
+        row.artifacts = record.artifacts
+        row.started_at = datetime.fromtimestamp(record.started_at, tz=timezone.utc) if record.started_at else None
+        row.seconds = record.seconds
+        row.code_version = record.code_version
+        card = cards.get(record.card_id)
+        if card is not None and record.stage == "filter":
+            card.state = record.outcome if record.status == "done" and record.outcome else "failed"
+    db.session.commit()
+
+
+DOWNSTREAM_OF_CULL = ("judge", "crop", "rectify", "disparity", "grade", "review", "views")
+
+
+def card_stage_statuses(card: Card, only_stage: str | None = None) -> dict[str, dict[str, Any]]:
+    """The stage status map of ``keystone cards --json``: every stage, ``pending`` if not run."""
+    latest = card.latest_results()
+    statuses: dict[str, dict[str, Any]] = {}
+    for stage in STAGES if only_stage is None else (only_stage,):
+        result = latest.get(stage)
+        if result is not None:
+            statuses[stage] = result.as_status()
+        elif card.state == "culled" and stage in DOWNSTREAM_OF_CULL:
+            filter_reason = latest["filter"].reason if "filter" in latest else "culled"
+            statuses[stage] = {
+                "status": "skipped",
+                "outcome": None,
+                "reason": f"not needed: the card was culled by the filter ({filter_reason})",
+                "metrics": {},
+            }
+        else:
+            statuses[stage] = {"status": "pending", "outcome": None, "reason": None, "metrics": {}}
+    return statuses
+
+
+@click.command("run")
+@click.option("--stages", default="filter", show_default=True,
+              help="Comma-separated stages to run, in order. Available now: filter.")
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
+              help="Worker processes (1 runs inline on one core).")
+@click.option("--executor", "executor_kind", type=click.Choice(["local", "dask"]), default="local",
+              show_default=True, help="Where per-card work runs: a local process pool or a dask cluster.")
+@click.option("--scheduler", help="dask scheduler address (with --executor dask); default a local cluster.")
+@click.option("--json", "as_json", is_flag=True, help="Print the run report as one JSON document.")
+@with_appcontext
+def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | None, as_json: bool) -> None:
+    """Run pipeline stages over the catalogue, skipping cards already done with the same parameters.
+
+    Resumable: interrupt it at any time and run it again; only unfinished cards are processed.
+    Cards that failed are retried. Exits 1 if any card failed.
+    """
+    from .console import data_dir, emit_json, ensure_database, progress_bar, say
+
+    specs = available_stages()
+    names = [name.strip() for name in stages.split(",") if name.strip()]
+    unknown = [name for name in names if name not in specs]
+    if unknown or not names:
+        raise click.BadParameter(
+            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(specs)}",
+            param_hint="--stages",
+        )
+    ensure_database()
+    reports = []
+    try:
+        with make_executor(executor_kind, workers, scheduler) as executor:
+            for name in names:
+                with progress_bar(name, enabled=not as_json) as progress:
+                    spec = specs[name]
+                    report = run_stage(spec, data_dir=data_dir(), executor=executor,
+                                       on_start=progress.start, on_record=progress.advance)
+                reports.append(report)
+                if not as_json:
+                    outcomes = ", ".join(f"{k} {v}" for k, v in sorted(report.outcomes.items())) or "-"
+                    say(f"{name}: processed {report.processed} in {report.seconds:.1f} s "
+                        f"(already done {report.skipped_existing}; outcomes: {outcomes}; failed {report.failed})",
+                        as_json)
+                    for failure in report.failures:
+                        say(f"  card {failure['card_id']}: {failure['reason']}", as_json)
+    except RuntimeError as exc:
+        raise click.ClickException(str(exc)) from exc
+    if as_json:
+        emit_json({"stages": [report.as_json() for report in reports],
+                   "workers": workers, "executor": executor_kind})
+    if any(report.failed for report in reports):
+        raise SystemExit(1)
+
+
+@click.command("cards")
+@click.option("--stage", type=click.Choice(list(STAGES)),
+              help="Show only this stage's status.")
+@click.option("--state", type=click.Choice(list(CARD_STATES)), help="Only cards in this state.")
+@click.option("--collection", "collection_name", help="Only cards of this collection.")
+@click.option("--json", "as_json", is_flag=True, help="Print the cards as one JSON document.")
+@with_appcontext
+def cards_command(stage: str | None, state: str | None, collection_name: str | None, as_json: bool) -> None:
+    """List cards with their stage statuses."""
+    from .console import emit_json, ensure_database
+    from .db import read_only
+    from .models import Collection
+
+    ensure_database()
+    with read_only():
+        query = select(Card).order_by(Card.id).options(selectinload(Card.stage_results))
+        if state:
+            query = query.where(Card.state == state)
+        if collection_name:
+            query = query.join(Collection).where(Collection.name == collection_name)
+        rows = [
+            {
+                "id": card.id,
+                "source": card.source_name,
+                "accession": card.accession,
+                "state": card.state,
+                "stages": card_stage_statuses(card, stage),
+            }
+            for card in db.session.scalars(query)
+        ]
+    if as_json:
+        emit_json({"cards": rows})
+        return
+    for row in rows:
+        summary = "  ".join(
+            f"{name}={info['outcome'] or info['status']}" for name, info in row["stages"].items()
+            if info["status"] != "pending"
+        )
+        click.echo(f"{row['id']:>6}  {row['state']:<8}  {row['source']:<48}  {summary}")
+    click.echo(f"{len(rows)} card(s)")

@@ -1,0 +1,117 @@
+"""Run a per-card task over many cards through any ``concurrent.futures.Executor``.
+
+The executor is a seam: a local process pool today, a distributed engine's executor (e.g.
+``dask.distributed.Client.get_executor()``) tomorrow. Tasks are submitted through a bounded
+window so a 250,000-card run holds only a few futures at a time, and results are yielded as
+they complete for the driver to write in batches.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Iterator
+import multiprocessing
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+from . import CODE_VERSION
+from .records import CardTask, StageRecord
+
+TaskFunction = Callable[[CardTask], StageRecord]
+
+
+def init_worker() -> None:
+    """Process-pool initializer: one OpenCV thread per worker, since we parallelise by card."""
+    import cv2
+
+    cv2.setNumThreads(1)
+
+
+class RestartingProcessPool(Executor):
+    """A process pool that replaces itself when a worker dies, so the rest of a batch goes on.
+
+    A dead worker breaks a ``ProcessPoolExecutor`` for good: every pending future fails with
+    ``BrokenProcessPool`` and every later ``submit`` raises. Here the futures in flight still
+    fail (the driver records them as ``worker_crashed`` and a rerun retries them), but the next
+    submit gets a fresh pool. ``forkserver`` workers start clean of the parent's threads.
+    """
+
+    def __init__(self, max_workers: int) -> None:
+        self._max_workers = max_workers
+        self._context = multiprocessing.get_context("forkserver")
+        self._pool = self._new_pool()
+        self.restarts = 0
+
+    def _new_pool(self) -> ProcessPoolExecutor:
+        return ProcessPoolExecutor(self._max_workers, mp_context=self._context, initializer=init_worker)
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future[Any]:
+        try:
+            return self._pool.submit(fn, *args, **kwargs)
+        except BrokenProcessPool:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = self._new_pool()
+            self.restarts += 1
+            return self._pool.submit(fn, *args, **kwargs)
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
+
+
+def run_tasks(
+    function: TaskFunction,
+    tasks: Iterable[CardTask],
+    executor: Executor | None = None,
+    *,
+    stage: str,
+    param_hash: str,
+    window: int = 16,
+) -> Iterator[StageRecord]:
+    """Yield one :class:`StageRecord` per task, in completion order.
+
+    With no executor the tasks run inline (one core, easiest to debug). A worker that dies
+    (a segfault in native code, the OOM killer) fails only its in-flight cards, recorded with
+    reason ``worker_crashed``; the caller may rerun them.
+    """
+    if executor is None:
+        for task in tasks:
+            yield function(task)
+        return
+
+    pending: dict[Future[StageRecord], CardTask] = {}
+    source = iter(tasks)
+    exhausted = False
+    while True:
+        while not exhausted and len(pending) < window:
+            task = next(source, None)
+            if task is None:
+                exhausted = True
+                break
+            try:
+                pending[executor.submit(function, task)] = task
+            except BrokenProcessPool:
+                yield _crashed(task, stage, param_hash)
+        if not pending:
+            return
+        done, _ = wait(pending, return_when=FIRST_COMPLETED)
+        for future in done:
+            task = pending.pop(future)
+            try:
+                yield future.result()
+            except BrokenProcessPool:
+                yield _crashed(task, stage, param_hash)
+            except Exception as exc:  # the function itself catches card errors; this is transport
+                yield StageRecord(
+                    card_id=task.card_id, stage=stage, param_hash=param_hash, status="failed",
+                    reason=f"executor_error: {type(exc).__name__}: {exc}", started_at=time.time(),
+                    code_version=CODE_VERSION,
+                )
+
+
+def _crashed(task: CardTask, stage: str, param_hash: str) -> StageRecord:
+    return StageRecord(
+        card_id=task.card_id, stage=stage, param_hash=param_hash, status="failed",
+        reason="worker_crashed: the worker process died while handling this card; rerun to retry",
+        started_at=time.time(), code_version=CODE_VERSION,
+    )

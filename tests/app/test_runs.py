@@ -1,0 +1,149 @@
+"""``keystone run`` and ``keystone cards``: the filter over the catalogue, resumable, per-card failures."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+from sqlalchemy import delete, func, select
+
+from app.cli import cli
+from app.db import db
+from app.models import Card, StageResult
+
+pytestmark = pytest.mark.both_databases
+
+
+def _mounted(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    gap = np.full((left.shape[0], 24, 3), (214, 200, 170), np.uint8)
+    return np.concatenate([left, gap, right], axis=1)
+
+
+@pytest.fixture
+def catalogue(tmp_path: Path, runner) -> Path:  # type: ignore[no-untyped-def]
+    from skimage import data
+
+    left, right, _ = data.stereo_motorcycle()
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    Image.fromarray(_mounted(left, right)).save(folder / "stereo.jpg", quality=92)
+    Image.fromarray(_mounted(right[:, ::-1], left[:, ::-1])).save(folder / "stereo_mirrored_scene.png")
+    astronaut = data.astronaut()[:400, :500]
+    coffee = np.ascontiguousarray(data.coffee()[:, :500])
+    Image.fromarray(_mounted(astronaut, coffee)).save(folder / "two_unrelated_photos.png")
+    result = runner.invoke(cli, ["ingest", str(folder), "--json"])
+    assert result.exit_code == 0, result.output
+    return folder
+
+
+def _cards(runner, *args: str) -> dict:  # type: ignore[no-untyped-def]
+    result = runner.invoke(cli, ["cards", "--json", *args])
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+def test_filter_routes_cards_and_cards_json_has_the_documented_shape(app, runner, catalogue):
+    result = runner.invoke(cli, ["run", "--stages", "filter", "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)["stages"][0]
+    assert report["stage"] == "filter" and report["processed"] == 3 and report["failed"] == 0
+
+    listing = _cards(runner)["cards"]
+    by_source = {card["source"]: card for card in listing}
+    assert set(by_source) == {"stereo.jpg", "stereo_mirrored_scene.png", "two_unrelated_photos.png"}
+    for card in listing:
+        assert set(card) >= {"id", "source", "accession", "stages"}
+        assert set(card["stages"]) == {"filter", "judge", "crop", "rectify", "disparity", "grade", "review", "views"}
+        assert set(card["stages"]["filter"]) >= {"status", "reason", "metrics"}
+    stereo = by_source["stereo.jpg"]["stages"]["filter"]
+    assert stereo["status"] == "done" and stereo["outcome"] == "pass"
+    assert stereo["metrics"]["good_match_fraction"] > 0.05
+    assert stereo["metrics"]["denominator"]
+    assert by_source["stereo_mirrored_scene.png"]["stages"]["filter"]["outcome"] == "pass"
+    unrelated = by_source["two_unrelated_photos.png"]["stages"]
+    assert unrelated["filter"]["outcome"] == "culled"
+    assert unrelated["rectify"]["status"] == "skipped" and "culled" in unrelated["rectify"]["reason"]
+    assert by_source["stereo.jpg"]["stages"]["rectify"]["status"] == "pending"
+
+    with app.app_context():
+        card = db.session.scalar(select(Card).where(Card.source_name == "stereo.jpg"))
+        assert card.state == "pass"
+        artifacts = card.latest_results()["filter"].artifacts
+        for name in ("left", "right"):
+            assert (Path(app.config["KEYSTONE_DATA_DIR"]) / artifacts[name]).is_file()
+
+
+def test_rerun_skips_finished_cards_and_changed_parameters_rerun(app, runner, catalogue, monkeypatch):
+    first = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"][0]
+    again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"][0]
+    assert (first["processed"], again["processed"], again["already_done"]) == (3, 0, 3)
+
+    from app import runs
+    from pipeline.filter import FilterParams
+
+    original = runs.available_stages
+
+    def stricter():  # type: ignore[no-untyped-def]
+        stages = original()
+        spec = stages["filter"]
+        params = FilterParams(review_fraction=0.9)
+        import functools
+
+        from pipeline.stages import filter_task
+
+        stages["filter"] = runs.StageSpec("filter", params, functools.partial(filter_task, params=params), spec.eligible_states)
+        return stages
+
+    monkeypatch.setattr(runs, "available_stages", stricter)
+    changed = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"][0]
+    assert changed["processed"] == 3 and changed["param_hash"] != first["param_hash"]
+    with app.app_context():
+        assert db.session.scalar(select(func.count()).select_from(StageResult)) == 6
+
+
+def test_process_pool_gives_the_same_results_as_inline(app, runner, catalogue, tmp_path):
+    runner.invoke(cli, ["run", "--json"])
+    inline = {c["source"]: c["stages"]["filter"]["metrics"]["good_matches"] for c in _cards(runner)["cards"]}
+    with app.app_context():
+        db.session.execute(delete(StageResult))
+        db.session.commit()
+    result = runner.invoke(cli, ["run", "--workers", "2", "--json"])
+    assert result.exit_code == 0, result.output
+    pooled = {c["source"]: c["stages"]["filter"]["metrics"]["good_matches"] for c in _cards(runner)["cards"]}
+    assert pooled == inline
+
+
+def test_a_broken_original_fails_with_a_typed_reason_and_the_rest_goes_on(app, runner, catalogue):
+    with app.app_context():
+        card = db.session.scalar(select(Card).where(Card.source_name == "stereo.jpg"))
+        stored = Path(app.config["KEYSTONE_DATA_DIR"]) / card.stored_path
+    os.chmod(stored, 0o644)
+    stored.write_bytes(stored.read_bytes()[:500])  # disk damage after ingest
+    result = runner.invoke(cli, ["run", "--json"])
+    assert result.exit_code == 1
+    report = json.loads(result.stdout)["stages"][0]
+    assert report["failed"] == 1 and report["done"] == 2
+    assert report["failures"][0]["reason"].startswith("unreadable_image:")
+    states = {c["source"]: c["stages"]["filter"]["status"] for c in _cards(runner, "--stage", "filter")["cards"]}
+    assert states == {"stereo.jpg": "failed", "stereo_mirrored_scene.png": "done", "two_unrelated_photos.png": "done"}
+    assert _cards(runner, "--state", "failed")["cards"][0]["source"] == "stereo.jpg"
+
+
+def test_unknown_stage_is_a_usage_error(runner):
+    result = runner.invoke(cli, ["run", "--stages", "filter,teleport"])
+    assert result.exit_code == 2
+    assert "teleport" in result.output and "available: filter" in result.output
+
+
+def test_dask_executor_without_dask_says_how_to_get_it(runner):
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        result = runner.invoke(cli, ["run", "--executor", "dask"])
+        assert result.exit_code == 1 and "pip install 'dask[distributed]'" in result.output
+    else:
+        pytest.skip("dask.distributed is installed")

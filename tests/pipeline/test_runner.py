@@ -1,0 +1,68 @@
+"""The executor seam: inline and process-pool runs give the same records; errors stay per card."""
+
+from __future__ import annotations
+
+import functools
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass
+
+from pipeline.records import CardTask, StageRecord, param_hash
+from pipeline.runner import RestartingProcessPool, run_tasks
+
+
+def _square_task(task: CardTask) -> StageRecord:
+    return StageRecord(card_id=task.card_id, stage="test", param_hash="p", status="done",
+                       metrics={"square": task.card_id ** 2})
+
+
+def _crash_on_three(task: CardTask) -> StageRecord:
+    if task.card_id == 3:
+        os._exit(1)  # a worker dying in native code
+    return _square_task(task)
+
+
+def _tasks(n: int) -> list[CardTask]:
+    return [CardTask(card_id=i, content_hash=f"{i:064x}", image_path="/nonexistent", work_dir="/tmp", data_dir="/tmp")
+            for i in range(n)]
+
+
+def test_inline_and_pools_agree():
+    inline = sorted((r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), stage="test", param_hash="p"))
+    with ThreadPoolExecutor(3) as threads:
+        threaded = sorted((r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), threads, stage="test", param_hash="p", window=4))
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("forkserver")) as pool:
+        pooled = sorted((r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), pool, stage="test", param_hash="p"))
+    assert inline == threaded == pooled == [(i, i * i) for i in range(20)]
+
+
+def test_a_dead_worker_fails_only_cards_in_flight_and_the_batch_goes_on():
+    with RestartingProcessPool(1) as pool:
+        records = list(run_tasks(_crash_on_three, _tasks(6), pool, stage="test", param_hash="p", window=1))
+        assert pool.restarts == 1
+    by_card = {r.card_id: r for r in records}
+    assert set(by_card) == set(range(6))
+    assert by_card[3].status == "failed" and by_card[3].reason.startswith("worker_crashed")
+    assert all(by_card[i].status == "done" for i in (0, 1, 2, 4, 5))
+
+
+def test_a_plain_pool_that_breaks_fails_the_rest_with_a_reason():
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("forkserver")) as pool:
+        records = list(run_tasks(_crash_on_three, _tasks(6), pool, stage="test", param_hash="p", window=1))
+    by_card = {r.card_id: r for r in records}
+    assert set(by_card) == set(range(6))
+    assert [by_card[i].status for i in range(6)] == ["done"] * 3 + ["failed"] * 3
+
+
+@dataclass(frozen=True)
+class _Params:
+    ratio: float = 0.7
+    nested: tuple[int, int] = (1, 2)
+
+
+def test_param_hash_is_stable_and_sensitive():
+    assert param_hash(_Params()) == param_hash(_Params())
+    assert param_hash(_Params()) != param_hash(_Params(ratio=0.8))
+    assert len(param_hash(_Params())) == 16
+    assert functools.partial(_square_task)  # task functions must be picklable top-level callables

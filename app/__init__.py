@@ -1,0 +1,41 @@
+"""Keystone's Flask shell: the app factory binds extensions and blueprints late."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from flask import Flask
+
+
+def create_app(test_config: dict[str, Any] | None = None, instance_path: str | os.PathLike[str] | None = None) -> Flask:
+    instance_path = instance_path or os.environ.get("KEYSTONE_INSTANCE_PATH")
+    app = Flask(
+        __name__,
+        instance_path=str(Path(instance_path).resolve()) if instance_path else None,
+        instance_relative_config=True,
+    )
+    Path(app.instance_path).mkdir(parents=True, exist_ok=True)
+
+    from .config import config_from_environment
+
+    app.config.from_mapping(config_from_environment(app.instance_path))
+    if test_config is not None:
+        app.config.from_mapping(test_config)
+    if app.config["SQLALCHEMY_DATABASE_URI"].startswith("sqlite"):
+        app.config.setdefault("SQLALCHEMY_ENGINE_OPTIONS", {"connect_args": {"timeout": 30}})
+
+    from .db import db
+    from .extensions import csrf, login_manager
+
+    db.init_app(app)
+    csrf.init_app(app)
+    login_manager.init_app(app)
+
+    from . import auth, catalog, security
+
+    app.register_blueprint(auth.bp)
+    app.register_blueprint(catalog.bp)
+    security.init_app(app)
+    return app

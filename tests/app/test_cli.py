@@ -1,0 +1,63 @@
+"""The ``keystone`` console command: installed entry point, --help everywhere, init and users."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+
+import click
+import pytest
+
+from app.cli import cli
+
+pytestmark = pytest.mark.both_databases
+
+
+def _all_commands(group: click.Group, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    found = []
+    for name, command in sorted(group.commands.items()):
+        found.append((*prefix, name))
+        if isinstance(command, click.Group):
+            found.extend(_all_commands(command, (*prefix, name)))
+    return found
+
+
+def test_installed_entry_point_runs(tmp_path):
+    env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(tmp_path / "instance")}
+    keystone = shutil.which("keystone")
+    command = [keystone] if keystone else [sys.executable, "-m", "app"]
+    out = subprocess.run([*command, "--help"], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    for name in ("demo", "ingest", "run", "cards", "bench", "serve", "init", "users"):
+        assert name in out.stdout
+
+
+def test_every_command_has_help(runner):
+    commands = _all_commands(cli)
+    assert ("bench", "filter") in commands and ("users", "add") in commands
+    for path in commands:
+        result = runner.invoke(cli, [*path, "--help"])
+        assert result.exit_code == 0, (path, result.output)
+        assert "Usage:" in result.output
+
+
+def test_init_reports_json_and_is_idempotent(app, runner):
+    result = runner.invoke(cli, ["init", "--json"])
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.stdout)
+    assert document["revision"] == "0001" and document["migrated"] is False
+    assert "password" not in document["database"]
+
+
+def test_users_add_and_list(runner):
+    result = runner.invoke(cli, ["users", "add", "ada", "--role", "curator", "--role", "exporter", "--password", "long enough pw"])
+    assert result.exit_code == 0, result.output
+    again = runner.invoke(cli, ["users", "add", "ada", "--role", "curator", "--password", "long enough pw"])
+    assert again.exit_code == 1 and "already exists" in again.output
+    short = runner.invoke(cli, ["users", "add", "bob", "--role", "admin", "--password", "short"])
+    assert short.exit_code == 2
+    listing = json.loads(runner.invoke(cli, ["users", "list", "--json"]).stdout)
+    assert listing == {"people": [{"id": 1, "username": "ada", "roles": ["curator", "exporter"], "active": True}]}

@@ -1,0 +1,43 @@
+"""``keystone demo --no-serve`` builds the demo collection end to end on embedded SQLite."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from pathlib import Path
+
+from click.testing import CliRunner
+
+from app.cli import cli
+
+
+def test_demo_builds_routes_and_is_rerunnable(tmp_path: Path, monkeypatch):
+    monkeypatch.setenv("KEYSTONE_INSTANCE_PATH", str(tmp_path / "default-instance"))
+    monkeypatch.setenv("KEYSTONE_DATABASE_URL", "postgresql+psycopg://nobody@/ignored")  # the demo ignores it
+    folder = tmp_path / "demo"
+    runner = CliRunner()
+    result = runner.invoke(cli, ["demo", "--no-serve", "--dir", str(folder), "--workers", "2"])
+    assert result.exit_code == 0, result.output
+    assert "routed unexpectedly" not in result.output
+    assert (folder / "keystone.sqlite3").is_file()
+    with sqlite3.connect(folder / "keystone.sqlite3") as connection:
+        states = dict(connection.execute("SELECT source_name, state FROM cards").fetchall())
+        people = {row[0] for row in connection.execute("SELECT username FROM people")}
+    assert len(states) == 11
+    assert all(state == "pass" for name, state in states.items() if "motorcycle" in name)
+    assert states["demo_back_01.jpg"] in ("culled", "review")  # never passed as a stereo pair
+    assert states["demo_mono_02.jpg"] in ("culled", "review")
+    assert states["demo_upside_down_01.jpg"] == "pass" and states["demo_inverted_01.jpg"] == "pass"
+    assert people == {"admin", "curator", "exporter", "annotator"}
+    logins = (folder / "demo-logins.txt").read_text()
+
+    again = runner.invoke(cli, ["demo", "--no-serve", "--dir", str(folder)])
+    assert again.exit_code == 0, again.output
+    assert "ingested 0 (duplicates 11" in again.output
+    assert "filter: processed 0" in again.output
+    assert (folder / "demo-logins.txt").read_text() == logins
+
+    listing = runner.invoke(cli, ["cards", "--json"], env={"KEYSTONE_DATABASE_URL": f"sqlite:///{folder / 'keystone.sqlite3'}",
+                                                            "KEYSTONE_DATA_DIR": str(folder / "data")})
+    assert listing.exit_code == 0, listing.output
+    assert len(json.loads(listing.stdout)["cards"]) == 11

@@ -43,6 +43,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
+from .contracts import check_image
 from .errors import InvalidInputError
 from .split import CardSplit, SplitParams, crop_halves, split_card
 
@@ -208,17 +209,6 @@ def consistent_matches(offsets: np.ndarray, params: FilterParams) -> int:
     return int(np.count_nonzero(agree))
 
 
-def _check_half(name: str, half: np.ndarray) -> None:
-    if not isinstance(half, np.ndarray):
-        raise InvalidInputError(f"Expected the {name} half as a numpy array, got {type(half).__name__}")
-    if half.ndim not in (2, 3) or (half.ndim == 3 and half.shape[2] != 3):
-        raise InvalidInputError(f"Expected the {name} half with shape (H, W) or (H, W, 3), got {half.shape}")
-    if half.dtype != np.uint8:
-        raise InvalidInputError(f"Expected the {name} half as uint8, got {half.dtype}")
-    if min(half.shape[:2]) < 1:
-        raise InvalidInputError(f"Expected a non-empty {name} half, got {half.shape[1]}x{half.shape[0]} px")
-
-
 def _prepare(half: np.ndarray, max_side: int) -> np.ndarray:
     """Grey ``uint8`` copy with the longer side at most ``max_side`` (area filter)."""
     grey = half if half.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(half), cv2.COLOR_RGB2GRAY)
@@ -239,8 +229,8 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
     keypoints (blank, textureless, too small for SIFT) gives fraction 0.0 and ``culled``, never
     NaN. Timings are wall-clock seconds on whatever OpenCV thread count is set.
     """
-    _check_half("left", left)
-    _check_half("right", right)
+    check_image(left, "the left half")
+    check_image(right, "the right half")
     grey_left, grey_right = _prepare(left, params.max_side), _prepare(right, params.max_side)
 
     clock = time.perf_counter()

@@ -54,6 +54,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import median_filter
 
+from .contracts import check_image
 from .errors import InvalidInputError
 
 Box = tuple[int, int, int, int]
@@ -125,15 +126,7 @@ class CardSplit:
 def check_card(card: np.ndarray) -> None:
     """Raise :class:`InvalidInputError` unless ``card`` is a uint8 ``(H, W)`` or ``(H, W, 3)``
     array of at least ``MIN_WIDTH`` x ``MIN_HEIGHT`` pixels."""
-    if not isinstance(card, np.ndarray):
-        raise InvalidInputError(f"Expected a numpy array, got {type(card).__name__}")
-    if card.ndim not in (2, 3) or (card.ndim == 3 and card.shape[2] != 3):
-        raise InvalidInputError(f"Expected shape (H, W) or (H, W, 3), got {card.shape}")
-    if card.dtype != np.uint8:
-        raise InvalidInputError(f"Expected dtype uint8, got {card.dtype}")
-    height, width = card.shape[:2]
-    if width < MIN_WIDTH or height < MIN_HEIGHT:
-        raise InvalidInputError(f"Expected a card of at least {MIN_WIDTH}x{MIN_HEIGHT} px (W x H), got {width}x{height}")
+    check_image(card, "a card", MIN_WIDTH, MIN_HEIGHT)
 
 
 # ---------------------------------------------------------------------------------- helpers

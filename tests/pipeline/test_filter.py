@@ -163,8 +163,8 @@ def test_blank_card_is_culled():
 @pytest.mark.parametrize(
     "left, message",
     [
-        (np.zeros((0, 100), np.uint8), "Expected a non-empty left half, got 100x0 px"),
-        (np.zeros((50, 50), np.float64), "Expected the left half as uint8, got float64"),
+        (np.zeros((0, 100), np.uint8), "Expected the left half of at least 1x1 px (W x H), got 100x0"),
+        (np.zeros((50, 50), np.float64), "Expected the left half with dtype uint8, got float64"),
         (np.zeros((50, 50, 2), np.uint8), "Expected the left half with shape (H, W) or (H, W, 3), got (50, 50, 2)"),
     ],
 )
@@ -177,7 +177,7 @@ def test_bad_halves_are_refused(left, message):
 def test_bad_cards_are_refused():
     with pytest.raises(InvalidInputError, match="Expected a card of at least 32x16"):
         filter_card(np.zeros((10, 10, 3), np.uint8))
-    with pytest.raises(InvalidInputError, match="Expected dtype uint8, got float32"):
+    with pytest.raises(InvalidInputError, match="Expected a card with dtype uint8, got float32"):
         filter_card(np.zeros((100, 200, 3), np.float32))
 
 

@@ -120,11 +120,11 @@ def test_smallest_cards_are_accepted(shape):
     [
         (np.zeros((15, 64), np.uint8), "Expected a card of at least 32x16 px (W x H), got 64x15"),
         (np.zeros((64, 31, 3), np.uint8), "Expected a card of at least 32x16 px (W x H), got 31x64"),
-        (np.zeros((100, 200), np.float32), "Expected dtype uint8, got float32"),
-        (np.zeros((100, 200), np.uint16), "Expected dtype uint8, got uint16"),
-        (np.zeros((100, 200, 4), np.uint8), "Expected shape (H, W) or (H, W, 3), got (100, 200, 4)"),
-        (np.zeros((2, 100, 200), np.uint8)[None], "Expected shape (H, W) or (H, W, 3), got (1, 2, 100, 200)"),
-        ([[0] * 64] * 64, "Expected a numpy array, got list"),
+        (np.zeros((100, 200), np.float32), "Expected a card with dtype uint8, got float32"),
+        (np.zeros((100, 200), np.uint16), "Expected a card with dtype uint8, got uint16"),
+        (np.zeros((100, 200, 4), np.uint8), "Expected a card with shape (H, W) or (H, W, 3), got (100, 200, 4)"),
+        (np.zeros((2, 100, 200), np.uint8)[None], "Expected a card with shape (H, W) or (H, W, 3), got (1, 2, 100, 200)"),
+        ([[0] * 64] * 64, "Expected a card as a numpy array, got list"),
     ],
 )
 def test_bad_cards_are_refused_at_the_door(card, message):

@@ -31,10 +31,21 @@ def _persistent_secret(instance_path: Path) -> str:
     return key
 
 
+def normalise_database_url(url: str) -> str:
+    """Use the psycopg 3 driver for plain ``postgresql://`` / ``postgres://`` URLs.
+
+    SQLAlchemy would otherwise pick psycopg2, which Keystone does not install.
+    """
+    for prefix in ("postgresql://", "postgres://"):
+        if url.startswith(prefix):
+            return "postgresql+psycopg://" + url[len(prefix):]
+    return url
+
+
 def config_from_environment(instance_path: str) -> dict[str, Any]:
     instance = Path(instance_path)
     env = os.environ
-    database_url = env.get("KEYSTONE_DATABASE_URL") or f"sqlite:///{instance / 'keystone.sqlite3'}"
+    database_url = normalise_database_url(env.get("KEYSTONE_DATABASE_URL") or f"sqlite:///{instance / 'keystone.sqlite3'}")
     return {
         "SQLALCHEMY_DATABASE_URI": database_url,
         "KEYSTONE_DATA_DIR": env.get("KEYSTONE_DATA_DIR") or str(instance / "data"),

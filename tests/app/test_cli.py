@@ -61,3 +61,31 @@ def test_users_add_and_list(runner):
     assert short.exit_code == 2
     listing = json.loads(runner.invoke(cli, ["users", "list", "--json"]).stdout)
     assert listing == {"people": [{"id": 1, "username": "ada", "roles": ["curator", "exporter"], "active": True}]}
+
+
+def test_plain_postgresql_urls_use_psycopg_3():
+    from app.config import normalise_database_url
+
+    assert normalise_database_url("postgresql://u@h/db") == "postgresql+psycopg://u@h/db"
+    assert normalise_database_url("postgres://u@h/db") == "postgresql+psycopg://u@h/db"
+    assert normalise_database_url("sqlite:////x.sqlite3") == "sqlite:////x.sqlite3"
+
+
+def test_database_url_from_the_environment(database, tmp_path, monkeypatch):
+    """KEYSTONE_DATABASE_URL picks the catalogue (plain postgresql:// URLs included)."""
+    from app import create_app
+    from app.db import db
+
+    url = database.replace("postgresql+psycopg://", "postgresql://")
+    monkeypatch.setenv("KEYSTONE_DATABASE_URL", url)
+    monkeypatch.setenv("KEYSTONE_INSTANCE_PATH", str(tmp_path / "instance"))
+    monkeypatch.setenv("KEYSTONE_DATA_DIR", str(tmp_path / "store"))
+    application = create_app()
+    result = application.test_cli_runner().invoke(cli, ["init", "--json"])
+    with application.app_context():
+        db.engine.dispose()  # close pooled connections now, not at garbage collection
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.stdout)
+    assert document["migrated"] is True and document["revision"] == "0001"
+    assert document["database"].split(":")[0] == ("postgresql+psycopg" if "postgresql" in url else "sqlite")
+    assert document["data_dir"] == str(tmp_path / "store")

@@ -9,8 +9,7 @@ loaded; to reference the person in a row you write, use ``current_user.id``.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
@@ -20,7 +19,6 @@ from flask_login import current_user, login_user, logout_user
 from flask_wtf import FlaskForm
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
 from werkzeug.security import check_password_hash, generate_password_hash
 from werkzeug.wrappers import Response
 from wtforms import HiddenField, PasswordField, SelectMultipleField, StringField, SubmitField
@@ -40,16 +38,6 @@ F = TypeVar("F", bound=Callable[..., Any])
 MIN_PASSWORD_LENGTH = 8  # as `keystone users add`
 # Checked against when the username is unknown, so a wrong name costs as long as a wrong password.
 _DUMMY_HASH = generate_password_hash("keystone-no-such-person")
-
-
-@contextmanager
-def reading() -> Iterator[Session]:
-    """A read-only transaction (see :func:`app.db.read_only`), or the one already open."""
-    if db.session().in_transaction():
-        yield db.session
-        return
-    with read_only() as session:
-        yield session
 
 
 @login_manager.user_loader
@@ -195,7 +183,7 @@ def login() -> Any:
     if current_user.is_authenticated and request.method == "GET":
         return redirect(safe_next(form.next.data) or home_url())
     if form.validate_on_submit():
-        with reading():
+        with read_only():
             person = db.session.scalar(select(Person).where(Person.username == form.username.data.strip()))
             if person is not None:
                 db.session.expunge(person)
@@ -238,6 +226,6 @@ def people() -> Any:
             return redirect(url_for("auth.people"))
     elif form.errors:
         status = 400
-    with reading():
+    with read_only():
         everyone = list(db.session.scalars(select(Person).order_by(Person.username)))
         return render_template("auth/people.html", form=form, people=everyone, roles=ROLES), status

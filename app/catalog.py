@@ -26,8 +26,8 @@ from pipeline.errors import ImageReadError
 from pipeline.io import read_image, write_jpeg
 from pipeline.records import STAGES
 
-from .auth import add_nav_link, reading, role_required
-from .db import db
+from .auth import add_nav_link, role_required
+from .db import db, read_only
 from .models import CARD_STATES, Card, Collection, MetadataRecord, StageResult
 
 bp = Blueprint("catalog", __name__)
@@ -181,7 +181,7 @@ def index() -> Any:
 def cards() -> Any:
     filters = parse_filters(request.args)
     per_page = int(current_app.config.get("CATALOG_PAGE_SIZE", 48))
-    with reading():
+    with read_only():
         collection = get_collection_or_404(filters.collection_id) if filters.collection_id else None
         conditions = filter_conditions(filters)
         total = db.session.scalar(select(func.count()).select_from(Card).where(*conditions)) or 0
@@ -210,7 +210,7 @@ def cards() -> Any:
 def card_page(card_id: int) -> Any:
     from .runs import card_stage_statuses
 
-    with reading():
+    with read_only():
         card = get_card_or_404(card_id)
         latest = card.latest_results()
         filter_result = latest.get("filter")
@@ -418,7 +418,7 @@ def ensure_previews(content_hash: str, stored_path: str) -> dict[str, Path]:
 
 
 def _preview_response(card_id: int, variant: str) -> Response:
-    with reading():
+    with read_only():
         card = get_card_or_404(card_id, with_results=False)
         content_hash, stored_path = card.content_hash, card.stored_path
     etag = preview_etag(content_hash, variant)
@@ -445,7 +445,7 @@ def thumb_image(card_id: int) -> Response:
 @role_required(*STAFF_ROLES)
 def artifact_image(card_id: int, stage: str, name: str) -> Response:
     """An image a stage recorded for this card, by the name in its latest result of that stage."""
-    with reading():
+    with read_only():
         card = get_card_or_404(card_id)
         result = card.latest_results().get(stage)
         if result is None:

@@ -77,9 +77,13 @@ def _begin_sqlite(connection: Any) -> None:
 def read_only(session: Session | None = None) -> Iterator[Session]:
     """Run reads in a deferred transaction (SQLite): hot read paths don't queue behind writers.
 
-    Must be entered before the session has begun a transaction; it is ended on exit.
+    The transaction is rolled back on exit. Inside a transaction that is already open, reads
+    simply join it (and leave it open): the mode of a begun transaction cannot change.
     """
-    session = session or db.session
+    session = session or db.session()
+    if session.in_transaction():
+        yield session
+        return
     session.connection(execution_options={READ_ONLY_OPTION: True})
     try:
         yield session

@@ -70,11 +70,13 @@ def serve_command(host: str, port: int, threads: int) -> None:
 def _register() -> None:
     from .bench import bench_group
     from .demo import demo_command
+    from .geometry import check_homographies_command
     from .ingest import ingest_command
     from .people import users_group
     from .runs import cards_command, run_command
 
-    for command in (ingest_command, run_command, cards_command, bench_group, demo_command, users_group):
+    for command in (ingest_command, run_command, cards_command, bench_group, demo_command, users_group,
+                    check_homographies_command):
         cli.add_command(command)
 
 

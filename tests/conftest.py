@@ -155,8 +155,9 @@ def runner(app):  # type: ignore[no-untyped-def]
     return app.test_cli_runner()
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def shared_data() -> Path:
+    """``$KEYSTONE_SHARED_DATA`` or ``../shared/data`` beside the checkout; skips when absent."""
     if not SHARED_DATA.is_dir():
         pytest.skip(f"{SHARED_DATA} not present: real-data tests need ../shared/data")
     return SHARED_DATA

@@ -1,8 +1,7 @@
-"""Fixtures for the pipeline tests: where the shared real test data lives."""
+"""Fixtures for the pipeline tests: real cards from ../shared/data (``shared_data`` is the root conftest's)."""
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -10,21 +9,6 @@ import numpy as np
 import pytest
 
 from pipeline.io import read_image
-
-
-def shared_data_path() -> Path:
-    """``$KEYSTONE_SHARED_DATA`` if set, else ``../shared/data`` next to the repository."""
-    override = os.environ.get("KEYSTONE_SHARED_DATA")
-    return Path(override) if override else Path(__file__).resolve().parents[3] / "shared" / "data"
-
-
-@pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """Path of the shared real test data; skips the test when it is absent."""
-    path = shared_data_path()
-    if not path.is_dir():
-        pytest.skip("../shared/data not present: real-data tests need the shared test data")
-    return path
 
 
 @pytest.fixture(scope="session")

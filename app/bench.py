@@ -40,3 +40,4 @@ def bench_filter(repeats: int, shared_data: Path | None, as_json: bool) -> None:
                    f"{row['match_seconds']:7.3f} {row['total_seconds']:7.3f}")
     click.echo(f"median total {document['median_total_seconds']:.3f} s per card "
                f"(target <= {document['target_seconds']} s, one core)")
+

@@ -75,6 +75,9 @@ def _register() -> None:
     from .people import users_group
     from .runs import cards_command, run_command
 
+    from .disparity_cli import bench_disparity_command
+
+    bench_group.add_command(bench_disparity_command)
     for command in (ingest_command, run_command, cards_command, bench_group, demo_command, users_group,
                     check_homographies_command):
         cli.add_command(command)

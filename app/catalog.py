@@ -214,11 +214,12 @@ def card_page(card_id: int) -> Any:
         card = get_card_or_404(card_id)
         latest = card.latest_results()
         filter_result = latest.get("filter")
+        rectify_result = latest.get("rectify")
         records = list(db.session.scalars(
             select(MetadataRecord).where(MetadataRecord.card_id == card.id).order_by(MetadataRecord.id)
         ))
         return render_template(
-            "catalog/card.html", card=card, filter_result=filter_result,
+            "catalog/card.html", card=card, filter_result=filter_result, rectify_result=rectify_result,
             filter_view=FilterView.of(card, filter_result) if filter_result is not None else None,
             statuses=card_stage_statuses(card), history=list(reversed(card.stage_results)), records=records,
         )

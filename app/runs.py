@@ -26,7 +26,8 @@ from sqlalchemy.orm import selectinload
 from pipeline.filter import FilterParams
 from pipeline.records import STAGES, CardTask, StageRecord, param_hash
 from pipeline.runner import RestartingProcessPool, run_tasks
-from pipeline.stages import filter_task
+from pipeline.rectify import RectifyParams
+from pipeline.stages import filter_task, rectify_task
 
 from .db import db
 from .models import CARD_STATES, Card, StageResult
@@ -42,16 +43,36 @@ class StageSpec:
     task: Callable[[CardTask], StageRecord]
     # The card states this stage applies to; other cards are not its business.
     eligible_states: tuple[str, ...]
+    # What earlier stages decided that this one needs, read from the card's latest results.
+    inputs: Callable[[Card], dict[str, Any]] | None = None
+
+
+def filter_boxes(card: Card) -> dict[str, Any]:
+    """The split boxes of the card's latest filter result (later: the crowd's approved crops)."""
+    result = card.latest_results().get("filter")
+    if result is None or result.status != "done":
+        return {}
+    return {"left_box": result.metrics.get("left_box"), "right_box": result.metrics.get("right_box"),
+            "filter_param_hash": result.param_hash}
 
 
 def available_stages() -> dict[str, StageSpec]:
-    params = FilterParams()
+    filter_params, rectify_params = FilterParams(), RectifyParams()
     return {
         "filter": StageSpec(
             name="filter",
-            params=params,
-            task=functools.partial(filter_task, params=params),
+            params=filter_params,
+            task=functools.partial(filter_task, params=filter_params),
             eligible_states=("ingested", "pass", "review", "culled", "failed"),
+        ),
+        # Cards the filter passed; cards in review wait for the crowd's judgement, and a
+        # culled card gets nothing.
+        "rectify": StageSpec(
+            name="rectify",
+            params=rectify_params,
+            task=functools.partial(rectify_task, params=rectify_params),
+            eligible_states=("pass",),
+            inputs=filter_boxes,
         ),
     }
 
@@ -121,7 +142,9 @@ def pending_cards(spec: StageSpec, phash: str) -> tuple[list[Card], int]:
         StageResult.status.in_(("done", "skipped")),
     )
     eligible = Card.state.in_(spec.eligible_states)
-    todo = list(db.session.scalars(select(Card).where(eligible, ~finished).order_by(Card.id)))
+    todo = list(db.session.scalars(
+        select(Card).where(eligible, ~finished).order_by(Card.id).options(selectinload(Card.stage_results))
+    ))
     already = db.session.scalar(select(func.count()).select_from(Card).where(eligible, finished)) or 0
     return todo, already
 
@@ -144,6 +167,7 @@ def run_stage(
             image_path=str(data_dir / card.stored_path),
             work_dir=str(card_work_dir(data_dir, card.content_hash, spec.name, phash)),
             data_dir=str(data_dir),
+            inputs=spec.inputs(card) if spec.inputs is not None else {},
         )
         for card in cards
     ]
@@ -232,8 +256,8 @@ def card_stage_statuses(card: Card, only_stage: str | None = None) -> dict[str, 
 
 
 @click.command("run")
-@click.option("--stages", default="filter", show_default=True,
-              help="Comma-separated stages to run, in order. Available now: filter.")
+@click.option("--stages", default="filter,rectify", show_default=True,
+              help="Comma-separated stages to run, in order. Available now: filter, rectify.")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
               help="Worker processes (1 runs inline on one core).")
 @click.option("--executor", "executor_kind", type=click.Choice(["local", "dask"]), default="local",

@@ -6,6 +6,7 @@ Array convention everywhere in the pipeline: ``uint8``, shape ``(H, W)`` for gre
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from dataclasses import dataclass
@@ -157,6 +158,20 @@ def write_jpeg(path: str | os.PathLike[str], image: np.ndarray, max_side: int | 
     try:
         with os.fdopen(fd, "wb") as handle:
             picture.save(handle, format="JPEG", quality=quality)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: str | os.PathLike[str], document: object) -> None:
+    """Write a JSON document atomically (sorted keys, no NaN: ``allow_nan=False`` raises)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            json.dump(document, handle, indent=2, sort_keys=True, allow_nan=False)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

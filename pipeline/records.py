@@ -32,7 +32,9 @@ class CardTask:
 
     ``image_path`` is the absolute path of the stored original (read-only);
     ``work_dir`` is an absolute folder the stage may write its artifacts into;
-    ``data_dir`` is the root that artifact paths in the record are made relative to.
+    ``data_dir`` is the root that artifact paths in the record are made relative to;
+    ``inputs`` carries what earlier stages decided that this one needs (e.g. the filter's
+    split boxes for rectification), as plain JSON values.
     """
 
     card_id: int
@@ -40,6 +42,7 @@ class CardTask:
     image_path: str
     work_dir: str
     data_dir: str
+    inputs: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -102,7 +102,8 @@ def test_rerun_skips_finished_cards_and_changed_parameters_rerun(app, runner, ca
     changed = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"][0]
     assert changed["processed"] == 3 and changed["param_hash"] != first["param_hash"]
     with app.app_context():
-        assert db.session.scalar(select(func.count()).select_from(StageResult)) == 6
+        filter_rows = select(func.count()).select_from(StageResult).where(StageResult.stage == "filter")
+        assert db.session.scalar(filter_rows) == 6
 
 
 def test_process_pool_gives_the_same_results_as_inline(app, runner, catalogue, tmp_path):
@@ -147,3 +148,44 @@ def test_dask_executor_without_dask_says_how_to_get_it(runner):
         assert result.exit_code == 1 and "pip install 'dask[distributed]'" in result.output
     else:
         pytest.skip("dask.distributed is installed")
+
+
+def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, runner, tmp_path):
+    import cv2
+    from skimage import data
+
+    left, right, _ = data.stereo_motorcycle()
+    height, width = right.shape[:2]
+    tilt = cv2.getRotationMatrix2D((width / 2, height / 2), 1.5, 1.0)
+    tilt[1, 2] += 6.0  # and 6 px down, as antique mounts are
+    tilted = cv2.warpAffine(right, tilt, (width, height), borderMode=cv2.BORDER_REFLECT)
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    Image.fromarray(_mounted(left, tilted)).save(folder / "tilted.png")
+    Image.fromarray(_mounted(left, right)).save(folder / "aligned.png")
+    assert runner.invoke(cli, ["ingest", str(folder)]).exit_code == 0
+    result = runner.invoke(cli, ["run", "--stages", "filter,rectify", "--json"])
+    assert result.exit_code == 0, result.output
+    reports = {r["stage"]: r for r in json.loads(result.stdout)["stages"]}
+    assert reports["rectify"]["processed"] == 2 and reports["rectify"]["failed"] == 0
+
+    stages = {c["source"]: c["stages"]["rectify"] for c in _cards(runner)["cards"]}
+    assert stages["aligned.png"]["status"] == "skipped"
+    assert stages["aligned.png"]["reason"].startswith("not needed: ")
+    tilted_result = stages["tilted.png"]
+    assert tilted_result["status"] == "done", tilted_result["reason"]
+    assert tilted_result["metrics"]["dy_p95"] < 1.5
+    assert abs(tilted_result["metrics"]["midline_angle"] - 90) < 1
+    assert tilted_result["metrics"]["disparity_min"] >= -0.5
+
+    with app.app_context():
+        card = db.session.scalar(select(Card).where(Card.source_name == "tilted.png"))
+        artifacts = card.latest_results()["rectify"].artifacts
+        data_dir = Path(app.config["KEYSTONE_DATA_DIR"])
+        camera = json.loads((data_dir / artifacts["rectification"]).read_text())
+        assert len(camera["H_l"]) == 3 and camera["left_box"] == card.latest_results()["filter"].metrics["left_box"]
+        with Image.open(data_dir / artifacts["left"]) as rect_left, Image.open(data_dir / artifacts["right"]) as rect_right:
+            assert rect_left.size == rect_right.size
+
+    again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
+    assert [r["processed"] for r in again] == [0, 0]

@@ -215,11 +215,13 @@ def card_page(card_id: int) -> Any:
         latest = card.latest_results()
         filter_result = latest.get("filter")
         rectify_result = latest.get("rectify")
+        disparity_result = latest.get("disparity")
         records = list(db.session.scalars(
             select(MetadataRecord).where(MetadataRecord.card_id == card.id).order_by(MetadataRecord.id)
         ))
         return render_template(
             "catalog/card.html", card=card, filter_result=filter_result, rectify_result=rectify_result,
+            disparity_result=disparity_result,
             filter_view=FilterView.of(card, filter_result) if filter_result is not None else None,
             statuses=card_stage_statuses(card), history=list(reversed(card.stage_results)), records=records,
         )

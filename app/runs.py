@@ -27,7 +27,7 @@ from pipeline.filter import FilterParams
 from pipeline.records import STAGES, CardTask, StageRecord, param_hash
 from pipeline.runner import RestartingProcessPool, run_tasks
 from pipeline.rectify import RectifyParams
-from pipeline.stages import filter_task, rectify_task
+from pipeline.stages import DisparityStageParams, disparity_task, filter_task, rectify_task
 
 from .db import db
 from .models import CARD_STATES, Card, StageResult
@@ -45,6 +45,8 @@ class StageSpec:
     eligible_states: tuple[str, ...]
     # What earlier stages decided that this one needs, read from the card's latest results.
     inputs: Callable[[Card], dict[str, Any]] | None = None
+    # The stage whose latest result must be done or skipped before this one can run.
+    requires: str | None = None
 
 
 def filter_boxes(card: Card) -> dict[str, Any]:
@@ -56,8 +58,22 @@ def filter_boxes(card: Card) -> dict[str, Any]:
             "filter_param_hash": result.param_hash}
 
 
+def rectified_pair(card: Card) -> dict[str, Any]:
+    """The rectified views, measured disparity range and focal length of the latest rectify result."""
+    result = card.latest_results().get("rectify")
+    if result is None or result.status not in ("done", "skipped"):
+        return {}
+    metrics = result.metrics
+    camera = metrics.get("K") or [[None]]
+    return {
+        "left": result.artifacts.get("left"), "right": result.artifacts.get("right"),
+        "disparity_range": [metrics.get("disparity_min"), metrics.get("disparity_max")],
+        "focal_px": camera[0][0], "rectify_param_hash": result.param_hash,
+    }
+
+
 def available_stages() -> dict[str, StageSpec]:
-    filter_params, rectify_params = FilterParams(), RectifyParams()
+    filter_params, rectify_params, disparity_params = FilterParams(), RectifyParams(), DisparityStageParams()
     return {
         "filter": StageSpec(
             name="filter",
@@ -73,6 +89,15 @@ def available_stages() -> dict[str, StageSpec]:
             task=functools.partial(rectify_task, params=rectify_params),
             eligible_states=("pass",),
             inputs=filter_boxes,
+        ),
+        # Cards whose rectification is done (or was not needed); a failed one gets no run.
+        "disparity": StageSpec(
+            name="disparity",
+            params=disparity_params,
+            task=functools.partial(disparity_task, params=disparity_params),
+            eligible_states=("pass",),
+            inputs=rectified_pair,
+            requires="rectify",
         ),
     }
 
@@ -142,6 +167,12 @@ def pending_cards(spec: StageSpec, phash: str) -> tuple[list[Card], int]:
         StageResult.status.in_(("done", "skipped")),
     )
     eligible = Card.state.in_(spec.eligible_states)
+    if spec.requires is not None:
+        eligible = eligible & exists().where(
+            StageResult.card_id == Card.id,
+            StageResult.stage == spec.requires,
+            StageResult.status.in_(("done", "skipped")),
+        )
     todo = list(db.session.scalars(
         select(Card).where(eligible, ~finished).order_by(Card.id).options(selectinload(Card.stage_results))
     ))
@@ -232,6 +263,7 @@ def write_records(records: list[StageRecord]) -> None:
 
 
 DOWNSTREAM_OF_CULL = ("judge", "crop", "rectify", "disparity", "grade", "review", "views")
+DOWNSTREAM_OF_RECTIFY = ("disparity", "grade", "views")
 
 
 def card_stage_statuses(card: Card, only_stage: str | None = None) -> dict[str, dict[str, Any]]:
@@ -242,6 +274,13 @@ def card_stage_statuses(card: Card, only_stage: str | None = None) -> dict[str, 
         result = latest.get(stage)
         if result is not None:
             statuses[stage] = result.as_status()
+        elif stage in DOWNSTREAM_OF_RECTIFY and "rectify" in latest and latest["rectify"].status == "failed":
+            statuses[stage] = {
+                "status": "skipped",
+                "outcome": None,
+                "reason": f"not run: rectification failed ({latest['rectify'].reason})",
+                "metrics": {},
+            }
         elif card.state == "culled" and stage in DOWNSTREAM_OF_CULL:
             filter_reason = latest["filter"].reason if "filter" in latest else "culled"
             statuses[stage] = {
@@ -256,8 +295,8 @@ def card_stage_statuses(card: Card, only_stage: str | None = None) -> dict[str, 
 
 
 @click.command("run")
-@click.option("--stages", default="filter,rectify", show_default=True,
-              help="Comma-separated stages to run, in order. Available now: filter, rectify.")
+@click.option("--stages", default="filter,rectify,disparity", show_default=True,
+              help="Comma-separated stages to run, in order. Available now: filter, rectify, disparity.")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
               help="Worker processes (1 runs inline on one core).")
 @click.option("--executor", "executor_kind", type=click.Choice(["local", "dask"]), default="local",

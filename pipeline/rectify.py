@@ -741,17 +741,27 @@ def _rectify(
             d0 = pts_l[fit0, 0] - pts_r[fit0, 0]
             d0 = d0[_disparity_keep(d0, max(wl, wr), params.disparity_fence)]
             size = (max(wl, wr), max(hl, hr))
+            reason = (
+                f"already rectified within tolerance: |dy| p95 {np.percentile(dy0, 95):.2f} px "
+                f"<= {tol:.2f} px over {int(fit0.sum())} of {n} matches"
+            )
+            # Halves cropped with different margins carry a horizontal offset that can make
+            # disparities negative; the paper's rule (no negative disparity) then needs a
+            # translation of the right view, x_r' = x_r + d_min, which is still a warp.
+            d_min, d_max = float(d0.min()), float(d0.max())
+            H_r = np.eye(3)
+            if d_min < 0:
+                H_r[0, 2] = d_min
+                reason += f"; right view translated {d_min:.1f} px so that no disparity is negative"
+                d_min, d_max = 0.0, d_max - d_min
             return Rectification(
-                H_l=np.eye(3), H_r=np.eye(3), size=size, K=_intrinsics(size, principal_point, np.eye(3)),
+                H_l=np.eye(3), H_r=H_r, size=size, K=_intrinsics(size, principal_point, np.eye(3)),
                 R=np.eye(3), t=np.array([-1.0, 0.0, 0.0]),
-                disparity_range=(float(d0.min()), float(d0.max())),
+                disparity_range=(d_min, d_max),
                 dy_median=float(np.median(dy0)), dy_p95=float(np.percentile(dy0, 95)),
                 midline_angle=90.0, aspect_change=1.0, shear=0.0, kept_fraction=1.0,
-                matches=n, inliers=int(fit0.sum()), swapped=swapped, warp_needed=False,
-                reason=(
-                    f"already rectified within tolerance: |dy| p95 {np.percentile(dy0, 95):.2f} px "
-                    f"<= {tol:.2f} px over {int(fit0.sum())} of {n} matches"
-                ),
+                matches=n, inliers=int(fit0.sum()), swapped=swapped, warp_needed=bool(H_r[0, 2] != 0),
+                reason=reason,
                 seconds=time.perf_counter() - clock, F=F, inlier_points=(pts_l[fit0], pts_r[fit0]),
             )
 

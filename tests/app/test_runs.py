@@ -164,14 +164,18 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
     Image.fromarray(_mounted(left, tilted)).save(folder / "tilted.png")
     Image.fromarray(_mounted(left, right)).save(folder / "aligned.png")
     assert runner.invoke(cli, ["ingest", str(folder)]).exit_code == 0
-    result = runner.invoke(cli, ["run", "--stages", "filter,rectify", "--json"])
+    result = runner.invoke(cli, ["run", "--stages", "filter,rectify,disparity", "--json"])
     assert result.exit_code == 0, result.output
     reports = {r["stage"]: r for r in json.loads(result.stdout)["stages"]}
     assert reports["rectify"]["processed"] == 2 and reports["rectify"]["failed"] == 0
 
     stages = {c["source"]: c["stages"]["rectify"] for c in _cards(runner)["cards"]}
-    assert stages["aligned.png"]["status"] == "skipped"
-    assert stages["aligned.png"]["reason"].startswith("not needed: ")
+    # Aligned halves need no projective warp; at most a translation when the two split boxes
+    # trim different margins and so would make some disparity negative.
+    aligned = stages["aligned.png"]
+    assert "already rectified within tolerance" in aligned["reason"]
+    assert aligned["status"] == "skipped" or "translated" in aligned["reason"]
+    assert aligned["metrics"]["H_l"] == [[1, 0, 0], [0, 1, 0], [0, 0, 1]]
     tilted_result = stages["tilted.png"]
     assert tilted_result["status"] == "done", tilted_result["reason"]
     assert tilted_result["metrics"]["dy_p95"] < 1.5
@@ -187,5 +191,21 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
         with Image.open(data_dir / artifacts["left"]) as rect_left, Image.open(data_dir / artifacts["right"]) as rect_right:
             assert rect_left.size == rect_right.size
 
+    disparity = {c["source"]: c["stages"]["disparity"] for c in _cards(runner)["cards"]}
+    for source in ("aligned.png", "tilted.png"):
+        assert disparity[source]["status"] == "done", disparity[source]["reason"]
+        metrics = disparity[source]["metrics"]
+        assert metrics["coverage"] > 0.8 and metrics["backend"] == "keystone"
+        assert 0 < metrics["disparity_p5"] < metrics["disparity_p50"] < metrics["disparity_p95"] < 120
+    with app.app_context():
+        card = db.session.scalar(select(Card).where(Card.source_name == "aligned.png"))
+        artifacts = card.latest_results()["disparity"].artifacts
+        depth_512 = np.load(data_dir / artifacts["depth_512"])
+        disparity_512 = np.load(data_dir / artifacts["disparity_512"])
+        assert depth_512.shape == disparity_512.shape == (512, 512)
+        assert np.isfinite(depth_512).all() and (depth_512 >= 0).all()
+        full = np.load(data_dir / artifacts["disparity_left"])
+        assert full.dtype == np.float32 and full.shape[0] == 500 and abs(full.shape[1] - 741) <= 30
+
     again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
-    assert [r["processed"] for r in again] == [0, 0]
+    assert [r["processed"] for r in again] == [0, 0, 0]

@@ -429,3 +429,17 @@ def _check_real_card(card: np.ndarray, filter_card, crop_halves) -> int:
         return 1
     assert isinstance(result, RectificationError)
     return 0
+
+
+def test_already_rectified_pair_with_negative_disparity_is_only_translated():
+    """Halves cropped with different margins: no projective warp, but no negative disparity either."""
+    from skimage import data
+
+    left, right, _ = data.stereo_motorcycle()
+    width = left.shape[1]
+    # The left crop starts 30 px later: x_l' = x_l - 30, so every d drops by 30 (truth 7..60 px).
+    rect = rectify_pair(np.ascontiguousarray(left[:, 30:]), np.ascontiguousarray(right[:, : width - 30]))
+    assert rect.warp_needed and "translated" in rect.reason
+    assert np.allclose(rect.H_l, np.eye(3)) and rect.H_r[0, 2] < 0
+    assert np.allclose(rect.H_r[:, :2], np.eye(3)[:, :2])
+    assert rect.disparity_range[0] == 0.0 and rect.disparity_range[1] > 20

@@ -62,6 +62,27 @@ def filter_task(task: CardTask, params: FilterParams) -> StageRecord:
         return _failed(task, "filter", phash, f"internal_error: {detail}", started, clock)
 
 
+def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
+    """Apply the judged corrections to a derived copy of the card (the original never changes).
+
+    ``inputs["upside_down"]`` rotates the card 180 deg, ``inputs["inverted"]`` inverts its
+    intensities (255 - v). A card judged upright and not inverted, or not judged at all, skips
+    the step, and the returned record says so. The split boxes must be in the corrected card's
+    pixels (a judged card is cropped by the crowd on the corrected image).
+    """
+    applied = []
+    if inputs.get("upside_down"):
+        card = np.ascontiguousarray(card[::-1, ::-1])
+        applied.append("rotated 180 deg")
+    if inputs.get("inverted"):
+        card = 255 - card
+        applied.append("intensities inverted")
+    if applied:
+        return card, {"status": "done", "applied": applied, "source": inputs.get("orientation_source", "judgement")}
+    judged = "judged upright and not inverted" if "upside_down" in inputs else "no judgement asks for a correction"
+    return card, {"status": "skipped", "applied": [], "reason": f"not needed: {judged}"}
+
+
 def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
     """Rectify the card's two halves (Loop-Zhang with the paper's changes).
 
@@ -72,7 +93,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
     started, clock = time.time(), time.perf_counter()
     phash = param_hash(params)
     try:
-        card = read_image(task.image_path)
+        card, orientation = orient_card(read_image(task.image_path), task.inputs)
         boxes = task.inputs.get("left_box"), task.inputs.get("right_box")
         if boxes[0] is None or boxes[1] is None:
             raise PipelineError("no split boxes from the filter stage; run the filter first")
@@ -101,6 +122,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
         if rect.swapped:
             reason = (reason + "; " if reason else "") + "eyes were swapped on the card: halves exchanged"
         metrics = {k: v for k, v in rect.metrics().items() if k not in ("reason",)}
+        metrics["orientation"] = orientation
         return StageRecord(
             card_id=task.card_id, stage="rectify", param_hash=phash, status=status, reason=reason,
             metrics=metrics, artifacts=artifacts, started_at=started, seconds=time.perf_counter() - clock,

@@ -249,3 +249,23 @@ def test_metrics_count_empty_pixels_as_errors():
 def test_pareto_front():
     pts = [("a", 0.1, 20.0), ("b", 0.2, 8.0), ("c", 0.3, 9.0), ("d", 1.0, 7.0)]
     assert pareto_front(pts) == ["a", "b", "d"]
+
+
+def test_repeated_pattern_is_an_alias_of_the_truth_and_flagged():
+    """A pure stripe pattern (period 12 px) is ambiguous: any d = truth + k * 12 matches.
+
+    The answer must be finite, one of the aliases, and flagged as low-confidence rather than
+    passed off as certain.
+    """
+    h, w, period, truth = 200, 320, 12, -5
+    x = np.arange(w + 40)
+    stripes = 127 + 100 * np.sin(2 * np.pi * x / period)
+    image = (stripes[None, :] * (0.8 + 0.2 * np.sin(np.arange(h) / 7))[:, None]).astype(np.uint8)
+    left = np.ascontiguousarray(image[:, 20 : 20 + w])
+    right = np.ascontiguousarray(image[:, 15 : 15 + w])  # x_right = x_left + 5, i.e. d = -5
+    result = estimate_disparity(left, right, "keystone")
+    assert np.isfinite(result.disp_left).all()
+    median = float(np.median(result.disp_left[:, 40:-40]))
+    alias_error = abs((median - truth + period / 2) % period - period / 2)
+    assert alias_error < 1.0
+    assert "low_confidence" in result.flags and result.confident_fraction < 0.2

@@ -16,6 +16,7 @@ import numpy as np
 from . import CODE_VERSION
 from .errors import PipelineError
 from .filter import FilterParams, filter_card
+from .crop_align import align_crops
 from .disparity import DEFAULT_BACKEND, DisparityParams, depth_from_disparity, estimate_disparity, resample_512
 from .io import read_image, write_jpeg, write_json, write_npy, write_png
 from .records import CardTask, StageRecord, param_hash
@@ -97,6 +98,15 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
         boxes = task.inputs.get("left_box"), task.inputs.get("right_box")
         if boxes[0] is None or boxes[1] is None:
             raise PipelineError("no split boxes from the filter stage; run the filter first")
+        # The paper aligns the two crops by SIFT matches and cuts both to their intersection;
+        # when that cannot be done the boxes go on as given and rectification decides.
+        try:
+            alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]))
+            boxes = alignment.left_box, alignment.right_box
+            crop_record = {"status": "done", **alignment.metrics()}
+        except PipelineError as exc:
+            crop_record = {"status": "failed", "reason": exc.reason(), "left_box": list(boxes[0]),
+                           "right_box": list(boxes[1])}
         split = CardSplit(left_box=tuple(boxes[0]), right_box=tuple(boxes[1]), gutter_x=0, method="recorded",
                           confidence=1.0)
         left, right = (np.ascontiguousarray(half) for half in crop_halves(card, split))
@@ -123,6 +133,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
             reason = (reason + "; " if reason else "") + "eyes were swapped on the card: halves exchanged"
         metrics = {k: v for k, v in rect.metrics().items() if k not in ("reason",)}
         metrics["orientation"] = orientation
+        metrics["crop_alignment"] = crop_record
         return StageRecord(
             card_id=task.card_id, stage="rectify", param_hash=phash, status=status, reason=reason,
             metrics=metrics, artifacts=artifacts, started_at=started, seconds=time.perf_counter() - clock,

@@ -67,7 +67,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -201,6 +201,11 @@ class RectifyParams:
     """deg: largest |midline angle - 90| after rectification."""
     max_aspect_change: float = 1.5
     """Largest aspect change (ratio, either direction: 1.5 means 2/3 .. 3/2)."""
+    max_row_scale_change: float = 0.03
+    """Row alignment of a nearly rectified pair may rescale y by at most this (a zoom is not one)."""
+    max_rotation: float = 10.0
+    """deg: largest in-plane rotation of a view. Stereo cameras of the period were levelled, so
+    a view turned further is the symptom of a wrong F (a near-planar scene), not of the scene."""
     min_kept_fraction: float = 0.5
     """Smallest fraction of each view's warped area inside the output canvas."""
     max_dy_p95: float = 2.0
@@ -268,6 +273,7 @@ class Rectification:
     warp_needed: bool
     reason: str
     seconds: float = 0.0
+    rotation: float = 0.0  # deg, the larger in-plane rotation of the two views
     F: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)), repr=False)
     """The fundamental matrix used (views in output order: ``x_r^T F x_l = 0``, unit norm)."""
     inlier_points: tuple[np.ndarray, np.ndarray] = field(default=(np.zeros((0, 2)), np.zeros((0, 2))), repr=False)
@@ -285,6 +291,7 @@ class Rectification:
             "shear": float(self.shear), "kept_fraction": float(self.kept_fraction),
             "matches": int(self.matches), "inliers": int(self.inliers), "swapped": bool(self.swapped),
             "warp_needed": bool(self.warp_needed), "reason": self.reason, "seconds": round(float(self.seconds), 4),
+            "rotation": round(float(self.rotation), 3),
         }
 
 
@@ -617,18 +624,20 @@ def _jacobian(H: np.ndarray, point: np.ndarray) -> np.ndarray:
 def distortion_metrics(H: np.ndarray, width: int, height: int) -> dict[str, float]:
     """Distortion of a view ``width`` x ``height`` under ``H``: ``midline_angle`` (deg between the
     images of the horizontal and vertical midlines; 90 = no shear), ``aspect_change`` (ratio of
-    midline lengths after / before, >= 1 either way), ``shear`` (|cos| of the midline angle)."""
+    midline lengths after / before, >= 1 either way), ``shear`` (|cos| of the midline angle),
+    ``rotation`` (deg of the image of the horizontal midline from the x axis, in (-180, 180])."""
     a, b, c, d = _apply(H, _midpoints(width, height))
     x, y = b - d, c - a
     nx, ny = float(np.linalg.norm(x)), float(np.linalg.norm(y))
     if not (np.isfinite(nx) and np.isfinite(ny)) or nx == 0 or ny == 0:
-        return {"midline_angle": 0.0, "aspect_change": math.inf, "shear": 1.0}
+        return {"midline_angle": 0.0, "aspect_change": math.inf, "shear": 1.0, "rotation": 0.0}
     cosine = float(np.clip(abs(x @ y) / (nx * ny), 0.0, 1.0))
     ratio = (nx / ny) / ((width - 1.0) / max(height - 1.0, 1.0))
     return {
         "midline_angle": math.degrees(math.acos(cosine)),
         "aspect_change": max(ratio, 1.0 / ratio),
         "shear": cosine,
+        "rotation": math.degrees(math.atan2(float(x[1]), float(x[0]))),
     }
 
 
@@ -774,7 +783,17 @@ def _rectify(
     e_l, e_r = epipoles(F)
     for name, e, (w_, h_) in (("left", e_l, (wl, hl)), ("right", e_r, (wr, hr))):
         if _epipole_near(e, w_, h_, params.epipole_margin):
-            raise EpipoleInImageError(f"the {name} epipole lies within {params.epipole_margin} half-diagonals of the centre")
+            # Near-planar content gives an F whose epipole lands anywhere; if the rows of the
+            # pair line up with the least warp, the pair was nearly rectified all along.
+            aligned = _row_aligned(il, ir, (wl, hl), (wr, hr), params, sift_scale, principal_point)
+            if aligned is None:
+                raise EpipoleInImageError(
+                    f"the {name} epipole lies within {params.epipole_margin} half-diagonals of the centre"
+                )
+            return replace(
+                aligned, matches=n, swapped=swapped, F=F, seconds=time.perf_counter() - clock,
+                reason=aligned.reason + f" (F put the {name} epipole inside the image)",
+            )
 
     H_l, H_r = loop_zhang(F, wl, hl, wr, hr)
     dy, disp = _dy_stats(H_l, H_r, il, ir)
@@ -819,6 +838,18 @@ def _rectify(
         raise DistortionError(f"midline angle {worst['midline_angle']:.1f} deg, limit 90 +- {params.max_midline_deviation}")
     if aspect > params.max_aspect_change:
         raise DistortionError(f"aspect change {aspect:.2f} > {params.max_aspect_change}")
+    rotation = max(abs(ml["rotation"]), abs(mr["rotation"]))
+    if rotation > params.max_rotation:
+        # A nearly rectified pair leaves F's epipole direction poorly determined and Loop-Zhang
+        # turns the views with it; rows of such a pair are better aligned by the least warp that
+        # fits them (x kept, y' = a x + b y + c on the right view).
+        aligned = _row_aligned(il, ir, (wl, hl), (wr, hr), params, sift_scale, principal_point)
+        if aligned is None:
+            raise DistortionError(f"a view is rotated {rotation:.1f} deg, limit {params.max_rotation}")
+        return replace(
+            aligned, matches=n, swapped=swapped, F=F, seconds=time.perf_counter() - clock,
+            reason=aligned.reason + f" (Loop-Zhang would have rotated a view {rotation:.1f} deg)",
+        )
     if kept < params.min_kept_fraction:
         raise DistortionError(f"only {kept:.0%} of a view fits the bounded canvas (< {params.min_kept_fraction:.0%})")
     abs_dy = np.abs(dy)
@@ -829,9 +860,55 @@ def _rectify(
         H_l=H_l, H_r=H_r, size=size, K=_intrinsics(size, principal_point, H_l), R=np.eye(3),
         t=np.array([-1.0, 0.0, 0.0]), disparity_range=(float(disp[keep].min()), float(disp[keep].max())),
         dy_median=dy_med, dy_p95=dy_p95, midline_angle=float(worst["midline_angle"]), aspect_change=float(aspect),
+        rotation=float(rotation),
         shear=float(shear), kept_fraction=float(kept), matches=n, inliers=n_f, swapped=swapped, warp_needed=True,
         reason=f"rectified (Loop-Zhang): |dy| p95 {dy_p95:.2f} px, midline angle {worst['midline_angle']:.1f} deg",
         seconds=time.perf_counter() - clock, F=F, inlier_points=(il, ir),
+    )
+
+
+def _row_aligned(
+    il: np.ndarray, ir: np.ndarray, left_size: tuple[int, int], right_size: tuple[int, int],
+    params: RectifyParams, sift_scale: float, principal_point: tuple[float, float] | None,
+) -> Rectification | None:
+    """Row alignment for a nearly rectified pair: ``H_l = I``, ``H_r = [[1, 0, t], [a, b, c], [0, 0, 1]]``.
+
+    ``a, b, c`` by least squares on the inliers (``y_l ~ a x_r + b y_r + c``); ``t`` makes the
+    smallest inlier disparity 0. Returns None when the fit leaves |dy| p95 above the limit or
+    distorts the right view beyond the limits (then the pair is not nearly rectified).
+    """
+    (wl, hl), (wr, hr) = left_size, right_size
+    if len(il) < params.min_inliers:
+        return None
+    design = np.column_stack([ir[:, 0], ir[:, 1], np.ones(len(ir))])
+    (a, b, c), *_ = np.linalg.lstsq(design, il[:, 1], rcond=None)
+    if abs(b - 1.0) > params.max_row_scale_change:
+        return None  # a zoom between the views, not a nearly rectified pair
+    H_r = np.array([[1.0, 0.0, 0.0], [a, b, c], [0.0, 0.0, 1.0]])
+    dy, disp = _dy_stats(np.eye(3), H_r, il, ir)
+    abs_dy = np.abs(dy)
+    dy_p95 = float(np.percentile(abs_dy, 95))
+    metrics = distortion_metrics(H_r, wr, hr)
+    if (
+        dy_p95 > params.max_dy_p95 * sift_scale
+        or abs(metrics["midline_angle"] - 90) > params.max_midline_deviation
+        or metrics["aspect_change"] > params.max_aspect_change
+        or abs(metrics["rotation"]) > params.max_rotation
+    ):
+        return None
+    keep = _disparity_keep(disp, max(wl, wr), params.disparity_fence)
+    shift = float(disp[keep].min())
+    H_r[0, 2] = shift
+    disp = disp - shift
+    size = (max(wl, wr), max(hl, hr))
+    return Rectification(
+        H_l=np.eye(3), H_r=H_r, size=size, K=_intrinsics(size, principal_point, np.eye(3)), R=np.eye(3),
+        t=np.array([-1.0, 0.0, 0.0]), disparity_range=(0.0, float(disp[keep].max())),
+        dy_median=float(np.median(abs_dy)), dy_p95=dy_p95, midline_angle=float(metrics["midline_angle"]),
+        aspect_change=float(metrics["aspect_change"]), rotation=abs(float(metrics["rotation"])),
+        shear=float(metrics["shear"]), kept_fraction=1.0, matches=len(il), inliers=len(il), swapped=False,
+        warp_needed=True, reason=f"row-aligned (nearly rectified pair): |dy| p95 {dy_p95:.2f} px",
+        inlier_points=(il, ir),
     )
 
 

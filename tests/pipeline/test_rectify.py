@@ -443,3 +443,23 @@ def test_already_rectified_pair_with_negative_disparity_is_only_translated():
     assert np.allclose(rect.H_l, np.eye(3)) and rect.H_r[0, 2] < 0
     assert np.allclose(rect.H_r[:, :2], np.eye(3)[:, :2])
     assert rect.disparity_range[0] == 0.0 and rect.disparity_range[1] > 20
+
+
+@pytest.mark.parametrize(
+    "name", ["full_cards/nypl_stereogranimator_demo1.jpg", "full_cards/nypl_stereogranimator_sample-stereo.jpg"]
+)
+def test_nearly_rectified_real_cards_are_row_aligned_not_rotated(shared_data, name):
+    """On these small NYPL scans F is ill-conditioned: Loop-Zhang turned demo1's views 15.7 deg
+    and sample-stereo's epipole fell inside the image. The least warp that aligns the rows fits."""
+    from pipeline.filter import filter_card
+    from pipeline.io import read_image
+    from pipeline.split import crop_halves
+
+    card = read_image(shared_data / "stereocards" / name)
+    split, _ = filter_card(card)
+    left, right = (np.ascontiguousarray(half) for half in crop_halves(card, split))
+    rect = rectify_pair(left, right)
+    assert rect.reason.startswith("row-aligned (nearly rectified pair)")
+    assert rect.rotation < 2.0 and rect.dy_p95 < 1.0
+    assert np.allclose(rect.H_l, np.eye(3)) and rect.H_r[2, :2].tolist() == [0.0, 0.0]
+    assert rect.disparity_range[0] == 0.0

@@ -912,6 +912,35 @@ def _row_aligned(
     )
 
 
+def implied_pose(H_l: np.ndarray, H_r: np.ndarray, K: np.ndarray) -> dict[str, list]:
+    """The original cameras' relative pose implied by the rectification (an approximation).
+
+    With both original cameras taken to share ``K`` (the paper's 45 deg field of view), a
+    rectifying homography is ``H ~ K R K^-1`` for the rotation ``R`` that turns a camera into the
+    rectified frame. Loop-Zhang adds a shear and scale, so each ``R`` is the rotation nearest to
+    ``K^-1 H K`` (polar decomposition by SVD, det +1). The rectified cameras are ``[I | 0]`` and
+    ``[I | (-1, 0, 0)]`` (unit baseline along x), so the original right camera sees
+    ``X_r = R X_l + t`` with ``R = R_r^T R_l`` and ``t = R_r^T (-1, 0, 0)``.
+    """
+    K_inv = np.linalg.inv(K)
+
+    def nearest_rotation(M: np.ndarray) -> np.ndarray:
+        U, _, Vt = np.linalg.svd(M / np.cbrt(np.linalg.det(M)) if np.linalg.det(M) != 0 else M)
+        R = U @ Vt
+        if np.linalg.det(R) < 0:
+            U[:, -1] *= -1
+            R = U @ Vt
+        return R
+
+    R_l = nearest_rotation(K_inv @ H_l @ K)
+    R_r = nearest_rotation(K_inv @ H_r @ K)
+    R = R_r.T @ R_l
+    t = R_r.T @ np.array([-1.0, 0.0, 0.0])
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    return {"R_left": R_l.tolist(), "R_right": R_r.tolist(), "R": R.tolist(), "t": t.tolist(),
+            "relative_rotation_deg": angle}
+
+
 def _intrinsics(size: tuple[int, int], principal_point: tuple[float, float] | None, H_l: np.ndarray) -> np.ndarray:
     """Shared ``K``: ``f = 1.2071 x output height`` (45 deg vertical FOV); principal point the
     full image's centre mapped through ``H_l`` where known, else the output centre (px)."""

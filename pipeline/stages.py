@@ -20,7 +20,7 @@ from .crop_align import align_crops
 from .disparity import DEFAULT_BACKEND, DisparityParams, depth_from_disparity, estimate_disparity, resample_512
 from .io import read_image, write_jpeg, write_json, write_npy, write_png
 from .records import CardTask, StageRecord, param_hash
-from .rectify import RectifyParams, rectify_pair, warp_pair
+from .rectify import RectifyParams, implied_pose, rectify_pair, warp_pair
 from .split import CardSplit, crop_halves
 
 # Halves are stored as display previews only (later stages crop the original with the
@@ -125,6 +125,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
                           "H_l/H_r map the cropped left/right halves (boxes in card pixels) to the rectified views; "
                           "disparity d = x_left - x_right >= 0",
             "left_box": list(boxes[0]), "right_box": list(boxes[1]), **rect.metrics(),
+            "implied_pose": implied_pose(rect.H_l, rect.H_r, rect.K),
         })
         artifacts["rectification"] = str(camera.relative_to(task.data_dir))
         status = "done" if rect.warp_needed else "skipped"
@@ -132,6 +133,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
         if rect.swapped:
             reason = (reason + "; " if reason else "") + "eyes were swapped on the card: halves exchanged"
         metrics = {k: v for k, v in rect.metrics().items() if k not in ("reason",)}
+        metrics["implied_pose"] = implied_pose(rect.H_l, rect.H_r, rect.K)
         metrics["orientation"] = orientation
         metrics["crop_alignment"] = crop_record
         return StageRecord(

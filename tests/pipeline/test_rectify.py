@@ -463,3 +463,18 @@ def test_nearly_rectified_real_cards_are_row_aligned_not_rotated(shared_data, na
     assert rect.rotation < 2.0 and rect.dy_p95 < 1.0
     assert np.allclose(rect.H_l, np.eye(3)) and rect.H_r[2, :2].tolist() == [0.0, 0.0]
     assert rect.disparity_range[0] == 0.0
+
+
+def test_implied_pose_recovers_a_pure_rotation():
+    """H = K R K^-1 for a known 2 deg rotation of the right camera gives R back."""
+    from pipeline.rectify import implied_pose
+
+    K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    angle = math.radians(2.0)
+    R_r = np.array([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]])
+    pose = implied_pose(np.eye(3), K @ R_r @ np.linalg.inv(K), K)
+    assert np.allclose(pose["R_right"], R_r, atol=1e-9)
+    assert pose["relative_rotation_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert np.allclose(pose["t"], R_r.T @ np.array([-1.0, 0, 0]))
+    identity = implied_pose(np.eye(3), np.eye(3), K)
+    assert identity["relative_rotation_deg"] == pytest.approx(0.0, abs=1e-6)

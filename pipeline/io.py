@@ -9,8 +9,11 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
@@ -133,60 +136,44 @@ def to_grey(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
 
 
-def write_png(path: str | os.PathLike[str], image: np.ndarray) -> None:
-    """Write ``image`` (grey or RGB uint8) as PNG atomically: a crash never leaves half a file."""
+@contextmanager
+def atomic_write(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path`` and rename it into place only when the block ends
+    without error: a crash never leaves half a file under the final name."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as handle:
-            Image.fromarray(np.ascontiguousarray(image)).save(handle, format="PNG", compress_level=3)
+        with os.fdopen(fd, mode) as handle:
+            yield handle
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def write_png(path: str | os.PathLike[str], image: np.ndarray) -> None:
+    """Write ``image`` (grey or RGB uint8) as PNG atomically."""
+    with atomic_write(path) as handle:
+        Image.fromarray(np.ascontiguousarray(image)).save(handle, format="PNG", compress_level=3)
 
 
 def write_jpeg(path: str | os.PathLike[str], image: np.ndarray, max_side: int | None = None, quality: int = 90) -> None:
     """Write a display JPEG atomically, downscaled (area filter) so its longer side <= ``max_side``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     picture = Image.fromarray(np.ascontiguousarray(image))
     if max_side is not None and max(picture.size) > max_side:
         picture.thumbnail((max_side, max_side), Image.Resampling.BOX)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            picture.save(handle, format="JPEG", quality=quality)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path) as handle:
+        picture.save(handle, format="JPEG", quality=quality)
 
 
 def write_json(path: str | os.PathLike[str], document: object) -> None:
     """Write a JSON document atomically (sorted keys, no NaN: ``allow_nan=False`` raises)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            json.dump(document, handle, indent=2, sort_keys=True, allow_nan=False)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path, "w") as handle:
+        json.dump(document, handle, indent=2, sort_keys=True, allow_nan=False)
 
 
 def write_npy(path: str | os.PathLike[str], array: np.ndarray) -> None:
     """Write a float map as ``.npy`` atomically (dtype and shape kept; loads with ``np.load``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            np.save(handle, array, allow_pickle=False)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path) as handle:
+        np.save(handle, array, allow_pickle=False)

@@ -1,6 +1,18 @@
 """Crowd annotation: judge and crop tasks, assignment, providers, aggregation, worker quality.
 
-Empty until the crowd-annotation feature lands; the package exists so the layout that users
-and the later features rely on (``app/``, ``annotation/``, ``review/``, ``pipeline/``,
-``exports/``) is fixed from the start.
+The pure core (``assignment``, ``aggregation``, ``agreement``) imports neither Flask nor
+SQLAlchemy; ``models``, ``tasks``, ``providers``, ``views`` and ``cli`` are the shell around it.
 """
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def __getattr__(name: str) -> Any:
+    # Lazy, so importing the pure modules (annotation.assignment, ...) never pulls in Flask.
+    if name == "bp":
+        from .views import bp
+
+        return bp
+    raise AttributeError(name)

@@ -37,5 +37,9 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
 
     app.register_blueprint(auth.bp)
     app.register_blueprint(catalog.bp)
+
+    from annotation import bp as crowd_bp
+
+    app.register_blueprint(crowd_bp)
     security.init_app(app)
     return app

@@ -75,13 +75,15 @@ def _register() -> None:
     from .people import users_group
     from .runs import cards_command, run_command
 
+    from annotation.cli import crowd_group
+
     from .disparity_cli import bench_disparity_command
     from .rectify_cli import bench_rectify_command
 
     bench_group.add_command(bench_disparity_command)
     bench_group.add_command(bench_rectify_command)
     for command in (ingest_command, run_command, cards_command, bench_group, demo_command, users_group,
-                    check_homographies_command):
+                    check_homographies_command, crowd_group):
         cli.add_command(command)
 
 

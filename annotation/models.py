@@ -1,0 +1,146 @@
+"""Crowd annotation rows: batches of items, workers, reservations, answers and aggregates.
+
+The pure strategy (:mod:`annotation.assignment`, :mod:`annotation.aggregation`) never sees
+these; :mod:`annotation.tasks` maps them onto its records and back.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import (
+    CheckConstraint,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from app.db import JSONType, db, utcnow
+from app.models import Card, Person
+
+TASK_KINDS: tuple[str, ...] = ("judge", "crop")
+PROVIDERS: tuple[str, ...] = ("invite", "prolific", "mturk")
+AGGREGATE_STATES: tuple[str, ...] = ("approved", "needs_curator")
+
+
+def _in(column: str, values: tuple[str, ...]) -> str:
+    return f"{column} IN ({', '.join(repr(v) for v in values)})"
+
+
+class Batch(db.Model):
+    __tablename__ = "crowd_batches"
+    __table_args__ = (
+        CheckConstraint(_in("kind", TASK_KINDS), name="kind"),
+        CheckConstraint("answers_per_item >= 1", name="answers_per_item"),
+        CheckConstraint("gold_rate >= 0 AND gold_rate <= 1", name="gold_rate"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    kind: Mapped[str] = mapped_column(String(10))
+    answers_per_item: Mapped[int] = mapped_column(Integer, default=3)
+    gold_rate: Mapped[float] = mapped_column(Float, default=0.1)
+    created_by: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    items: Mapped[list[BatchItem]] = relationship(back_populates="batch", cascade="all, delete-orphan",
+                                                  order_by="BatchItem.id")
+
+
+class BatchItem(db.Model):
+    __tablename__ = "crowd_batch_items"
+    __table_args__ = (UniqueConstraint("batch_id", "card_id", name="crowd_item_batch_card"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    batch_id: Mapped[int] = mapped_column(ForeignKey("crowd_batches.id", ondelete="CASCADE"), index=True)
+    card_id: Mapped[int] = mapped_column(ForeignKey("cards.id", ondelete="CASCADE"), index=True)
+    is_gold: Mapped[bool] = mapped_column(default=False)
+    gold_answer: Mapped[dict[str, Any] | None] = mapped_column(JSONType)
+
+    batch: Mapped[Batch] = relationship(back_populates="items")
+    card: Mapped[Card] = relationship()
+
+
+class Worker(db.Model):
+    """Someone answering tasks: an invited annotator, a Prolific participant or an MTurk worker."""
+
+    __tablename__ = "crowd_workers"
+    __table_args__ = (
+        CheckConstraint(_in("provider", PROVIDERS), name="provider"),
+        UniqueConstraint("provider", "external_id", name="crowd_worker_provider_external"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    provider: Mapped[str] = mapped_column(String(10))
+    external_id: Mapped[str] = mapped_column(String(200))
+    person_id: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
+    token: Mapped[str] = mapped_column(String(64), unique=True)  # invite links: the whole credential
+    flagged: Mapped[bool] = mapped_column(default=False)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    person: Mapped[Person | None] = relationship()
+
+
+class Reservation(db.Model):
+    """An item handed to a worker. Open while ``expires_at`` is ahead and ``answered_at`` is empty.
+
+    Kept after the answer (``answered_at`` set) so a late or replayed post gets an exact reason.
+    """
+
+    __tablename__ = "crowd_reservations"
+    __table_args__ = (UniqueConstraint("item_id", "worker_id", name="crowd_reservation_item_worker"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    item_id: Mapped[int] = mapped_column(ForeignKey("crowd_batch_items.id", ondelete="CASCADE"), index=True)
+    worker_id: Mapped[int] = mapped_column(ForeignKey("crowd_workers.id", ondelete="CASCADE"), index=True)
+    token: Mapped[str] = mapped_column(String(64), unique=True)  # names the task in image and submit URLs
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    answered_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+
+    item: Mapped[BatchItem] = relationship()
+    worker: Mapped[Worker] = relationship()
+
+
+class Answer(db.Model):
+    __tablename__ = "crowd_answers"
+    __table_args__ = (UniqueConstraint("item_id", "worker_id", name="crowd_answer_item_worker"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    item_id: Mapped[int] = mapped_column(ForeignKey("crowd_batch_items.id", ondelete="CASCADE"), index=True)
+    worker_id: Mapped[int] = mapped_column(ForeignKey("crowd_workers.id", ondelete="CASCADE"), index=True)
+    payload: Mapped[dict[str, Any]] = mapped_column(JSONType)
+    submitted_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    idempotency_key: Mapped[str] = mapped_column(String(80), unique=True)
+    flagged: Mapped[bool] = mapped_column(default=False)
+
+    item: Mapped[BatchItem] = relationship()
+    worker: Mapped[Worker] = relationship()
+
+
+class Aggregate(db.Model):
+    """The crowd's answer for one card in one batch; ``approved`` ones feed the pipeline."""
+
+    __tablename__ = "crowd_aggregates"
+    __table_args__ = (
+        CheckConstraint(_in("kind", TASK_KINDS), name="kind"),
+        CheckConstraint(_in("state", AGGREGATE_STATES), name="state"),
+        UniqueConstraint("batch_id", "card_id", name="crowd_aggregate_batch_card"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    batch_id: Mapped[int] = mapped_column(ForeignKey("crowd_batches.id", ondelete="CASCADE"), index=True)
+    card_id: Mapped[int] = mapped_column(ForeignKey("cards.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(10))
+    posterior: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)
+    label: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)
+    confident: Mapped[bool] = mapped_column(default=False)
+    state: Mapped[str] = mapped_column(String(20))
+    reasons: Mapped[str] = mapped_column(Text, default="")  # why it waits for a curator
+    answers: Mapped[int] = mapped_column(Integer, default=0)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)

@@ -1,0 +1,159 @@
+"""Where workers come from: one :class:`CrowdProvider` seam behind invite links, Prolific and MTurk.
+
+A provider turns the entry URL's parameters into a worker and says what happens when the
+worker is done. The page then carries the worker's identity as a *signed token* (never a
+session cookie): crowd pages live in third-party iframes (MTurk) where browsers drop cookies.
+"""
+
+from __future__ import annotations
+
+import secrets
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol
+from urllib.parse import urlencode, urlsplit
+
+from flask import current_app
+from itsdangerous import BadSignature, URLSafeSerializer
+from sqlalchemy import select
+
+from app.db import db
+
+from .models import Worker
+from .tasks import TaskError, get_or_create_worker
+
+TOKEN_SALT = "keystone-crowd-worker"
+PROLIFIC_COMPLETION_URL = "https://app.prolific.com/submissions/complete"
+MTURK_PREVIEW_ASSIGNMENT = "ASSIGNMENT_ID_NOT_AVAILABLE"
+# Where MTurk may ask us to post the finished assignment (production and sandbox).
+MTURK_SUBMIT_ORIGINS: tuple[str, ...] = ("https://www.mturk.com", "https://workersandbox.mturk.com")
+
+
+@dataclass(frozen=True)
+class Entry:
+    """A worker's way in: who they are (None in MTurk preview) and the provider's context."""
+
+    provider: str
+    worker: Worker | None
+    context: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def preview(self) -> bool:
+        return self.worker is None
+
+
+class CrowdProvider(Protocol):
+    name: ClassVar[str]
+
+    def enter(self, args: dict[str, str]) -> Entry: ...
+
+    def finish(self, context: dict[str, str]) -> dict[str, Any]:
+        """What the page does when the worker is done: ``{"redirect": url}``, ``{"post": ...}`` or ``{}``."""
+        ...
+
+
+def _required(args: dict[str, str], *names: str) -> list[str]:
+    values = [(args.get(name) or "").strip() for name in names]
+    missing = [name for name, value in zip(names, values) if not value]
+    if missing:
+        raise TaskError(f"This link is missing {', '.join(missing)}; open it again from the study page")
+    too_long = [name for name, value in zip(names, values) if len(value) > 190]
+    if too_long:
+        raise TaskError(f"Expected {', '.join(too_long)} of at most 190 characters")
+    return values
+
+
+class InviteProvider:
+    name: ClassVar[str] = "invite"
+
+    def enter(self, args: dict[str, str]) -> Entry:
+        token = args.get("token", "")
+        worker = db.session.scalar(select(Worker).where(Worker.provider == "invite", Worker.token == token))
+        if worker is None:
+            raise TaskError("This invite link is not valid; ask for a new one", 404)
+        return Entry(self.name, worker)
+
+    def finish(self, context: dict[str, str]) -> dict[str, Any]:
+        return {}
+
+    @staticmethod
+    def invite(name: str) -> Worker:
+        """A new in-house annotator; their link is ``/crowd/invite/<token>``."""
+        existing = db.session.scalar(select(Worker).where(Worker.provider == "invite", Worker.external_id == name))
+        if existing is not None:
+            raise TaskError(f"An annotator called {name!r} is already invited", 409)
+        worker = get_or_create_worker("invite", name)
+        return worker
+
+
+class ProlificProvider:
+    name: ClassVar[str] = "prolific"
+
+    def enter(self, args: dict[str, str]) -> Entry:
+        pid, study, session = _required(args, "PROLIFIC_PID", "STUDY_ID", "SESSION_ID")
+        return Entry(self.name, get_or_create_worker(self.name, pid), {"study": study, "session": session})
+
+    def finish(self, context: dict[str, str]) -> dict[str, Any]:
+        code = current_app.config.get("KEYSTONE_PROLIFIC_COMPLETION_CODE")
+        if not code:
+            raise TaskError("The study has no completion code configured; tell the researcher", 503)
+        return {"redirect": f"{PROLIFIC_COMPLETION_URL}?{urlencode({'cc': code})}"}
+
+
+def mturk_submit_url(turk_submit_to: str) -> str:
+    """``turkSubmitTo + /mturk/externalSubmit``, only for MTurk's own hosts (no open form target)."""
+    parts = urlsplit(turk_submit_to.strip())
+    origin = f"{parts.scheme}://{parts.netloc}"
+    if origin not in MTURK_SUBMIT_ORIGINS or parts.query or parts.fragment or parts.path not in ("", "/"):
+        raise TaskError(f"Expected turkSubmitTo on {' or '.join(MTURK_SUBMIT_ORIGINS)}, got {turk_submit_to!r}")
+    return origin + "/mturk/externalSubmit"
+
+
+class MTurkProvider:
+    name: ClassVar[str] = "mturk"
+
+    def enter(self, args: dict[str, str]) -> Entry:
+        assignment = (args.get("assignmentId") or "").strip()
+        if assignment == MTURK_PREVIEW_ASSIGNMENT:
+            return Entry(self.name, None, {"assignment": assignment})
+        assignment, hit, worker_id, submit_to = _required(args, "assignmentId", "hitId", "workerId", "turkSubmitTo")
+        submit_url = mturk_submit_url(submit_to)
+        return Entry(self.name, get_or_create_worker(self.name, worker_id),
+                     {"assignment": assignment, "hit": hit, "submit_url": submit_url})
+
+    def finish(self, context: dict[str, str]) -> dict[str, Any]:
+        return {"post": {"url": context["submit_url"], "fields": {"assignmentId": context["assignment"]}}}
+
+
+PROVIDERS: dict[str, CrowdProvider] = {p.name: p for p in (InviteProvider(), ProlificProvider(), MTurkProvider())}
+
+
+# ---------------------------------------------------------------------------------------------
+# The signed worker token
+
+
+def _serializer() -> URLSafeSerializer:
+    return URLSafeSerializer(current_app.config["SECRET_KEY"], salt=TOKEN_SALT)
+
+
+def sign_entry(entry: Entry) -> str:
+    """A token naming the worker and provider context; it authenticates every crowd API call.
+
+    It includes a random nonce so two tabs of one worker get different tokens (nothing relies on
+    that; it keeps tokens from being guessable from the worker id even if the key leaked partly).
+    """
+    assert entry.worker is not None
+    return _serializer().dumps({"w": entry.worker.id, "p": entry.provider, "c": entry.context,
+                                "n": secrets.token_hex(4)})
+
+
+def load_entry(token: str | None) -> Entry:
+    if not token:
+        raise TaskError("Missing worker token: reload the task page", 403)
+    try:
+        data = _serializer().loads(token)
+    except BadSignature as exc:
+        raise TaskError("Invalid worker token: reload the task page", 403) from exc
+    worker = db.session.get(Worker, int(data["w"]))
+    if worker is None or worker.provider != data["p"]:
+        raise TaskError("Unknown worker: reload the task page", 403)
+    return Entry(data["p"], worker, dict(data.get("c") or {}))

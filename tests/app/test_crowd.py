@@ -1,0 +1,543 @@
+"""Crowd annotation over HTTP and the CLI: entry points, assignment, submits, bad input, roles, aggregation."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+from sqlalchemy import func, select
+
+from annotation.models import Aggregate, Answer, Batch, BatchItem, Reservation, Worker
+from app.db import db, utcnow
+
+TOKEN = re.compile(r'data-worker-token="([^"]*)"')
+JUDGE_OK = {"is_stereo": True, "upside_down": False, "inverted": False}
+
+
+@pytest.fixture
+def cards(make_card, card_image):  # type: ignore[no-untyped-def]
+    """``cards(k, state=...)``: k distinct real stereo cards (604 x 200 px), their ids."""
+    base = card_image()
+
+    def make(k: int, state: str = "review") -> list[int]:
+        ids = []
+        for _ in range(k):
+            image = base.copy()
+            image[0, 0, 0] = len(make.made) % 256  # distinct bytes, distinct content hash
+            image[0, 1, 0] = len(make.made) // 256
+            make.made.append(1)
+            ids.append(make_card(image, state=state))
+        return ids
+
+    make.made = []  # type: ignore[attr-defined]
+    return make
+
+
+def new_batch(app, card_ids, kind="judge", n=3, gold_rate=0.0, gold=None) -> int:  # type: ignore[no-untyped-def]
+    from annotation.tasks import create_batch
+
+    with app.app_context():
+        return create_batch(card_ids, kind, n, gold_rate, gold=gold).id
+
+
+def invite(app, client, name: str) -> str:  # type: ignore[no-untyped-def]
+    """Invite NAME, open their link, return the signed worker token the page carries."""
+    from annotation.providers import InviteProvider
+
+    with app.app_context():
+        link_token = InviteProvider.invite(name).token
+    page = client.get(f"/crowd/invite/{link_token}")
+    assert page.status_code == 200
+    return TOKEN.search(page.get_data(as_text=True)).group(1)
+
+
+def api(client, path: str, token: str | None, body=None, **kwargs):  # type: ignore[no-untyped-def]
+    headers = {"X-Crowd-Token": token} if token is not None else {}
+    if "data" in kwargs:
+        return client.post(f"/crowd/api/{path}", headers=headers, **kwargs)
+    return client.post(f"/crowd/api/{path}", headers=headers, json=body if body is not None else {})
+
+
+def fetch(client, token: str, kind: str = "judge") -> dict:  # type: ignore[no-untyped-def]
+    response = api(client, "next", token, {"kind": kind})
+    assert response.status_code == 200, response.get_data(as_text=True)
+    return response.get_json()
+
+
+def answer(client, token: str, task_token: str, payload, key: str):  # type: ignore[no-untyped-def]
+    return api(client, "submit", token, {"token": task_token, "answer": payload, "key": key})
+
+
+def count(app, model) -> int:  # type: ignore[no-untyped-def]
+    with app.app_context():
+        return db.session.scalar(select(func.count()).select_from(model))
+
+
+def item_of(app, task_token: str) -> int:  # type: ignore[no-untyped-def]
+    with app.app_context():
+        return db.session.scalar(select(Reservation.item_id).where(Reservation.token == task_token))
+
+
+# ---------------------------------------------------------------------------------------------
+# Assignment through the routes
+
+
+@pytest.mark.both_databases
+def test_workers_never_get_an_item_twice_and_items_get_exactly_n(app, client, cards):
+    batch = new_batch(app, cards(4), n=2)
+    tokens = [invite(app, client, f"ann-{i}") for i in range(3)]
+    seen: dict[str, list[int]] = {t: [] for t in tokens}
+    reasons = {}
+    for round_ in range(10):
+        for w, t in enumerate(tokens):
+            data = fetch(client, t)
+            if not data["tasks"]:
+                reasons[t] = data["reason"]
+                continue
+            assert len(data["tasks"]) <= 2  # current + one preloaded
+            task = data["tasks"][0]
+            seen[t].append(item_of(app, task["token"]))
+            assert answer(client, t, task["token"], JUDGE_OK, f"key-{w}-{round_:04d}").status_code == 201
+    for t, items in seen.items():
+        assert len(items) == len(set(items)), f"worker got an item twice: {items}"
+    with app.app_context():
+        per_item = dict(db.session.execute(
+            select(Answer.item_id, func.count()).group_by(Answer.item_id)).all())
+        assert sorted(per_item.values()) == [2, 2, 2, 2]
+        assert db.session.get(Batch, batch) is not None
+    assert sum(len(v) for v in seen.values()) == 8
+    assert set(reasons.values()) <= {"batch_complete", "nothing_left_for_worker"}
+
+
+def test_reservations_hold_slots_and_lapse_back_to_the_pool(app, client, cards):
+    new_batch(app, cards(1), n=1)
+    first, second = invite(app, client, "a"), invite(app, client, "b")
+    held = fetch(client, first)["tasks"]
+    assert len(held) == 1
+    blocked = fetch(client, second)
+    assert blocked["tasks"] == [] and blocked["reason"] == "all_reserved" and blocked["retry_after"]
+    with app.app_context():
+        row = db.session.scalar(select(Reservation))
+        row.expires_at = utcnow() - timedelta(seconds=1)
+        db.session.commit()
+    assert len(fetch(client, second)["tasks"]) == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Idempotent submits and refusals
+
+
+@pytest.mark.both_databases
+def test_double_submit_and_replay_store_one_answer(app, client, cards):
+    new_batch(app, cards(2), n=3)
+    t = invite(app, client, "clicker")
+    task = fetch(client, t)["tasks"][0]
+    first = answer(client, t, task["token"], JUDGE_OK, "same-key-123")
+    replay = answer(client, t, task["token"], JUDGE_OK, "same-key-123")
+    other_key = answer(client, t, task["token"], {**JUDGE_OK, "inverted": True}, "other-key-456")
+    assert first.status_code == 201 and first.get_json()["duplicate"] is False
+    assert replay.status_code == 200 and replay.get_json() == {**first.get_json(), "duplicate": True}
+    assert other_key.status_code == 409
+    assert other_key.get_json()["error"]["message"] == "You already answered this task"
+    assert count(app, Answer) == 1
+    with app.app_context():
+        assert db.session.scalar(select(Answer.payload)) == JUDGE_OK
+
+
+def _state(app):  # type: ignore[no-untyped-def]
+    with app.app_context():
+        return (db.session.scalar(select(func.count()).select_from(Answer)),
+                [(r.token, r.answered_at) for r in db.session.scalars(select(Reservation).order_by(Reservation.id))])
+
+
+@pytest.mark.parametrize(
+    ("body", "status", "message"),
+    [
+        ('{"token": "x", "answer": ', 400, "malformed"),
+        ("[1, 2]", 400, "JSON object body"),
+        ('{"left": [NaN, 0, 100, 100], "right": [400, 0, 500, 100]}', 400, "finite coordinates"),
+        ('{"left": [-5, 0, 100, 100], "right": [400, 0, 500, 100]}', 400, "inside the 604x200 image"),
+        ('{"left": [0, 0, 1e300, 100], "right": [400, 0, 500, 100]}', 400, "inside the 604x200 image"),
+        ('{"left": [0, 0, Infinity, 100], "right": [400, 0, 500, 100]}', 400, "finite coordinates"),
+        ('{"left": [100, 0, 10, 100], "right": [400, 0, 500, 100]}', 400, "x0 < x1"),
+        ('{"left": [0, 0, 10, 10], "right": [400, 0, 500, 100]}', 400, "at least 16 x 16 pixels"),
+        ('{"left": [0, 0, "a", 100], "right": [400, 0, 500, 100]}', 400, "four numbers"),
+        ('{"left": [0, 0, 100, 100]}', 400, "right box"),
+        ('{"left": [0, 0, 100, 100], "right": [400, 0, 500, 100], "extra": 1}', 400, "Unexpected fields"),
+    ],
+)
+def test_bad_crop_answers_are_refused_and_change_nothing(app, client, cards, body, status, message):
+    new_batch(app, cards(1), kind="crop", n=1)
+    t = invite(app, client, "cropper")
+    task = fetch(client, t, "crop")["tasks"][0]
+    before = _state(app)
+    raw = body if body.startswith(("{\"token", "[")) else (
+        f'{{"token": "{task["token"]}", "key": "bad-input-key", "answer": {body}}}')
+    response = api(client, "submit", t, data=raw, content_type="application/json")
+    assert response.status_code == status, response.get_data(as_text=True)
+    assert message in response.get_json()["error"]["message"]
+    assert _state(app) == before
+    good = answer(client, t, task["token"], {"left": [10, 5, 290, 195], "right": [310, 5, 598, 195.5]}, "good-key-1")
+    assert good.status_code == 201
+
+
+@pytest.mark.parametrize(
+    ("payload", "message"),
+    [({"is_stereo": "yes", "upside_down": False, "inverted": False}, "is_stereo to be true or false"),
+     ({"is_stereo": True, "upside_down": False}, "inverted to be true or false"),
+     ([True, False, False], "Expected a JSON object as the answer")],
+)
+def test_bad_judgements_are_refused(app, client, cards, payload, message):
+    new_batch(app, cards(1), n=1)
+    t = invite(app, client, "judge")
+    task = fetch(client, t)["tasks"][0]
+    response = answer(client, t, task["token"], payload, "judge-key-1")
+    assert response.status_code == 400 and message in response.get_json()["error"]["message"]
+    assert count(app, Answer) == 0
+
+
+@pytest.mark.both_databases
+def test_expired_and_foreign_reservations_are_refused(app, client, cards):
+    new_batch(app, cards(2), n=2)
+    alice, bob = invite(app, client, "alice"), invite(app, client, "bob")
+    mine = fetch(client, alice)["tasks"][0]
+    theirs = answer(client, bob, mine["token"], JUDGE_OK, "bob-steals-1")
+    assert theirs.status_code == 403
+    assert theirs.get_json()["error"]["message"] == "This task is reserved for another worker"
+    with app.app_context():
+        row = db.session.scalar(select(Reservation).where(Reservation.token == mine["token"]))
+        row.expires_at = utcnow() - timedelta(minutes=1)
+        db.session.commit()
+    late = answer(client, alice, mine["token"], JUDGE_OK, "alice-late-1")
+    assert late.status_code == 409 and "expired" in late.get_json()["error"]["message"]
+    unknown = answer(client, alice, "no-such-task", JUDGE_OK, "alice-none-1")
+    assert unknown.status_code == 404
+    assert count(app, Answer) == 0
+
+
+def test_api_needs_the_signed_token_and_json(app, client, cards):
+    new_batch(app, cards(1), n=1)
+    t = invite(app, client, "someone")
+    assert api(client, "next", None, {}).status_code == 403  # the anti-forgery token is missing
+    forged = api(client, "next", t[:-2] + "xx", {})
+    assert forged.status_code == 403 and "Invalid worker token" in forged.get_json()["error"]["message"]
+    form_post = client.post("/crowd/api/next", headers={"X-Crowd-Token": t}, data={"kind": "judge"})
+    assert form_post.status_code == 415
+    assert count(app, Reservation) == 0
+
+
+def test_undo_withdraws_the_last_answer_and_reserves_it_again(app, client, cards):
+    new_batch(app, cards(2), n=1)
+    t = invite(app, client, "undoer")
+    task = fetch(client, t)["tasks"][0]
+    assert answer(client, t, task["token"], JUDGE_OK, "undo-key-1").status_code == 201
+    undone = api(client, "undo", t, {})
+    assert undone.status_code == 200 and undone.get_json()["task"]["token"] == task["token"]
+    assert count(app, Answer) == 0
+    again = answer(client, t, task["token"], {**JUDGE_OK, "upside_down": True}, "undo-key-2")
+    assert again.status_code == 201
+    with app.app_context():
+        assert db.session.scalar(select(Answer.payload))["upside_down"] is True
+    assert api(client, "undo", t, {}).status_code == 200
+    assert api(client, "undo", t, {}).status_code == 409  # nothing left to undo
+
+
+def test_task_image_is_served_by_reservation_token_only(app, client, cards):
+    new_batch(app, cards(1), n=1)
+    t = invite(app, client, "viewer")
+    task = fetch(client, t)["tasks"][0]
+    image = client.get(task["image_url"])
+    assert image.status_code == 200 and image.mimetype == "image/jpeg" and image.data[:2] == b"\xff\xd8"
+    assert client.get("/crowd/task/guessed/image").status_code == 404
+
+
+# ---------------------------------------------------------------------------------------------
+# Providers
+
+
+def test_mturk_preview_disables_submit_and_may_be_framed_by_mturk(app, client, cards):
+    new_batch(app, cards(1), n=1)
+    page = client.get("/crowd/mturk?assignmentId=ASSIGNMENT_ID_NOT_AVAILABLE&hitId=H1")
+    html = page.get_data(as_text=True)
+    assert page.status_code == 200
+    assert re.search(r'<button type="submit" id="submit-answer" disabled', html)
+    assert 'data-preview="true"' in html and 'data-worker-token=""' in html
+    csp = page.headers["Content-Security-Policy"]
+    assert "frame-ancestors 'self' https://www.mturk.com https://workersandbox.mturk.com" in csp
+    assert "X-Frame-Options" not in page.headers
+    assert count(app, Worker) == 0 and count(app, Reservation) == 0
+    # Every other page stays unframeable.
+    assert client.get("/auth/login").headers["X-Frame-Options"] == "SAMEORIGIN"
+
+
+def test_mturk_assignment_posts_back_to_turk_submit_to(app, client, cards):
+    new_batch(app, cards(1), n=1)
+    url = ("/crowd/mturk?assignmentId=A123&hitId=H1&workerId=W9"
+           "&turkSubmitTo=https%3A%2F%2Fworkersandbox.mturk.com")
+    page = client.get(url)
+    html = page.get_data(as_text=True)
+    assert page.status_code == 200 and "Set-Cookie" not in page.headers  # no reliance on cookies
+    assert not re.search(r'id="submit-answer" disabled', html)
+    t = TOKEN.search(html).group(1)
+    task = fetch(client, t)["tasks"][0]
+    stored = answer(client, t, task["token"], JUDGE_OK, "mturk-key-1")
+    assert stored.status_code == 201
+    assert stored.get_json()["finish"] == {"post": {"url": "https://workersandbox.mturk.com/mturk/externalSubmit",
+                                                    "fields": {"assignmentId": "A123"}}}
+    evil = client.get("/crowd/mturk?assignmentId=A1&hitId=H&workerId=W&turkSubmitTo=https%3A%2F%2Fevil.example")
+    assert evil.status_code == 400 and "turkSubmitTo" in evil.get_data(as_text=True)
+
+
+def test_prolific_entry_and_completion_redirect(app, client, cards):
+    app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C1A2B3"
+    new_batch(app, cards(1), n=1)
+    url = "/crowd/prolific?PROLIFIC_PID=pid-1&STUDY_ID=study-1&SESSION_ID=sess-1"
+    t = TOKEN.search(client.get(url).get_data(as_text=True)).group(1)
+    client.get(url)  # the same participant coming back is the same worker
+    assert count(app, Worker) == 1
+    done = client.get(f"/crowd/finish?t={t}")
+    assert done.status_code == 303
+    assert done.headers["Location"] == "https://app.prolific.com/submissions/complete?cc=C1A2B3"
+    missing = client.get("/crowd/prolific?PROLIFIC_PID=pid-1")
+    assert missing.status_code == 400 and "STUDY_ID, SESSION_ID" in missing.get_data(as_text=True)
+    assert client.get("/crowd/finish?t=forged").status_code == 403
+
+
+def test_invite_link_shows_progress_and_bad_links_404(app, client, cards):
+    new_batch(app, cards(2), n=1)
+    t = invite(app, client, "grace")
+    task = fetch(client, t)["tasks"][0]
+    answer(client, t, task["token"], JUDGE_OK, "grace-key-1")
+    with app.app_context():
+        link = db.session.scalar(select(Worker.token).where(Worker.external_id == "grace"))
+    html = client.get(f"/crowd/invite/{link}").get_data(as_text=True)
+    assert re.search(r'<strong id="answered">1</strong>', html)
+    assert client.get("/crowd/invite/not-a-token").status_code == 404
+
+
+# ---------------------------------------------------------------------------------------------
+# Roles
+
+
+@pytest.mark.parametrize(("role", "cards_status", "batches_status"),
+                         [("annotator", 403, 403), ("curator", 200, 200), ("exporter", 200, 403), ("admin", 200, 200)])
+def test_roles_on_staff_pages(client, as_role, role, cards_status, batches_status):
+    as_role(role)
+    assert client.get("/cards").status_code == cards_status
+    assert client.get("/crowd/batches").status_code == batches_status
+
+
+def test_anonymous_staff_page_redirects_to_login(client):
+    response = client.get("/crowd/batches")
+    assert response.status_code == 302 and "/auth/login" in response.headers["Location"]
+
+
+def test_batches_page_shows_progress(app, client, cards, login):
+    new_batch(app, cards(3), n=2)
+    t = invite(app, client, "worker-one")
+    task = fetch(client, t)["tasks"][0]
+    answer(client, t, task["token"], JUDGE_OK, "progress-key")
+    login("curator")
+    html = client.get("/crowd/batches").get_data(as_text=True)
+    assert "1 of 6 answers" in html and "1 reserved" in html and "invite:worker-one" in html
+
+
+# ---------------------------------------------------------------------------------------------
+# Quality and aggregation
+
+
+def _answer_all(app, client, tokens, kind, choose):  # type: ignore[no-untyped-def]
+    """Each worker answers every task they get; ``choose(worker_index, card_id)`` is the answer."""
+    for w, t in enumerate(tokens):
+        for step in range(50):
+            data = fetch(client, t, kind)
+            if not data["tasks"]:
+                break
+            task = data["tasks"][0]
+            with app.app_context():
+                card = db.session.scalar(select(BatchItem.card_id).join(Reservation, Reservation.item_id == BatchItem.id)
+                                         .where(Reservation.token == task["token"]))
+            assert answer(client, t, task["token"], choose(w, card), f"sim-{w}-{step}-{kind}").status_code == 201
+
+
+@pytest.mark.both_databases
+def test_judge_aggregation_stores_approved_and_needs_curator(app, client, cards):
+    *clear, split = cards(9)
+    gold = {g: JUDGE_OK for g in cards(3)}
+    batch = new_batch(app, [*clear, split], n=3, gold_rate=0.3, gold=gold)
+    tokens = [invite(app, client, f"sim-{i}") for i in range(3)]
+
+    # Everyone agrees on the 8 clear cards; on `split` two of three say upside-down.
+    def choose(w, card):  # type: ignore[no-untyped-def]
+        return {**JUDGE_OK, "upside_down": w != 0} if card == split else JUDGE_OK
+    _answer_all(app, client, tokens, "judge", choose)
+    from annotation.tasks import aggregate_batch
+
+    with app.app_context():
+        report = aggregate_batch(batch)
+        rows = {a.card_id: a for a in db.session.scalars(select(Aggregate))}
+    assert set(rows) == {*clear, split}
+    assert (report.approved, report.needs_curator, report.pending, report.flagged_workers) == (8, 1, 0, 0)
+    for card in clear:
+        assert rows[card].state == "approved" and rows[card].confident is True and rows[card].label == JUDGE_OK
+        assert rows[card].posterior["upside_down"][0] > 0.95 and rows[card].answers == 3
+    assert rows[split].state == "needs_curator" and rows[split].label["upside_down"] is True
+    assert 0.5 < rows[split].posterior["upside_down"][1] < 0.95
+    assert rows[split].reasons.startswith("upside_down: posterior 0.")
+    assert math.isclose(sum(rows[split].posterior["upside_down"]), 1.0)
+    # Agreement over the 9 regular items: 8 unanimous, one split 2-1 (1 agreeing pair of 3).
+    upside = report.agreement["upside_down"]
+    assert math.isclose(upside["percent_agreement"], (8 + 1 / 3) / 9, rel_tol=1e-5)
+    pi_yes = (2 / 3) / 9
+    p_e = 2 * pi_yes * (1 - pi_yes)
+    assert math.isclose(upside["gwet_ac1"], ((8 + 1 / 3) / 9 - p_e) / (1 - p_e), rel_tol=1e-5)
+    assert report.agreement["is_stereo"]["percent_agreement"] == 1.0
+
+
+def test_crop_aggregation_consensus_within_pixels_and_disputes(app, client, cards):
+    agreed, disputed = cards(2)
+    batch = new_batch(app, [agreed, disputed], kind="crop", n=3)
+    tokens = [invite(app, client, f"box-{i}") for i in range(3)]
+    truth = {"left": [10.0, 8.0, 290.0, 192.0], "right": [316.0, 8.0, 596.0, 192.0]}
+
+    def choose(w, card):  # type: ignore[no-untyped-def]
+        jitter = [0.0, 1.5, -1.0][w]
+        if card == disputed and w > 0:
+            return {"left": [100.0 * w, 20.0, 100.0 * w + 60.0, 80.0], "right": truth["right"]}
+        return {h: [v + jitter for v in box] for h, box in truth.items()}
+    _answer_all(app, client, tokens, "crop", choose)
+    from annotation.tasks import aggregate_batch
+
+    with app.app_context():
+        report = aggregate_batch(batch)
+        rows = {a.card_id: a for a in db.session.scalars(select(Aggregate))}
+    assert (report.approved, report.needs_curator) == (1, 1)
+    assert rows[agreed].state == "approved"
+    for half in ("left", "right"):
+        assert max(abs(a - b) for a, b in zip(rows[agreed].label[half], truth[half])) <= 1.5
+    assert rows[disputed].state == "needs_curator" and "left box" in rows[disputed].reasons
+    # Alpha compares within-card to between-card disagreement: with one wild box in three it
+    # stays far from 1 on the left half.
+    assert report.agreement["left"]["krippendorff_alpha"] < 0.5
+    assert isinstance(report.agreement["right"]["krippendorff_alpha"], float)
+
+
+def test_workers_failing_gold_are_flagged_and_no_longer_served(app, client, cards):
+    app.config.update(KEYSTONE_CROWD_MIN_GOLD=3, KEYSTONE_CROWD_GOLD_THRESHOLD=0.7)
+    regular = cards(6)
+    gold_ids = cards(3)
+    new_batch(app, regular, n=3, gold_rate=1.0, gold={g: JUDGE_OK for g in gold_ids})
+    spammer = invite(app, client, "spammer")
+    served = 0
+    for step in range(20):
+        data = fetch(client, spammer)
+        if not data["tasks"]:
+            assert data["reason"] == "worker_flagged"
+            break
+        task = data["tasks"][0]
+        # Always "inverted": wrong on every gold card.
+        r = answer(client, spammer, task["token"], {**JUDGE_OK, "inverted": True}, f"spam-key-{step:03d}")
+        assert r.status_code == 201, r.get_data(as_text=True)
+        served += 1
+    with app.app_context():
+        worker = db.session.scalar(select(Worker).where(Worker.external_id == "spammer"))
+        assert worker.flagged is True
+        flags = list(db.session.scalars(select(Answer.flagged).where(Answer.worker_id == worker.id)))
+    assert served < 9 and all(flags) and len(flags) == served
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+
+
+def test_cli_create_invite_aggregate_export(app, runner, client, cards, tmp_path: Path):
+    from annotation.cli import crowd_group
+
+    app.cli.add_command(crowd_group)  # app/cli.py registers it on `keystone`
+    review = cards(2, state="review")
+    other = cards(1, state="pass")
+    created = runner.invoke(args=["crowd", "create-batch", "--from-review", "--cards", str(other[0]),
+                                  "--n", "1", "--gold-rate", "0", "--json"])
+    assert created.exit_code == 0, created.output
+    doc = json.loads(created.output)
+    assert doc["items"] == 3 and doc["answers_per_item"] == 1 and doc["gold_items"] == 0
+    invited = runner.invoke(args=["crowd", "invite", "ada", "--json"])
+    link = json.loads(invited.output)["link"]
+    assert link.startswith("http://127.0.0.1:5000/crowd/invite/")
+    assert runner.invoke(args=["crowd", "invite", "ada"]).exit_code == 1
+    page = client.get(link.removeprefix("http://127.0.0.1:5000"))
+    t = TOKEN.search(page.get_data(as_text=True)).group(1)
+    _answer_all(app, client, [t], "judge", lambda w, card: JUDGE_OK)
+    aggregated = runner.invoke(args=["crowd", "aggregate", str(doc["batch"]), "--json"])
+    assert aggregated.exit_code == 0, aggregated.output
+    assert json.loads(aggregated.output)["pending"] == 0
+    out = tmp_path / "export"
+    exported = runner.invoke(args=["crowd", "export", str(doc["batch"]), "--out", str(out), "--json"])
+    assert exported.exit_code == 0, exported.output
+    import pyarrow.parquet as pq
+
+    assert pq.read_table(out / "answers.parquet").num_rows == 3
+    assert (out / "aggregates.csv").read_text().count("\n") == 4  # header + 3 cards
+    assert set(review) <= {int(r["card_id"]) for r in pq.read_table(out / "answers.parquet").to_pylist()}
+    bad = runner.invoke(args=["crowd", "create-batch", "--cards", "99999"])
+    assert bad.exit_code == 1 and "No card with id 99999" in bad.output
+
+
+# ---------------------------------------------------------------------------------------------
+# Pages and concurrency
+
+
+def test_judge_and_crop_pages_are_keyboard_first_and_script_only_from_self(app, client, cards):
+    new_batch(app, cards(1), n=1)
+    t_page = client.get("/crowd/prolific?PROLIFIC_PID=p&STUDY_ID=s&SESSION_ID=x")
+    html = t_page.get_data(as_text=True)
+    assert 'data-key="n"' in html and 'data-key="f"' in html and 'data-key="i"' in html
+    assert "<kbd>U</kbd>" in html and 'id="help"' in html and "<script>" not in html
+    assert "script-src 'self'" in t_page.headers["Content-Security-Policy"]
+    crop = client.get("/crowd/prolific?PROLIFIC_PID=p&STUDY_ID=s&SESSION_ID=x&kind=crop")
+    crop_html = crop.get_data(as_text=True)
+    assert crop.status_code == 200 and "annotation/crop.js" in crop_html and 'data-min-box="16"' in crop_html
+    assert client.get("/crowd/prolific?PROLIFIC_PID=p&STUDY_ID=s&SESSION_ID=x&kind=paint").status_code == 400
+    for name in ("judge.js", "crop.js", "crowd.css"):
+        with client.get(f"/crowd/static/annotation/{name}") as static:
+            assert static.status_code == 200
+
+
+@pytest.mark.both_databases
+def test_concurrent_workers_lose_and_duplicate_nothing(app, cards):
+    import threading
+
+    n, k_items, k_workers = 3, 8, 8
+    new_batch(app, cards(k_items), n=n)
+    tokens = [invite(app, app.test_client(), f"load-{i}") for i in range(k_workers)]
+    statuses: list[int] = []
+    lock = threading.Lock()
+
+    def work(w: int) -> None:
+        client = app.test_client()
+        for step in range(k_items + 2):
+            response = api(client, "next", tokens[w], {"kind": "judge"})
+            got = response.get_json()
+            with lock:
+                statuses.append(response.status_code)
+            if not got or not got.get("tasks"):
+                return
+            response = answer(client, tokens[w], got["tasks"][0]["token"], JUDGE_OK, f"load-{w}-{step:03d}")
+            with lock:
+                statuses.append(response.status_code)
+
+    threads = [threading.Thread(target=work, args=(w,)) for w in range(k_workers)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=120)
+    assert not any(s >= 500 for s in statuses), statuses
+    with app.app_context():
+        per_item = dict(db.session.execute(select(Answer.item_id, func.count()).group_by(Answer.item_id)).all())
+        pairs = db.session.execute(select(Answer.item_id, Answer.worker_id)).all()
+    assert sorted(per_item.values()) == [n] * k_items  # none lost, none beyond N
+    assert len(pairs) == len(set(pairs)) == n * k_items

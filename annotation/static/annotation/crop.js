@@ -179,7 +179,13 @@
       answered.textContent = data.answered;
       queue.shift();
       if (data.finish && data.finish.post) { postToMTurk(data.finish.post); return; }
-      if (queue.length) show();
+      if (queue.length) {
+        // The preloaded next card is on screen: go on at once, top the queue up meanwhile.
+        show();
+        busy = false;
+        fetchTasks().catch(err => fail(err.message));
+        return;
+      }
       await fetchTasks();
     } catch (err) {
       fail(err.message);  // refusals (box outside, inverted, too small) keep the boxes for fixing

@@ -120,7 +120,14 @@
       answered.textContent = data.answered;
       queue.shift();
       if (data.finish && data.finish.post) { postToMTurk(data.finish.post); return; }
-      if (queue.length) show();
+      if (queue.length) {
+        // The preloaded next card is on screen: let the annotator go on at once and top the
+        // queue up in the background (keys pressed meanwhile must not be dropped).
+        show();
+        busy = false;
+        fetchTasks().catch(err => fail(err.message));
+        return;
+      }
       await fetchTasks();
     } catch (err) {
       fail(err.message);

@@ -1,0 +1,180 @@
+"""The crowd pages in a real browser: headless Chromium driven by Playwright against a real WSGI server.
+
+Annotators judge with the keyboard, submit, undo; a second annotator never gets the first
+one's assignment; MTurk's preview disables submit and an accepted HIT posts back to
+externalSubmit; Prolific participants are redirected with the completion code.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
+
+import pytest
+from sqlalchemy import select
+
+from annotation.models import Answer, Reservation
+from app.db import db
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian's chromium is not installed")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--disable-quic"]
+
+
+@pytest.fixture
+def server(app) -> Iterator[str]:  # type: ignore[no-untyped-def]
+    from werkzeug.serving import make_server
+
+    app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C0DE42"
+    httpd = make_server("127.0.0.1", 0, app, threaded=True)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_port}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+        thread.join(timeout=10)
+
+
+@pytest.fixture
+def browser() -> Iterator[object]:
+    playwright_api = pytest.importorskip("playwright.sync_api")
+    with playwright_api.sync_playwright() as playwright:
+        instance = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            yield instance
+        finally:
+            instance.close()
+
+
+@pytest.fixture
+def batch(app, make_card, card_image):  # type: ignore[no-untyped-def]
+    from annotation.tasks import create_batch
+
+    base = card_image()
+    ids = []
+    for index in range(4):
+        image = base.copy()
+        image[0, 0, 0] = index  # distinct content, distinct cards
+        ids.append(make_card(image, state="review"))
+    with app.app_context():
+        return create_batch(ids, "judge", 2, 0.0).id
+
+
+def invite_link(app, server: str, name: str) -> str:  # type: ignore[no-untyped-def]
+    from annotation.providers import InviteProvider
+
+    with app.app_context():
+        return f"{server}/crowd/invite/{InviteProvider.invite(name).token}"
+
+
+def answers(app) -> list[tuple[int, int, dict]]:  # type: ignore[no-untyped-def]
+    with app.app_context():
+        return [(a.worker_id, a.item_id, a.payload) for a in db.session.scalars(select(Answer).order_by(Answer.id))]
+
+
+def wait_for_answers(page, app, count: int) -> None:  # type: ignore[no-untyped-def]
+    for _ in range(100):
+        if len(answers(app)) == count:
+            return
+        page.wait_for_timeout(100)
+    raise AssertionError(f"expected {count} stored answers, have {answers(app)}")
+
+
+def test_annotator_judges_with_the_keyboard_submits_and_undoes(app, server, browser, batch):
+    page = browser.new_page()
+    page.goto(invite_link(app, server, "alice"))
+    page.wait_for_selector("#status:has-text('Card 1')", timeout=15_000)
+    page.keyboard.press("Escape")  # the first-time instructions
+    page.keyboard.press("f")  # upside-down
+    page.keyboard.press("Enter")
+    wait_for_answers(page, app, 1)
+    page.wait_for_selector("#status:has-text('Card 2')", timeout=10_000)  # the next card is shown
+    page.keyboard.press("n")  # not a stereo pair
+    page.keyboard.press("i")  # inverted
+    page.keyboard.press("Enter")
+    wait_for_answers(page, app, 2)
+    stored = [payload for _, _, payload in answers(app)]
+    assert stored == [
+        {"is_stereo": True, "upside_down": True, "inverted": False},
+        {"is_stereo": False, "upside_down": False, "inverted": True},
+    ]
+    page.wait_for_selector("#status:has-text('Card 3')", timeout=10_000)
+    page.keyboard.press("u")  # undo the last answer
+    wait_for_answers(page, app, 1)
+    page.wait_for_selector("#status:has-text('judge this card again')", timeout=10_000)
+    page.close()
+
+
+def test_a_second_annotator_never_gets_the_same_assignment(app, server, browser, batch):
+    first, second = browser.new_page(), browser.new_page()
+    first.goto(invite_link(app, server, "alice"))
+    second.goto(invite_link(app, server, "bob"))
+    for page in (first, second):
+        page.wait_for_selector("#status:has-text('Card')", timeout=15_000)
+    with app.app_context():
+        held = [(r.worker_id, r.item_id) for r in db.session.scalars(select(Reservation).where(Reservation.answered_at.is_(None)))]
+    by_worker: dict[int, set[int]] = {}
+    for worker, item in held:
+        by_worker.setdefault(worker, set()).add(item)
+    assert len(by_worker) == 2 and len(held) == sum(len(items) for items in by_worker.values())
+    first.keyboard.press("Escape")
+    first.keyboard.press("Enter")
+    wait_for_answers(first, app, 1)
+    worker, item, _ = answers(app)[0]
+    with app.app_context():
+        again = db.session.scalars(
+            select(Reservation).where(Reservation.worker_id == worker, Reservation.item_id == item,
+                                      Reservation.answered_at.is_(None))
+        ).all()
+    assert again == []  # alice is never given the card she answered
+
+
+def test_mturk_preview_disables_submit_and_an_accepted_hit_posts_back(app, server, browser, batch):
+    page = browser.new_page()
+    preview = f"{server}/crowd/mturk?assignmentId=ASSIGNMENT_ID_NOT_AVAILABLE&hitId=H1"
+    page.goto(preview)
+    assert page.is_disabled("#submit-answer")
+    page.keyboard.press("Enter")
+    page.wait_for_timeout(300)
+    assert answers(app) == []
+
+    posted: list[str] = []
+
+    def external_submit(route, request):  # type: ignore[no-untyped-def]
+        posted.append(request.post_data or "")
+        route.fulfill(status=200, body="ok")
+
+    page.route("https://workersandbox.mturk.com/**", external_submit)
+    page.goto(f"{server}/crowd/mturk?assignmentId=A77&hitId=H1&workerId=W9&turkSubmitTo=https%3A%2F%2Fworkersandbox.mturk.com")
+    page.wait_for_selector("#status:has-text('Card')", timeout=15_000)
+    page.keyboard.press("Escape")
+    page.keyboard.press("Enter")
+    for _ in range(100):
+        if posted:
+            break
+        page.wait_for_timeout(100)
+    assert len(answers(app)) == 1
+    assert posted and parse_qs(posted[0]).get("assignmentId") == ["A77"]
+
+
+def test_prolific_participants_are_redirected_with_the_completion_code(app, server, browser, batch):
+    page = browser.new_page()
+    landed: list[str] = []
+    page.route("https://app.prolific.com/**", lambda route, request: (landed.append(request.url), route.fulfill(status=200, body="thanks")))
+    page.goto(f"{server}/crowd/prolific?PROLIFIC_PID=P123&STUDY_ID=S1&SESSION_ID=X1")
+    page.wait_for_selector("#status:has-text('Card')", timeout=15_000)
+    page.keyboard.press("Escape")
+    page.click("#finish-link")
+    for _ in range(100):
+        if landed:
+            break
+        page.wait_for_timeout(100)
+    assert landed and parse_qs(urlsplit(landed[0]).query).get("cc") == ["C0DE42"]
+    assert re.match(r"https://app\.prolific\.com/submissions/complete", landed[0])

@@ -110,7 +110,11 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
         split = CardSplit(left_box=tuple(boxes[0]), right_box=tuple(boxes[1]), gutter_x=0, method="recorded",
                           confidence=1.0)
         left, right = (np.ascontiguousarray(half) for half in crop_halves(card, split))
-        rect = rectify_pair(left, right, params)
+        # The paper puts the principal point at the centre of the full image where known: the
+        # whole left photo as split from the card, in the aligned crop's pixels.
+        full = task.inputs["left_box"]
+        principal_point = ((full[0] + full[2] - 1) / 2 - boxes[0][0], (full[1] + full[3] - 1) / 2 - boxes[0][1])
+        rect = rectify_pair(left, right, params, principal_point=principal_point)
         left_rect, right_rect = warp_pair(left, right, rect)
         work_dir = Path(task.work_dir)
         artifacts = {}

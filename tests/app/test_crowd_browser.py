@@ -178,3 +178,34 @@ def test_prolific_participants_are_redirected_with_the_completion_code(app, serv
         page.wait_for_timeout(100)
     assert landed and parse_qs(urlsplit(landed[0]).query).get("cc") == ["C0DE42"]
     assert re.match(r"https://app\.prolific\.com/submissions/complete", landed[0])
+
+
+def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, server, browser, make_card, card_image):
+    from annotation.tasks import create_batch
+
+    card_id = make_card(card_image(), state="pass")
+    with app.app_context():
+        create_batch([card_id], "crop", 1, 0.0)
+    page = browser.new_page(viewport={"width": 1300, "height": 900})
+    page.goto(invite_link(app, server, "carol") + "?kind=crop")
+    page.wait_for_selector("#status:has-text('Card 1')", timeout=15_000)
+    page.keyboard.press("Escape")
+    page.wait_for_function("document.getElementById('card-image').naturalWidth > 0")
+    frame = page.locator("#card-image").bounding_box()
+
+    def drag(fx0: float, fy0: float, fx1: float, fy1: float) -> None:
+        page.mouse.move(frame["x"] + fx0 * frame["width"], frame["y"] + fy0 * frame["height"])
+        page.mouse.down()
+        page.mouse.move(frame["x"] + fx1 * frame["width"], frame["y"] + fy1 * frame["height"], steps=8)
+        page.mouse.up()
+
+    drag(0.05, 0.10, 0.45, 0.90)  # the left box; the right one is selected next
+    drag(0.55, 0.10, 0.95, 0.90)
+    page.keyboard.press("Enter")
+    wait_for_answers(page, app, 1)
+    payload = answers(app)[0][2]
+    width, height = 604, 200  # the card's pixels, whatever size the page shows it at
+    expected = {"left": [0.05 * width, 0.10 * height, 0.45 * width, 0.90 * height],
+                "right": [0.55 * width, 0.10 * height, 0.95 * width, 0.90 * height]}
+    for half in ("left", "right"):
+        assert payload[half] == pytest.approx(expected[half], abs=3.0)

@@ -5,45 +5,38 @@
   const root = document.getElementById("crowd-task");
   if (!root) return;
   const cfg = root.dataset;
-  const preview = cfg.preview === "true";
   const minBox = Number(cfg.minBox || 16);
   const stage = document.getElementById("crop-stage");
   const image = document.getElementById("card-image");
-  const status = document.getElementById("status");
-  const errorBox = document.getElementById("error");
   const coords = document.getElementById("coords");
-  const submitButton = document.getElementById("submit-answer");
-  const answered = document.getElementById("answered");
-  const help = document.getElementById("help");
-  const HELP_SEEN = "keystone-crowd-crop-help-seen";
   const boxEls = { left: stage.querySelector(".box-left"), right: stage.querySelector(".box-right") };
 
-  let queue = [], shown = null, busy = false, zoom = 1, active = "left", drag = null;
+  let zoom = 1, active = "left", drag = null;
   let boxes = { left: null, right: null };  // [x0, y0, x1, y1] in original pixels
-  const keys = new Map();
-
-  const say = (t) => { status.textContent = t; };
-  const fail = (t) => { errorBox.textContent = t; errorBox.hidden = false; };
-  const clearError = () => { errorBox.hidden = true; };
-  const newKey = () => (window.crypto && crypto.randomUUID) ? crypto.randomUUID()
-    : Date.now().toString(36) + Math.random().toString(36).slice(2);
-  const task = () => queue[0];
   const clamp = (v, lo, hi) => Math.min(hi, Math.max(lo, v));
+  const round = (b) => b.map(v => Math.round(v * 10) / 10);
 
-  async function api(url, body) {
-    const response = await fetch(url, {
-      method: "POST", credentials: "omit", body: JSON.stringify(body || {}),
-      headers: { "Content-Type": "application/json", "X-Crowd-Token": cfg.workerToken },
-    });
-    let data = {};
-    try { data = await response.json(); } catch (e) { /* not JSON */ }
-    if (!response.ok) {
-      const err = new Error((data.error && data.error.message) || ("The server answered " + response.status));
-      err.status = response.status;
-      throw err;
-    }
-    return data;
-  }
+  const client = window.KeystoneTasks.create(root, {
+    kind: "crop",
+    undoneText: "Undone: crop this card again.",
+    cardText: (n) => "Card " + n + ": draw the left box, then the right box.",
+    show(task) {
+      boxes = { left: null, right: null };
+      image.src = task.image_url;
+      image.hidden = false;
+      select("left");
+      render();
+    },
+    hide() { image.hidden = true; render(); },
+    answer() {
+      if (!boxes.left || !boxes.right) throw new Error("Draw both boxes first: one on the left photo and one on the right.");
+      return { left: round(boxes.left), right: round(boxes.right) };
+    },
+  });
+  const task = client.current;
+  const preview = client.preview;
+  const fail = client.fail, clearError = client.clearError;
+  const help = window.KeystoneTasks.instructions(document.getElementById("help"), "keystone-crowd-crop-help-seen");
 
   function toOriginal(event) {
     const rect = image.getBoundingClientRect();
@@ -127,109 +120,23 @@
   stage.addEventListener("pointerup", endDrag);
   stage.addEventListener("pointercancel", endDrag);
 
-  function show() {
-    const t = task();
-    if (!t) { image.hidden = true; shown = null; return; }
-    shown = t.token;
-    boxes = { left: null, right: null };
-    image.src = t.image_url;
-    image.hidden = false;
-    if (queue[1]) { const next = new Image(); next.src = queue[1].image_url; }
-    select("left");
-    render();
-    say("Card " + (Number(answered.textContent) + 1) + ": draw the left box, then the right box.");
-    submitButton.disabled = false;
-  }
-
-  function finished(reason) {
-    image.hidden = true; submitButton.disabled = true; render();
-    say(reason === "all_reserved" ? "Other people hold the remaining cards; try again in a few minutes."
-      : "No more cards for you right now. Thank you!");
-    if (cfg.provider === "prolific" && cfg.finishUrl && reason !== "all_reserved") window.location.assign(cfg.finishUrl);
-  }
-
-  async function fetchTasks() {
-    const data = await api(cfg.nextUrl, { kind: "crop" });
-    answered.textContent = data.answered;
-    const known = new Set(queue.map(t => t.token));
-    for (const t of data.tasks) if (!known.has(t.token)) queue.push(t);
-    if (queue.length) { if (shown !== queue[0].token) show(); } else finished(data.reason);
-  }
-
-  function postToMTurk(post) {
-    const out = document.createElement("form");
-    out.method = "POST"; out.action = post.url;
-    for (const [name, value] of Object.entries(post.fields)) {
-      const input = document.createElement("input");
-      input.type = "hidden"; input.name = name; input.value = value; out.appendChild(input);
-    }
-    document.body.appendChild(out); out.submit();
-  }
-
-  async function submitAnswer() {
-    if (preview || busy || !task()) return;
-    if (!boxes.left || !boxes.right) { fail("Draw both boxes first: one on the left photo and one on the right."); return; }
-    busy = true; submitButton.disabled = true; clearError();
-    const t = task();
-    if (!keys.has(t.token)) keys.set(t.token, newKey());
-    const round = (b) => b.map(v => Math.round(v * 10) / 10);
-    try {
-      const data = await api(cfg.submitUrl, { token: t.token, key: keys.get(t.token),
-                                              answer: { left: round(boxes.left), right: round(boxes.right) } });
-      answered.textContent = data.answered;
-      queue.shift();
-      if (data.finish && data.finish.post) { postToMTurk(data.finish.post); return; }
-      if (queue.length) {
-        // The preloaded next card is on screen: go on at once, top the queue up meanwhile.
-        show();
-        busy = false;
-        fetchTasks().catch(err => fail(err.message));
-        return;
-      }
-      await fetchTasks();
-    } catch (err) {
-      fail(err.message);  // refusals (box outside, inverted, too small) keep the boxes for fixing
-      if (err.status === 409 || err.status === 403 || err.status === 404) { queue.shift(); await fetchTasks().catch(e => fail(e.message)); }
-      else submitButton.disabled = false;
-    } finally { busy = false; }
-  }
-
-  async function undo() {
-    if (preview || busy) return;
-    busy = true; clearError();
-    try {
-      const data = await api(cfg.undoUrl, {});
-      answered.textContent = data.answered;
-      queue = [data.task].concat(queue.filter(t => t.token !== data.task.token));
-      keys.delete(data.task.token);
-      show();
-      say("Undone: crop this card again.");
-    } catch (err) { fail(err.message); } finally { busy = false; }
-  }
-
-  document.getElementById("crop-form").addEventListener("submit", (e) => { e.preventDefault(); submitAnswer(); });
-  document.getElementById("undo").addEventListener("click", undo);
+  document.getElementById("crop-form").addEventListener("submit", (e) => { e.preventDefault(); client.submit(); });
+  document.getElementById("undo").addEventListener("click", client.undo);
   document.getElementById("zoom-in").addEventListener("click", () => setZoom(zoom * 1.25));
   document.getElementById("zoom-out").addEventListener("click", () => setZoom(zoom / 1.25));
-  document.getElementById("show-help").addEventListener("click", () => help.showModal());
+  document.getElementById("show-help").addEventListener("click", help.open);
   document.querySelectorAll(".half-button").forEach(b => b.addEventListener("click", () => { select(b.dataset.half); render(); }));
-  help.addEventListener("close", () => { try { localStorage.setItem(HELP_SEEN, "1"); } catch (e) { /* blocked */ } });
 
   document.addEventListener("keydown", (event) => {
-    if (event.ctrlKey || event.metaKey || event.altKey || help.open) return;
+    if (event.ctrlKey || event.metaKey || event.altKey || help.isOpen()) return;
     const key = event.key.toLowerCase();
-    if (key === "enter") { event.preventDefault(); submitAnswer(); }
-    else if (key === "u") { event.preventDefault(); undo(); }
+    if (key === "enter") { event.preventDefault(); client.submit(); }
+    else if (key === "u") { event.preventDefault(); client.undo(); }
     else if (key === "l" || key === "r") { select(key === "l" ? "left" : "right"); render(); }
     else if (key === "+" || key === "=") setZoom(zoom * 1.25);
     else if (key === "-") setZoom(zoom / 1.25);
     else if (key === "delete" || key === "backspace") { boxes[active] = null; render(); }
-    else if (key === "h" || key === "?") help.showModal();
+    else if (key === "h" || key === "?") help.open();
   });
-
-  let seen = false;
-  try { seen = localStorage.getItem(HELP_SEEN) === "1"; } catch (e) { /* blocked */ }
-  if (!seen && typeof help.showModal === "function") help.showModal();
-  select("left");
-  if (!preview) fetchTasks().catch(err => fail(err.message));
+  client.start();
 })();

@@ -9,6 +9,8 @@ result for the same stage and parameters; ``failed`` cards are retried.
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
@@ -20,7 +22,7 @@ from typing import Any
 
 import click
 from flask.cli import with_appcontext
-from sqlalchemy import exists, func, select
+from sqlalchemy import exists, select
 from sqlalchemy.orm import selectinload
 
 from pipeline.filter import FilterParams
@@ -43,22 +45,64 @@ class StageSpec:
     task: Callable[[CardTask], StageRecord]
     # The card states this stage applies to; other cards are not its business.
     eligible_states: tuple[str, ...]
-    # What earlier stages decided that this one needs, read from the card's latest results.
-    inputs: Callable[[Card], dict[str, Any]] | None = None
+    # What earlier stages (and approved crowd annotations) decided that this one needs.
+    inputs: Callable[[Card, dict[str, Any]], dict[str, Any]] | None = None
     # The stage whose latest result must be done or skipped before this one can run.
     requires: str | None = None
+    # Given a card and its inputs, whether it can run now (e.g. a card the filter sent to
+    # review waits until the crowd has judged it a stereo pair).
+    ready: Callable[[Card, dict[str, Any]], bool] | None = None
 
 
 def filter_boxes(card: Card) -> dict[str, Any]:
-    """The split boxes of the card's latest filter result (later: the crowd's approved crops)."""
+    """The split boxes of the card's latest filter result."""
     result = card.latest_results().get("filter")
     if result is None or result.status != "done":
         return {}
     return {"left_box": result.metrics.get("left_box"), "right_box": result.metrics.get("right_box"),
-            "filter_param_hash": result.param_hash}
+            "box_source": f"filter split ({result.param_hash})"}
 
 
-def rectified_pair(card: Card) -> dict[str, Any]:
+def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """The latest approved crowd aggregate per card and task kind: ``{card: {"judge": .., "crop": ..}}``."""
+    from annotation.models import Aggregate
+
+    approved: dict[int, dict[str, Any]] = {}
+    rows = db.session.scalars(
+        select(Aggregate).where(Aggregate.card_id.in_(card_ids), Aggregate.state == "approved").order_by(Aggregate.id)
+    )
+    for row in rows:
+        approved.setdefault(row.card_id, {})[row.kind] = row
+    return approved
+
+
+def rectify_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+    """What rectification consumes: the crowd's consensus boxes and orientation where approved,
+    else the filter's automatic split (boxes are in the original card's pixels)."""
+    inputs = filter_boxes(card)
+    crop = approved.get("crop")
+    if crop is not None and crop.label.get("left") and crop.label.get("right"):
+        inputs.update(left_box=[int(round(v)) for v in crop.label["left"]],
+                      right_box=[int(round(v)) for v in crop.label["right"]],
+                      box_source=f"crowd consensus (batch {crop.batch_id})")
+    judge = approved.get("judge")
+    if judge is not None:
+        inputs.update(is_stereo=bool(judge.label.get("is_stereo", True)),
+                      upside_down=bool(judge.label.get("upside_down")), inverted=bool(judge.label.get("inverted")),
+                      orientation_source=f"crowd judgement (batch {judge.batch_id})")
+    return inputs
+
+
+def rectify_ready(card: Card, inputs: dict[str, Any]) -> bool:
+    """Passed cards unless the crowd judged them no stereo pair; review cards once judged one."""
+    if not inputs.get("left_box"):
+        return False
+    if card.state == "review":
+        return inputs.get("is_stereo") is True
+    return inputs.get("is_stereo", True) is not False
+
+
+def rectified_pair(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     """The rectified views, measured disparity range and focal length of the latest rectify result."""
     result = card.latest_results().get("rectify")
     if result is None or result.status not in ("done", "skipped"):
@@ -87,15 +131,16 @@ def available_stages() -> dict[str, StageSpec]:
             name="rectify",
             params=rectify_params,
             task=functools.partial(rectify_task, params=rectify_params),
-            eligible_states=("pass",),
-            inputs=filter_boxes,
+            eligible_states=("pass", "review"),
+            inputs=rectify_inputs,
+            ready=rectify_ready,
         ),
         # Cards whose rectification is done (or was not needed); a failed one gets no run.
         "disparity": StageSpec(
             name="disparity",
             params=disparity_params,
             task=functools.partial(disparity_task, params=disparity_params),
-            eligible_states=("pass",),
+            eligible_states=("pass", "review"),
             inputs=rectified_pair,
             requires="rectify",
         ),
@@ -158,14 +203,14 @@ def make_executor(kind: str, workers: int, scheduler: str | None) -> Iterator[Ex
         raise ValueError(f"unknown executor {kind!r}; expected local or dask")
 
 
-def pending_cards(spec: StageSpec, phash: str) -> tuple[list[Card], int]:
-    """Cards that still need ``spec`` with these parameters, and how many are already finished."""
-    finished = exists().where(
-        StageResult.card_id == Card.id,
-        StageResult.stage == spec.name,
-        StageResult.param_hash == phash,
-        StageResult.status.in_(("done", "skipped")),
-    )
+def inputs_digest(inputs: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def pending_cards(spec: StageSpec, phash: str) -> tuple[list[tuple[Card, dict[str, Any]]], int]:
+    """Cards that still need ``spec`` with these parameters (with their inputs), and how many
+    are already finished. A finished card runs again when its inputs changed (say the crowd's
+    boxes arrived after the automatic split was used)."""
     eligible = Card.state.in_(spec.eligible_states)
     if spec.requires is not None:
         eligible = eligible & exists().where(
@@ -173,10 +218,24 @@ def pending_cards(spec: StageSpec, phash: str) -> tuple[list[Card], int]:
             StageResult.stage == spec.requires,
             StageResult.status.in_(("done", "skipped")),
         )
-    todo = list(db.session.scalars(
-        select(Card).where(eligible, ~finished).order_by(Card.id).options(selectinload(Card.stage_results))
+    cards = list(db.session.scalars(
+        select(Card).where(eligible).order_by(Card.id).options(selectinload(Card.stage_results))
     ))
-    already = db.session.scalar(select(func.count()).select_from(Card).where(eligible, finished)) or 0
+    approved = approved_annotations([card.id for card in cards]) if spec.inputs is not None else {}
+    todo, already = [], 0
+    for card in cards:
+        inputs = spec.inputs(card, approved.get(card.id, {})) if spec.inputs is not None else {}
+        if spec.ready is not None and not spec.ready(card, inputs):
+            continue
+        finished = next(
+            (r for r in card.stage_results
+             if r.stage == spec.name and r.param_hash == phash and r.status in ("done", "skipped")),
+            None,
+        )
+        if finished is not None and (spec.inputs is None or finished.metrics.get("inputs_digest") == inputs_digest(inputs)):
+            already += 1
+        else:
+            todo.append((card, inputs))
     return todo, already
 
 
@@ -198,10 +257,11 @@ def run_stage(
             image_path=str(data_dir / card.stored_path),
             work_dir=str(card_work_dir(data_dir, card.content_hash, spec.name, phash)),
             data_dir=str(data_dir),
-            inputs=spec.inputs(card) if spec.inputs is not None else {},
+            inputs=inputs,
         )
-        for card in cards
+        for card, inputs in cards
     ]
+    digests = {task.card_id: inputs_digest(task.inputs) for task in tasks if spec.inputs is not None}
     db.session.commit()  # release the read transaction while workers compute
     if on_start is not None:
         on_start(len(tasks))
@@ -215,10 +275,10 @@ def run_stage(
         if on_record is not None:
             on_record(record)
         if len(batch) >= WRITE_BATCH or time.monotonic() - last_write > WRITE_INTERVAL_S:
-            write_records(batch)
+            write_records(batch, digests)
             batch, last_write = [], time.monotonic()
     if batch:
-        write_records(batch)
+        write_records(batch, digests)
     report.seconds = time.perf_counter() - clock
     return report
 
@@ -234,7 +294,7 @@ def _count(report: StageReport, record: StageRecord) -> None:
             report.outcomes[record.outcome] = report.outcomes.get(record.outcome, 0) + 1
 
 
-def write_records(records: list[StageRecord]) -> None:
+def write_records(records: list[StageRecord], digests: dict[int, str] | None = None) -> None:
     """Upsert results (one row per card, stage and parameters) and update card states."""
     existing = {
         (row.card_id, row.stage, row.param_hash): row
@@ -251,7 +311,7 @@ def write_records(records: list[StageRecord]) -> None:
         row.status = record.status
         row.outcome = record.outcome
         row.reason = record.reason
-        row.metrics = record.metrics
+        row.metrics = {**record.metrics, "inputs_digest": digests[record.card_id]} if digests else record.metrics
         row.artifacts = record.artifacts
         row.started_at = datetime.fromtimestamp(record.started_at, tz=timezone.utc) if record.started_at else None
         row.seconds = record.seconds

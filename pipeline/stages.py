@@ -68,8 +68,8 @@ def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
 
     ``inputs["upside_down"]`` rotates the card 180 deg, ``inputs["inverted"]`` inverts its
     intensities (255 - v). A card judged upright and not inverted, or not judged at all, skips
-    the step, and the returned record says so. The split boxes must be in the corrected card's
-    pixels (a judged card is cropped by the crowd on the corrected image).
+    the step, and the returned record says so. Boxes stay in the scanned card's pixels; the
+    caller turns them with the card.
     """
     applied = []
     if inputs.get("upside_down"):
@@ -98,6 +98,13 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
         boxes = task.inputs.get("left_box"), task.inputs.get("right_box")
         if boxes[0] is None or boxes[1] is None:
             raise PipelineError("no split boxes from the filter stage; run the filter first")
+        if task.inputs.get("upside_down"):
+            # Boxes are drawn on the card as scanned; turned 180 deg, the right photo's box
+            # becomes the left one.
+            height, width = card.shape[:2]
+            turn = lambda b: [width - b[2], height - b[3], width - b[0], height - b[1]]  # noqa: E731
+            boxes = turn(boxes[1]), turn(boxes[0])
+        boxes_before = boxes
         # The paper aligns the two crops by SIFT matches and cuts both to their intersection;
         # when that cannot be done the boxes go on as given and rectification decides.
         try:
@@ -112,7 +119,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
         left, right = (np.ascontiguousarray(half) for half in crop_halves(card, split))
         # The paper puts the principal point at the centre of the full image where known: the
         # whole left photo as split from the card, in the aligned crop's pixels.
-        full = task.inputs["left_box"]
+        full = boxes_before[0]
         principal_point = ((full[0] + full[2] - 1) / 2 - boxes[0][0], (full[1] + full[3] - 1) / 2 - boxes[0][1])
         rect = rectify_pair(left, right, params, principal_point=principal_point)
         left_rect, right_rect = warp_pair(left, right, rect)
@@ -140,6 +147,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
         metrics["implied_pose"] = implied_pose(rect.H_l, rect.H_r, rect.K)
         metrics["orientation"] = orientation
         metrics["crop_alignment"] = crop_record
+        metrics["box_source"] = task.inputs.get("box_source", "filter split")
         return StageRecord(
             card_id=task.card_id, stage="rectify", param_hash=phash, status=status, reason=reason,
             metrics=metrics, artifacts=artifacts, started_at=started, seconds=time.perf_counter() - clock,

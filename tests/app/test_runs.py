@@ -215,3 +215,54 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
 
     again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
     assert [r["processed"] for r in again] == [0, 0, 0]
+
+
+def _approve(app, card_id: int, kind: str, label: dict) -> None:  # type: ignore[no-untyped-def]
+    from annotation.models import Aggregate
+    from annotation.tasks import create_batch
+
+    with app.app_context():
+        batch = create_batch([card_id], kind, 1, 0.0)
+        db.session.add(Aggregate(batch_id=batch.id, card_id=card_id, kind=kind, label=label, posterior={},
+                                 confident=True, state="approved", answers=1))
+        db.session.commit()
+
+
+def test_rectify_consumes_approved_crowd_judgements_and_boxes(app, runner, tmp_path):
+    from skimage import data
+
+    left, right, _ = data.stereo_motorcycle()
+    folder = tmp_path / "crowd"
+    folder.mkdir()
+    Image.fromarray(_mounted(left, right)).save(folder / "in_review.png")
+    Image.fromarray(np.ascontiguousarray(_mounted(left, right)[::-1, ::-1])).save(folder / "upside_down.png")
+    assert runner.invoke(cli, ["ingest", str(folder)]).exit_code == 0
+    assert runner.invoke(cli, ["run", "--stages", "filter"]).exit_code == 0
+    with app.app_context():
+        review = db.session.scalar(select(Card).where(Card.source_name == "in_review.png"))
+        review.state = "review"  # as if the filter had sent it to people
+        db.session.commit()
+        review_id = review.id
+        turned_id = db.session.scalar(select(Card.id).where(Card.source_name == "upside_down.png"))
+
+    first = json.loads(runner.invoke(cli, ["run", "--stages", "rectify", "--json"]).stdout)["stages"][0]
+    assert first["processed"] == 1  # the review card waits for its judgement
+    by_id = {c["id"]: c["stages"]["rectify"] for c in _cards(runner)["cards"]}
+    assert by_id[review_id]["status"] == "pending"
+
+    _approve(app, review_id, "judge", {"is_stereo": True, "upside_down": False, "inverted": False})
+    _approve(app, review_id, "crop", {"left": [10, 10, 700, 480], "right": [775, 12, 1465, 482]})
+    _approve(app, turned_id, "judge", {"is_stereo": True, "upside_down": True, "inverted": False})
+    second = json.loads(runner.invoke(cli, ["run", "--stages", "rectify", "--json"]).stdout)["stages"][0]
+    assert second["processed"] == 2 and second["failed"] == 0  # the judged review card, and the turned card again
+
+    by_id = {c["id"]: c["stages"]["rectify"] for c in _cards(runner)["cards"]}
+    crowd = by_id[review_id]["metrics"]
+    assert crowd["box_source"].startswith("crowd consensus")
+    assert crowd["crop_alignment"]["left_box_before"] == [10, 10, 700, 480]
+    turned = by_id[turned_id]["metrics"]
+    assert turned["orientation"]["status"] == "done" and turned["orientation"]["applied"] == ["rotated 180 deg"]
+    assert turned["swapped"] is False and turned["disparity_max"] > 20
+
+    third = json.loads(runner.invoke(cli, ["run", "--stages", "rectify", "--json"]).stdout)["stages"][0]
+    assert third["processed"] == 0 and third["already_done"] == 2

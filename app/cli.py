@@ -78,12 +78,14 @@ def _register() -> None:
     from annotation.cli import crowd_group
 
     from .disparity_cli import bench_disparity_command
+    from .inpainting_cli import bench_inpainting_command, train_inpainting_command
     from .rectify_cli import bench_rectify_command
 
     bench_group.add_command(bench_disparity_command)
     bench_group.add_command(bench_rectify_command)
+    bench_group.add_command(bench_inpainting_command)
     for command in (ingest_command, run_command, cards_command, bench_group, demo_command, users_group,
-                    check_homographies_command, crowd_group):
+                    check_homographies_command, crowd_group, train_inpainting_command):
         cli.add_command(command)
 
 

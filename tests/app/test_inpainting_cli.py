@@ -1,0 +1,35 @@
+"""``keystone bench inpainting --json`` and ``keystone train-inpainting`` on tiny settings."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+pytest.importorskip("torch")
+
+from app.inpainting_cli import bench_inpainting_command, train_inpainting_command
+
+
+def test_bench_inpainting_json_shape():
+    result = CliRunner().invoke(bench_inpainting_command, ["--json", "--steps", "5", "--size", "32"])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.output)
+    pairs = {(r["method"], r["channel"]) for r in doc["results"]}
+    assert pairs == {(m, c) for m in ("network", "telea", "navier-stokes", "none") for c in ("intensity", "depth")}
+    assert all(r["l1"] is not None and r["l1"] >= 0 for r in doc["results"])
+    assert doc["training_seconds"] > 0 and doc["steps"] == 5 and doc["test_samples"] > 0
+    assert isinstance(doc["network_beats_classical_on_depth"], bool)
+
+
+def test_train_inpainting_checkpoints_and_resumes(tmp_path):
+    runner = CliRunner()
+    args = ["--out", str(tmp_path), "--size", "32", "--checkpoint-every", "2", "--json"]
+    first = runner.invoke(train_inpainting_command, [*args, "--steps", "2"])
+    assert first.exit_code == 0, first.output
+    assert json.loads(first.output)["step"] == 2
+    assert (tmp_path / "checkpoint.pt").is_file() and (tmp_path / "config.json").is_file()
+    second = runner.invoke(train_inpainting_command, [*args, "--steps", "3"])
+    doc = json.loads(second.output)
+    assert doc["start_step"] == 2 and doc["step"] == 3

@@ -56,11 +56,8 @@ def filter_task(task: CardTask, params: FilterParams) -> StageRecord:
             reason=result.reason, metrics=metrics, artifacts=artifacts, started_at=started,
             seconds=time.perf_counter() - clock, code_version=CODE_VERSION,
         )
-    except PipelineError as exc:
-        return _failed(task, "filter", phash, exc.reason(), started, clock)
-    except Exception as exc:  # a bug or an OpenCV error on a strange card: record it, go on
-        detail = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        return _failed(task, "filter", phash, f"internal_error: {detail}", started, clock)
+    except Exception as exc:  # one bad card never stops a batch: record why, go on
+        return _failed(task, "filter", phash, failure_reason(exc), started, clock)
 
 
 def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
@@ -153,11 +150,8 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
             metrics=metrics, artifacts=artifacts, started_at=started, seconds=time.perf_counter() - clock,
             code_version=CODE_VERSION,
         )
-    except PipelineError as exc:
-        return _failed(task, "rectify", phash, exc.reason(), started, clock)
-    except Exception as exc:  # an OpenCV error on a strange card: record it, go on
-        detail = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        return _failed(task, "rectify", phash, f"internal_error: {detail}", started, clock)
+    except Exception as exc:  # one bad card never stops a batch: record why, go on
+        return _failed(task, "rectify", phash, failure_reason(exc), started, clock)
 
 
 @dataclass(frozen=True)
@@ -248,11 +242,16 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageRecord:
             card_id=task.card_id, stage="disparity", param_hash=phash, status="done", metrics=metrics,
             artifacts=artifacts, started_at=started, seconds=time.perf_counter() - clock, code_version=CODE_VERSION,
         )
-    except PipelineError as exc:
-        return _failed(task, "disparity", phash, exc.reason(), started, clock)
-    except Exception as exc:  # an OpenCV error on a strange pair: record it, go on
-        detail = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        return _failed(task, "disparity", phash, f"internal_error: {detail}", started, clock)
+    except Exception as exc:  # one bad card never stops a batch: record why, go on
+        return _failed(task, "disparity", phash, failure_reason(exc), started, clock)
+
+
+def failure_reason(exc: Exception) -> str:
+    """A typed reason for a stage's record: the error's own code, or ``internal_error`` for a
+    bug or an OpenCV error on a strange card."""
+    if isinstance(exc, PipelineError):
+        return exc.reason()
+    return f"internal_error: {traceback.format_exception_only(type(exc), exc)[-1].strip()}"
 
 
 def _failed(task: CardTask, stage: str, phash: str, reason: str, started: float, clock: float) -> StageRecord:

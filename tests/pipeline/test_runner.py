@@ -65,4 +65,16 @@ def test_param_hash_is_stable_and_sensitive():
     assert param_hash(_Params()) == param_hash(_Params())
     assert param_hash(_Params()) != param_hash(_Params(ratio=0.8))
     assert len(param_hash(_Params())) == 16
-    assert functools.partial(_square_task)  # task functions must be picklable top-level callables
+
+
+
+def test_stage_tasks_survive_the_trip_to_a_worker_process():
+    """Process pools and dask pickle the task; a lambda or closure here would fail at run time."""
+    import pickle
+
+    from pipeline.filter import FilterParams
+    from pipeline.stages import filter_task
+
+    task = functools.partial(filter_task, params=FilterParams(ratio=0.6))
+    restored = pickle.loads(pickle.dumps(task))
+    assert restored.func is filter_task and restored.keywords["params"] == FilterParams(ratio=0.6)

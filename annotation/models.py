@@ -143,4 +143,23 @@ class Aggregate(db.Model):
     state: Mapped[str] = mapped_column(String(20))
     reasons: Mapped[str] = mapped_column(Text, default="")  # why it waits for a curator
     answers: Mapped[int] = mapped_column(Integer, default=0)
+    # Set when a curator decided a disputed aggregate: their label is the card's truth.
+    resolved_by: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
     updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)
+
+
+class GoldAnswer(db.Model):
+    """A known answer a curator made for a card; new batches mix these in as gold items."""
+
+    __tablename__ = "crowd_gold_answers"
+    __table_args__ = (
+        CheckConstraint(_in("kind", TASK_KINDS), name="kind"),
+        UniqueConstraint("card_id", "kind", name="crowd_gold_card_kind"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    card_id: Mapped[int] = mapped_column(ForeignKey("cards.id", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(10))
+    answer: Mapped[dict[str, Any]] = mapped_column(JSONType)
+    made_by: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

@@ -41,5 +41,14 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     from annotation import bp as crowd_bp
 
     app.register_blueprint(crowd_bp)
+
+    from exports.views import bp as exports_bp
+    from review.views import bp as review_bp
+
+    from . import viewer
+
+    app.register_blueprint(review_bp)
+    app.register_blueprint(exports_bp)
+    app.register_blueprint(viewer.bp)
     security.init_app(app)
     return app

@@ -84,8 +84,14 @@ def _register() -> None:
     bench_group.add_command(bench_disparity_command)
     bench_group.add_command(bench_rectify_command)
     bench_group.add_command(bench_inpainting_command)
+    import exports.cli
+    import review.cli
+
+    for command in exports.cli.bench_commands():
+        bench_group.add_command(command)
     for command in (ingest_command, run_command, cards_command, bench_group, demo_command, users_group,
-                    check_homographies_command, crowd_group, train_inpainting_command):
+                    check_homographies_command, crowd_group, train_inpainting_command,
+                    *review.cli.commands(), *exports.cli.commands()):
         cli.add_command(command)
 
 

@@ -21,6 +21,8 @@ MIGRATIONS_DIR = Path(__file__).with_name("migrations")
 def target_metadata() -> MetaData:
     """All models' metadata: importing the feature model modules registers their tables."""
     import annotation.models  # noqa: F401
+    import exports.models  # noqa: F401
+    import review.models  # noqa: F401
 
     from . import models  # noqa: F401
     from .db import db

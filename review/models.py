@@ -1,0 +1,123 @@
+"""Curator review rows: one review per card, the fitted grade models, and the audit trail.
+
+A card's *automatic* grade is a ``grade`` stage result (``app.models.StageResult``); the
+curator's decision and the card's final grade live in :class:`CardReview`. Every change to a
+grade, a decision or a crowd annotation is also written to :class:`AuditEvent`, which is
+append-only: the ORM refuses updates and deletes, and the migration adds database triggers
+that refuse them too, so a trace survives a bug or a hand-written SQL statement.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import CheckConstraint, DateTime, Float, ForeignKey, Integer, String, Text, event
+from sqlalchemy.orm import Mapped, Session, mapped_column, relationship
+
+from app.db import JSONType, db, utcnow
+from app.models import Card, Person
+
+# The paper's three categories, best first. "few" and "some" are artifact levels.
+GRADES: tuple[str, ...] = ("few", "some", "failure")
+GRADE_NAMES: dict[str, str] = {"few": "few artifacts", "some": "some artifacts", "failure": "failure"}
+# pending: not yet seen by a curator; accepted: the automatic grade stands; changed: the curator
+# set another grade; sent_back: returned to the crowd for new crop boxes / judgements;
+# rejected: never to be released.
+DECISIONS: tuple[str, ...] = ("pending", "accepted", "changed", "sent_back", "rejected")
+
+
+def _in(column: str, values: tuple[str, ...]) -> str:
+    return f"{column} IN ({', '.join(repr(v) for v in values)})"
+
+
+class CardReview(db.Model):
+    """The curator's view of one card. ``version`` is the optimistic lock: a decision posted
+    against an older version is refused with a conflict instead of overwriting a colleague."""
+
+    __tablename__ = "card_reviews"
+    __table_args__ = (
+        CheckConstraint(_in("decision", DECISIONS), name="decision"),
+        CheckConstraint(f"grade IS NULL OR {_in('grade', GRADES)}", name="grade"),
+        CheckConstraint(f"auto_grade IS NULL OR {_in('auto_grade', GRADES)}", name="auto_grade"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    card_id: Mapped[int] = mapped_column(ForeignKey("cards.id", ondelete="CASCADE"), unique=True)
+    auto_grade: Mapped[str | None] = mapped_column(String(10))  # the grade stage's outcome when last synced
+    auto_param_hash: Mapped[str | None] = mapped_column(String(32))
+    uncertainty: Mapped[float | None] = mapped_column(Float)  # 0 = sure .. 1 = on a threshold; sorts the queue
+    grade: Mapped[str | None] = mapped_column(String(10), index=True)  # the card's final grade
+    decision: Mapped[str] = mapped_column(String(12), default="pending", index=True)
+    note: Mapped[str] = mapped_column(Text, default="")
+    reviewer_id: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
+    decided_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    version: Mapped[int] = mapped_column(Integer, default=1)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)
+
+    card: Mapped[Card] = relationship()
+    reviewer: Mapped[Person | None] = relationship()
+
+    # SQLAlchemy bumps the version on every flush and refuses a stale row (StaleDataError).
+    __mapper_args__ = {"version_id_col": version}
+
+
+class GradeModel(db.Model):
+    """Thresholds of the automatic grader, fitted to curator labels (``keystone grade fit``).
+
+    The newest row is the active one; older rows stay so a grade can always be traced to the
+    thresholds that produced it (the grade stage's parameter hash covers the thresholds).
+    """
+
+    __tablename__ = "grade_models"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    thresholds: Mapped[dict[str, Any]] = mapped_column(JSONType)
+    fitted_on: Mapped[int] = mapped_column(Integer, default=0)  # curator labels used
+    evaluation: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)  # held-out agreement
+    created_by: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+
+class AuditEvent(db.Model):
+    """One change: who, when, to what, before, after and why. Never updated, never deleted."""
+
+    __tablename__ = "audit_events"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    card_id: Mapped[int | None] = mapped_column(ForeignKey("cards.id"), index=True)
+    entity: Mapped[str] = mapped_column(String(30))  # review | grade | aggregate | gold | release
+    entity_id: Mapped[int | None] = mapped_column(Integer)
+    action: Mapped[str] = mapped_column(String(40))
+    actor_id: Mapped[int | None] = mapped_column(ForeignKey("people.id"))
+    actor: Mapped[str] = mapped_column(String(200))  # username, or "pipeline" / "crowd"
+    at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, index=True)
+    before: Mapped[dict[str, Any] | None] = mapped_column(JSONType)
+    after: Mapped[dict[str, Any] | None] = mapped_column(JSONType)
+    why: Mapped[str] = mapped_column(Text, default="")
+
+
+class AuditTamperError(RuntimeError):
+    """Raised when code tries to change or delete an audit event."""
+
+
+@event.listens_for(Session, "before_flush")
+def _refuse_audit_changes(session: Session, _context: Any, _instances: Any) -> None:
+    for instance in (*session.dirty, *session.deleted):
+        if isinstance(instance, AuditEvent) and (instance in session.deleted or session.is_modified(instance)):
+            raise AuditTamperError(f"audit event {instance.id} is append-only: it cannot be changed or deleted")
+
+
+def record_event(*, entity: str, action: str, card_id: int | None = None, entity_id: int | None = None,
+                 actor: Person | None = None, actor_label: str | None = None,
+                 before: dict[str, Any] | None = None, after: dict[str, Any] | None = None,
+                 why: str = "") -> AuditEvent:
+    """Add an audit event to the current session (committed with the change it describes)."""
+    event_row = AuditEvent(
+        card_id=card_id, entity=entity, entity_id=entity_id, action=action,
+        actor_id=actor.id if actor is not None else None,
+        actor=actor.username if actor is not None else (actor_label or "system"),
+        before=before, after=after, why=why or "",
+    )
+    db.session.add(event_row)
+    return event_row

@@ -7,16 +7,25 @@ session in a temporary folder, on a unix socket, then stopped. No mocks.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import itertools
 import os
 import pwd
+import re
 import shutil
+import stat
 import subprocess
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
+from PIL import Image
+from sqlalchemy import select
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("KEYSTONE_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -161,3 +170,210 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"{SHARED_DATA} not present: real-data tests need ../shared/data")
     return SHARED_DATA
+
+
+# ---- factories for web-app tests (people, stored cards, stage results, logging in) ----
+# They are fixtures (tests/ is not a package, so test modules cannot import helpers). Cards are
+# real images (Middlebury Motorcycle, shipped with scikit-image) written into the test app's
+# data dir the way ingest stores them; rows are inserted directly. CSRF stays on: helpers post
+# the token they read from the page, as a browser would.
+
+PASSWORD = "correct horse battery"
+CARD_HALF = (296, 200)  # (width, height) of each photo in the default test card
+GUTTER = 12
+
+_CSRF_INPUT = re.compile(r'<input[^>]*name="csrf_token"[^>]*value="([^"]+)"')
+
+
+def stereo_card_array(half: tuple[int, int] = CARD_HALF, gutter: int = GUTTER) -> np.ndarray:
+    """Motorcycle's left and right views side by side on a grey gutter, ``(H, W, 3)`` uint8."""
+    from skimage import data
+
+    left, right, _ = data.stereo_motorcycle()
+    views = [np.asarray(Image.fromarray(view).resize(half, Image.Resampling.BOX)) for view in (left, right)]
+    strip = np.full((half[1], gutter, 3), 200, np.uint8)
+    return np.concatenate([views[0], strip, views[1]], axis=1)
+
+
+def encode(image: np.ndarray, fmt: str = "PNG") -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format=fmt)
+    return buffer.getvalue()
+
+
+@dataclass(frozen=True)
+class PersonInfo:
+    id: int
+    username: str
+    password: str
+    roles: tuple[str, ...]
+
+
+@pytest.fixture
+def data_dir(app) -> Path:  # type: ignore[no-untyped-def]
+    return Path(app.config["KEYSTONE_DATA_DIR"])
+
+
+@pytest.fixture
+def card_image() -> Callable[..., np.ndarray]:
+    return stereo_card_array
+
+
+@pytest.fixture
+def make_person(app) -> Callable[..., PersonInfo]:  # type: ignore[no-untyped-def]
+    from app.db import db
+    from app.models import Person
+
+    counter = iter(range(1, 10_000))
+
+    def make(*roles: str, username: str | None = None, password: str = PASSWORD, active: bool = True) -> PersonInfo:
+        name = username or f"{'-'.join(roles) or 'nobody'}-{next(counter)}"
+        with app.app_context():
+            person = Person(username=name, display_name=name.title(), active=active)
+            person.set_password(password)
+            for role in roles:
+                person.grant(role)
+            db.session.add(person)
+            db.session.commit()
+            return PersonInfo(person.id, name, password, tuple(roles))
+
+    return make
+
+
+@pytest.fixture
+def make_card(app, data_dir: Path) -> Callable[..., int]:  # type: ignore[no-untyped-def]
+    """Store an image as ingest would (``originals/<hash[:2]>/<hash><suffix>``, read-only); return the card id."""
+    from app.db import db
+    from app.models import Card, Collection
+
+    def make(
+        image: np.ndarray | None = None,
+        *,
+        payload: bytes | None = None,
+        suffix: str = ".png",
+        collection: str = "test-collection",
+        state: str = "ingested",
+        accession: str | None = None,
+        metadata: dict[str, Any] | None = None,
+        source_name: str | None = None,
+    ) -> int:
+        if payload is None:
+            image = stereo_card_array() if image is None else image
+            payload = encode(image, {".png": "PNG", ".tif": "TIFF", ".jpg": "JPEG"}[suffix])
+        content_hash = hashlib.sha256(payload).hexdigest()
+        relative = Path("originals") / content_hash[:2] / f"{content_hash}{suffix}"
+        target = data_dir / relative
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(payload)
+        target.chmod(stat.S_IRUSR | stat.S_IRGRP | stat.S_IROTH)
+        with Image.open(io.BytesIO(payload)) as probe:
+            width, height, fmt = probe.width, probe.height, probe.format or "unknown"
+        with app.app_context():
+            group = db.session.scalar(select(Collection).where(Collection.name == collection))
+            if group is None:
+                group = Collection(name=collection)
+            card = Card(
+                collection=group, content_hash=content_hash, stored_path=str(relative),
+                source_name=source_name or f"scan-{content_hash[:8]}{suffix}", source_path=f"/scans/{content_hash[:8]}{suffix}",
+                accession=accession, width=width, height=height, image_format=fmt, byte_size=len(payload),
+                source_metadata=metadata or {}, state=state,
+            )
+            db.session.add(card)
+            db.session.commit()
+            return card.id
+
+    return make
+
+
+@pytest.fixture
+def add_stage_result(app, data_dir: Path) -> Callable[..., int]:  # type: ignore[no-untyped-def]
+    """Record a stage result for a card; for the filter, write its two halves as PNG artifacts."""
+    from app.db import db
+    from app.models import Card, StageResult
+    from pipeline.io import read_image, write_png
+
+    def add(
+        card_id: int,
+        stage: str = "filter",
+        *,
+        status: str = "done",
+        outcome: str | None = "pass",
+        reason: str | None = None,
+        param_hash: str = "0123456789abcdef",
+        metrics: dict[str, Any] | None = None,
+        artifacts: dict[str, str] | None = None,
+        update_state: bool = True,
+    ) -> int:
+        with app.app_context():
+            card = db.session.get(Card, card_id)
+            assert card is not None
+            if stage == "filter" and status == "done" and artifacts is None:
+                image = read_image(data_dir / card.stored_path)
+                height, width = image.shape[:2]
+                gutter = GUTTER if width == 2 * CARD_HALF[0] + GUTTER else 0
+                half = (width - gutter) // 2
+                left_box = [0, 0, half, height]
+                right_box = [half + gutter, 0, 2 * half + gutter, height]
+                work = Path("derived") / card.content_hash[:2] / card.content_hash / stage / param_hash
+                artifacts = {}
+                for name, (x0, y0, x1, y1) in (("left", left_box), ("right", right_box)):
+                    write_png(data_dir / work / f"{name}.png", image[y0:y1, x0:x1])
+                    artifacts[name] = str(work / f"{name}.png")
+                metrics = {
+                    "good_match_fraction": 0.2341, "good_matches": 512, "keypoints_left": 2187,
+                    "keypoints_right": 2204, "denominator": "keypoints_left", "detect_seconds": 0.081,
+                    "match_seconds": 0.034, "left_box": left_box, "right_box": right_box,
+                    "card_size": [card.width, card.height], "split_method": "similarity",
+                    **(metrics or {}),
+                }
+            row = StageResult(
+                card_id=card_id, stage=stage, param_hash=param_hash, status=status, outcome=outcome,
+                reason=reason or (outcome if status == "done" else None), metrics=metrics or {},
+                artifacts=artifacts or {}, seconds=0.21, code_version="0.1.0",
+            )
+            db.session.add(row)
+            if update_state and stage == "filter":
+                card.state = outcome if status == "done" and outcome else "failed"
+            db.session.commit()
+            return row.id
+
+    return add
+
+
+@pytest.fixture
+def csrf_token(client) -> Callable[[str], str]:  # type: ignore[no-untyped-def]
+    """The CSRF token from a form on the page at ``url`` (redirects followed), as a browser would send it."""
+
+    def token(url: str = "/auth/login") -> str:
+        page = client.get(url, follow_redirects=True)
+        match = _CSRF_INPUT.search(page.get_data(as_text=True))
+        assert match, f"no csrf_token field on {url} (status {page.status_code})"
+        return match.group(1)
+
+    return token
+
+
+@pytest.fixture
+def login(client, make_person, csrf_token) -> Callable[..., PersonInfo]:  # type: ignore[no-untyped-def]
+    """Create a person with ``roles`` and log in through the real form (CSRF token included)."""
+
+    def do(*roles: str, **person: Any) -> PersonInfo:
+        info = make_person(*roles, **person)
+        response = client.post(
+            "/auth/login",
+            data={"username": info.username, "password": info.password, "csrf_token": csrf_token("/auth/login")},
+        )
+        assert response.status_code == 302, response.get_data(as_text=True)
+        return info
+
+    return do
+
+
+@pytest.fixture
+def as_role(login) -> Callable[[str | None], PersonInfo | None]:  # type: ignore[no-untyped-def]
+    """Log in with one role, or stay anonymous for ``None``."""
+
+    def do(role: str | None) -> PersonInfo | None:
+        return login(role) if role else None
+
+    return do

@@ -24,7 +24,9 @@ from werkzeug.wrappers import Response
 
 from pipeline.errors import ImageReadError
 from pipeline.io import read_image, write_jpeg
-from pipeline.records import STAGES
+
+# Stages whose status is a stage result the catalogue can filter on in SQL.
+FILTERABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
 
 from .auth import add_nav_link, role_required
 from .db import db, read_only
@@ -121,7 +123,7 @@ def parse_filters(args: Any) -> CardFilters:
             abort(400, f"Expected {name} to be a positive whole number, got {value!r}.")
         return int(value)
 
-    stage, status = choice("stage", STAGES), choice("status", STAGE_FILTER_STATUSES)
+    stage, status = choice("stage", FILTERABLE_STAGES), choice("status", STAGE_FILTER_STATUSES)
     if status and not stage:
         abort(400, "A status filter needs a stage too, e.g. ?stage=filter&status=done.")
     return CardFilters(collection_id=positive_int("collection"), state=choice("state", CARD_STATES),
@@ -131,24 +133,34 @@ def parse_filters(args: Any) -> CardFilters:
 def stage_status_condition(stage: str, status: str) -> ColumnElement[bool]:
     """SQL for "the card's latest ``stage`` result has ``status``", as ``keystone cards`` reports it.
 
-    No result means pending, except that stages after the filter count as skipped for a culled
-    card (``app.runs.card_stage_statuses``).
+    No result means pending, except where ``app.runs.card_stage_statuses`` derives a skip: stages
+    after the filter for a culled card, stages after a failed rectification, and views for a card
+    graded failure. (Judge, crop and review are people's work, not stage results; the review
+    queue and the crowd pages filter those.)
     """
-    from .runs import DOWNSTREAM_OF_CULL
+    from .runs import DOWNSTREAM_OF_CULL, DOWNSTREAM_OF_RECTIFY
 
-    latest_status = (
-        select(StageResult.status)
-        .where(StageResult.card_id == Card.id, StageResult.stage == stage)
-        .order_by(StageResult.id.desc())
-        .limit(1)
-        .correlate(Card)
-        .scalar_subquery()
-    )
-    skipped_by_cull = Card.state == "culled" if stage in DOWNSTREAM_OF_CULL else false()
+    def latest(column: Any, of_stage: str) -> Any:
+        return (
+            select(column)
+            .where(StageResult.card_id == Card.id, StageResult.stage == of_stage)
+            .order_by(StageResult.id.desc())
+            .limit(1)
+            .correlate(Card)
+            .scalar_subquery()
+        )
+
+    latest_status = latest(StageResult.status, stage)
+    derived_skip = Card.state == "culled" if stage in DOWNSTREAM_OF_CULL else false()
+    if stage in DOWNSTREAM_OF_RECTIFY:
+        # coalesce: a card with no result must compare false, not NULL, or NOT(...) drops it.
+        derived_skip = or_(derived_skip, func.coalesce(latest(StageResult.status, "rectify"), "") == "failed")
+    if stage == "views":
+        derived_skip = or_(derived_skip, func.coalesce(latest(StageResult.outcome, "grade"), "") == "failure")
     if status == "pending":
-        return and_(latest_status.is_(None), not_(skipped_by_cull))
+        return and_(latest_status.is_(None), not_(derived_skip))
     if status == "skipped":
-        return or_(latest_status == "skipped", and_(latest_status.is_(None), skipped_by_cull))
+        return or_(latest_status == "skipped", and_(latest_status.is_(None), derived_skip))
     return latest_status == status
 
 
@@ -201,7 +213,7 @@ def cards() -> Any:
             "catalog/cards.html", cards=page_cards, filters=filters, total=total, page=filters.page, pages=pages,
             per_page=per_page, collection=collection, collections=collections, states=CARD_STATES,
             state_counts={state: state_counts.get(state, 0) for state in CARD_STATES},
-            stages=STAGES, statuses=STAGE_FILTER_STATUSES,
+            stages=FILTERABLE_STAGES, statuses=STAGE_FILTER_STATUSES,
         )
 
 

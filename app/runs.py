@@ -116,8 +116,57 @@ def rectified_pair(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def grade_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+    """What the grader measures: the rectified views, both disparity maps and their confidence
+    (paths under the data dir), and the metrics of the filter, rectify and disparity results."""
+    latest = card.latest_results()
+    rectify, disparity = latest.get("rectify"), latest.get("disparity")
+    if rectify is None or disparity is None or disparity.status != "done" or rectify.status == "failed":
+        return {}
+    return {
+        "left": rectify.artifacts.get("left"), "right": rectify.artifacts.get("right"),
+        "disparity_left": disparity.artifacts.get("disparity_left"),
+        "disparity_right": disparity.artifacts.get("disparity_right"),
+        "confidence": disparity.artifacts.get("confidence"),
+        "metrics": {name: {k: v for k, v in result.metrics.items() if k != "inputs_digest"}
+                    for name, result in latest.items() if name in ("filter", "rectify", "disparity")},
+        "disparity_param_hash": disparity.param_hash,
+    }
+
+
+def views_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+    """What view synthesis needs: the rectified left view, its disparity, the focal length, and
+    the grade (a card graded failure gets no views)."""
+    latest = card.latest_results()
+    rectify, disparity, grade = latest.get("rectify"), latest.get("disparity"), latest.get("grade")
+    if rectify is None or disparity is None or disparity.status != "done" or grade is None:
+        return {}
+    return {
+        "left": rectify.artifacts.get("left"), "disparity_left": disparity.artifacts.get("disparity_left"),
+        "focal_px": disparity.metrics.get("focal_px"),
+        "grade": grade.outcome if grade.status == "done" else None,
+        "grade_param_hash": grade.param_hash,
+    }
+
+
+# The stages ``keystone run`` can run, in flow order (judge, crop and review are people's work).
+RUNNABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
+
+
+def _has_inputs(card: Card, inputs: dict[str, Any]) -> bool:
+    return bool(inputs)
+
+
 def available_stages() -> dict[str, StageSpec]:
+    """Every stage in flow order. Needs an app context: the grade thresholds come from the
+    newest fitted grade model in the database (or the defaults)."""
+    from pipeline.grading import grade_task
+    from pipeline.view_stage import ViewsStageParams, views_task
+    from review.grading import active_grade_params
+
     filter_params, rectify_params, disparity_params = FilterParams(), RectifyParams(), DisparityStageParams()
+    grade_params, _ = active_grade_params()
+    views_params = ViewsStageParams()
     return {
         "filter": StageSpec(
             name="filter",
@@ -143,6 +192,26 @@ def available_stages() -> dict[str, StageSpec]:
             eligible_states=("pass", "review"),
             inputs=rectified_pair,
             requires="rectify",
+        ),
+        # Cards with a disparity: few / some artifacts / failure, with reasons in words.
+        "grade": StageSpec(
+            name="grade",
+            params=grade_params,
+            task=functools.partial(grade_task, params=grade_params),
+            eligible_states=("pass", "review"),
+            inputs=grade_inputs,
+            requires="disparity",
+            ready=_has_inputs,
+        ),
+        # Optional per scene: the five GD images and a parallax preview; a failure gets none.
+        "views": StageSpec(
+            name="views",
+            params=views_params,
+            task=functools.partial(views_task, params=views_params),
+            eligible_states=("pass", "review"),
+            inputs=views_inputs,
+            requires="grade",
+            ready=_has_inputs,
         ),
     }
 
@@ -326,37 +395,93 @@ DOWNSTREAM_OF_CULL = ("judge", "crop", "rectify", "disparity", "grade", "review"
 DOWNSTREAM_OF_RECTIFY = ("disparity", "grade", "views")
 
 
-def card_stage_statuses(card: Card, only_stage: str | None = None) -> dict[str, dict[str, Any]]:
-    """The stage status map of ``keystone cards --json``: every stage, ``pending`` if not run."""
+def people_work(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """The crowd's latest aggregate per task kind and the curator review, per card:
+    ``{card: {"judge": Aggregate, "crop": Aggregate, "review": CardReview}}`` (keys present when any)."""
+    from annotation.models import Aggregate
+    from review.models import CardReview
+
+    work: dict[int, dict[str, Any]] = {}
+    for chunk in range(0, len(card_ids), 500):  # stay under SQLite's bound-parameter limit
+        ids = card_ids[chunk:chunk + 500]
+        for row in db.session.scalars(select(Aggregate).where(Aggregate.card_id.in_(ids)).order_by(Aggregate.id)):
+            work.setdefault(row.card_id, {})[row.kind] = row
+        for review in db.session.scalars(select(CardReview).where(CardReview.card_id.in_(ids))):
+            work.setdefault(review.card_id, {})["review"] = review
+    return work
+
+
+def _status(status: str, reason: str | None = None, outcome: str | None = None,
+            metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+    return {"status": status, "outcome": outcome, "reason": reason, "metrics": metrics or {}}
+
+
+def _crowd_status(stage: str, card: Card, aggregate: Any, latest: dict[str, StageResult]) -> dict[str, Any]:
+    if aggregate is not None:
+        metrics = {"label": aggregate.label, "batch": aggregate.batch_id, "answers": aggregate.answers}
+        if aggregate.state == "needs_curator":
+            return _status("pending", f"waiting for a curator: {aggregate.reasons}", metrics=metrics)
+        who = f"curator decision (batch {aggregate.batch_id})" if aggregate.resolved_by else \
+            f"crowd consensus (batch {aggregate.batch_id})"
+        outcome = None
+        if stage == "judge":
+            outcome = "stereo" if aggregate.label.get("is_stereo", True) else "not_stereo"
+        return _status("done", who, outcome, metrics)
+    if stage == "judge" and card.state == "pass":
+        return _status("skipped", "not needed: the filter passed the card as a stereo pair")
+    rectify = latest.get("rectify")
+    if stage == "crop" and rectify is not None and rectify.status != "failed":
+        return _status("skipped", f"not needed: rectified from {rectify.metrics.get('box_source', 'the filter split')}")
+    return _status("pending")
+
+
+def _review_status(review: Any, latest: dict[str, StageResult]) -> dict[str, Any]:
+    if review is None or review.decision == "pending":
+        grade = latest.get("grade")
+        if grade is None and "disparity" in latest and latest["disparity"].status == "failed":
+            return _status("skipped", f"not run: disparity failed ({latest['disparity'].reason})")
+        return _status("pending", "waiting for a curator" if review is not None else None)
+    metrics = {"grade": review.grade, "auto_grade": review.auto_grade, "version": review.version}
+    if review.decision == "sent_back":
+        return _status("pending", f"sent back to the crowd: {review.note}".rstrip(": "), metrics=metrics)
+    return _status("done", review.note or None, review.decision, metrics)
+
+
+def card_stage_statuses(card: Card, only_stage: str | None = None,
+                        work: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """The stage status map of ``keystone cards --json``: every stage, ``pending`` if not run.
+
+    ``work`` is the card's entry of :func:`people_work` (crowd aggregates and the review); it is
+    loaded here when not given.
+    """
     latest = card.latest_results()
+    if work is None:
+        work = people_work([card.id]).get(card.id, {})
     statuses: dict[str, dict[str, Any]] = {}
     for stage in STAGES if only_stage is None else (only_stage,):
         result = latest.get(stage)
-        if result is not None:
+        if card.state == "culled" and stage in DOWNSTREAM_OF_CULL and result is None:
+            filter_reason = latest["filter"].reason if "filter" in latest else "culled"
+            statuses[stage] = _status("skipped", f"not needed: the card was culled by the filter ({filter_reason})")
+        elif stage in ("judge", "crop"):
+            statuses[stage] = _crowd_status(stage, card, work.get(stage), latest)
+        elif stage == "review":
+            statuses[stage] = _review_status(work.get("review"), latest)
+        elif result is not None:
             statuses[stage] = result.as_status()
         elif stage in DOWNSTREAM_OF_RECTIFY and "rectify" in latest and latest["rectify"].status == "failed":
-            statuses[stage] = {
-                "status": "skipped",
-                "outcome": None,
-                "reason": f"not run: rectification failed ({latest['rectify'].reason})",
-                "metrics": {},
-            }
-        elif card.state == "culled" and stage in DOWNSTREAM_OF_CULL:
-            filter_reason = latest["filter"].reason if "filter" in latest else "culled"
-            statuses[stage] = {
-                "status": "skipped",
-                "outcome": None,
-                "reason": f"not needed: the card was culled by the filter ({filter_reason})",
-                "metrics": {},
-            }
+            statuses[stage] = _status("skipped", f"not run: rectification failed ({latest['rectify'].reason})")
+        elif stage == "views" and "grade" in latest and latest["grade"].outcome == "failure":
+            statuses[stage] = _status("skipped", "not needed: the card was graded failure")
         else:
-            statuses[stage] = {"status": "pending", "outcome": None, "reason": None, "metrics": {}}
+            statuses[stage] = _status("pending")
     return statuses
 
 
 @click.command("run")
-@click.option("--stages", default="filter,rectify,disparity", show_default=True,
-              help="Comma-separated stages to run, in order. Available now: filter, rectify, disparity.")
+@click.option("--stages", default="filter,rectify,disparity,grade", show_default=True,
+              help="Comma-separated stages to run, in order: filter, rectify, disparity, grade, views "
+                   "(views is optional per scene and not in the default).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
               help="Worker processes (1 runs inline on one core).")
 @click.option("--executor", "executor_kind", type=click.Choice(["local", "dask"]), default="local",
@@ -372,15 +497,16 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
     """
     from .console import data_dir, emit_json, ensure_database, progress_bar, say
 
-    specs = available_stages()
     names = [name.strip() for name in stages.split(",") if name.strip()]
-    unknown = [name for name in names if name not in specs]
+    unknown = [name for name in names if name not in RUNNABLE_STAGES]
     if unknown or not names:
         raise click.BadParameter(
-            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(specs)}",
+            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; "
+            f"available: {', '.join(RUNNABLE_STAGES)}",
             param_hint="--stages",
         )
     ensure_database()
+    specs = available_stages()
     reports = []
     try:
         with make_executor(executor_kind, workers, scheduler) as executor:
@@ -426,15 +552,17 @@ def cards_command(stage: str | None, state: str | None, collection_name: str | N
             query = query.where(Card.state == state)
         if collection_name:
             query = query.join(Collection).where(Collection.name == collection_name)
+        cards = list(db.session.scalars(query))
+        work = people_work([card.id for card in cards])
         rows = [
             {
                 "id": card.id,
                 "source": card.source_name,
                 "accession": card.accession,
                 "state": card.state,
-                "stages": card_stage_statuses(card, stage),
+                "stages": card_stage_statuses(card, stage, work.get(card.id, {})),
             }
-            for card in db.session.scalars(query)
+            for card in cards
         ]
     if as_json:
         emit_json({"cards": rows})

@@ -1,0 +1,74 @@
+"""The grader's database side: which thresholds are active, and refitting them to curators.
+
+The thresholds themselves and the fitting are pure (:mod:`pipeline.grading`); this module
+reads curator labels and grade measurements, and stores fitted thresholds as a
+:class:`review.models.GradeModel` row (the newest row is active).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import select
+
+from app.db import db
+
+from .models import GRADES, CardReview, GradeModel, record_event
+from .report import LABELLED_DECISIONS
+
+
+class GradingError(Exception):
+    """Refitting cannot be done (too few labels, one class only); the message says why."""
+
+
+def active_grade_params() -> tuple[Any, GradeModel | None]:
+    """The grade stage's parameters: the newest fitted thresholds, else the defaults."""
+    from pipeline.grading import GradeParams, GradeThresholds
+
+    model = db.session.scalars(select(GradeModel).order_by(GradeModel.id.desc()).limit(1)).first()
+    if model is None:
+        return GradeParams(), None
+    return GradeParams(thresholds=GradeThresholds.from_dict(model.thresholds)), model
+
+
+def labelled_measurements() -> list[tuple[dict[str, Any], str]]:
+    """(grade measurements, curator grade) for every card a curator graded and the grader measured."""
+    from app.models import StageResult
+
+    labels = {r.card_id: r.grade for r in db.session.scalars(
+        select(CardReview).where(CardReview.decision.in_(LABELLED_DECISIONS), CardReview.grade.in_(GRADES)))}
+    latest: dict[int, dict[str, Any]] = {}
+    for result in db.session.scalars(
+        select(StageResult).where(StageResult.stage == "grade", StageResult.status == "done",
+                                  StageResult.card_id.in_(labels)).order_by(StageResult.id)
+    ):
+        latest[result.card_id] = result.metrics.get("measurements", result.metrics)
+    return [(latest[card_id], labels[card_id]) for card_id in sorted(latest)]
+
+
+def fit_from_curators(*, folds: int = 5, seed: int = 0, save: bool = True, actor: Any = None) -> dict[str, Any]:
+    """Fit thresholds to the curator labels; report held-out agreement; save unless told not to."""
+    from pipeline.errors import PipelineError
+    from pipeline.grading import fit_thresholds
+
+    rows = labelled_measurements()
+    base, _ = active_grade_params()
+    try:
+        report = fit_thresholds(rows, base.thresholds, folds=folds, seed=seed)
+    except PipelineError as exc:
+        raise GradingError(str(exc)) from exc
+    document = report.as_dict()
+    document["labels"] = len(rows)
+    document["model"] = None
+    if save:
+        model = GradeModel(thresholds=report.thresholds.to_dict(), fitted_on=len(rows),
+                           evaluation=document["held_out"], created_by=getattr(actor, "id", None))
+        db.session.add(model)
+        db.session.flush()
+        record_event(entity="grade_model", entity_id=model.id, action="fit", actor=actor,
+                     actor_label=None if actor else "keystone grade fit",
+                     before={"thresholds": base.thresholds.to_dict()}, after={"thresholds": model.thresholds},
+                     why=f"refitted on {len(rows)} curator labels")
+        db.session.commit()
+        document["model"] = model.id
+    return document

@@ -1,0 +1,150 @@
+"""The WebGL viewer in a real browser: headless Chromium (WebGL on SwiftShader) driven by Playwright
+against a real WSGI server. The five GD images come from views_task on Motorcycle."""
+
+from __future__ import annotations
+
+import base64
+import io
+import shutil
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image
+
+from pipeline.io import write_npy, write_png
+from pipeline.records import CardTask
+from pipeline.view_stage import ViewsStageParams, views_task
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian's chromium is not installed")
+# WebGL without a GPU: ANGLE on SwiftShader (software Vulkan), which Chromium only allows when asked.
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--disable-quic", "--use-angle=swiftshader",
+                 "--enable-unsafe-swiftshader"]
+
+
+@pytest.fixture
+def server(app) -> Iterator[str]:  # type: ignore[no-untyped-def]
+    from werkzeug.serving import make_server
+
+    httpd = make_server("127.0.0.1", 0, app, threaded=True)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_port}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+        thread.join(timeout=10)
+
+
+@pytest.fixture
+def browser() -> Iterator[object]:
+    playwright_api = pytest.importorskip("playwright.sync_api")
+    with playwright_api.sync_playwright() as playwright:
+        instance = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            yield instance
+        finally:
+            instance.close()
+
+
+@pytest.fixture
+def card_with_views(app, data_dir, make_card, add_stage_result) -> tuple[int, object]:  # type: ignore[no-untyped-def]
+    from skimage import data
+
+    left, _, disp = data.stereo_motorcycle()
+    scale = 240 / left.shape[1]
+    size = (240, round(left.shape[0] * scale))
+    view = cv2.resize(np.asarray(left), size, interpolation=cv2.INTER_AREA)
+    d = cv2.resize(np.asarray(disp, np.float32), size, interpolation=cv2.INTER_NEAREST) * scale
+    write_png(data_dir / "rect" / "left.png", view)
+    write_npy(data_dir / "rect" / "disparity_left.npy", np.where(np.isfinite(d), d, np.nan).astype(np.float32))
+    card_id = make_card(state="pass")
+    task = CardTask(card_id=card_id, content_hash="d" * 64, image_path="", work_dir=str(data_dir / "derived" / "views"),
+                    data_dir=str(data_dir), inputs={"left": "rect/left.png", "disparity_left": "rect/disparity_left.npy",
+                                                    "focal_px": 3979.911 * scale, "grade": "some"})
+    record = views_task(task, ViewsStageParams(preview_side=120, preview_frames=4))
+    assert record.status == "done", record.reason
+    add_stage_result(card_id, "views", status="done", outcome=None, param_hash=record.param_hash,
+                     metrics=record.metrics, artifacts=record.artifacts)
+    return card_id, record
+
+
+def canvas_pixels(page) -> np.ndarray:  # type: ignore[no-untyped-def]
+    url = page.evaluate("document.getElementById('viewer-canvas').toDataURL('image/png')")
+    payload = base64.b64decode(url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(payload)).convert("L"), float)
+
+
+def settle(page, frames_before: int) -> None:  # type: ignore[no-untyped-def]
+    page.wait_for_function(
+        "n => { const c = document.getElementById('viewer-canvas');"
+        " return +c.dataset.frames > n && c.dataset.moving === '0'; }",
+        arg=frames_before, timeout=20_000)
+
+
+def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app, server, browser, make_person,
+                                                                              data_dir, card_with_views):
+    card_id, record = card_with_views
+    person = make_person("annotator")
+    page = browser.new_page(viewport={"width": 900, "height": 800})
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.goto(f"{server}/auth/login")
+    page.fill("input[name=username]", person.username)
+    page.fill("input[name=password]", person.password)
+    page.click("button[type=submit], input[type=submit]")
+    page.wait_for_load_state()
+    page.goto(f"{server}/viewer/cards/{card_id}")
+    page.wait_for_function("['ready', 'error', 'no-webgl'].includes(document.getElementById('viewer-canvas').dataset.state)",
+                           timeout=30_000)
+    state = page.evaluate("document.getElementById('viewer-canvas').dataset.state")
+    assert state == "ready", page.inner_text("#viewer-status")
+    settle(page, 0)
+    centre = canvas_pixels(page)
+    assert centre.std() > 20  # a photograph, not a blank or flat canvas
+    # From v0's own position the picture is v0, zoomed by the corner views' focal length (< 1 %):
+    # the vertex shader's unprojection and projection are right, and the meshes cover the view.
+    v0 = np.asarray(Image.open(data_dir / record.artifacts["v0"]), float)
+    assert centre.shape == v0.shape
+    assert np.corrcoef(centre[4:-4, 4:-4].ravel(), v0[4:-4, 4:-4].ravel())[0, 1] > 0.9
+    assert (centre == 17).mean() < 0.01  # the background grey (0.067) barely shows
+    assert page.evaluate("document.getElementById('viewer-canvas').dataset.weights") == "1.000,0.000,0.000,0.000,0.000"
+
+    box = page.locator("#viewer-canvas").bounding_box()
+    frames = int(page.evaluate("+document.getElementById('viewer-canvas').dataset.frames"))
+    page.mouse.move(box["x"] + box["width"] - 2, box["y"] + 2, steps=4)  # top-right: corner v1 at (+r, +r)
+    settle(page, frames)
+    near_corner = canvas_pixels(page)
+    weights = [float(w) for w in page.evaluate("document.getElementById('viewer-canvas').dataset.weights").split(",")]
+    assert weights[1] > 0.95 and weights[2] == weights[3] == 0
+    assert near_corner.std() > 20
+    assert np.abs(near_corner - centre).mean() > 6  # the viewpoint moved: so did the picture
+
+    # The arrow keys take the viewpoint exactly onto v1 (clamped to the quad): the picture is v1.
+    page.focus("#viewer-canvas")
+    frames = int(page.evaluate("+document.getElementById('viewer-canvas').dataset.frames"))
+    for key in ("ArrowRight", "ArrowUp"):
+        page.keyboard.press(key)
+    settle(page, frames)
+    assert page.evaluate("document.getElementById('viewer-canvas').dataset.position") == "1.000,1.000"
+    assert page.evaluate("document.getElementById('viewer-canvas').dataset.weights") == "0.000,1.000,0.000,0.000,0.000"
+    corner = canvas_pixels(page)
+    v1 = np.asarray(Image.open(data_dir / record.artifacts["v1"]), float)
+    assert np.corrcoef(corner[4:-4, 4:-4].ravel(), v1[4:-4, 4:-4].ravel())[0, 1] > 0.9
+    assert np.corrcoef(corner[4:-4, 4:-4].ravel(), v0[4:-4, 4:-4].ravel())[0, 1] < 0.8
+
+    frames = int(page.evaluate("+document.getElementById('viewer-canvas').dataset.frames"))
+    page.mouse.move(box["x"] + box["width"] * 0.25, box["y"] + box["height"] * 0.75, steps=4)  # between v0 and v3
+    settle(page, frames)
+    weights = [float(w) for w in page.evaluate("document.getElementById('viewer-canvas').dataset.weights").split(",")]
+    assert weights[0] > 0 and weights[3] > 0 and weights[1] == 0 and sum(weights) == pytest.approx(1, abs=0.01)
+    between = canvas_pixels(page)
+    assert np.abs(between - centre).mean() > 2 and np.abs(between - corner).mean() > 2
+    assert errors == []
+    page.close()

@@ -1,0 +1,111 @@
+"""The viewer's routes: login required, 404 without views, files served with an ETag."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.io import write_npy, write_png
+from pipeline.records import CardTask
+from pipeline.view_stage import ViewsStageParams, views_task
+
+PARAMS = ViewsStageParams(preview_side=120, preview_frames=4)
+
+
+@pytest.fixture
+def card_with_views(app, data_dir, make_card, add_stage_result):  # type: ignore[no-untyped-def]
+    """A stored card whose latest views result is the real output of views_task (Motorcycle at 160 px)."""
+    from skimage import data
+
+    left, _, disp = data.stereo_motorcycle()
+    scale = 160 / left.shape[1]
+    size = (160, round(left.shape[0] * scale))
+    view = cv2.resize(np.asarray(left), size, interpolation=cv2.INTER_AREA)
+    d = cv2.resize(np.asarray(disp, np.float32), size, interpolation=cv2.INTER_NEAREST) * scale
+    write_png(data_dir / "rect" / "left.png", view)
+    write_npy(data_dir / "rect" / "disparity_left.npy", np.where(np.isfinite(d), d, np.nan).astype(np.float32))
+    card_id = make_card(state="pass")
+    task = CardTask(card_id=card_id, content_hash="c" * 64, image_path="", work_dir=str(data_dir / "derived" / "views"),
+                    data_dir=str(data_dir), inputs={"left": "rect/left.png", "disparity_left": "rect/disparity_left.npy",
+                                                    "focal_px": 3979.911 * scale, "grade": "few"})
+    record = views_task(task, PARAMS)
+    assert record.status == "done", record.reason
+    add_stage_result(card_id, "views", status="done", outcome=None, param_hash=record.param_hash,
+                     metrics=record.metrics, artifacts=record.artifacts)
+    return card_id, record
+
+
+def test_the_viewer_needs_a_login(client, card_with_views):
+    card_id, _ = card_with_views
+    for url in (f"/viewer/cards/{card_id}", f"/viewer/cards/{card_id}/files/v0"):
+        response = client.get(url, headers={"Accept": "text/html"})
+        assert response.status_code == 302 and "/auth/login" in response.headers["Location"]
+
+
+def test_a_person_without_a_role_is_refused(client, login, card_with_views):
+    card_id, _ = card_with_views
+    login()
+    assert client.get(f"/viewer/cards/{card_id}").status_code == 403
+
+
+@pytest.mark.parametrize("role", ["annotator", "curator", "exporter", "admin"])
+def test_any_role_sees_the_viewer_page_with_five_views(client, login, card_with_views, role):
+    card_id, record = card_with_views
+    login(role)
+    response = client.get(f"/viewer/cards/{card_id}")
+    assert response.status_code == 200
+    page = response.get_data(as_text=True)
+    config = json.loads(re.search(r'<script id="viewer-config" type="application/json">(.*?)</script>', page, re.DOTALL).group(1))
+    assert [v["name"] for v in config["views"]] == ["v0", "v1", "v2", "v3", "v4"]
+    assert (config["width"], config["height"]) == tuple(record.metrics["size"])
+    assert config["quadRadius"] == pytest.approx(record.metrics["quad_radius"])
+    assert config["views"][2]["image"].startswith(f"/viewer/cards/{card_id}/files/v2?v=")
+    assert "viewer.js" in page and 'id="viewer-canvas"' in page
+
+
+def test_a_card_without_views_is_404(client, login, make_card, add_stage_result):
+    login("curator")
+    bare = make_card(state="pass")
+    response = client.get(f"/viewer/cards/{bare}")
+    assert response.status_code == 404 and "no views yet" in response.get_data(as_text=True)
+    assert client.get(f"/viewer/cards/{bare}/files/v0").status_code == 404
+    add_stage_result(bare, "views", status="skipped", outcome=None, reason="not needed: graded failure")
+    response = client.get(f"/viewer/cards/{bare}")
+    assert response.status_code == 404 and "graded failure" in response.get_data(as_text=True)
+    assert client.get("/viewer/cards/999999").status_code == 404
+
+
+def test_gd_files_are_served_with_an_etag_and_revalidate(client, login, data_dir, card_with_views):
+    card_id, record = card_with_views
+    login("annotator")
+    response = client.get(f"/viewer/cards/{card_id}/files/v3")
+    assert response.status_code == 200 and response.mimetype == "image/png"
+    assert response.data == (Path(data_dir) / record.artifacts["v3"]).read_bytes()
+    etag = response.headers["ETag"]
+    assert etag and response.headers["Cache-Control"] == "private, no-cache"
+    again = client.get(f"/viewer/cards/{card_id}/files/v3", headers={"If-None-Match": etag})
+    assert again.status_code == 304 and again.headers["ETag"] == etag
+    depth = client.get(f"/viewer/cards/{card_id}/files/v3_depth")
+    assert depth.status_code == 200 and depth.headers["ETag"] != etag
+    values = np.load(io.BytesIO(depth.data), allow_pickle=False)
+    assert values.dtype == np.float32 and values.shape == tuple(record.metrics["size"][::-1])
+    assert np.isfinite(values).all() and (values > 0).all()
+    preview = client.get(f"/viewer/cards/{card_id}/files/preview")
+    assert preview.status_code == 200 and preview.mimetype == "image/webp" and preview.data[8:12] == b"WEBP"
+    assert client.get(f"/viewer/cards/{card_id}/files/secrets").status_code == 404
+    assert client.get(f"/viewer/cards/{card_id}/files/..%2Fkeystone.sqlite3").status_code == 404
+
+
+def test_a_versioned_url_is_cacheable_for_a_year(client, login, card_with_views):
+    card_id, _ = card_with_views
+    login("curator")
+    page = client.get(f"/viewer/cards/{card_id}").get_data(as_text=True)
+    url = re.search(rf'"(/viewer/cards/{card_id}/files/v0\?v=[0-9a-f]+)"', page).group(1)
+    response = client.get(url)
+    assert response.status_code == 200 and "immutable" in response.headers["Cache-Control"]

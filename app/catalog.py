@@ -233,7 +233,7 @@ def card_page(card_id: int) -> Any:
         ))
         return render_template(
             "catalog/card.html", card=card, filter_result=filter_result, rectify_result=rectify_result,
-            disparity_result=disparity_result,
+            disparity_result=disparity_result, grade_result=latest.get("grade"), views_result=latest.get("views"),
             filter_view=FilterView.of(card, filter_result) if filter_result is not None else None,
             statuses=card_stage_statuses(card), history=list(reversed(card.stage_results)), records=records,
         )

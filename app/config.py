@@ -5,6 +5,8 @@
 ``KEYSTONE_SECRET_KEY``    session signing key; default a random key persisted in the instance folder.
 ``KEYSTONE_MAX_PIXELS``    decode cap per image (decompression-bomb guard); default 150 MP.
 ``KEYSTONE_INSTANCE_PATH`` where the instance folder lives; default Flask's.
+``KEYSTONE_INPAINT_CHECKPOINT`` a ``keystone train-inpainting`` checkpoint the views stage fills
+                          holes with; default none (OpenCV Telea fills them).
 """
 
 from __future__ import annotations
@@ -60,4 +62,5 @@ def config_from_environment(instance_path: str) -> dict[str, Any]:
         "REMEMBER_COOKIE_SECURE": env.get("KEYSTONE_SECURE_COOKIES", "0") == "1",
         "WTF_CSRF_TIME_LIMIT": None,
         "CATALOG_PAGE_SIZE": 48,
+        "KEYSTONE_INPAINT_CHECKPOINT": env.get("KEYSTONE_INPAINT_CHECKPOINT") or None,
     }

@@ -166,7 +166,9 @@ def available_stages() -> dict[str, StageSpec]:
 
     filter_params, rectify_params, disparity_params = FilterParams(), RectifyParams(), DisparityStageParams()
     grade_params, _ = active_grade_params()
-    views_params = ViewsStageParams()
+    from flask import current_app
+
+    views_params = ViewsStageParams(checkpoint=current_app.config.get("KEYSTONE_INPAINT_CHECKPOINT"))
     return {
         "filter": StageSpec(
             name="filter",
@@ -472,7 +474,7 @@ def card_stage_statuses(card: Card, only_stage: str | None = None,
         elif stage in DOWNSTREAM_OF_RECTIFY and "rectify" in latest and latest["rectify"].status == "failed":
             statuses[stage] = _status("skipped", f"not run: rectification failed ({latest['rectify'].reason})")
         elif stage == "views" and "grade" in latest and latest["grade"].outcome == "failure":
-            statuses[stage] = _status("skipped", "not needed: the card was graded failure")
+            statuses[stage] = _status("skipped", "not needed: graded failure")
         else:
             statuses[stage] = _status("pending")
     return statuses

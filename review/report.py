@@ -40,30 +40,11 @@ def latest_auto_grades() -> dict[int, str]:
 
 def agreement(pairs: list[tuple[str, str]]) -> dict[str, Any]:
     """Confusion matrix (rows = curator label, columns = automatic grade, order few/some/failure),
-    accuracy, Cohen's kappa and per-class precision/recall of the automatic grade."""
+    accuracy, Cohen's kappa, macro-F1 and per-class precision/recall of the automatic grade."""
+    from pipeline.grading import agreement as grading_agreement
+
     index = {g: i for i, g in enumerate(GRADES)}
-    matrix = [[0] * len(GRADES) for _ in GRADES]
-    for truth, auto in pairs:
-        matrix[index[truth]][index[auto]] += 1
-    n = len(pairs)
-    result: dict[str, Any] = {"labels": n, "order": list(GRADES), "confusion": matrix,
-                              "accuracy": None, "cohen_kappa": None, "per_class": {}}
-    if n == 0:
-        return result
-    observed = sum(matrix[i][i] for i in range(len(GRADES))) / n
-    rows = [sum(r) for r in matrix]
-    columns = [sum(matrix[i][j] for i in range(len(GRADES))) for j in range(len(GRADES))]
-    expected = sum(rows[i] * columns[i] for i in range(len(GRADES))) / (n * n)
-    result["accuracy"] = round(observed, 4)
-    # kappa is undefined when chance agreement is total (one class on both sides).
-    result["cohen_kappa"] = round((observed - expected) / (1 - expected), 4) if expected < 1 else None
-    for g, i in index.items():
-        result["per_class"][g] = {
-            "precision": round(matrix[i][i] / columns[i], 4) if columns[i] else None,
-            "recall": round(matrix[i][i] / rows[i], 4) if rows[i] else None,
-            "support": rows[i],
-        }
-    return result
+    return grading_agreement([index[truth] for truth, _ in pairs], [index[auto] for _, auto in pairs])
 
 
 def crowd_agreement() -> list[dict[str, Any]]:

@@ -72,7 +72,7 @@ def test_views_skipped_for_a_card_graded_failure_matches_the_catalogue_filter(ap
 
     stages = _cards(runner)
     assert stages[failed]["views"] == {"status": "skipped", "outcome": None, "metrics": {},
-                                       "reason": "not needed: the card was graded failure"}
+                                       "reason": "not needed: graded failure"}
     assert stages[clean]["views"]["status"] == "pending"
     assert stages[broken]["grade"]["status"] == "skipped"
     assert stages[broken]["grade"]["reason"] == "not run: rectification failed (degenerate_geometry: planar scene)"

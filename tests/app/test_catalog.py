@@ -380,3 +380,14 @@ def test_an_undecodable_original_is_404_with_the_reason(client, login, make_card
     response = client.get(f"/cards/{card_id}/image/original")
     assert response.status_code == 404
     assert "cannot be shown" in response.get_data(as_text=True)
+
+
+def test_card_page_shows_the_grade_with_its_reasons(client, login, make_card, add_stage_result) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    card_id = make_card()
+    add_stage_result(card_id, "grade", outcome="failure", metrics={
+        "reasons": ["failure: rows of the two views are misaligned by 6.0 px (> 4 px)"], "uncertainty": 0.25})
+    html = client.get(f"/cards/{card_id}").get_data(as_text=True)
+    assert '<span class="grade grade-failure">failure</span>' in html and "uncertainty 0.25" in html
+    assert "<li>failure: rows of the two views are misaligned by 6.0 px (&gt; 4 px)</li>" in html
+    assert "Open the 3D viewer" not in html  # no views result yet

@@ -350,6 +350,11 @@ def run_stage(
             batch, last_write = [], time.monotonic()
     if batch:
         write_records(batch, digests)
+    if spec.name == "grade" and tasks:
+        # New automatic grades reach the curators' queue at once (decided cards keep theirs).
+        from review.tasks import sync_reviews
+
+        sync_reviews([task.card_id for task in tasks])
     report.seconds = time.perf_counter() - clock
     return report
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import CheckConstraint, DateTime, Float, ForeignKey, Integer, String, Text, event
+from sqlalchemy import CheckConstraint, DateTime, Float, ForeignKey, Index, Integer, String, Text, event
 from sqlalchemy.orm import Mapped, Session, mapped_column, relationship
 
 from app.db import JSONType, db, utcnow
@@ -37,6 +37,13 @@ class CardReview(db.Model):
 
     __tablename__ = "card_reviews"
     __table_args__ = (
+        # The queue's order: a page of 50 from 250,000 reviews reads 50 index entries (13 ms
+        # measured on SQLite) instead of sorting the table (125 ms).
+        # SQLite sorts NULLs last in DESC by default and serves "DESC NULLS LAST" from this index;
+        # PostgreSQL needs the NULLS LAST spelled out in the index (SQLite refuses it there).
+        Index("ix_card_reviews_queue", "decision", db.text("uncertainty DESC"), "card_id").ddl_if(dialect="sqlite"),
+        Index("ix_card_reviews_queue", "decision", db.text("uncertainty DESC NULLS LAST"), "card_id")
+        .ddl_if(dialect="postgresql"),
         CheckConstraint(_in("decision", DECISIONS), name="decision"),
         CheckConstraint(f"grade IS NULL OR {_in('grade', GRADES)}", name="grade"),
         CheckConstraint(f"auto_grade IS NULL OR {_in('auto_grade', GRADES)}", name="auto_grade"),

@@ -1,8 +1,406 @@
-"""Curator review pages (filled in by the review feature)."""
+"""Curator review pages: the queue, one page per card with its decision keys, history, disputes.
+
+Every route needs the curator role (admins pass). Decisions are POSTs with the CSRF token and
+the review version the curator saw (a hidden form field, or ``version`` in a JSON body sent
+with the ``X-CSRFToken`` header by the page's script); a stale version is refused with 409 and
+a sentence naming who changed the card and when. The anaglyph is rendered here from the
+rectified previews and cached by the browser with an ETag.
+"""
 
 from __future__ import annotations
 
-from flask import Blueprint
+import hashlib
+import io
+import math
+from typing import Any
+
+import numpy as np
+from flask import (
+    Blueprint,
+    abort,
+    current_app,
+    flash,
+    jsonify,
+    redirect,
+    render_template,
+    request,
+    url_for,
+)
+from flask_login import current_user
+from sqlalchemy import select
+from werkzeug.wrappers import Response
+
+from annotation.models import Aggregate
+from app.auth import add_nav_link, role_required
+from app.db import db, read_only
+from app.models import Collection
+
+from .models import GRADE_NAMES, GRADES, CardReview
+from .tasks import (
+    ACTIONS,
+    QUEUE_DECISIONS,
+    SEND_BACK_KINDS,
+    QueueFilters,
+    ReviewConflict,
+    ReviewError,
+    aggregate_answers,
+    bulk_decide,
+    card_history,
+    crowd_view,
+    decide,
+    disputed_aggregates,
+    grade_reasons,
+    queue_neighbours,
+    resolve_aggregate,
+    review_queue,
+    sync_reviews,
+)
 
 bp = Blueprint("review", __name__, url_prefix="/review", template_folder="templates", static_folder="static",
                static_url_path="/review-static")
+bp.record_once(lambda state: add_nav_link(state.app, "Review", "review.queue", "curator", order=30))
+
+ANAGLYPH_VERSION = "1"  # part of the anaglyph's ETag: bump when the way it is made changes
+DISPUTES_SHOWN = 50
+
+
+@bp.errorhandler(ReviewError)
+def review_error(error: ReviewError) -> Any:
+    db.session.rollback()
+    if request.is_json or request.accept_mimetypes.best == "application/json":
+        return jsonify({"error": {"code": error.status, "message": error.message}}), error.status
+    return render_template("review/message.html", title="Not saved" if error.status == 409 else "Cannot do that",
+                           message=error.message, conflict=isinstance(error, ReviewConflict)), error.status
+
+
+def _curator() -> Any:
+    return current_user._get_current_object()  # the detached Person row: id and username
+
+
+def _filters(args: Any) -> QueueFilters:
+    collection = (args.get("collection") or "").strip()
+    if collection and (not collection.isdigit() or int(collection) < 1):
+        raise ReviewError(f"Expected collection to be a positive whole number, got {collection!r}")
+    return QueueFilters(grade=(args.get("grade") or "").strip() or None,
+                        collection_id=int(collection) if collection else None,
+                        reason=(args.get("reason") or "").strip() or None,
+                        decision=(args.get("decision") or "").strip() or "pending")
+
+
+def _page_number(args: Any, name: str = "page") -> int:
+    value = (args.get(name) or "1").strip()
+    if not value.isdigit() or int(value) < 1:
+        raise ReviewError(f"Expected {name} to be a positive whole number, got {value!r}")
+    return int(value)
+
+
+# ----------------------------------------------------------------------------- the queue
+
+
+@bp.route("/")
+@role_required("curator")
+def queue() -> Any:
+    filters = _filters(request.args)
+    page = _page_number(request.args)
+    per_page = int(current_app.config.get("REVIEW_PAGE_SIZE", 50))
+    with read_only():
+        result = review_queue(filters.grade, filters.collection_id, filters.reason, filters.decision,
+                              limit=per_page, offset=(page - 1) * per_page)
+        pages = max(1, math.ceil(result.total / per_page))
+        if page > pages:
+            abort(404, f"Page {page} is past the last page ({pages}).")
+        disputes, dispute_total = disputed_aggregates(limit=DISPUTES_SHOWN)
+        collections = list(db.session.scalars(select(Collection).order_by(Collection.name)))
+        return render_template("review/queue.html", result=result, filters=filters, page=page, pages=pages,
+                               collections=collections, grades=GRADES, grade_names=GRADE_NAMES,
+                               decisions=QUEUE_DECISIONS, actions=ACTIONS, kinds=SEND_BACK_KINDS,
+                               disputes=disputes, dispute_total=dispute_total)
+
+
+@bp.route("/sync", methods=["POST"])
+@role_required("curator")
+def sync() -> Response:
+    report = sync_reviews()
+    flash(f"Synced with the grader: {report.created} new, {report.updated} regraded, {report.reopened} back from "
+          f"the crowd, {report.decided_changed} decided cards with a new automatic grade.", "success")
+    return redirect(url_for("review.queue"), code=303)
+
+
+def _bulk_items(values: list[str]) -> list[tuple[int, int]]:
+    items = []
+    for value in values:
+        review_id, _, version = value.partition(":")
+        if not (review_id.isdigit() and version.isdigit()):
+            raise ReviewError(f"Expected selected cards as review:version, got {value!r}")
+        items.append((int(review_id), int(version)))
+    return items
+
+
+@bp.route("/bulk", methods=["POST"])
+@role_required("curator")
+def bulk() -> Any:
+    body = request.get_json(silent=True) if request.is_json else None
+    source: Any = body if isinstance(body, dict) else request.form
+    if isinstance(body, dict):
+        values = [f"{item.get('review')}:{item.get('version')}" for item in body.get("items", []) if isinstance(item, dict)]
+    else:
+        values = request.form.getlist("item")
+    action = str(source.get("action") or "")
+    outcomes = bulk_decide(_bulk_items(values), action, curator=_curator(), grade=source.get("grade") or None,
+                           note=str(source.get("note") or ""), kind=str(source.get("kind") or "crop"))
+    if body is not None:
+        return jsonify({"outcomes": [o.as_json() for o in outcomes]})
+    applied = [o for o in outcomes if o.status == "applied"]
+    flash(f"{action.replace('_', ' ').capitalize()}: applied to {len(applied)} of {len(outcomes)} cards.",
+          "success" if len(applied) == len(outcomes) else "info")
+    for outcome in outcomes:
+        if outcome.status != "applied":
+            flash(outcome.message, "error")
+    return redirect(url_for("review.queue", **_filters(request.args).query_args()), code=303)
+
+
+# ----------------------------------------------------------------------------- one card
+
+
+def _crowd_boxes(view: Any) -> list[dict[str, Any]]:
+    """Boxes for the SVG overlay in original pixels: each answer thin, the aggregate thick."""
+    boxes = []
+    for answer in view.crop_answers:
+        for half in ("left", "right"):
+            box = (answer.payload or {}).get(half)
+            if isinstance(box, list) and len(box) == 4:
+                boxes.append({"half": half, "box": box, "kind": "answer", "flagged": answer.flagged})
+    if view.crop is not None:
+        for half in ("left", "right"):
+            box = (view.crop.label or {}).get(half)
+            if isinstance(box, list) and len(box) == 4:
+                boxes.append({"half": half, "box": box, "kind": "aggregate", "flagged": False})
+    return boxes
+
+
+def _judgement_counts(answers: list[Any]) -> dict[str, tuple[int, int]]:
+    counts = {}
+    for question in ("is_stereo", "upside_down", "inverted"):
+        yes = sum(1 for a in answers if (a.payload or {}).get(question) is True)
+        counts[question] = (yes, len(answers))
+    return counts
+
+
+@bp.route("/cards/<int:card_id>")
+@role_required("curator")
+def card(card_id: int) -> Any:
+    from app.catalog import get_card_or_404
+
+    filters = _filters(request.args)
+    with read_only():
+        card = get_card_or_404(card_id)
+        review = db.session.scalar(select(CardReview).where(CardReview.card_id == card_id))
+        latest = card.latest_results()
+        grade_result = None
+        if review is not None and review.auto_param_hash:
+            grade_result = next((r for r in card.stage_results
+                                 if r.stage == "grade" and r.param_hash == review.auto_param_hash), None)
+        previous, following = queue_neighbours(card_id, filters)
+        view = crowd_view(card_id)
+        return render_template(
+            "review/card.html", card=card, review=review, rectify=latest.get("rectify"),
+            disparity=latest.get("disparity"), grade_result=grade_result, reasons=grade_reasons(grade_result),
+            crowd=view, crowd_boxes=_crowd_boxes(view), judgements=_judgement_counts(view.judge_answers),
+            previous=previous, following=following, filters=filters, grades=GRADES, grade_names=GRADE_NAMES,
+            kinds=SEND_BACK_KINDS, anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
+        )
+
+
+def _next_url(card_id: int, filters: QueueFilters) -> str:
+    with read_only():
+        _, following = queue_neighbours(card_id, filters)
+    if following is None:
+        return url_for("review.queue", **filters.query_args())
+    return url_for("review.card", card_id=following, **filters.query_args())
+
+
+@bp.route("/cards/<int:card_id>/decide", methods=["POST"])
+@role_required("curator")
+def decide_card(card_id: int) -> Any:
+    body = request.get_json(silent=True) if request.is_json else None
+    if request.is_json and not isinstance(body, dict):
+        raise ReviewError("Expected a JSON object body")
+    source: Any = body if body is not None else request.form
+    version = source.get("version")
+    if isinstance(version, str) and version.strip().isdigit():
+        version = int(version)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise ReviewError(f"Expected the version of the review you saw, got {version!r}")
+    with read_only():
+        review_id = db.session.scalar(select(CardReview.id).where(CardReview.card_id == card_id))
+    if review_id is None:
+        raise ReviewError(f"Card {card_id} has no review yet: it has not been graded (or the queue is not synced)", 404)
+    action, grade = str(source.get("action") or ""), source.get("grade") or None
+    if body is None and request.form.get("choice"):
+        # The page's buttons without script: "accept", "change:few", "send_back", ...
+        action, _, grade = request.form["choice"].partition(":")
+        grade = grade or None
+    decided = decide(review_id, action, expected_version=version, curator=_curator(), grade=grade,
+                     note=str(source.get("note") or ""), kind=str(source.get("kind") or "crop"))
+    next_url = _next_url(card_id, _filters(request.args))
+    if body is not None:
+        return jsonify({"card": decided.card_id, "decision": decided.decision, "grade": decided.grade,
+                        "version": decided.version, "batch": decided.batch_id, "next_url": next_url})
+    flash(f"Card {card_id}: {decided.decision.replace('_', ' ')}"
+          + (f" ({GRADE_NAMES[decided.grade]})" if decided.grade else "")
+          + (f", crowd batch {decided.batch_id}" if decided.batch_id else "") + ".", "success")
+    return redirect(next_url, code=303)
+
+
+@bp.route("/cards/<int:card_id>/history")
+@role_required("curator")
+def history(card_id: int) -> Any:
+    from app.catalog import get_card_or_404
+
+    with read_only():
+        card = get_card_or_404(card_id, with_results=False)
+        return render_template("review/history.html", card=card, events=card_history(card_id))
+
+
+# ----------------------------------------------------------------------------- anaglyph
+
+
+def _anaglyph_etag(card: Any, rectify: Any) -> str:
+    from app.catalog import artifact_etag
+
+    parts = [artifact_etag(card, rectify, name) for name in ("left_preview", "right_preview")]
+    return hashlib.sha256("\0".join([*parts, ANAGLYPH_VERSION]).encode()).hexdigest()[:32]
+
+
+def _anaglyph_url(card: Any, rectify: Any) -> str | None:
+    from app.catalog import _version
+
+    artifacts = (rectify.artifacts or {}) if rectify is not None else {}
+    if not (artifacts.get("left_preview") and artifacts.get("right_preview")):
+        return None
+    return url_for("review.anaglyph", card_id=card.id, v=_version(_anaglyph_etag(card, rectify)))
+
+
+def red_cyan_anaglyph(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """A grey red/cyan anaglyph, ``(H, W, 3)`` uint8: red = left view's luma, green = blue = right's.
+
+    Grey rather than colour anaglyph: colours of the scene would otherwise leak between the
+    eyes (retinal rivalry on red or cyan objects). Inputs are ``(H, W)`` or ``(H, W, 3)``
+    uint8 RGB; when the previews differ in size by rounding, both are cut to the common
+    top-left region (rectified views share their pixel grid, so rows stay aligned).
+    """
+    def luma(image: np.ndarray) -> np.ndarray:
+        if image.ndim == 2:
+            return image
+        # ITU-R BT.601 weights, as PIL's "L" conversion uses.
+        return np.clip(image[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32) + 0.5,
+                       0, 255).astype(np.uint8)
+
+    if left.size == 0 or right.size == 0:
+        raise ValueError(f"Expected two non-empty views, got shapes {left.shape} and {right.shape}")
+    height, width = min(left.shape[0], right.shape[0]), min(left.shape[1], right.shape[1])
+    red, cyan = luma(left)[:height, :width], luma(right)[:height, :width]
+    return np.stack([red, cyan, cyan], axis=2)
+
+
+@bp.route("/cards/<int:card_id>/anaglyph.png")
+@role_required("curator")
+def anaglyph(card_id: int) -> Response:
+    from PIL import Image
+
+    from app.catalog import (
+        _cache_headers,
+        _not_modified,
+        get_card_or_404,
+        inside_data_dir,
+    )
+    from pipeline.errors import ImageReadError
+    from pipeline.io import read_image
+
+    with read_only():
+        card = get_card_or_404(card_id)
+        rectify = card.latest_results().get("rectify")
+        artifacts = (rectify.artifacts or {}) if rectify is not None else {}
+        if not (artifacts.get("left_preview") and artifacts.get("right_preview")):
+            abort(404, f"Card {card_id} has no rectified pair to make an anaglyph from.")
+        etag = _anaglyph_etag(card, rectify)
+        paths = [inside_data_dir(artifacts[name]) for name in ("left_preview", "right_preview")]
+    cached = _not_modified(etag)
+    if cached is not None:
+        return cached
+    try:
+        views = [read_image(path) for path in paths]
+    except (ImageReadError, OSError) as exc:
+        abort(404, f"The rectified previews of card {card_id} cannot be read; rerun the rectify stage ({exc}).")
+    buffer = io.BytesIO()
+    Image.fromarray(red_cyan_anaglyph(*views)).save(buffer, format="PNG", compress_level=3)
+    response = Response(buffer.getvalue(), mimetype="image/png")
+    response.set_etag(etag)
+    response = response.make_conditional(request)
+    _cache_headers(response, etag)
+    return response
+
+
+# ----------------------------------------------------------------------------- disputes
+
+
+def _label_from_form(kind: str, form: Any) -> dict[str, Any]:
+    if kind == "judge":
+        return {q: form.get(q) == "on" for q in ("is_stereo", "upside_down", "inverted")}
+    label: dict[str, Any] = {}
+    for half in ("left", "right"):
+        box = []
+        for corner in ("x0", "y0", "x1", "y1"):
+            raw = (form.get(f"{half}_{corner}") or "").strip()
+            try:
+                value = float(raw)
+            except ValueError:
+                raise ReviewError(f"Expected a number for the {half} box {corner}, got {raw!r}") from None
+            if not math.isfinite(value):
+                raise ReviewError(f"Expected a finite number for the {half} box {corner}, got {raw!r}")
+            box.append(value)
+        label[half] = box
+    return label
+
+
+def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200) -> Any:
+    from app.catalog import get_card_or_404
+
+    with read_only():
+        aggregate = db.session.get(Aggregate, aggregate_id)
+        if aggregate is None:
+            abort(404, f"There is no crowd aggregate {aggregate_id}.")
+        card = get_card_or_404(aggregate.card_id, with_results=False)
+        answers = aggregate_answers(aggregate)
+        view = crowd_view(card.id)
+        boxes = []
+        if aggregate.kind == "crop":
+            view.crop, view.crop_answers = aggregate, answers
+            boxes = _crowd_boxes(view)
+        return render_template("review/dispute.html", aggregate=aggregate, card=card, answers=answers, boxes=boxes,
+                               judgements=_judgement_counts(answers) if aggregate.kind == "judge" else {},
+                               error=error), status
+
+
+@bp.route("/disputes/<int:aggregate_id>", methods=["GET", "POST"])
+@role_required("curator")
+def dispute(aggregate_id: int) -> Any:
+    if request.method == "GET":
+        return _dispute_page(aggregate_id)
+    with read_only():
+        aggregate = db.session.get(Aggregate, aggregate_id)
+        if aggregate is None:
+            abort(404, f"There is no crowd aggregate {aggregate_id}.")
+        kind = aggregate.kind
+    try:
+        label = _label_from_form(kind, request.form)
+        resolved = resolve_aggregate(aggregate_id, label, curator=_curator(),
+                                     make_gold=request.form.get("make_gold") == "on", note=request.form.get("note", ""))
+    except ReviewConflict:
+        raise
+    except ReviewError as exc:
+        db.session.rollback()
+        return _dispute_page(aggregate_id, exc.message, exc.status)
+    flash(f"Card {resolved.card_id}: your {kind} answer is now the card's truth"
+          + (" and a gold item for later batches." if resolved.gold_id else "."), "success")
+    return redirect(url_for("review.queue") + "#disputes", code=303)

@@ -87,6 +87,9 @@ def upgrade() -> None:
     with op.batch_alter_table('card_reviews', schema=None) as batch_op:
         batch_op.create_index(batch_op.f('ix_card_reviews_decision'), ['decision'], unique=False)
         batch_op.create_index(batch_op.f('ix_card_reviews_grade'), ['grade'], unique=False)
+    # The review queue's order (SQLite sorts NULLs last in DESC already and refuses NULLS LAST here).
+    nulls_last = ' NULLS LAST' if op.get_bind().dialect.name == 'postgresql' else ''
+    op.create_index('ix_card_reviews_queue', 'card_reviews', ['decision', sa.text(f'uncertainty DESC{nulls_last}'), 'card_id'])
 
     op.create_table('crowd_gold_answers',
     sa.Column('id', sa.Integer(), nullable=False),
@@ -137,6 +140,7 @@ def downgrade() -> None:
         batch_op.drop_index(batch_op.f('ix_crowd_gold_answers_card_id'))
 
     op.drop_table('crowd_gold_answers')
+    op.drop_index('ix_card_reviews_queue', table_name='card_reviews')
     with op.batch_alter_table('card_reviews', schema=None) as batch_op:
         batch_op.drop_index(batch_op.f('ix_card_reviews_grade'))
         batch_op.drop_index(batch_op.f('ix_card_reviews_decision'))

@@ -1,4 +1,6 @@
-"""Dataset releases: writers per format and release verification.
+"""Dataset releases: versioned, verifiable exports of the curator-accepted cards.
 
-Empty until the releases feature lands; see ``annotation/__init__.py`` for why it exists now.
+``exports.release.publish_release`` plans, writes and records a release (``keystone export``);
+``exports.verify.verify_release`` checks one (``keystone verify``). Writers per format live in
+``exports.writers`` and know nothing of the database; ``exports.catalogue`` streams cards to them.
 """

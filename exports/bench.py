@@ -1,0 +1,184 @@
+"""``keystone bench export``: release throughput and peak memory on a synthetic catalogue.
+
+The catalogue is N accepted cards on a throwaway SQLite database. To build it fast, the cards
+share a few real stored originals and stage artifacts (Middlebury Motorcycle, as shipped with
+scikit-image, at several crops) but each has its own id, content hash and review, so the
+release writes N distinct cards. Maps are kept small (the views' size; the "512" depth map at
+128 x 128) so 10,000 cards fit on a shared disk; ``mb_per_second`` lets the figure be scaled.
+The export runs in a child process: its peak RSS (``getrusage``) is the export's own.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+VARIANTS = 4
+VIEW_SIZE = (160, 108)  # (width, height) of each half in the synthetic cards
+DEPTH_SIZE = 128
+TARGET_RSS_MB = 500
+
+
+def _variant_arrays(variant: int) -> dict[str, np.ndarray]:
+    """A real stereo card (Motorcycle halves side by side) and plausible maps for it."""
+    from PIL import Image
+    from skimage import data
+
+    left, right, disp = data.stereo_motorcycle()
+    x0 = 40 * variant  # a different crop per variant: distinct pixels, same kind of scene
+    views = [np.asarray(Image.fromarray(v[:, x0:x0 + 600]).resize(VIEW_SIZE, Image.Resampling.BOX)) for v in (left, right)]
+    gutter = np.full((VIEW_SIZE[1], 8, 3), 200, np.uint8)
+    scale = VIEW_SIZE[0] / 600
+    truth = np.asarray(disp[:, x0:x0 + 600], np.float32)
+    truth = np.where(np.isfinite(truth), truth, np.nan)
+    small = np.asarray(Image.fromarray(truth).resize(VIEW_SIZE, Image.Resampling.NEAREST), np.float32) * scale
+    depth = np.asarray(Image.fromarray(1.2071 * VIEW_SIZE[1] / np.where(small > 0, small, np.nan))
+                       .resize((DEPTH_SIZE, DEPTH_SIZE), Image.Resampling.NEAREST), np.float32)
+    return {"card": np.concatenate([views[0], gutter, views[1]], axis=1), "left": views[0], "right": views[1],
+            "disparity_left": small, "disparity_right": small, "depth_512": depth}
+
+
+def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], None] = print) -> None:
+    """Insert ``count`` accepted, graded cards with stage results pointing at shared artifacts."""
+    from sqlalchemy import insert
+
+    from app.db import db
+    from app.models import Card, Collection, StageResult
+    from pipeline.io import write_json, write_npy, write_png
+    from review.models import CardReview
+
+    clock = time.perf_counter()
+    shared: list[dict[str, Any]] = []
+    for variant in range(VARIANTS):
+        arrays = _variant_arrays(variant)
+        work = Path("derived") / "bench" / f"v{variant}"
+        write_png(data_dir / work / "card.png", arrays["card"])
+        write_png(data_dir / work / "left.png", arrays["left"])
+        write_png(data_dir / work / "right.png", arrays["right"])
+        for name in ("disparity_left", "disparity_right", "depth_512"):
+            write_npy(data_dir / work / f"{name}.npy", arrays[name])
+        width = VIEW_SIZE[0]
+        write_json(data_dir / work / "rectification.json", {
+            "convention": "column vectors, x' ~ H x; disparity d = x_left - x_right >= 0",
+            "H_l": np.eye(3).tolist(), "H_r": np.eye(3).tolist(),
+            "K": [[1.2071 * VIEW_SIZE[1], 0, width / 2], [0, 1.2071 * VIEW_SIZE[1], VIEW_SIZE[1] / 2], [0, 0, 1]],
+            "R": np.eye(3).tolist(), "t": [1.0, 0.0, 0.0], "size": list(VIEW_SIZE),
+            "left_box": [0, 0, width, VIEW_SIZE[1]], "right_box": [width + 8, 0, 2 * width + 8, VIEW_SIZE[1]],
+        })
+        shared.append({"card": str(work / "card.png"), "work": work,
+                       "bytes": (data_dir / work / "card.png").stat().st_size})
+    collection = Collection(name="bench-synthetic")
+    db.session.add(collection)
+    db.session.flush()
+    grades = ("few", "some", "some")
+    for start in range(0, count, 1000):
+        chunk = range(start, min(count, start + 1000))
+        card_rows = []
+        for number in chunk:
+            variant = shared[number % VARIANTS]
+            card_rows.append({
+                "collection_id": collection.id, "content_hash": hashlib.sha256(f"bench-{number}".encode()).hexdigest(),
+                "stored_path": variant["card"], "source_name": f"bench-{number:06d}.png", "source_path": "(synthetic)",
+                "accession": f"2026.0001.{number:05d}", "width": 2 * VIEW_SIZE[0] + 8, "height": VIEW_SIZE[1],
+                "image_format": "PNG", "byte_size": variant["bytes"], "state": "pass",
+                "source_metadata": {"title": f"Synthetic card {number}", "url": f"https://example.org/cards/{number}"},
+            })
+        ids = list(db.session.scalars(insert(Card).returning(Card.id), card_rows))
+        results, reviews = [], []
+        for number, card_id in zip(chunk, ids):
+            work = shared[number % VARIANTS]["work"]
+            results.append({"card_id": card_id, "stage": "rectify", "param_hash": "bench0rectify000", "status": "done",
+                            "metrics": {"orientation": {"applied": []}, "inputs_digest": "bench"},
+                            "artifacts": {"left": str(work / "left.png"), "right": str(work / "right.png"),
+                                          "rectification": str(work / "rectification.json")},
+                            "code_version": "0.1.0"})
+            results.append({"card_id": card_id, "stage": "disparity", "param_hash": "bench0disparity0", "status": "done",
+                            "metrics": {}, "code_version": "0.1.0",
+                            "artifacts": {name: str(work / f"{name}.npy")
+                                          for name in ("disparity_left", "disparity_right", "depth_512")}})
+            grade = grades[number % len(grades)]
+            results.append({"card_id": card_id, "stage": "grade", "param_hash": "bench0grade00000", "status": "done",
+                            "outcome": grade, "metrics": {}, "artifacts": {}, "code_version": "0.1.0"})
+            reviews.append({"card_id": card_id, "auto_grade": grade, "grade": grade, "decision": "accepted"})
+        db.session.execute(insert(StageResult), results)
+        db.session.execute(insert(CardReview), reviews)
+        db.session.commit()
+    echo(f"built a synthetic catalogue of {count} accepted cards in {time.perf_counter() - clock:.1f} s")
+
+
+def _child_export(database_url: str, data_dir: str, out_dir: str, formats: str) -> dict[str, Any]:
+    """Runs in the child process: export, then report time and this process's peak RSS."""
+    from app import create_app
+    from app.db import db
+
+    from .release import publish_release
+
+    app = create_app({"SQLALCHEMY_DATABASE_URI": database_url, "KEYSTONE_DATA_DIR": data_dir})
+    with app.app_context():
+        baseline = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        clock = time.perf_counter()
+        report = publish_release(out_dir, formats=formats, notes="benchmark", actor_label="bench")
+        seconds = time.perf_counter() - clock
+        db.session.remove()
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"path": report.path, "cards": report.cards, "files": report.files, "bytes": report.bytes,
+            "export_seconds": seconds, "peak_rss_mb": peak, "rss_before_export_mb": baseline}
+
+
+def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", folder: Path | None = None,
+                     echo: Callable[[str], None] = print) -> dict[str, Any]:
+    """Build the catalogue, export it in a child process, verify the release; the figures."""
+    from app import create_app
+    from app.db import db
+    from app.schema import upgrade
+
+    from .verify import verify_release
+
+    root = Path(folder) if folder else Path(tempfile.mkdtemp(prefix="keystone-bench-export-"))
+    root.mkdir(parents=True, exist_ok=True)
+    try:
+        database_url = f"sqlite:///{root / 'bench.sqlite3'}"
+        data_dir = root / "data"
+        app = create_app({"SQLALCHEMY_DATABASE_URI": database_url, "KEYSTONE_DATA_DIR": str(data_dir)},
+                         instance_path=root / "instance")
+        with app.app_context():
+            upgrade(db.engine)
+            build_synthetic_catalogue(count, data_dir, echo)
+            db.session.remove()
+            db.engine.dispose()
+        code = ("import json, sys; from exports.bench import _child_export; "
+                "print(json.dumps(_child_export(*sys.argv[1:])))")
+        env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(root / "instance")}
+        done = subprocess.run([sys.executable, "-c", code, database_url, str(data_dir), str(root / "releases"), formats],
+                              capture_output=True, text=True, env=env, check=False,
+                              cwd=Path(__file__).resolve().parents[1])
+        if done.returncode != 0:
+            raise RuntimeError(f"the export child failed: {done.stderr.strip()[-2000:]}")
+        child = json.loads(done.stdout.strip().splitlines()[-1])
+        clock = time.perf_counter()
+        verified = verify_release(child["path"], validate_croissant=count <= 2000)
+        verify_seconds = time.perf_counter() - clock
+        seconds = child["export_seconds"]
+        return {
+            "benchmark": "export", "cards": child["cards"], "formats": formats.split(","), "files": child["files"],
+            "bytes": child["bytes"], "export_seconds": round(seconds, 3),
+            "cards_per_second": round(child["cards"] / seconds, 2), "mb_per_second": round(child["bytes"] / 1e6 / seconds, 2),
+            "peak_rss_mb": round(child["peak_rss_mb"], 1), "rss_before_export_mb": round(child["rss_before_export_mb"], 1),
+            "target_rss_mb": TARGET_RSS_MB, "verified": verified.ok, "verify_seconds": round(verify_seconds, 3),
+            "view_size": list(VIEW_SIZE), "depth_size": [DEPTH_SIZE, DEPTH_SIZE],
+        }
+    finally:
+        if folder is None:
+            shutil.rmtree(root, ignore_errors=True)

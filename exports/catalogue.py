@@ -1,0 +1,149 @@
+"""The database side of a release: which cards go in, streamed as :class:`ReleaseCard`.
+
+A card goes in when its curator review is ``accepted`` or ``changed`` with a final grade at
+or above the chosen minimum, and it has a finished rectification and disparity whose files
+are on disk. Cards are read in id order, ``CHUNK`` at a time, and the session is cleared
+after each chunk, so memory does not grow with the catalogue.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import selectinload
+
+from app.db import db
+from app.models import Card
+from review.models import CardReview
+
+from .models import Release
+from .records import RELEASED_DECISIONS, ReleaseCard, grades_at_or_above
+
+CHUNK = 200
+# The date a release carries when no review has a decision time (never, in practice).
+EPOCH = datetime(2000, 1, 1, tzinfo=timezone.utc)
+
+
+@dataclass(frozen=True)
+class Exclusion:
+    card_id: int
+    reason: str
+
+
+def eligible_query(min_grade: str):  # type: ignore[no-untyped-def]
+    return (
+        select(CardReview.card_id)
+        .where(CardReview.decision.in_(RELEASED_DECISIONS), CardReview.grade.in_(grades_at_or_above(min_grade)))
+        .order_by(CardReview.card_id)
+    )
+
+
+def eligible_card_ids(min_grade: str) -> list[int]:
+    """Ids of the curator-accepted cards at or above ``min_grade``, ascending."""
+    return list(db.session.scalars(eligible_query(min_grade)))
+
+
+def inputs_date(card_ids: list[int]) -> datetime:
+    """The newest decision time among ``card_ids``: the release's date, so the same inputs
+    give the same files whenever they are written. Truncated to whole seconds, UTC."""
+    newest: datetime | None = None
+    for start in range(0, len(card_ids), 1000):
+        chunk = card_ids[start:start + 1000]
+        value = db.session.scalar(select(func.max(func.coalesce(CardReview.decided_at, CardReview.updated_at)))
+                                  .where(CardReview.card_id.in_(chunk)))
+        if value is not None and (newest is None or _utc(value) > newest):
+            newest = _utc(value)
+    return (newest or EPOCH).replace(microsecond=0)
+
+
+def _utc(value: datetime) -> datetime:
+    return value.replace(tzinfo=timezone.utc) if value.tzinfo is None else value.astimezone(timezone.utc)
+
+
+def latest_release() -> Release | None:
+    return db.session.scalar(select(Release).order_by(Release.id.desc()).limit(1))
+
+
+def stream_release_cards(card_ids: list[int], data_dir: Path,
+                         exclusions: list[Exclusion] | None = None) -> Iterator[ReleaseCard]:
+    """Yield a :class:`ReleaseCard` per id (ascending); a card that cannot be released (no
+    finished rectification or disparity, a missing file) is skipped and noted in ``exclusions``."""
+    from annotation.models import Aggregate
+
+    for start in range(0, len(card_ids), CHUNK):
+        chunk = card_ids[start:start + CHUNK]
+        cards = db.session.scalars(
+            select(Card).where(Card.id.in_(chunk)).order_by(Card.id)
+            .options(selectinload(Card.stage_results), selectinload(Card.collection))
+        ).all()
+        reviews = {row.card_id: row for row in db.session.scalars(select(CardReview).where(CardReview.card_id.in_(chunk)))}
+        crowd: dict[int, dict[str, dict[str, Any]]] = {}
+        for row in db.session.scalars(select(Aggregate).where(Aggregate.card_id.in_(chunk), Aggregate.state == "approved")
+                                      .order_by(Aggregate.id)):
+            crowd.setdefault(row.card_id, {})[row.kind] = {"batch": row.batch_id, "answers": row.answers}
+        ready: list[ReleaseCard] = []
+        for card in cards:
+            try:
+                ready.append(release_card(card, reviews[card.id], crowd.get(card.id, {}), data_dir))
+            except ReleaseInputError as exc:
+                if exclusions is not None:
+                    exclusions.append(Exclusion(card.id, str(exc)))
+        # Only plain data leaves this function; drop the ORM objects before the next chunk.
+        db.session.expunge_all()
+        yield from ready
+
+
+class ReleaseInputError(ValueError):
+    """A card the curator accepted but whose pipeline outputs are incomplete."""
+
+
+def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]], data_dir: Path) -> ReleaseCard:
+    latest = card.latest_results()
+    rectify, disparity, grade = latest.get("rectify"), latest.get("disparity"), latest.get("grade")
+    if rectify is None or rectify.status not in ("done", "skipped"):
+        raise ReleaseInputError("no finished rectification")
+    if disparity is None or disparity.status != "done":
+        raise ReleaseInputError("no finished disparity")
+
+    def path(result: Any, name: str) -> Path:
+        relative = result.artifacts.get(name)
+        if not relative:
+            raise ReleaseInputError(f"the {result.stage} result has no {name!r} artifact")
+        target = data_dir / relative
+        if not target.is_file():
+            raise ReleaseInputError(f"{result.stage} artifact {name!r} is missing on disk ({relative})")
+        return target
+
+    rectification_file = path(rectify, "rectification")
+    try:
+        rectification = json.loads(rectification_file.read_text())
+    except (OSError, ValueError) as exc:
+        raise ReleaseInputError(f"rectification.json unreadable: {exc}") from exc
+    if "left_box" not in rectification or "right_box" not in rectification:
+        raise ReleaseInputError("rectification.json has no crop boxes")
+    original = data_dir / card.stored_path
+    if not original.is_file():
+        raise ReleaseInputError(f"the original scan is missing on disk ({card.stored_path})")
+    stages = {
+        result.stage: {"param_hash": result.param_hash, "code_version": result.code_version, "status": result.status,
+                       "inputs_digest": result.metrics.get("inputs_digest")}
+        for result in (rectify, disparity, grade) if result is not None
+    }
+    orientation = rectify.metrics.get("orientation") or {}
+    metadata = dict(card.source_metadata or {})
+    return ReleaseCard(
+        card_id=card.id, accession=card.accession, collection=card.collection.name, source_name=card.source_name,
+        content_hash=card.content_hash, original=original, width=card.width, height=card.height,
+        metadata=metadata, museum_url=metadata.get("url") or None,
+        grade=review.grade or "", decision=review.decision, auto_grade=review.auto_grade,
+        orientation=list(orientation.get("applied") or []), rectification=rectification,
+        rectified_left=path(rectify, "left"), rectified_right=path(rectify, "right"),
+        disparity_left=path(disparity, "disparity_left"), disparity_right=path(disparity, "disparity_right"),
+        depth_512=path(disparity, "depth_512"), stages=stages, crowd=crowd,
+    )

@@ -1,0 +1,162 @@
+"""``keystone verify``: check a release folder against its own manifests. No database needed.
+
+Checks, naming each problem with the path it concerns: every line of ``SHA256SUMS`` is
+well-formed, its file exists and has that sha256; every file present is listed; ``croissant.json``
+parses, conforms to Croissant 1.1, lists each file with the same sha256 as ``SHA256SUMS``, and
+(when ``mlcroissant`` is installed) passes its validation; every Parquet shard has the release
+schema, and the shards and ``cards.jsonl`` hold the same number of cards.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .croissant import CROISSANT_VERSION
+
+_SUM_LINE = re.compile(r"^([0-9a-f]{64})  (\S(?:.*\S)?)$")
+
+
+@dataclass
+class VerifyReport:
+    path: str
+    checked: int = 0
+    problems: list[dict[str, str]] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def problem(self, path: str, problem: str) -> None:
+        self.problems.append({"path": path, "problem": problem})
+
+    def as_json(self) -> dict[str, Any]:
+        return {"ok": self.ok, "path": self.path, "checked": self.checked, "problems": self.problems}
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _present_files(root: Path) -> set[str]:
+    found = set()
+    for folder, _dirs, files in os.walk(root):
+        for name in files:
+            found.add((Path(folder) / name).relative_to(root).as_posix())
+    return found
+
+
+def verify_release(path: str | os.PathLike[str], *, validate_croissant: bool = True) -> VerifyReport:
+    """Check the release at ``path``; the report lists every problem found (empty when sound)."""
+    root = Path(path)
+    report = VerifyReport(path=str(root))
+    if not root.is_dir():
+        report.problem(str(root), "not a folder")
+        return report
+    sums_file = root / "SHA256SUMS"
+    listed: dict[str, str] = {}
+    if not sums_file.is_file():
+        report.problem("SHA256SUMS", "missing: cannot check any checksum")
+    else:
+        for number, line in enumerate(sums_file.read_text(errors="replace").splitlines(), start=1):
+            match = _SUM_LINE.match(line)
+            if match is None:
+                report.problem("SHA256SUMS", f"line {number} is not '<sha256>  <path>': {line[:80]!r}")
+                continue
+            digest, relative = match.groups()
+            if relative.startswith("/") or ".." in Path(relative).parts:
+                report.problem(relative, "listed with an absolute or escaping path")
+                continue
+            listed[relative] = digest
+    for relative, digest in sorted(listed.items()):
+        target = root / relative
+        report.checked += 1
+        if not target.is_file():
+            report.problem(relative, "listed in SHA256SUMS but missing")
+        elif _sha256(target) != digest:
+            report.problem(relative, "sha256 does not match SHA256SUMS (file changed or corrupted)")
+    for relative in sorted(_present_files(root) - set(listed) - {"SHA256SUMS"}):
+        report.problem(relative, "present but not listed in SHA256SUMS")
+    _check_croissant(root, listed, report, validate_croissant)
+    _check_parquet(root, listed, report)
+    return report
+
+
+def _check_croissant(root: Path, listed: dict[str, str], report: VerifyReport, validate: bool) -> None:
+    target = root / "croissant.json"
+    if not target.is_file():
+        report.problem("croissant.json", "missing")
+        return
+    try:
+        document = json.loads(target.read_text())
+    except (UnicodeDecodeError, ValueError) as exc:
+        report.problem("croissant.json", f"not valid JSON: {exc}")
+        return
+    if not isinstance(document, dict):
+        report.problem("croissant.json", "not a JSON-LD object")
+        return
+    if document.get("conformsTo") != CROISSANT_VERSION:
+        report.problem("croissant.json", f"conformsTo is {document.get('conformsTo')!r}, expected {CROISSANT_VERSION}")
+    described = set()
+    for entry in document.get("distribution") or []:
+        if not isinstance(entry, dict) or entry.get("@type") != "cr:FileObject":
+            continue
+        relative = str(entry.get("contentUrl", ""))
+        described.add(relative)
+        if relative not in listed:
+            report.problem("croissant.json", f"describes {relative!r}, which SHA256SUMS does not list")
+        elif entry.get("sha256") != listed[relative]:
+            report.problem("croissant.json", f"sha256 of {relative!r} differs from SHA256SUMS")
+    for relative in sorted(set(listed) - described - {"croissant.json"}):
+        report.problem("croissant.json", f"does not describe {relative!r}")
+    if validate and not report.problems:
+        try:
+            import mlcroissant as mlc
+        except ImportError:
+            return
+        try:
+            # rdflib (under mlcroissant) warns about its own deprecated API; not ours to fix.
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                mlc.Dataset(str(target))
+        except Exception as exc:  # mlcroissant raises ValidationError and, on odd input, anything
+            report.problem("croissant.json", f"mlcroissant validation failed: {str(exc).strip()[:500]}")
+
+
+def _check_parquet(root: Path, listed: dict[str, str], report: VerifyReport) -> None:
+    shards = sorted(p for p in listed if p.startswith("data/") and p.endswith(".parquet"))
+    if not shards:
+        return
+    import pyarrow.parquet as pq
+
+    from .writers import parquet_schema
+
+    expected = parquet_schema()
+    rows = 0
+    for relative in shards:
+        try:
+            schema = pq.read_schema(root / relative)
+            rows += pq.ParquetFile(root / relative).metadata.num_rows
+        except Exception as exc:  # pyarrow raises several error types for a damaged file
+            report.problem(relative, f"not a readable Parquet file: {exc}")
+            continue
+        if not schema.equals(expected, check_metadata=False):
+            report.problem(relative, "Parquet schema differs from the release schema")
+        elif (schema.metadata or {}).get(b"huggingface") != expected.metadata[b"huggingface"]:
+            report.problem(relative, "Parquet 'huggingface' features entry missing or different")
+    cards_file = root / "cards.jsonl"
+    if cards_file.is_file():
+        with open(cards_file, "rb") as handle:
+            cards = sum(1 for line in handle if line.strip())
+        if cards != rows:
+            report.problem("data/", f"Parquet shards hold {rows} cards, cards.jsonl {cards}")

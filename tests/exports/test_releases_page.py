@@ -1,0 +1,85 @@
+"""The releases page: who may see it and publish, the dry-run preview, publishing with CSRF."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+
+@pytest.mark.parametrize("role, status", [(None, 302), ("annotator", 403), ("curator", 403),
+                                          ("exporter", 200), ("admin", 200)])
+def test_who_sees_the_releases_page(client, as_role, role, status) -> None:
+    as_role(role)
+    assert client.get("/releases/").status_code == status
+
+
+@pytest.mark.parametrize("role", ["annotator", "curator"])
+def test_annotators_and_curators_cannot_publish(client, as_role, csrf_token, role) -> None:
+    as_role(role)
+    token = csrf_token("/")
+    response = client.post("/releases/publish", data={"csrf_token": token, "min_grade": "some", "formats": "parquet"})
+    assert response.status_code == 403
+    response = client.post("/releases/preview", data={"csrf_token": token, "min_grade": "some", "formats": "parquet"})
+    assert response.status_code == 403
+
+
+def test_publishing_needs_the_csrf_token(client, login) -> None:
+    login("exporter")
+    response = client.post("/releases/publish", data={"min_grade": "some", "formats": "parquet"})
+    assert response.status_code == 400
+
+
+@pytest.mark.both_databases
+def test_preview_then_publish_from_the_page(app, client, login, csrf_token, processed_cards, review_card,
+                                           tmp_path) -> None:
+    app.config["KEYSTONE_RELEASES_DIR"] = str(tmp_path / "releases")
+    ids = processed_cards(2)
+    review_card(ids[0], "few")
+    review_card(ids[1], "some")
+    login("exporter")
+    token = csrf_token("/releases/")
+    form = {"csrf_token": token, "min_grade": "some", "formats": ["keystonedepth", "parquet"], "notes": "from the web"}
+
+    page = client.post("/releases/preview", data=form)
+    assert page.status_code == 200
+    html = page.get_data(as_text=True)
+    assert "Would publish 1.0.0" in html and "2 cards" in html and "few 1, some 1" in html and "The first release." in html
+    assert not (tmp_path / "releases").exists()
+
+    bad = client.post("/releases/preview", data={**form, "formats": []})
+    assert bad.status_code == 400 and "Choose at least one format." in bad.get_data(as_text=True)
+
+    published = client.post("/releases/publish", data=form)
+    assert published.status_code == 302
+    listing = client.get("/releases/").get_data(as_text=True)
+    assert "Published release 1.0.0: 2 cards" in listing and "from the web" in listing
+    assert (tmp_path / "releases" / "1.0.0" / "SHA256SUMS").is_file()
+    changelog = client.get("/releases/1.0.0/CHANGELOG.md")
+    assert changelog.status_code == 200 and "First release: 2 card(s)." in changelog.get_data(as_text=True)
+    assert client.get("/releases/1.0.0/keystone.sqlite3").status_code == 404
+    assert client.get("/releases/9.9.9/README.md").status_code == 404
+
+    # The next preview compares with what was just published.
+    review_card(ids[1], "few", decision="changed", auto_grade="some")
+    html = client.post("/releases/preview", data=form).get_data(as_text=True)
+    assert "Would publish 2.0.0" in html and "after 1.0.0" in html
+    assert re.search(rf"card {ids[1]}: grade changed \(some -&gt; few\)", html)
+
+    with app.app_context():
+        from sqlalchemy import select
+
+        from app.db import db
+        from exports.models import Release
+        from review.models import AuditEvent
+
+        row = db.session.scalar(select(Release))
+        assert row.creator is not None and row.creator.username.startswith("exporter")
+        assert db.session.scalar(select(AuditEvent.actor).where(AuditEvent.entity == "release")) == row.creator.username
+        assert Path(row.path) == (tmp_path / "releases" / "1.0.0").resolve()
+
+
+def test_exporters_get_a_releases_link(client, login) -> None:
+    login("exporter")
+    assert 'href="/releases/"' in client.get("/releases/").get_data(as_text=True)

@@ -32,6 +32,113 @@ def _demo_logins(folder: Path) -> dict[str, str]:
     return logins
 
 
+def _card_ids_by_name() -> dict[str, int]:
+    from .db import db
+    from .models import Card
+
+    return {Path(name).stem: card_id for card_id, name in db.session.execute(select(Card.id, Card.source_name))}
+
+
+def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
+    """A simulated crowd (noisy workers and a spammer) answers through the real task code: it
+    judges the cards the filter sent to people plus the upside-down and inverted cards, so their
+    corrections come from the crowd, and draws crop boxes on three stereo cards. Gold items
+    carry known answers. Leaves the aggregates approved or waiting for a curator."""
+    from annotation.models import Batch
+    from annotation.simulate import seed_simulated_crowd
+
+    from .db import db
+
+    if db.session.scalar(select(Batch.id).limit(1)) is not None:
+        return {"note": "crowd batches exist already: not seeded again"}
+    ids = _card_ids_by_name()
+    by_name = {card.name: card for card in cards if card.name in ids}
+
+    def judgement(card) -> dict:  # type: ignore[no-untyped-def]
+        return {"is_stereo": card.kind in ("stereo", "upside_down", "inverted"),
+                "upside_down": bool(card.truth.get("upside_down")), "inverted": bool(card.truth.get("inverted"))}
+
+    to_judge = [c for c in by_name.values() if c.kind in ("back", "upside_down", "inverted")]
+    stereo = [c for c in by_name.values() if c.kind == "stereo"]
+    judge = seed_simulated_crowd(
+        [ids[c.name] for c in to_judge], kind="judge", workers=5, seed=1,
+        truth={ids[c.name]: judgement(c) for c in to_judge},
+        gold={ids[c.name]: judgement(c) for c in stereo[-2:]})
+    boxed = stereo[:3]
+    crop = seed_simulated_crowd(
+        [ids[c.name] for c in boxed], kind="crop", workers=5, seed=2,
+        truth={ids[c.name]: {"left": _shrunk(c.truth["left_box"]), "right": _shrunk(c.truth["right_box"])}
+               for c in boxed},
+        gold={ids[c.name]: {"left": _shrunk(c.truth["left_box"]), "right": _shrunk(c.truth["right_box"])}
+              for c in stereo[3:5]})
+    for summary in (judge, crop):
+        echo(f"crowd {summary['kind']}: batch {summary['batch']}, {summary['answers']} answers, "
+             f"approved {summary['approved']}, waiting for a curator {summary['needs_curator']}, "
+             f"flagged workers {summary['flagged_workers']}")
+    return {"judge": judge, "crop": crop}
+
+
+def _shrunk(box: list, margin: float = 0.03) -> list[float]:
+    """A photo's box pulled in by ``margin`` of its size: the artifact-free area people draw."""
+    x0, y0, x1, y1 = (float(v) for v in box)
+    dx, dy = margin * (x1 - x0), margin * (y1 - y0)
+    return [round(x0 + dx), round(y0 + dy), round(x1 - dx), round(y1 - dy)]
+
+
+def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
+    """The demo curator accepts the automatic grade of the cards the grader is surest of and
+    leaves the rest (and any disputed crowd answer) in the review queue to try by hand."""
+    from review.models import CardReview
+    from review.tasks import decide, sync_reviews
+
+    from .db import db
+    from .models import Person
+
+    sync_reviews()
+    curator = db.session.scalar(select(Person).where(Person.username == "curator"))
+    pending = list(db.session.scalars(
+        select(CardReview).where(CardReview.decision == "pending", CardReview.auto_grade.in_(("few", "some")))
+        .order_by(CardReview.uncertainty.asc(), CardReview.card_id)))
+    already = db.session.scalar(select(CardReview.id).where(CardReview.decision != "pending").limit(1))
+    accepted = []
+    if already is None:
+        for review in pending[: max(1, len(pending) // 2)]:
+            decide(review.id, "accept", expected_version=review.version, curator=curator,
+                   note="demo: accepted by the demo script")
+            accepted.append(review.card_id)
+    left = db.session.scalar(select(db.func.count()).select_from(CardReview).where(CardReview.decision == "pending"))
+    echo(f"review: the demo curator accepted {len(accepted)} grade(s); {left} card(s) wait in /review")
+    return {"accepted": accepted, "pending": left}
+
+
+def release_demo(folder: Path, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
+    """Publish a release of the accepted cards (unless one with the same data exists) and verify it."""
+    from exports.release import ReleaseError, plan_release, publish_release
+    from exports.verify import verify_release
+
+    from .db import db
+    from .models import Person
+
+    releases = folder / "releases"
+    plan = plan_release(min_grade="some")
+    exporter = db.session.scalar(select(Person).where(Person.username == "exporter"))
+    if plan.cards and plan.changes.get("kind") == "patch":
+        # A rerun of the demo: the same cards with the same data are already released.
+        echo(f"release: the same data as release {plan.changes.get('previous_version')}; not published again")
+        return {"version": plan.changes.get("previous_version"), "verified": None}
+    try:
+        report = publish_release(releases, min_grade="some", notes="Demo collection", actor=exporter,
+                                 actor_label="keystone demo")
+    except ReleaseError as exc:
+        echo(f"release: not published: {exc}")
+        return {"version": None, "error": str(exc)}
+    verified = verify_release(report.path)
+    echo(f"release {report.version}: {report.cards} cards, {report.files} files in {report.path}; "
+         f"verify: {'ok' if verified.ok else verified.problems}")
+    return {"version": report.version, "path": report.path, "cards": report.cards, "verified": verified.ok,
+            "problems": verified.problems}
+
+
 def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     """Make the cards, ingest them, run the stages, add demo people; returns a summary."""
     from pipeline.synthetic_cards import make_demo_cards, write_demo_cards
@@ -58,18 +165,25 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
     for entry in report.rejected:
         echo(f"  rejected {entry['path']}: {entry['reason']}")
 
-    stage_reports = []
+    logins = _demo_logins(folder)
+    for role in DEMO_ROLES:
+        if db.session.scalar(select(Person).where(Person.username == role)) is None:
+            create_person(role, logins[role], [role], display_name=f"Demo {role}")
+
+    stage_reports, crowd = [], {}
     with make_executor("local", workers, None) as executor:
-        for spec in available_stages().values():
+        for name, spec in available_stages().items():
+            if name == "rectify":
+                # Between the filter and rectification, as in production: the crowd judges the
+                # cards the filter was unsure of (and the broken ones) and draws boxes on a few.
+                crowd = seed_demo_crowd(cards, echo)
             stage_report = run_stage(spec, data_dir=data_dir, executor=executor)
             stage_reports.append(stage_report.as_json())
             echo(f"{spec.name}: processed {stage_report.processed} in {stage_report.seconds:.1f} s, "
                  f"outcomes {stage_report.outcomes}, failed {stage_report.failed}")
 
-    logins = _demo_logins(folder)
-    for role in DEMO_ROLES:
-        if db.session.scalar(select(Person).where(Person.username == role)) is None:
-            create_person(role, logins[role], [role], display_name=f"Demo {role}")
+    review = curate_demo(echo)
+    release = release_demo(folder, echo)
 
     expected = {card.name: card.expected_filter for card in cards}
     rows = []
@@ -87,7 +201,8 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
         fraction = f"{100 * row['fraction']:.2f} %" if row["fraction"] is not None else "-"
         mark = "" if row["as_expected"] else "   <- unexpected"
         echo(f"{row['source']:<32} {str(row['outcome']):<8} {fraction:>9}  {'/'.join(row['expected'])}{mark}")
-    return {"cards": rows, "stages": stage_reports, "logins": logins, "seconds": time.perf_counter() - clock}
+    return {"cards": rows, "stages": stage_reports, "crowd": crowd, "review": review, "release": release,
+            "logins": logins, "seconds": time.perf_counter() - clock}
 
 
 @click.command("demo")

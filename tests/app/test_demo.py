@@ -31,10 +31,28 @@ def test_demo_builds_routes_and_is_rerunnable(tmp_path: Path, monkeypatch):
     assert people == {"admin", "curator", "exporter", "annotator"}
     logins = (folder / "demo-logins.txt").read_text()
 
+    # The rest of the flow: a simulated crowd, grades, a review queue left to try, a release.
+    with sqlite3.connect(folder / "keystone.sqlite3") as connection:
+        batches = dict(connection.execute("SELECT kind, count(*) FROM crowd_batches GROUP BY kind").fetchall())
+        answers = connection.execute("SELECT count(*) FROM crowd_answers").fetchone()[0]
+        grades = dict(connection.execute(
+            "SELECT outcome, count(*) FROM stage_results WHERE stage = 'grade' GROUP BY outcome").fetchall())
+        decisions = dict(connection.execute("SELECT decision, count(*) FROM card_reviews GROUP BY decision").fetchall())
+        releases = connection.execute("SELECT version, card_count FROM releases").fetchall()
+        views = connection.execute("SELECT count(*) FROM stage_results WHERE stage = 'views' AND status = 'done'").fetchone()[0]
+    assert batches == {"judge": 1, "crop": 1} and answers >= 20
+    assert sum(grades.values()) == 8 and set(grades) <= {"few", "some", "failure"}
+    assert decisions["accepted"] >= 1 and decisions["pending"] >= 1
+    assert releases == [("1.0.0", decisions["accepted"])]
+    assert views >= 1
+    assert "verify: ok" in result.output
+    assert (folder / "releases" / "1.0.0" / "SHA256SUMS").is_file()
+
     again = runner.invoke(cli, ["demo", "--no-serve", "--dir", str(folder)])
     assert again.exit_code == 0, again.output
     assert "ingested 0 (duplicates 11" in again.output
     assert "filter: processed 0" in again.output
+    assert "not published again" in again.output  # same data: no new release
     assert (folder / "demo-logins.txt").read_text() == logins
 
     listing = runner.invoke(cli, ["cards", "--json"], env={"KEYSTONE_DATABASE_URL": f"sqlite:///{folder / 'keystone.sqlite3'}",

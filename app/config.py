@@ -5,6 +5,7 @@
 ``KEYSTONE_SECRET_KEY``    session signing key; default a random key persisted in the instance folder.
 ``KEYSTONE_MAX_PIXELS``    decode cap per image (decompression-bomb guard); default 150 MP.
 ``KEYSTONE_INSTANCE_PATH`` where the instance folder lives; default Flask's.
+``KEYSTONE_RELEASES_DIR``   where releases published from the web go; default ``<data dir>/releases``.
 ``KEYSTONE_INPAINT_CHECKPOINT`` a ``keystone train-inpainting`` checkpoint the views stage fills
                           holes with; default none (OpenCV Telea fills them).
 """
@@ -63,4 +64,5 @@ def config_from_environment(instance_path: str) -> dict[str, Any]:
         "WTF_CSRF_TIME_LIMIT": None,
         "CATALOG_PAGE_SIZE": 48,
         "KEYSTONE_INPAINT_CHECKPOINT": env.get("KEYSTONE_INPAINT_CHECKPOINT") or None,
+        "KEYSTONE_RELEASES_DIR": env.get("KEYSTONE_RELEASES_DIR") or None,
     }

@@ -119,7 +119,9 @@ def release_demo(folder: Path, echo=click.echo) -> dict:  # type: ignore[no-unty
     from .db import db
     from .models import Person
 
-    releases = folder / "releases"
+    from flask import current_app
+
+    releases = Path(current_app.config.get("KEYSTONE_RELEASES_DIR") or folder / "releases")
     plan = plan_release(min_grade="some")
     exporter = db.session.scalar(select(Person).where(Person.username == "exporter"))
     if plan.cards and plan.changes.get("kind") == "patch":
@@ -220,7 +222,8 @@ def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: in
     folder = folder.resolve()
     folder.mkdir(parents=True, exist_ok=True)
     app = create_app(
-        {"SQLALCHEMY_DATABASE_URI": f"sqlite:///{folder / 'keystone.sqlite3'}", "KEYSTONE_DATA_DIR": str(folder / "data")},
+        {"SQLALCHEMY_DATABASE_URI": f"sqlite:///{folder / 'keystone.sqlite3'}", "KEYSTONE_DATA_DIR": str(folder / "data"),
+         "KEYSTONE_RELEASES_DIR": str(folder / "releases")},
         instance_path=folder / "instance",
     )
     with app.app_context():

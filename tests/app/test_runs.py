@@ -213,8 +213,12 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
         full = np.load(data_dir / artifacts["disparity_left"])
         assert full.dtype == np.float32 and abs(full.shape[0] - 500) <= 30 and abs(full.shape[1] - 741) <= 60
 
+    # The default run adds the grade stage: only it has work; a second run has none at all.
+    graded = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
+    assert [(r["stage"], r["processed"]) for r in graded] == [("filter", 0), ("rectify", 0), ("disparity", 0), ("grade", 2)]
+    assert graded[3]["failed"] == 0 and sum(graded[3]["outcomes"].values()) == 2
     again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
-    assert [r["processed"] for r in again] == [0, 0, 0]
+    assert [r["processed"] for r in again] == [0, 0, 0, 0]
 
 
 def _approve(app, card_id: int, kind: str, label: dict) -> None:  # type: ignore[no-untyped-def]

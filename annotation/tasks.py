@@ -8,17 +8,31 @@ from __future__ import annotations
 
 import math
 import secrets
-from collections.abc import Iterable, Mapping, Sequence
+import threading
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from flask import current_app
-from sqlalchemy import delete, func, select
+from sqlalchemy import (
+    Boolean,
+    bindparam,
+    case,
+    delete,
+    func,
+    literal,
+    null,
+    select,
+    union_all,
+    update,
+)
+from sqlalchemy import inspect as sa_inspect
 from sqlalchemy.exc import IntegrityError
 
-from app.db import db, utcnow
+from app.db import db, read_only, utcnow
 from app.models import Card
 
 from . import assignment as strategy
@@ -127,6 +141,24 @@ def get_or_create_worker(provider: str, external_id: str, person_id: int | None 
 
 # ---------------------------------------------------------------------------------------------
 # Fetching a task
+#
+# Why it is built this way (measured with `keystone bench crowd`, 50 annotators under waitress
+# on SQLite): SQLite runs one write transaction at a time, and the server runs Python on one
+# core, so both the time spent holding the write lock and the Python spent per request turn
+# into queueing for fifty annotators. Fetch-next used to load every item, reservation and
+# answer of the batch as ORM rows inside its write transaction, once per task topped up. Now:
+# - the plan is made in a deferred read transaction (WAL readers neither wait for nor block the
+#   writer), from column queries joined on the batch; finished batches are skipped in SQL;
+# - the write transaction re-checks the planned items with one query and inserts with Core
+#   statements; what a plan gone stale (another worker took the last slot in between) could not
+#   reserve is planned again and tried in a new transaction. On PostgreSQL the planned item rows
+#   are locked first (FOR NO KEY UPDATE, in id order), so two workers never both see one last
+#   slot free;
+# - the plan carries spare choices, so a first choice taken in between rarely forces a replan
+#   under the lock; and threads of one process queue for the write lock on a Python lock
+#   (:func:`one_writer`) rather than in SQLite's sleeping busy handler;
+# - hot statements are built once with bound parameters and run on the session's connection:
+#   building a select() costs about as much Python as running it, ORM row handling more.
 
 
 @dataclass(frozen=True)
@@ -144,77 +176,278 @@ class Task:
                 "expires_at": self.expires_at.isoformat()}
 
 
+class CardSize(NamedTuple):
+    """What answer validation needs of a card: the original's size in pixels (a Card also fits)."""
+
+    width: int
+    height: int
+
+
+def worker_id_of(worker: Worker | int) -> int:
+    """The worker's id without a query, even when the row is expired after a rolled-back read."""
+    if isinstance(worker, int):
+        return worker
+    identity = sa_inspect(worker).identity
+    return int(identity[0]) if identity else int(worker.id)
+
+
 def _task(reservation: Reservation) -> Task:
     item, card = reservation.item, reservation.item.card
     return Task(reservation.token, item.batch_id, item.batch.kind, card.id, (card.width, card.height),
                 _aware(reservation.expires_at))
 
 
-def open_reservations(worker: Worker, now: datetime) -> list[Reservation]:
-    rows = db.session.scalars(
-        select(Reservation).where(Reservation.worker_id == worker.id, Reservation.answered_at.is_(None))
-        .order_by(Reservation.created_at, Reservation.id))
-    return [r for r in rows if _aware(r.expires_at) > now]
+_reservations, _answers = Reservation.__table__, Answer.__table__
+_OPEN_TASKS = (
+    select(Reservation.token, BatchItem.batch_id, Batch.kind, BatchItem.card_id, Card.width, Card.height,
+           Reservation.expires_at)
+    .join(BatchItem, Reservation.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id)
+    .join(Card, BatchItem.card_id == Card.id)
+    .where(Reservation.worker_id == bindparam("worker_id"), Reservation.answered_at.is_(None),
+           Batch.kind == bindparam("kind"), Reservation.expires_at > bindparam("now"))
+    .order_by(Reservation.created_at, Reservation.id))
+_WORKER_FLAGGED = select(Worker.flagged).where(Worker.id == bindparam("worker_id"))
+_ANSWER_COUNT = select(func.count()).select_from(Answer).where(Answer.worker_id == bindparam("worker_id"))
+# Batches with a regular item below N stored answers: one indexed count per item, stopping at
+# the first open one, instead of loading finished batches into the strategy on every fetch.
+_OPEN_BATCHES = (
+    select(Batch.id, Batch.answers_per_item, Batch.gold_rate)
+    .where(Batch.kind == bindparam("kind"),
+           select(BatchItem.id).where(
+               BatchItem.batch_id == Batch.id, BatchItem.is_gold.is_(False),
+               select(func.count()).select_from(Answer)
+               .where(Answer.item_id == BatchItem.id, Answer.flagged.is_(False)).scalar_subquery()
+               < Batch.answers_per_item).exists())
+    .order_by(Batch.id))
+_BATCH_ITEMS = (select(BatchItem.id, BatchItem.is_gold, BatchItem.card_id, Card.width, Card.height)
+                .join(Card, BatchItem.card_id == Card.id).where(BatchItem.batch_id == bindparam("batch_id")))
+# Open reservations and usable answers of a batch in ONE statement: under READ COMMITTED
+# (PostgreSQL) two statements may straddle a submit's commit and count it twice (held, then
+# answered), and a worker told "nothing left" while slots remain would stop working. Flagged
+# answers (their worker failed gold) are left out of aggregation, so they do not fill a slot
+# either: the item is served to someone else until it has N usable answers; their worker is
+# no longer served, so cannot be handed it again. ``expires_at`` is NULL on answers.
+_BATCH_TAKERS = union_all(
+    select(Reservation.item_id, Reservation.worker_id, Reservation.expires_at)
+    .join(BatchItem, Reservation.item_id == BatchItem.id)
+    .where(BatchItem.batch_id == bindparam("batch_id"), Reservation.answered_at.is_(None),
+           Reservation.expires_at > bindparam("now")),
+    select(Answer.item_id, Answer.worker_id, null()).join(BatchItem, Answer.item_id == BatchItem.id)
+    .where(BatchItem.batch_id == bindparam("batch_id"), Answer.flagged.is_(False)))
+# Everyone who answered or ever held the given items; the reservation columns are NULL on
+# answers, ``flagged`` is False on reservations.
+_ITEM_TAKERS = union_all(
+    select(Reservation.item_id, Reservation.worker_id, Reservation.id, Reservation.answered_at,
+           Reservation.expires_at, literal(False, Boolean()).label("flagged"))
+    .where(Reservation.item_id.in_(bindparam("item_ids", expanding=True))),
+    select(Answer.item_id, Answer.worker_id, null(), null(), null(), Answer.flagged)
+    .where(Answer.item_id.in_(bindparam("item_ids", expanding=True))))
+# FOR NO KEY UPDATE: it still serializes two fetches of one item, but not the KEY SHARE locks
+# that inserting an answer or a reservation (foreign keys to the item) takes.
+_LOCK_ITEMS = (select(BatchItem.id).where(BatchItem.id.in_(bindparam("item_ids", expanding=True)))
+               .order_by(BatchItem.id).with_for_update(key_share=True))
+_INSERT_RESERVATION = _reservations.insert()
+_RENEW_RESERVATION = (_reservations.update().where(_reservations.c.id == bindparam("reservation_id"))
+                      .values(expires_at=bindparam("expires"), answered_at=None, created_at=bindparam("created")))
 
 
-def _policy(batch: Batch) -> strategy.AssignmentPolicy:
-    minutes = float(_config("KEYSTONE_CROWD_RESERVATION_MINUTES", DEFAULT_RESERVATION_MINUTES))
-    return strategy.AssignmentPolicy(answers_per_item=batch.answers_per_item, gold_rate=batch.gold_rate,
-                                     reservation_ttl=timedelta(minutes=minutes), seed=batch.id)
+_SQLITE_WRITER = threading.Lock()
+WRITER_GATE_TIMEOUT_S = 5.0
 
 
-def _reserve_in_batch(batch: Batch, worker: Worker, now: datetime) -> strategy.Assignment | strategy.NoTask:
-    items = list(db.session.scalars(select(BatchItem).where(BatchItem.batch_id == batch.id)))
-    item_ids = [it.id for it in items]
-    # Reservations before answers: under READ COMMITTED (PostgreSQL) a submit may commit
-    # between the two reads. In this order it is seen twice (held, then answered), a harmless
-    # over-count; in the other order it would be seen nowhere and its slot handed out again.
-    holds = [
-        strategy.Reservation(r.item_id, r.worker_id, _aware(r.expires_at))
-        for r in db.session.scalars(select(Reservation).where(
-            Reservation.item_id.in_(item_ids), Reservation.answered_at.is_(None)))
-    ]
+@contextmanager
+def one_writer() -> Iterator[None]:
+    """On SQLite, let one thread of this process at a time into a crowd write transaction.
+
+    Why: a writer that finds the database locked sleeps in SQLite's busy handler in growing
+    steps (1, 2, 5, 10 ... 100 ms) however soon the lock frees; with the server's eight threads
+    that sleeping, not the work, made the latency tail of fetch-next and submit. Threads queued
+    on a Python lock wake the moment it is released. Writers in other processes still meet the
+    busy handler, which stays the arbiter. The wait is bounded (a caller that already holds
+    SQLite's write lock on another path cannot deadlock with this gate): after
+    ``WRITER_GATE_TIMEOUT_S`` it goes on without the gate. PostgreSQL needs none of this.
+    """
+    if db.session.get_bind().dialect.name != "sqlite":
+        yield
+        return
+    acquired = _SQLITE_WRITER.acquire(timeout=WRITER_GATE_TIMEOUT_S)
+    try:
+        yield
+    finally:
+        if acquired:
+            _SQLITE_WRITER.release()
+
+
+def _core(statement: Any, params: Mapping[str, Any]) -> Any:
+    """Run a prebuilt statement on the session's connection: plain rows, none of the ORM's row handling.
+
+    Same transaction as the session (a read-only one inside :func:`read_only`).
+    """
+    return db.session.connection().execute(statement, params)
+
+
+def open_tasks(worker: Worker | int, kind: str, now: datetime) -> list[Task]:
+    """The worker's open (unanswered, unexpired) tasks of ``kind``, oldest first."""
+    rows = _core(_OPEN_TASKS, {"worker_id": worker_id_of(worker), "kind": kind, "now": now})
+    return [Task(r.token, r.batch_id, r.kind, r.card_id, (r.width, r.height), _aware(r.expires_at)) for r in rows]
+
+
+def answer_count(worker: Worker | int) -> int:
+    """How many answers the worker has stored (their progress)."""
+    return _core(_ANSWER_COUNT, {"worker_id": worker_id_of(worker)}).scalar() or 0
+
+
+def _reservation_ttl() -> timedelta:
+    return timedelta(minutes=float(_config("KEYSTONE_CROWD_RESERVATION_MINUTES", DEFAULT_RESERVATION_MINUTES)))
+
+
+@dataclass(frozen=True)
+class _Planned:
+    """An item the strategy would hand the worker, with what its task shows and the write must re-check."""
+
+    item_id: int
+    is_gold: bool
+    answers_per_item: int
+    expires_at: datetime
+    batch_id: int
+    card_id: int
+    card_size: tuple[int, int]
+
+
+def _batch_state(batch_id: int, now: datetime) -> tuple[dict[int, Any], list[strategy.BatchItem],
+                                                        list[strategy.Reservation]]:
+    """One batch as the pure strategy sees it: item rows by id, items with their answerers, open holds."""
+    params = {"batch_id": batch_id, "now": now}
+    items = {row.id: row for row in _core(_BATCH_ITEMS, params)}
+    holds: list[strategy.Reservation] = []
     answered: dict[int, set[int]] = {}
-    for item_id, worker_id in db.session.execute(
-            select(Answer.item_id, Answer.worker_id).where(Answer.item_id.in_(item_ids))):
-        answered.setdefault(item_id, set()).add(worker_id)
-    return strategy.next_assignment(
-        [strategy.BatchItem(it.id, frozenset(answered.get(it.id, ()))) for it in items],
-        holds, {it.id for it in items if it.is_gold}, worker.id, now,
-        policy=_policy(batch), flagged_workers={worker.id} if worker.flagged else frozenset())
+    for item_id, worker_id, expires_at in _core(_BATCH_TAKERS, params):
+        if expires_at is None:
+            answered.setdefault(item_id, set()).add(worker_id)
+        else:
+            holds.append(strategy.Reservation(item_id, worker_id, _aware(expires_at)))
+    return items, [strategy.BatchItem(i, frozenset(answered.get(i, ()))) for i in items], holds
 
 
-def next_tasks(worker: Worker, kind: str = "judge", hold: int = 2,
+SPARE_CHOICES = 2
+
+
+def _plan(worker_id: int, flagged: bool, kind: str, wanted: int, now: datetime,
+          spare: int = 0) -> tuple[list[_Planned], strategy.NoTask | None]:
+    """Up to ``wanted`` + ``spare`` items the strategy hands this worker now (first batch first), and why no more.
+
+    The spares are the strategy's next choices were the first ones taken: concurrent planners
+    see the same snapshot and the strategy prefers the items closest to completion, so the
+    first choice is often gone by the time the write lock is held (measured: one fetch in six
+    had to plan again without spares, one in twenty-five with two).
+    """
+    batches = _core(_OPEN_BATCHES, {"kind": kind}).all()
+    if not batches:
+        return [], strategy.NoTask(strategy.NoTaskReason.BATCH_COMPLETE)
+    if flagged:
+        return [], strategy.NoTask(strategy.NoTaskReason.WORKER_FLAGGED)
+    ttl = _reservation_ttl()
+    planned: list[_Planned] = []
+    why: strategy.NoTask | None = None
+    wanted += spare
+    for batch_id, n, gold_rate in batches:
+        rows, items, holds = _batch_state(batch_id, now)
+        gold = frozenset(i for i, row in rows.items() if row.is_gold)
+        policy = strategy.AssignmentPolicy(answers_per_item=n, gold_rate=gold_rate, reservation_ttl=ttl, seed=batch_id)
+        while len(planned) < wanted:
+            result = strategy.next_assignment(items, holds, gold, worker_id, now, policy=policy)
+            if isinstance(result, strategy.NoTask):
+                if why is None or result.reason != strategy.NoTaskReason.BATCH_COMPLETE:
+                    why = result
+                break
+            row = rows[int(result.item_id)]
+            planned.append(_Planned(row.id, row.is_gold, n, result.expires_at, batch_id, row.card_id,
+                                    (row.width, row.height)))
+            holds.append(strategy.Reservation(row.id, worker_id, result.expires_at))  # the next draw sees it
+        if len(planned) >= wanted:
+            break
+    return planned, why
+
+
+def _reserve_planned(planned: Sequence[_Planned], worker_id: int, kind: str, now: datetime,
+                     limit: int) -> list[Task]:
+    """Inside the write transaction: reserve, in plan order, up to ``limit`` planned items that still
+    have a slot for this worker."""
+    ids = sorted(p.item_id for p in planned)
+    if db.session.get_bind().dialect.name != "sqlite":
+        # Lock in id order so two workers cannot deadlock; SQLite's BEGIN IMMEDIATE already serializes.
+        _core(_LOCK_ITEMS, {"item_ids": ids})
+    takers: dict[int, int] = dict.fromkeys(ids, 0)  # stored answers + open reservations
+    blocked: set[int] = set()  # items this worker answered or holds open
+    mine_closed: dict[int, int] = {}  # item -> this worker's lapsed reservation: renewed, never duplicated
+    for item_id, taker, reservation_id, answered_at, expires_at, flagged in _core(_ITEM_TAKERS, {"item_ids": ids}):
+        is_answer = reservation_id is None
+        is_open_hold = not is_answer and answered_at is None and _aware(expires_at) > now
+        # An answered reservation is not counted (its answer row is), nor is a flagged answer.
+        takers[item_id] += (is_answer and not flagged) or is_open_hold
+        if taker == worker_id:
+            if is_answer or is_open_hold:
+                blocked.add(item_id)
+            else:
+                mine_closed[item_id] = reservation_id
+    tasks: list[Task] = []
+    for p in planned:
+        if len(tasks) >= limit:
+            break
+        if p.item_id in blocked or (not p.is_gold and takers[p.item_id] >= p.answers_per_item):
+            continue
+        token = secrets.token_urlsafe(24)
+        if p.item_id in mine_closed:
+            _core(_RENEW_RESERVATION, {"reservation_id": mine_closed[p.item_id],
+                                                    "expires": p.expires_at, "created": now})
+            token = db.session.scalar(select(Reservation.token).where(Reservation.id == mine_closed[p.item_id]))
+        else:
+            _core(_INSERT_RESERVATION, {"item_id": p.item_id, "worker_id": worker_id, "token": token,
+                                                     "created_at": now, "expires_at": p.expires_at})
+        tasks.append(Task(token, p.batch_id, kind, p.card_id, p.card_size, _aware(p.expires_at)))
+    return tasks
+
+
+def next_tasks(worker: Worker | int, kind: str = "judge", hold: int = 2,
                now: datetime | None = None) -> tuple[list[Task], strategy.NoTask | None]:
     """The worker's open tasks, topping up to ``hold`` of them (the second is preloaded by the page).
 
-    Runs in one write transaction (SQLite: BEGIN IMMEDIATE; PostgreSQL: the batches are locked
-    FOR UPDATE) so two workers asking at once see each other's reservations and N is never
-    exceeded. Returns the tasks oldest first and, when fewer than ``hold``, why there are no more.
+    Plans in a read transaction, then re-checks and reserves in a short write transaction (see
+    the section comment), so two workers asking at once never push an item beyond N and a
+    worker never holds or answers one item twice. Returns the tasks oldest first and, when
+    fewer than ``hold``, why there are no more.
     """
     now = now or utcnow()
-    worker = db.session.get(Worker, worker.id, populate_existing=True)  # fresh flag inside the transaction
-    assert worker is not None
-    held = [r for r in open_reservations(worker, now) if r.item.batch.kind == kind]
-    why: strategy.NoTask | None = None
-    if len(held) < hold:
-        batches = list(db.session.scalars(select(Batch).where(Batch.kind == kind).order_by(Batch.id).with_for_update()))
-        while len(held) < hold:
-            chosen: tuple[Batch, strategy.Assignment] | None = None
-            for batch in batches:
-                result = _reserve_in_batch(batch, worker, now)
-                if isinstance(result, strategy.Assignment):
-                    chosen = (batch, result)
-                    break
-                if why is None or result.reason != strategy.NoTaskReason.BATCH_COMPLETE:
-                    why = result
-            if chosen is None:
+    worker_id = worker_id_of(worker)
+    with read_only():
+        held = open_tasks(worker_id, kind, now)
+        if len(held) >= hold:
+            return held, None
+        flagged = bool(_core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar())
+        wanted = hold - len(held)
+        planned, why = _plan(worker_id, flagged, kind, wanted, now, spare=SPARE_CHOICES)
+    if not planned:
+        return held, why
+    wanted, added = min(wanted, len(planned)), []
+    for attempt in range(3):
+        # One write transaction per attempt, each locking one id-ordered set of items on
+        # PostgreSQL: replanning inside a transaction that already holds item locks could take
+        # them out of order and deadlock with another worker's fetch.
+        with one_writer():
+            if _core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar():  # flagged since the plan
+                db.session.rollback()
+                why = strategy.NoTask(strategy.NoTaskReason.WORKER_FLAGGED)
                 break
-            held.append(_store_reservation(int(chosen[1].item_id), worker.id, chosen[1].expires_at))
-        if why is None and not batches:
-            why = strategy.NoTask(strategy.NoTaskReason.BATCH_COMPLETE)
-    tasks = [_task(r) for r in held]
-    db.session.commit()
+            added += _reserve_planned(planned, worker_id, kind, now, limit=wanted - len(added))
+            db.session.commit()
+        if len(added) >= wanted or attempt == 2:
+            break
+        # Someone took a planned slot since the read: plan the rest again.
+        with read_only():
+            planned, why = _plan(worker_id, False, kind, wanted - len(added), now, spare=SPARE_CHOICES)
+        if not planned:
+            break
+    tasks = held + added
     return tasks, (why if len(tasks) < hold else None)
 
 
@@ -247,7 +480,7 @@ def _as_bool(payload: Mapping[str, Any], key: str) -> bool:
     return value
 
 
-def _as_box(value: Any, half: str, card: Card) -> list[float]:
+def _as_box(value: Any, half: str, card: Card | CardSize) -> list[float]:
     if not isinstance(value, list) or len(value) != 4 or not all(
             isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
         raise TaskError(f"Expected the {half} box as four numbers [x0, y0, x1, y1], got {value!r}")
@@ -262,7 +495,7 @@ def _as_box(value: Any, half: str, card: Card) -> list[float]:
     return [round(v, 2) for v in box]
 
 
-def validate_payload(kind: str, payload: Any, card: Card) -> dict[str, Any]:
+def validate_payload(kind: str, payload: Any, card: Card | CardSize) -> dict[str, Any]:
     """The canonical answer, or TaskError saying what is wrong with it.
 
     judge: ``{"is_stereo", "upside_down", "inverted"}`` booleans. crop: ``{"left", "right"}``
@@ -285,52 +518,103 @@ class Submitted:
     duplicate: bool  # True when this post repeated an answer already stored
 
 
-def submit(worker: Worker, reservation_token: str, payload: Any, idempotency_key: str,
+_ANSWER_BY_KEY = select(Answer.id, Answer.worker_id).where(Answer.idempotency_key == bindparam("key"))
+_RESERVATION_TO_ANSWER = (
+    select(Reservation.id, Reservation.worker_id, Reservation.answered_at, Reservation.expires_at,
+           Reservation.item_id, BatchItem.is_gold, Batch.kind, Card.width, Card.height)
+    .join(BatchItem, Reservation.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id)
+    .join(Card, BatchItem.card_id == Card.id).where(Reservation.token == bindparam("token")))
+_RESERVATION_STATE = (select(Reservation.id, Reservation.worker_id, Reservation.answered_at, Reservation.expires_at)
+                      .where(Reservation.id == bindparam("reservation_id")))
+# Matches only while the reservation is this worker's and unanswered: the claim and the check in one.
+_CLAIM_RESERVATION = (_reservations.update()
+                      .where(_reservations.c.id == bindparam("reservation_id"),
+                             _reservations.c.worker_id == bindparam("claimant"), _reservations.c.answered_at.is_(None))
+                      .values(answered_at=bindparam("at")))
+_INSERT_ANSWER = _answers.insert()
+
+
+def submit(worker: Worker | int, reservation_token: str, payload: Any, idempotency_key: str,
            now: datetime | None = None) -> Submitted:
-    """Store one answer for an open reservation of ``worker``; replays return the stored one."""
+    """Store one answer for an open reservation of ``worker``; replays return the stored one.
+
+    Checks and validation run in a read transaction; the write transaction only claims the
+    reservation (an UPDATE that matches while it is still unanswered) and inserts the answer.
+    """
     now = now or utcnow()
+    worker_id = worker_id_of(worker)
     if not isinstance(idempotency_key, str) or not 8 <= len(idempotency_key) <= 80:
         raise TaskError("Expected an idempotency key of 8 to 80 characters")
-    earlier = db.session.scalar(select(Answer).where(Answer.idempotency_key == idempotency_key))
-    if earlier is not None:
-        if earlier.worker_id != worker.id:
-            raise TaskError("This idempotency key belongs to another answer", 409)
-        db.session.rollback()
-        return Submitted(earlier.id, True)
-    reservation = reservation_by_token(reservation_token) if isinstance(reservation_token, str) else None
-    if reservation is None:
-        raise TaskError("No such task; fetch a new one", 404)
-    if reservation.worker_id != worker.id:
-        raise TaskError("This task is reserved for another worker", 403)
-    if reservation.answered_at is not None:
-        raise TaskError("You already answered this task", 409)
-    if _aware(reservation.expires_at) <= now:
-        raise TaskError(f"Your reservation of this task expired at {_aware(reservation.expires_at):%H:%M:%S} UTC; "
-                        "fetch a new task", 409)
-    item = reservation.item
-    answer = validate_payload(item.batch.kind, payload, item.card)
-    row = Answer(item_id=item.id, worker_id=worker.id, payload=answer, submitted_at=now,
-                 idempotency_key=idempotency_key, flagged=worker.flagged)
-    reservation.answered_at = now
-    db.session.add(row)
+    with read_only():
+        earlier = _answer_by_key(idempotency_key, worker_id)
+        if earlier is not None:
+            return earlier
+        held = _core(_RESERVATION_TO_ANSWER, {"token": reservation_token}).first() \
+            if isinstance(reservation_token, str) else None
+        _check_reservation(held, worker_id, now)
+        answer = validate_payload(held.kind, payload, CardSize(held.width, held.height))
+        flagged = bool(_core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar())
     try:
-        db.session.commit()
+        with one_writer():
+            claimed = _core(_CLAIM_RESERVATION, {"reservation_id": held.id, "claimant": worker_id, "at": now})
+            if claimed.rowcount == 1:
+                answer_id = _core(_INSERT_ANSWER, {
+                    "item_id": held.item_id, "worker_id": worker_id, "payload": answer, "submitted_at": now,
+                    "idempotency_key": idempotency_key, "flagged": flagged}).inserted_primary_key[0]
+                db.session.commit()
+            else:
+                db.session.rollback()
     except IntegrityError:
-        # A double click that raced past the checks: the unique (item, worker) keeps one answer.
+        # A replay that raced past the checks: the unique key and (item, worker) keep one answer.
         db.session.rollback()
-        stored = db.session.scalar(select(Answer).where(Answer.item_id == item.id, Answer.worker_id == worker.id))
+        with read_only():
+            stored = db.session.scalar(select(Answer.id).where(Answer.item_id == held.item_id,
+                                                               Answer.worker_id == worker_id))
         if stored is None:
             raise
-        return Submitted(stored.id, True)
-    if item.is_gold:
-        update_worker_quality([worker.id])
-    return Submitted(row.id, False)
+        return Submitted(stored, True)
+    if claimed.rowcount != 1:
+        # Answered (a double click with another key, a second tab) or withdrawn (the worker was
+        # flagged) since the read: say which, as a fresh read would.
+        with read_only():
+            earlier = _answer_by_key(idempotency_key, worker_id)
+            if earlier is not None:
+                return earlier
+            _check_reservation(_core(_RESERVATION_STATE, {"reservation_id": held.id}).first(),
+                               worker_id, now)
+        raise TaskError("This task changed while you answered; fetch a new one", 409)
+    if held.is_gold:
+        update_worker_quality([worker_id])
+    return Submitted(int(answer_id), False)
 
 
-def undo_last(worker: Worker, now: datetime | None = None) -> Task:
+def _answer_by_key(idempotency_key: str, worker_id: int) -> Submitted | None:
+    earlier = _core(_ANSWER_BY_KEY, {"key": idempotency_key}).first()
+    if earlier is None:
+        return None
+    if earlier.worker_id != worker_id:
+        raise TaskError("This idempotency key belongs to another answer", 409)
+    return Submitted(earlier.id, True)
+
+
+def _check_reservation(held: Any, worker_id: int, now: datetime) -> None:
+    """TaskError unless ``held`` (a row with worker_id, answered_at, expires_at) is this worker's open task."""
+    if held is None:
+        raise TaskError("No such task; fetch a new one", 404)
+    if held.worker_id != worker_id:
+        raise TaskError("This task is reserved for another worker", 403)
+    if held.answered_at is not None:
+        raise TaskError("You already answered this task", 409)
+    if _aware(held.expires_at) <= now:
+        raise TaskError(f"Your reservation of this task expired at {_aware(held.expires_at):%H:%M:%S} UTC; "
+                        "fetch a new task", 409)
+
+
+def undo_last(worker: Worker | int, now: datetime | None = None) -> Task:
     """Withdraw the worker's latest answer while it is not aggregated; its task is reserved again."""
     now = now or utcnow()
-    last = db.session.scalar(select(Answer).where(Answer.worker_id == worker.id)
+    worker_id = worker_id_of(worker)
+    last = db.session.scalar(select(Answer).where(Answer.worker_id == worker_id)
                              .order_by(Answer.submitted_at.desc(), Answer.id.desc()).limit(1))
     if last is None:
         raise TaskError("There is no answer to undo", 409)
@@ -338,10 +622,9 @@ def undo_last(worker: Worker, now: datetime | None = None) -> Task:
         Aggregate.batch_id == last.item.batch_id, Aggregate.card_id == last.item.card_id))
     if aggregated:
         raise TaskError("That answer was already counted in the results and cannot be undone", 409)
-    batch = last.item.batch
     item_id = last.item_id
     db.session.delete(last)
-    reservation = _store_reservation(item_id, worker.id, now + _policy(batch).reservation_ttl)
+    reservation = _store_reservation(item_id, worker_id, now + _reservation_ttl())
     task = _task(reservation)
     db.session.commit()
     return task
@@ -359,26 +642,33 @@ def _gold_label(kind: str, answer: Mapping[str, Any], gold: Mapping[str, Any]) -
 
 
 def update_worker_quality(worker_ids: Iterable[int] | None = None) -> dict[int, dict[str, Any]]:
-    """Gold accuracy per worker; those below the threshold are flagged with all their answers."""
-    query = select(Answer, BatchItem, Batch).join(BatchItem, Answer.item_id == BatchItem.id).join(
-        Batch, BatchItem.batch_id == Batch.id).where(BatchItem.is_gold.is_(True))
+    """Gold accuracy per worker; those below the threshold are flagged with all their answers.
+
+    Scores are read in a read transaction; the write lock is taken only when a worker must be
+    newly flagged (every gold submit calls this, and almost all of them change nothing).
+    """
+    query = select(Answer.item_id, Answer.worker_id, Answer.payload, BatchItem.gold_answer, Batch.kind).join(
+        BatchItem, Answer.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id).where(
+        BatchItem.is_gold.is_(True))
     if worker_ids is not None:
         query = query.where(Answer.worker_id.in_(list(worker_ids)))
-    labels = [LabelAnswer(item.id, answer.worker_id, _gold_label(batch.kind, answer.payload, item.gold_answer or {}))
-              for answer, item, batch in db.session.execute(query)]
-    scores = gold_accuracy(labels, {a.item_id: 1 for a in labels})
     threshold = float(_config("KEYSTONE_CROWD_GOLD_THRESHOLD", DEFAULT_GOLD_THRESHOLD))
-    flagged = flag_workers(scores, threshold, int(_config("KEYSTONE_CROWD_MIN_GOLD", DEFAULT_MIN_GOLD)))
-    for worker_id in flagged:
-        worker = db.session.get(Worker, worker_id)
-        if worker is not None and not worker.flagged:
-            worker.flagged = True
-            for answer in db.session.scalars(select(Answer).where(Answer.worker_id == worker_id)):
-                answer.flagged = True
-            # Their open reservations go back to the pool at once.
-            db.session.execute(delete(Reservation).where(Reservation.worker_id == worker_id,
-                                                         Reservation.answered_at.is_(None)))
-    db.session.commit()
+    with read_only():
+        labels = [LabelAnswer(item_id, worker_id, _gold_label(kind, payload, gold_answer or {}))
+                  for item_id, worker_id, payload, gold_answer, kind in db.session.execute(query)]
+        scores = gold_accuracy(labels, {a.item_id: 1 for a in labels})
+        flagged = flag_workers(scores, threshold, int(_config("KEYSTONE_CROWD_MIN_GOLD", DEFAULT_MIN_GOLD)))
+        newly = list(db.session.scalars(select(Worker.id).where(Worker.id.in_(list(flagged)),
+                                                                 Worker.flagged.is_(False)))) if flagged else []
+    if newly:
+        no_sync = {"synchronize_session": False}  # the commit below expires whatever the session holds
+        db.session.execute(update(Worker).where(Worker.id.in_(newly)).values(flagged=True).execution_options(**no_sync))
+        db.session.execute(update(Answer).where(Answer.worker_id.in_(newly)).values(flagged=True)
+                           .execution_options(**no_sync))
+        # Their open reservations go back to the pool at once.
+        db.session.execute(delete(Reservation).where(Reservation.worker_id.in_(newly), Reservation.answered_at.is_(None))
+                           .execution_options(**no_sync))
+        db.session.commit()
     return {int(w): {"correct": s.correct, "total": s.total, "accuracy": s.accuracy, "flagged": w in flagged}
             for w, s in scores.items()}
 
@@ -483,6 +773,10 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
         it = items[item_id]
         row = db.session.scalar(select(Aggregate).where(Aggregate.batch_id == batch.id,
                                                         Aggregate.card_id == it.card_id))
+        if row is not None and row.resolved_by is not None:
+            # A curator's decision is the card's truth: re-aggregating never overwrites it.
+            approved += 1
+            continue
         if row is None:
             row = Aggregate(batch_id=batch.id, card_id=it.card_id, kind=batch.kind)
             db.session.add(row)
@@ -498,24 +792,68 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
 
 
 def batch_progress(batch: Batch, now: datetime | None = None) -> dict[str, Any]:
-    """Done / reserved / expired counts for a batch and per worker."""
+    """Done / reserved / expired counts for a batch and per worker, with each worker's gold score in it.
+
+    Per worker: ``done`` answers, open ``reserved`` and lapsed ``expired`` reservations,
+    ``gold_correct`` of ``gold_total`` gold answers (see :func:`_gold_label`) and ``flagged``
+    answers (given while or before the worker fell below the gold threshold).
+    """
     now = now or utcnow()
-    item_ids = [it.id for it in batch.items]
-    regular = sum(1 for it in batch.items if not it.is_gold)
-    answers = list(db.session.execute(select(Answer.item_id, Answer.worker_id).where(Answer.item_id.in_(item_ids))))
-    reservations = list(db.session.scalars(select(Reservation).where(Reservation.item_id.in_(item_ids),
-                                                                     Reservation.answered_at.is_(None))))
+    items = {it.id: it for it in batch.items}
+    regular = sum(1 for it in items.values() if not it.is_gold)
+    answers = list(db.session.execute(select(Answer.item_id, Answer.worker_id, Answer.payload, Answer.flagged)
+                                      .where(Answer.item_id.in_(list(items)))))
+    reservations = list(db.session.execute(select(Reservation.worker_id, Reservation.expires_at).where(
+        Reservation.item_id.in_(list(items)), Reservation.answered_at.is_(None))))
     per_worker: dict[int, dict[str, int]] = {}
-    for _item, worker_id in answers:
-        per_worker.setdefault(worker_id, {"done": 0, "reserved": 0, "expired": 0})["done"] += 1
+
+    def row(worker_id: int) -> dict[str, int]:
+        return per_worker.setdefault(worker_id, {"done": 0, "reserved": 0, "expired": 0, "gold_correct": 0,
+                                                 "gold_total": 0, "flagged": 0})
+
+    for item_id, worker_id, payload, flagged in answers:
+        counts = row(worker_id)
+        counts["done"] += 1
+        counts["flagged"] += bool(flagged)
+        item = items[item_id]
+        if item.is_gold and item.gold_answer:
+            counts["gold_total"] += 1
+            counts["gold_correct"] += _gold_label(batch.kind, payload, item.gold_answer)
     reserved = expired = 0
-    for r in reservations:
-        key = "reserved" if _aware(r.expires_at) > now else "expired"
-        per_worker.setdefault(r.worker_id, {"done": 0, "reserved": 0, "expired": 0})[key] += 1
+    for worker_id, expires_at in reservations:
+        key = "reserved" if _aware(expires_at) > now else "expired"
+        row(worker_id)[key] += 1
         reserved += key == "reserved"
         expired += key == "expired"
-    return {"batch": batch.id, "kind": batch.kind, "items": regular, "gold_items": len(item_ids) - regular,
+    return {"batch": batch.id, "kind": batch.kind, "items": regular, "gold_items": len(items) - regular,
             "answers_per_item": batch.answers_per_item, "answers": len(answers),
             "answers_needed": regular * batch.answers_per_item, "reserved": reserved, "expired": expired,
             "workers": {str(w): counts for w, counts in sorted(per_worker.items())}}
 
+
+def worker_progress() -> list[dict[str, Any]]:
+    """Every worker across batches: answers, flagged answers, gold accuracy and whether they are flagged.
+
+    ``gold_accuracy`` is None until the worker answered a gold item; ``served`` is False once
+    they fell below the threshold (they get no more tasks).
+    """
+    counts = {worker_id: (total, flagged or 0) for worker_id, total, flagged in db.session.execute(
+        select(Answer.worker_id, func.count(), func.sum(case((Answer.flagged, 1), else_=0)))
+        .group_by(Answer.worker_id))}
+    gold: dict[int, list[int]] = {}
+    for worker_id, payload, gold_answer, kind in db.session.execute(
+            select(Answer.worker_id, Answer.payload, BatchItem.gold_answer, Batch.kind)
+            .join(BatchItem, Answer.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id)
+            .where(BatchItem.is_gold.is_(True))):
+        if gold_answer:
+            gold.setdefault(worker_id, []).append(_gold_label(kind, payload, gold_answer))
+    rows = []
+    for worker in db.session.scalars(select(Worker).order_by(Worker.id)):
+        total, flagged = counts.get(worker.id, (0, 0))
+        labels = gold.get(worker.id, [])
+        rows.append({"worker": worker.id, "provider": worker.provider, "name": worker.external_id,
+                     "answers": int(total), "flagged_answers": int(flagged), "gold_correct": sum(labels),
+                     "gold_total": len(labels),
+                     "gold_accuracy": round(sum(labels) / len(labels), 4) if labels else None,
+                     "served": not worker.flagged})
+    return rows

@@ -25,7 +25,7 @@ from flask import (
     request,
     url_for,
 )
-from sqlalchemy import func, select
+from sqlalchemy import select
 from werkzeug.wrappers import Response
 
 from app.auth import add_nav_link, role_required
@@ -33,16 +33,18 @@ from app.db import db, read_only
 from app.extensions import csrf
 from app.security import frameable_by
 
-from .models import TASK_KINDS, Answer, Batch, Worker
+from .models import TASK_KINDS, Batch, Worker
 from .providers import MTURK_SUBMIT_ORIGINS, PROVIDERS, Entry, load_entry, sign_entry
 from .tasks import (
     DEFAULT_MIN_BOX_PX,
     TaskError,
+    answer_count,
     batch_progress,
     next_tasks,
     reservation_by_token,
     submit,
     undo_last,
+    worker_progress,
 )
 
 bp = Blueprint("crowd", __name__, url_prefix="/crowd", template_folder="templates", static_folder="static")
@@ -59,10 +61,10 @@ def task_error(error: TaskError) -> Any:
     return render_template("annotation/message.html", title="Cannot open this task", message=error.message), error.status
 
 
-def _answered(worker: Worker) -> int:
+def _answered(worker: Worker | int) -> int:
     # After a use case committed, this read must not take SQLite's write lock again.
     with read_only():
-        return db.session.scalar(select(func.count()).select_from(Answer).where(Answer.worker_id == worker.id)) or 0
+        return answer_count(worker)
 
 
 def _task_page(entry: Entry) -> str:
@@ -96,14 +98,24 @@ def mturk() -> str:
 # JSON API (token in the X-Crowd-Token header; see the module docstring)
 
 
-def _api_entry() -> tuple[Entry, dict[str, Any]]:
-    entry = load_entry(request.headers.get(TOKEN_HEADER))
+def _api_entry() -> tuple[Entry, int, dict[str, Any]]:
+    """The worker (from the signed token), how many answers they had stored, and the JSON body.
+
+    Only reads, in a deferred transaction: under SQLite's BEGIN IMMEDIATE they would queue every
+    API call behind the writers. The worker row comes back expired; the use cases take its id
+    without another query. The count is the worker's progress shown on the page; it is read
+    here, before the use case, to save a transaction per call (two tabs of one worker may see
+    it one behind for a moment).
+    """
+    with read_only():
+        entry = load_entry(request.headers.get(TOKEN_HEADER))
+        answered = answer_count(entry.worker) if entry.worker is not None else 0
     if not request.is_json:
         raise TaskError("Expected a JSON body (Content-Type: application/json)", 415)
     body = request.get_json(silent=True)
     if not isinstance(body, dict):
         raise TaskError("Expected a JSON object body; this one is malformed")
-    return entry, body
+    return entry, answered, body
 
 
 def _task_json(task: Any) -> dict[str, Any]:
@@ -113,13 +125,13 @@ def _task_json(task: Any) -> dict[str, Any]:
 @csrf.exempt
 @bp.route("/api/next", methods=["POST"])
 def api_next() -> Any:
-    entry, body = _api_entry()
+    entry, answered, body = _api_entry()
     assert entry.worker is not None
     kind = body.get("kind", "judge")
     if kind not in TASK_KINDS:
         raise TaskError(f"Expected kind judge or crop, got {kind!r}")
     tasks, why = next_tasks(entry.worker, kind)
-    return jsonify({"tasks": [_task_json(t) for t in tasks], "answered": _answered(entry.worker),
+    return jsonify({"tasks": [_task_json(t) for t in tasks], "answered": answered,
                     "reason": why.reason.value if why else None,
                     "retry_after": why.retry_after.isoformat() if why and why.retry_after else None})
 
@@ -127,10 +139,11 @@ def api_next() -> Any:
 @csrf.exempt
 @bp.route("/api/submit", methods=["POST"])
 def api_submit() -> Any:
-    entry, body = _api_entry()
+    entry, answered, body = _api_entry()
     assert entry.worker is not None
     result = submit(entry.worker, body.get("token"), body.get("answer"), body.get("key"))
-    document = {"answer": result.answer_id, "duplicate": result.duplicate, "answered": _answered(entry.worker)}
+    document = {"answer": result.answer_id, "duplicate": result.duplicate,
+                "answered": answered + (not result.duplicate)}
     if entry.provider == "mturk":
         document["finish"] = PROVIDERS["mturk"].finish(entry.context)
     return jsonify(document), 200 if result.duplicate else 201
@@ -139,10 +152,10 @@ def api_submit() -> Any:
 @csrf.exempt
 @bp.route("/api/undo", methods=["POST"])
 def api_undo() -> Any:
-    entry, _ = _api_entry()
+    entry, answered, _ = _api_entry()
     assert entry.worker is not None
     task = undo_last(entry.worker)
-    return jsonify({"task": _task_json(task), "answered": _answered(entry.worker)})
+    return jsonify({"task": _task_json(task), "answered": answered - 1})
 
 
 @bp.route("/finish")
@@ -186,5 +199,5 @@ def batches() -> str:
     with read_only():
         rows = [batch_progress(b) for b in db.session.scalars(select(Batch).order_by(Batch.id.desc()))]
         workers = {w.id: w for w in db.session.scalars(select(Worker))}
-        return render_template("annotation/batches.html", batches=rows, workers=workers,
+        return render_template("annotation/batches.html", batches=rows, workers=workers, crowd=worker_progress(),
                                configured=bool(current_app.config.get("KEYSTONE_PROLIFIC_COMPLETION_CODE")))

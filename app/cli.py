@@ -86,6 +86,9 @@ def _register() -> None:
     bench_group.add_command(bench_inpainting_command)
     import exports.cli
     import review.cli
+    from annotation.bench import bench_crowd_command
+
+    bench_group.add_command(bench_crowd_command)
 
     for command in exports.cli.bench_commands():
         bench_group.add_command(command)

@@ -60,13 +60,16 @@ def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-un
 
     to_judge = [c for c in by_name.values() if c.kind in ("back", "upside_down", "inverted")]
     stereo = [c for c in by_name.values() if c.kind == "stereo"]
+    # Gold covers the rarer answer too (a mono card is no stereo pair): Dawid-Skene learns each
+    # worker's confusion from gold, and all-"yes" gold teaches it nothing about "no".
+    mono = [c for c in by_name.values() if c.kind == "mono"]
     judge = seed_simulated_crowd(
-        [ids[c.name] for c in to_judge], kind="judge", workers=5, seed=1,
+        [ids[c.name] for c in to_judge], kind="judge", workers=6, seed=1,
         truth={ids[c.name]: judgement(c) for c in to_judge},
-        gold={ids[c.name]: judgement(c) for c in stereo[-2:]})
+        gold={ids[c.name]: judgement(c) for c in [*mono, *stereo[-2:]]})
     boxed = stereo[:3]
     crop = seed_simulated_crowd(
-        [ids[c.name] for c in boxed], kind="crop", workers=5, seed=2,
+        [ids[c.name] for c in boxed], kind="crop", workers=6, seed=2,
         truth={ids[c.name]: {"left": _shrunk(c.truth["left_box"]), "right": _shrunk(c.truth["right_box"])}
                for c in boxed},
         gold={ids[c.name]: {"left": _shrunk(c.truth["left_box"]), "right": _shrunk(c.truth["right_box"])}

@@ -26,6 +26,19 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networki
                  "--disable-sync", "--no-first-run", "--disable-quic"]
 
 
+def wait_until(page, expression: str, timeout_s: float = 15.0) -> None:  # type: ignore[no-untyped-def]
+    """Poll a page expression from Python: Playwright's string ``wait_for_function`` compiles the
+    predicate with ``new Function``, which the app's Content-Security-Policy (no 'unsafe-eval')
+    may refuse, while ``page.evaluate`` runs through the debugging protocol."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {expression}")
+        page.wait_for_timeout(50)
+
+
 @pytest.fixture
 def server(app) -> Iterator[str]:  # type: ignore[no-untyped-def]
     from werkzeug.serving import make_server
@@ -190,7 +203,7 @@ def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, serve
     page.goto(invite_link(app, server, "carol") + "?kind=crop")
     page.wait_for_selector("#status:has-text('Card 1')", timeout=15_000)
     page.keyboard.press("Escape")
-    page.wait_for_function("document.getElementById('card-image').naturalWidth > 0")
+    wait_until(page, "document.getElementById('card-image').naturalWidth > 0")
     frame = page.locator("#card-image").bounding_box()
 
     def drag(fx0: float, fy0: float, fx1: float, fy1: float) -> None:

@@ -7,6 +7,7 @@ import base64
 import io
 import shutil
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -81,11 +82,20 @@ def canvas_pixels(page) -> np.ndarray:  # type: ignore[no-untyped-def]
     return np.asarray(Image.open(io.BytesIO(payload)).convert("L"), float)
 
 
+def wait_until(page, expression: str, timeout_s: float) -> None:  # type: ignore[no-untyped-def]
+    """Poll a page expression from Python: Playwright's string ``wait_for_function`` compiles the
+    predicate with ``new Function``, which the app's Content-Security-Policy (no 'unsafe-eval')
+    may refuse, while ``page.evaluate`` runs through the debugging protocol."""
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {expression}")
+        page.wait_for_timeout(50)
+
+
 def settle(page, frames_before: int) -> None:  # type: ignore[no-untyped-def]
-    page.wait_for_function(
-        "n => { const c = document.getElementById('viewer-canvas');"
-        " return +c.dataset.frames > n && c.dataset.moving === '0'; }",
-        arg=frames_before, timeout=20_000)
+    wait_until(page, "(() => { const c = document.getElementById('viewer-canvas');"
+                     f" return +c.dataset.frames > {int(frames_before)} && c.dataset.moving === '0'; }})()", 20)
 
 
 def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app, server, browser, make_person,
@@ -101,8 +111,7 @@ def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app
     page.click("button[type=submit], input[type=submit]")
     page.wait_for_load_state()
     page.goto(f"{server}/viewer/cards/{card_id}")
-    page.wait_for_function("['ready', 'error', 'no-webgl'].includes(document.getElementById('viewer-canvas').dataset.state)",
-                           timeout=30_000)
+    wait_until(page, "['ready', 'error', 'no-webgl'].includes(document.getElementById('viewer-canvas').dataset.state)", 30)
     state = page.evaluate("document.getElementById('viewer-canvas').dataset.state")
     assert state == "ready", page.inner_text("#viewer-status")
     settle(page, 0)

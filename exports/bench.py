@@ -3,8 +3,10 @@
 The catalogue is N accepted cards on a throwaway SQLite database. To build it fast, the cards
 share a few real stored originals and stage artifacts (Middlebury Motorcycle, as shipped with
 scikit-image, at several crops) but each has its own id, content hash and review, so the
-release writes N distinct cards. Maps are kept small (the views' size; the "512" depth map at
-128 x 128) so 10,000 cards fit on a shared disk; ``mb_per_second`` lets the figure be scaled.
+release writes N distinct cards. By default maps are kept small (160 x 108 views, the "512"
+depth map at 128 x 128) so 10,000 cards fit on a shared disk; ``map_size=512`` gives real-size
+cards instead (512 x 512 depth, 800 x 600 rectified views and disparity maps: about 9 MB of
+release per card and format), to show that peak memory does not grow with the card count.
 The export runs in a child process: its peak RSS (``getrusage``) is the export's own.
 """
 
@@ -26,32 +28,48 @@ from typing import Any
 import numpy as np
 
 VARIANTS = 4
-VIEW_SIZE = (160, 108)  # (width, height) of each half in the synthetic cards
+VIEW_SIZE = (160, 108)  # (width, height) of each half in the default (small) synthetic cards
 DEPTH_SIZE = 128
+REAL_MAP_SIZE = 512  # the paper's depth maps
 TARGET_RSS_MB = 500
 
 
-def _variant_arrays(variant: int) -> dict[str, np.ndarray]:
-    """A real stereo card (Motorcycle halves side by side) and plausible maps for it."""
+def view_size_for(map_size: int | None) -> tuple[int, int]:
+    """(width, height) of the synthetic rectified views: the small default, or 4:3 views scaled
+    with the depth map (800 x 600 at 512, the size of one rectified half of a 1,600 px scan)."""
+    if map_size is None:
+        return VIEW_SIZE
+    if map_size < 16:
+        raise ValueError(f"Expected a map size of at least 16 px, got {map_size}")
+    return (map_size * 25 // 16, map_size * 75 // 64)
+
+
+def _variant_arrays(variant: int, view_size: tuple[int, int] = VIEW_SIZE,
+                    depth_size: int = DEPTH_SIZE) -> dict[str, np.ndarray]:
+    """A real stereo card (Motorcycle halves side by side) and plausible maps for it: views
+    ``view_size`` (W, H) RGB uint8, disparity (H, W) float32 px (NaN unknown), depth
+    ``depth_size`` square float32 (f / d, baseline 1)."""
     from PIL import Image
     from skimage import data
 
     left, right, disp = data.stereo_motorcycle()
     x0 = 40 * variant  # a different crop per variant: distinct pixels, same kind of scene
-    views = [np.asarray(Image.fromarray(v[:, x0:x0 + 600]).resize(VIEW_SIZE, Image.Resampling.BOX)) for v in (left, right)]
-    gutter = np.full((VIEW_SIZE[1], 8, 3), 200, np.uint8)
-    scale = VIEW_SIZE[0] / 600
+    views = [np.asarray(Image.fromarray(v[:, x0:x0 + 600]).resize(view_size, Image.Resampling.BOX)) for v in (left, right)]
+    gutter = np.full((view_size[1], 8, 3), 200, np.uint8)
+    scale = view_size[0] / 600
     truth = np.asarray(disp[:, x0:x0 + 600], np.float32)
     truth = np.where(np.isfinite(truth), truth, np.nan)
-    small = np.asarray(Image.fromarray(truth).resize(VIEW_SIZE, Image.Resampling.NEAREST), np.float32) * scale
-    depth = np.asarray(Image.fromarray(1.2071 * VIEW_SIZE[1] / np.where(small > 0, small, np.nan))
-                       .resize((DEPTH_SIZE, DEPTH_SIZE), Image.Resampling.NEAREST), np.float32)
+    small = np.asarray(Image.fromarray(truth).resize(view_size, Image.Resampling.NEAREST), np.float32) * scale
+    depth = np.asarray(Image.fromarray(1.2071 * view_size[1] / np.where(small > 0, small, np.nan))
+                       .resize((depth_size, depth_size), Image.Resampling.NEAREST), np.float32)
     return {"card": np.concatenate([views[0], gutter, views[1]], axis=1), "left": views[0], "right": views[1],
             "disparity_left": small, "disparity_right": small, "depth_512": depth}
 
 
-def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], None] = print) -> None:
-    """Insert ``count`` accepted, graded cards with stage results pointing at shared artifacts."""
+def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], None] = print,
+                              map_size: int | None = None) -> None:
+    """Insert ``count`` accepted, graded cards with stage results pointing at shared artifacts
+    (``map_size``: see :func:`view_size_for`; None keeps the small default maps)."""
     from sqlalchemy import insert
 
     from app.db import db
@@ -60,22 +78,23 @@ def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], 
     from review.models import CardReview
 
     clock = time.perf_counter()
+    view_size = view_size_for(map_size)
     shared: list[dict[str, Any]] = []
     for variant in range(VARIANTS):
-        arrays = _variant_arrays(variant)
+        arrays = _variant_arrays(variant, view_size, map_size or DEPTH_SIZE)
         work = Path("derived") / "bench" / f"v{variant}"
         write_png(data_dir / work / "card.png", arrays["card"])
         write_png(data_dir / work / "left.png", arrays["left"])
         write_png(data_dir / work / "right.png", arrays["right"])
         for name in ("disparity_left", "disparity_right", "depth_512"):
             write_npy(data_dir / work / f"{name}.npy", arrays[name])
-        width = VIEW_SIZE[0]
+        width = view_size[0]
         write_json(data_dir / work / "rectification.json", {
             "convention": "column vectors, x' ~ H x; disparity d = x_left - x_right >= 0",
             "H_l": np.eye(3).tolist(), "H_r": np.eye(3).tolist(),
-            "K": [[1.2071 * VIEW_SIZE[1], 0, width / 2], [0, 1.2071 * VIEW_SIZE[1], VIEW_SIZE[1] / 2], [0, 0, 1]],
-            "R": np.eye(3).tolist(), "t": [1.0, 0.0, 0.0], "size": list(VIEW_SIZE),
-            "left_box": [0, 0, width, VIEW_SIZE[1]], "right_box": [width + 8, 0, 2 * width + 8, VIEW_SIZE[1]],
+            "K": [[1.2071 * view_size[1], 0, width / 2], [0, 1.2071 * view_size[1], view_size[1] / 2], [0, 0, 1]],
+            "R": np.eye(3).tolist(), "t": [1.0, 0.0, 0.0], "size": list(view_size),
+            "left_box": [0, 0, width, view_size[1]], "right_box": [width + 8, 0, 2 * width + 8, view_size[1]],
         })
         shared.append({"card": str(work / "card.png"), "work": work,
                        "bytes": (data_dir / work / "card.png").stat().st_size})
@@ -91,7 +110,7 @@ def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], 
             card_rows.append({
                 "collection_id": collection.id, "content_hash": hashlib.sha256(f"bench-{number}".encode()).hexdigest(),
                 "stored_path": variant["card"], "source_name": f"bench-{number:06d}.png", "source_path": "(synthetic)",
-                "accession": f"2026.0001.{number:05d}", "width": 2 * VIEW_SIZE[0] + 8, "height": VIEW_SIZE[1],
+                "accession": f"2026.0001.{number:05d}", "width": 2 * view_size[0] + 8, "height": view_size[1],
                 "image_format": "PNG", "byte_size": variant["bytes"], "state": "pass",
                 "source_metadata": {"title": f"Synthetic card {number}", "url": f"https://example.org/cards/{number}"},
             })
@@ -138,7 +157,7 @@ def _child_export(database_url: str, data_dir: str, out_dir: str, formats: str) 
 
 
 def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", folder: Path | None = None,
-                     echo: Callable[[str], None] = print) -> dict[str, Any]:
+                     echo: Callable[[str], None] = print, map_size: int | None = None) -> dict[str, Any]:
     """Build the catalogue, export it in a child process, verify the release; the figures."""
     from app import create_app
     from app.db import db
@@ -155,7 +174,7 @@ def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", fold
                          instance_path=root / "instance")
         with app.app_context():
             upgrade(db.engine)
-            build_synthetic_catalogue(count, data_dir, echo)
+            build_synthetic_catalogue(count, data_dir, echo, map_size)
             db.session.remove()
             db.engine.dispose()
         code = ("import json, sys; from exports.bench import _child_export; "
@@ -177,7 +196,7 @@ def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", fold
             "cards_per_second": round(child["cards"] / seconds, 2), "mb_per_second": round(child["bytes"] / 1e6 / seconds, 2),
             "peak_rss_mb": round(child["peak_rss_mb"], 1), "rss_before_export_mb": round(child["rss_before_export_mb"], 1),
             "target_rss_mb": TARGET_RSS_MB, "verified": verified.ok, "verify_seconds": round(verify_seconds, 3),
-            "view_size": list(VIEW_SIZE), "depth_size": [DEPTH_SIZE, DEPTH_SIZE],
+            "view_size": list(view_size_for(map_size)), "depth_size": [map_size or DEPTH_SIZE] * 2,
         }
     finally:
         if folder is None:

@@ -23,7 +23,7 @@ from app.models import Card
 from review.models import CardReview
 
 from .models import Release
-from .records import RELEASED_DECISIONS, ReleaseCard, grades_at_or_above
+from .records import RELEASED_DECISIONS, VIEW_ARTIFACTS, ReleaseCard, grades_at_or_above
 
 CHUNK = 200
 # The date a release carries when no review has a decision time (never, in practice).
@@ -70,10 +70,11 @@ def latest_release() -> Release | None:
     return db.session.scalar(select(Release).order_by(Release.id.desc()).limit(1))
 
 
-def stream_release_cards(card_ids: list[int], data_dir: Path,
-                         exclusions: list[Exclusion] | None = None) -> Iterator[ReleaseCard]:
+def stream_release_cards(card_ids: list[int], data_dir: Path, exclusions: list[Exclusion] | None = None,
+                         with_views: bool = False) -> Iterator[ReleaseCard]:
     """Yield a :class:`ReleaseCard` per id (ascending); a card that cannot be released (no
-    finished rectification or disparity, a missing file) is skipped and noted in ``exclusions``."""
+    finished rectification or disparity, a missing file) is skipped and noted in ``exclusions``.
+    ``with_views``: also collect each card's views (see :func:`card_views`)."""
     from annotation.models import Aggregate
 
     for start in range(0, len(card_ids), CHUNK):
@@ -90,7 +91,7 @@ def stream_release_cards(card_ids: list[int], data_dir: Path,
         ready: list[ReleaseCard] = []
         for card in cards:
             try:
-                ready.append(release_card(card, reviews[card.id], crowd.get(card.id, {}), data_dir))
+                ready.append(release_card(card, reviews[card.id], crowd.get(card.id, {}), data_dir, with_views))
             except ReleaseInputError as exc:
                 if exclusions is not None:
                     exclusions.append(Exclusion(card.id, str(exc)))
@@ -103,7 +104,26 @@ class ReleaseInputError(ValueError):
     """A card the curator accepted but whose pipeline outputs are incomplete."""
 
 
-def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]], data_dir: Path) -> ReleaseCard:
+def card_views(result: Any, data_dir: Path) -> tuple[dict[str, Path], str]:
+    """A card's views (artifact name -> absolute path) and ``"done"``, or no views and why not.
+
+    Views are optional: a card whose latest ``views`` result is not ``done`` (not run, skipped
+    because it was graded failure, failed) or whose files are gone is released without them."""
+    if result is None:
+        return {}, "views not run"
+    if result.status != "done":
+        return {}, f"views {result.status}" + (f": {result.reason}" if result.reason else "")
+    found: dict[str, Path] = {}
+    for name in VIEW_ARTIFACTS:
+        relative = result.artifacts.get(name)
+        if not relative or not (data_dir / relative).is_file():
+            return {}, f"views artifact {name!r} is missing on disk"
+        found[name] = data_dir / relative
+    return found, "done"
+
+
+def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]], data_dir: Path,
+                 with_views: bool = False) -> ReleaseCard:
     latest = card.latest_results()
     rectify, disparity, grade = latest.get("rectify"), latest.get("disparity"), latest.get("grade")
     if rectify is None or rectify.status not in ("done", "skipped"):
@@ -135,6 +155,14 @@ def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]
                        "inputs_digest": result.metrics.get("inputs_digest")}
         for result in (rectify, disparity, grade) if result is not None
     }
+    views: dict[str, Path] = {}
+    views_note: str | None = None
+    if with_views:
+        views, views_note = card_views(latest.get("views"), data_dir)
+        if views:
+            result = latest["views"]
+            stages["views"] = {"param_hash": result.param_hash, "code_version": result.code_version,
+                               "status": result.status, "inputs_digest": result.metrics.get("inputs_digest")}
     orientation = rectify.metrics.get("orientation") or {}
     metadata = dict(card.source_metadata or {})
     return ReleaseCard(
@@ -145,5 +173,5 @@ def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]
         orientation=list(orientation.get("applied") or []), rectification=rectification,
         rectified_left=path(rectify, "left"), rectified_right=path(rectify, "right"),
         disparity_left=path(disparity, "disparity_left"), disparity_right=path(disparity, "disparity_right"),
-        depth_512=path(disparity, "depth_512"), stages=stages, crowd=crowd,
+        depth_512=path(disparity, "depth_512"), stages=stages, crowd=crowd, views=views, views_note=views_note,
     )

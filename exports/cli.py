@@ -100,8 +100,13 @@ def verify_command(path: Path, no_mlcroissant: bool, as_json: bool) -> None:
               help=f"Comma-separated layouts: {', '.join(FORMATS)}.")
 @click.option("--dir", "folder", type=click.Path(path_type=Path, file_okay=False),
               help="Work folder (catalogue, store, release); default a temporary folder, removed after.")
+@click.option("--map-size", type=click.IntRange(16, 4096), default=None,
+              help="Real-size cards: depth maps MAP_SIZE x MAP_SIZE, rectified views and disparity 4:3 at "
+                   "MAP_SIZE*25/16 wide (512 gives 800 x 600, ~9 MB per card and format). "
+                   "Default: small maps (160 x 108 views, 128 x 128 depth).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
-def bench_export_command(card_count: int, formats: str, folder: Path | None, as_json: bool) -> None:
+def bench_export_command(card_count: int, formats: str, folder: Path | None, map_size: int | None,
+                         as_json: bool) -> None:
     """Release throughput (cards/s) and peak memory on a synthetic catalogue of accepted cards.
 
     The export runs in a child process so its peak resident memory is its own."""
@@ -109,7 +114,7 @@ def bench_export_command(card_count: int, formats: str, folder: Path | None, as_
 
     from .bench import benchmark_export
 
-    document = benchmark_export(card_count, formats=formats, folder=folder,
+    document = benchmark_export(card_count, formats=formats, folder=folder, map_size=map_size,
                                 echo=(lambda m: click.echo(m, err=True)) if as_json else click.echo)
     if as_json:
         emit_json(document)

@@ -2,7 +2,8 @@
 
 Every file of the release except ``croissant.json`` and ``SHA256SUMS`` (which lists this file,
 so cannot be listed in it) is a ``cr:FileObject`` with its sha256; the ``cards`` record set
-reads ``cards.jsonl``, which every release has whatever formats were chosen.
+reads ``cards.jsonl``, which every release has whatever formats were chosen; with the views
+component, the ``views`` record set reads ``views/views.jsonl`` (one record per card with views).
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ ENCODINGS = {
     ".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".tif": "image/tiff", ".tiff": "image/tiff",
     ".exr": "image/x-exr", ".json": "application/json", ".jsonl": "application/jsonlines",
     ".parquet": "application/x-parquet", ".tar": "application/x-tar", ".md": "text/markdown",
+    ".webp": "image/webp",
 }
 
 # (field name, schema.org / Croissant type, description) of the ``cards`` record set.
@@ -68,6 +70,20 @@ CARD_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("review_decision", "sc:Text", "Curator decision: accepted (automatic grade stands) or changed."),
     ("automatic_grade", "sc:Text", "The automatic grader's verdict before review."),
     ("digest", "sc:Text", "Digest of the facts that make this card's data (scan, boxes, parameters, grade)."),
+)
+
+
+# (field name, type, description) of the ``views`` record set (``views/views.jsonl``).
+VIEW_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("key", "sc:Text", "The card's key (as in cards): its views are in views/<key>/."),
+    ("card_id", "sc:Integer", "The card's id in the catalogue."),
+    ("folder", "sc:Text", ("Folder of v0.png..v4.png (grey), v0_depth.exr..v4_depth.exr (float32 depth, baseline 1), "
+                           "views.json (cameras) and preview.webp.")),
+    ("width", "sc:Integer", "Width of the five views in pixels."),
+    ("height", "sc:Integer", "Height of the five views in pixels."),
+    ("focal_px", "sc:Float", "Focal length of the reference view v0 in pixels."),
+    ("quad_radius", "sc:Float", "Distance of the corner cameras v1..v4 from the quad's centre, baseline units."),
+    ("preview", "sc:Text", "Path of the animated parallax preview (WebP)."),
 )
 
 
@@ -110,14 +126,34 @@ def write_croissant(handle: IO[bytes], files: dict[str, tuple[str, int]], **docu
 
 def croissant_document(*, version: str, date: str, files: dict[str, tuple[str, int]], card_count: int,
                        grade_counts: dict[str, int], crowd: dict[str, Any], notes: str,
-                       name: str = "keystone-stereographs") -> dict[str, Any]:
-    """The Croissant JSON-LD document (``files``: relative path -> (sha256, bytes))."""
+                       name: str = "keystone-stereographs", views_count: int | None = None) -> dict[str, Any]:
+    """The Croissant JSON-LD document (``files``: relative path -> (sha256, bytes));
+    ``views_count`` (cards with views) is given when the release has the views component."""
     distribution = [file_object(path, sha, size) for path, (sha, size) in sorted(files.items())]
     fields = [
         {"@type": "cr:Field", "@id": f"cards/{field}", "name": field, "description": description, "dataType": kind,
          "source": {"fileObject": {"@id": _file_id("cards.jsonl")}, "extract": {"column": field}}}
         for field, kind, description in CARD_FIELDS
     ]
+    record_sets = [{
+        "@type": "cr:RecordSet", "@id": "cards", "name": "cards",
+        "description": f"One record per released card ({card_count} cards).",
+        "key": {"@id": "cards/key"},
+        "field": fields,
+    }]
+    if views_count is not None:
+        record_sets.append({
+            "@type": "cr:RecordSet", "@id": "views", "name": "views",
+            "description": (f"The five GD images per card (reference view v0 and quad corners v1..v4, KeystoneDepth "
+                            f"section 5) for {views_count} of {card_count} cards; one record per card with views."),
+            "key": {"@id": "views/key"},
+            "field": [
+                {"@type": "cr:Field", "@id": f"views/{field}", "name": field, "description": description,
+                 "dataType": kind,
+                 "source": {"fileObject": {"@id": _file_id("views/views.jsonl")}, "extract": {"column": field}}}
+                for field, kind, description in VIEW_FIELDS
+            ],
+        })
     answers = crowd.get("answers_per_card")
     return {
         "@context": CONTEXT,
@@ -174,10 +210,5 @@ def croissant_document(*, version: str, date: str, files: dict[str, tuple[str, i
             "Semantic versions: patch = same data re-serialised, minor = cards added, major = cards removed or "
             "changed; every release has a CHANGELOG against the one before and a SHA256SUMS file."),
         "distribution": distribution,
-        "recordSet": [{
-            "@type": "cr:RecordSet", "@id": "cards", "name": "cards",
-            "description": f"One record per released card ({card_count} cards).",
-            "key": {"@id": "cards/key"},
-            "field": fields,
-        }],
+        "recordSet": record_sets,
     }

@@ -3,7 +3,8 @@
 :class:`ReleaseCard` carries one card's facts and the absolute paths of its files; the query
 module (:mod:`exports.catalogue`) makes them, the writers consume them one at a time. The
 *manifest entry* of a card is the small set of facts that decide whether its released data
-changed (the scan, its metadata, the crop boxes, the stage parameters, the grade); comparing
+changed (the scan, its metadata, the crop boxes, the stage parameters, the grade, and for a
+card released with views, its views result); comparing
 the manifest with the previous release's gives the semantic version and the CHANGELOG.
 """
 
@@ -17,9 +18,14 @@ from typing import Any
 
 # Best first; "failure" is never released.
 RELEASABLE_GRADES: tuple[str, ...] = ("few", "some")
+VIEWS_FOLDER = "views"
 RELEASED_DECISIONS: tuple[str, ...] = ("accepted", "changed")
-FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset")
+# ``views`` (the five GD images per card, issue 8) is an optional component: never a default.
+FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset", "views")
 DEFAULT_FORMATS: tuple[str, ...] = ("keystonedepth", "parquet")
+# The views stage's artifacts a released card's views are made of (pipeline.view_stage).
+VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")
+VIEW_ARTIFACTS: tuple[str, ...] = (*VIEW_NAMES, *(f"{name}_depth" for name in VIEW_NAMES), "scene", "preview")
 FIRST_VERSION = "1.0.0"
 
 # Manifest parts and how a change of each reads in the CHANGELOG.
@@ -33,6 +39,7 @@ PART_WORDS: dict[str, str] = {
     "disparity": "disparity parameter hash changed",
     "grade_params": "grader thresholds (grade parameter hash) changed",
     "code": "pipeline code version changed",
+    "views": "views re-synthesised (views parameter hash, inputs or code version changed)",
 }
 
 
@@ -94,6 +101,10 @@ class ReleaseCard:
     depth_512: Path  # float32 .npy, 512 x 512, depth up to scale
     stages: dict[str, dict[str, Any]]  # stage -> {param_hash, code_version, status, inputs_digest}
     crowd: dict[str, dict[str, Any]] = field(default_factory=dict)  # task kind -> {batch, answers}
+    # The views component: artifact name (VIEW_ARTIFACTS) -> absolute path, empty when the card has
+    # none; ``views_note`` is None when the release has no views component, else "done" or why not.
+    views: dict[str, Path] = field(default_factory=dict)
+    views_note: str | None = None
 
     @property
     def key(self) -> str:
@@ -120,6 +131,10 @@ class ReleaseCard:
             "grade_params": self.stages.get("grade", {}).get("param_hash"),
             "code": self.stages.get("disparity", {}).get("code_version"),
         }
+        if self.views:
+            # Only cards with views carry the part, so releases without views keep their digests.
+            views = self.stages.get("views", {})
+            parts["views"] = short_hash({k: views.get(k) for k in ("param_hash", "code_version", "inputs_digest")})
         return {**parts, "digest": short_hash(parts)}
 
     def record(self) -> dict[str, Any]:
@@ -133,7 +148,14 @@ class ReleaseCard:
             "left_box": self.left_box, "right_box": self.right_box,
             "rectification": {k: self.rectification.get(k) for k in RECTIFICATION_KEYS if k in self.rectification},
             "pipeline": self.stages, "crowd": self.crowd, "digest": self.manifest_entry()["digest"],
+            **({} if self.views_note is None else {"views": self.views_record()}),
         }
+
+    def views_record(self) -> dict[str, Any]:
+        """Where the card's views are in the release (``views/<key>``), or why it has none."""
+        if self.views:
+            return {"folder": f"{VIEWS_FOLDER}/{self.key}", "why_not": None}
+        return {"folder": None, "why_not": self.views_note}
 
 
 RECTIFICATION_KEYS: tuple[str, ...] = (
@@ -180,10 +202,17 @@ def compare_manifests(previous: dict[str, dict[str, Any]] | None, current: dict[
         now, before = current[key], previous[key]
         if now.get("digest") == before.get("digest"):
             continue
-        why = [f"{PART_WORDS[part]} ({before.get(part)} -> {now.get(part)})"
-               for part in PART_WORDS if now.get(part) != before.get(part)]
+        why = [_why(part, before.get(part), now.get(part)) for part in PART_WORDS if now.get(part) != before.get(part)]
         changed[int(key)] = why or ["content digest changed"]
     return Changes(added=added, removed=removed, changed=changed, previous_version=previous_version)
+
+
+def _why(part: str, before: Any, now: Any) -> str:
+    if part == "views" and before is None:
+        return f"views added (views digest {now})"
+    if part == "views" and now is None:
+        return f"views removed (views digest {before}: no finished views result, or no views component in this release)"
+    return f"{PART_WORDS[part]} ({before} -> {now})"
 
 
 def next_version(previous: str | None, kind: str) -> str:

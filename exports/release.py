@@ -46,6 +46,7 @@ from .writers import (
     FileLedger,
     KeystoneDepthWriter,
     ParquetWriter,
+    ViewsWriter,
     WebDatasetWriter,
     build_payload,
 )
@@ -83,6 +84,7 @@ class ReleaseReport:
     manifest_sha256: str | None = None
     release_id: int | None = None
     notes: str = ""
+    views: dict[str, Any] | None = None  # with the views component: cards with views, and why the others have none
     manifest: dict[str, dict[str, Any]] = field(default_factory=dict, repr=False)
 
     def as_json(self) -> dict[str, Any]:
@@ -92,6 +94,7 @@ class ReleaseReport:
             "excluded": self.excluded, "seconds": round(self.seconds, 3), "files": self.files, "bytes": self.bytes,
             "dry_run": self.dry_run, "manifest_sha256": self.manifest_sha256, "release_id": self.release_id,
             "cards_per_second": round(self.cards / self.seconds, 2) if self.seconds > 0 and not self.dry_run else None,
+            "views": self.views,
         }
 
 
@@ -129,15 +132,38 @@ def plan_release(*, min_grade: str = "some", formats: str | tuple[str, ...] = DE
         previous = _previous()
         date = inputs_date(ids)
         exclusions: list[Exclusion] = []
-        manifest = {str(card.card_id): card.manifest_entry()
-                    for card in stream_release_cards(ids, data_dir, exclusions)}
+        manifest: dict[str, dict[str, Any]] = {}
+        views = _ViewsCount() if "views" in fmt else None
+        for card in stream_release_cards(ids, data_dir, exclusions, with_views=views is not None):
+            manifest[str(card.card_id)] = card.manifest_entry()
+            if views is not None:
+                views.add(card.views_note or "views not run")
     changes = compare_manifests(previous.manifest, manifest, previous.version)
     return ReleaseReport(
         version=next_version(previous.version, changes.kind), path=None, cards=len(manifest), formats=list(fmt),
         min_grade=min_grade, date=date.isoformat(), changes=changes.as_json(), grades=_count_grades(manifest),
         excluded=[{"card_id": e.card_id, "reason": e.reason} for e in exclusions],
         seconds=time.perf_counter() - clock, dry_run=True, notes=notes, manifest=manifest,
+        views=views.as_json() if views is not None else None,
     )
+
+
+class _ViewsCount:
+    """How many cards have views, and how many lack them for each reason."""
+
+    def __init__(self) -> None:
+        self.with_views = 0
+        self.without: dict[str, int] = {}
+
+    def add(self, note: str) -> None:
+        if note == "done":
+            self.with_views += 1
+        else:
+            self.without[note] = self.without.get(note, 0) + 1
+
+    def as_json(self) -> dict[str, Any]:
+        return {"cards_with_views": self.with_views, "cards_without_views": sum(self.without.values()),
+                "without": dict(sorted(self.without.items()))}
 
 
 def _data_dir() -> Path:
@@ -177,7 +203,7 @@ def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
             created_by=actor.id if actor is not None else None,
             stats={"grades": report.grades, "bytes": report.bytes, "files": report.files,
                    "seconds": round(time.perf_counter() - clock, 3), "date": report.date,
-                   "excluded": report.excluded, "manifest": report.manifest},
+                   "excluded": report.excluded, "views": report.views, "manifest": report.manifest},
             changes=report.changes,
         )
         db.session.add(release)
@@ -220,6 +246,9 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
         writers.append(ParquetWriter(ledger))
     if "webdataset" in fmt:
         writers.append(WebDatasetWriter(ledger, date.timestamp()))
+    views_writer = ViewsWriter(ledger, scratch) if "views" in fmt else None
+    if views_writer is not None:
+        writers.append(views_writer)
     if progress is not None:
         progress.start(plan.cards)
     manifest: dict[str, dict[str, Any]] = {}
@@ -228,7 +257,7 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     with read_only(), open(root / "cards.jsonl", "wb") as cards_file:
         ids = [int(key) for key in sorted(plan.manifest, key=int)]
         plan.manifest = {}  # the ids are all that is needed from the plan: keep one manifest in memory
-        for card in stream_release_cards(ids, data_dir, exclusions):
+        for card in stream_release_cards(ids, data_dir, exclusions, with_views=views_writer is not None):
             try:
                 payload = build_payload(card)
             except (OSError, ValueError) as exc:  # one bad card never stops a release
@@ -237,7 +266,7 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
             cards_file.write(payload.record_json + b"\n")
             for writer in writers:
                 writer.add(payload)
-            manifest[str(card.card_id)] = card.manifest_entry()
+            manifest[str(card.card_id)] = payload.card.manifest_entry()  # the card as written (views may be dropped)
             answers = sum(int(task.get("answers") or 0) for task in card.crowd.values())
             crowd_answers += answers
             crowd_cards += 1 if card.crowd else 0
@@ -255,13 +284,18 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     version = next_version(previous.version, changes.kind)
     grades = _count_grades(manifest)
     excluded = plan.excluded + [{"card_id": e.card_id, "reason": e.reason} for e in exclusions]
-    ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded).encode())
+    views: dict[str, Any] | None = None
+    if views_writer is not None:
+        views = {"cards_with_views": views_writer.with_views, "cards_without_views": sum(views_writer.without.values()),
+                 "without": dict(sorted(views_writer.without.items()))}
+    ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, views).encode())
     ledger.write_bytes("README.md", dataset_card(version, plan.date, len(manifest), grades, fmt, plan.notes,
-                                                 changes, plan.min_grade).encode())
+                                                 changes, plan.min_grade, views).encode())
     crowd = {"answers_per_card": crowd_answers / crowd_cards if crowd_cards else None, "cards_with_crowd": crowd_cards}
     with open(root / "croissant.json", "wb") as handle:
         write_croissant(handle, ledger.files, version=version, date=plan.date, card_count=len(manifest),
-                        grade_counts=grades, crowd=crowd, notes=plan.notes)
+                        grade_counts=grades, crowd=crowd, notes=plan.notes,
+                        views_count=views["cards_with_views"] if views is not None else None)
     ledger.record_file("croissant.json")
     sums_hash = hashlib.sha256()
     sums_bytes = 0
@@ -275,7 +309,7 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
         version=version, path=None, cards=len(manifest), formats=list(fmt), min_grade=plan.min_grade, date=plan.date,
         changes=changes.as_json(), grades=grades, excluded=excluded, seconds=time.perf_counter() - clock,
         files=len(ledger.files) + 1, bytes=ledger.total_bytes + sums_bytes,
-        manifest_sha256=sums_hash.hexdigest(), notes=plan.notes, manifest=manifest,
+        manifest_sha256=sums_hash.hexdigest(), notes=plan.notes, manifest=manifest, views=views,
     )
 
 
@@ -284,8 +318,10 @@ def _previous_for(plan: ReleaseReport) -> _Previous:
         return _previous()
 
 
-def changelog(version: str, date: str, changes: Changes, excluded: list[dict[str, Any]]) -> str:
-    """CHANGELOG.md: cards added, removed and changed against the previous release, and why."""
+def changelog(version: str, date: str, changes: Changes, excluded: list[dict[str, Any]],
+              views: dict[str, Any] | None = None) -> str:
+    """CHANGELOG.md: cards added, removed and changed against the previous release, and why;
+    with the views component, how many cards have views and why the others have none."""
     day = date[:10]
     lines = ["# Changelog", "", f"## {version} ({day})", ""]
     if changes.previous_version is None:
@@ -300,6 +336,11 @@ def changelog(version: str, date: str, changes: Changes, excluded: list[dict[str
                     ("Changed", [f"- card {key_of(i)}: " + "; ".join(why) for i, why in sorted(changes.changed.items())]))
         for title, items in sections:
             lines += ["", f"### {title} ({len(items)})", ""] + (items or ["- none"])
+    if views is not None:
+        total = views["cards_with_views"] + views["cards_without_views"]
+        lines += ["", f"### Views ({views['cards_with_views']} of {total} cards)", ""]
+        lines.append(f"- {views['cards_with_views']} card(s) with the five GD images, cameras and preview under `views/`")
+        lines += [f"- {count} card(s) without views: {reason}" for reason, count in views["without"].items()]
     if excluded:
         lines += ["", f"### Accepted but not released ({len(excluded)})", ""]
         lines += [f"- card {key_of(e['card_id'])}: {e['reason']}" for e in excluded]
@@ -313,7 +354,7 @@ def key_of(card_id: int) -> str:
 
 
 def dataset_card(version: str, date: str, cards: int, grades: dict[str, int], fmt: tuple[str, ...], notes: str,
-                 changes: Changes, min_grade: str) -> str:
+                 changes: Changes, min_grade: str, views: dict[str, Any] | None = None) -> str:
     """README.md in the Hugging Face dataset-card layout (YAML header, then the template's sections)."""
     size = "n<1K" if cards < 1000 else "1K<n<10K" if cards < 10_000 else "10K<n<100K"
     header = ["---", "pretty_name: Keystone stereographs", "license: other",
@@ -343,6 +384,16 @@ def dataset_card(version: str, date: str, cards: int, grades: dict[str, int], fm
     if "webdataset" in fmt:
         layout.append("- `webdataset/keystone-*.tar`: WebDataset shards; keys are the dot-free card ids, members "
                       "`<id>.json`, `<id>.left.png`, `<id>.right.png`, `<id>.disparity_left.npy`, ...")
+    if views is not None:
+        layout.append(
+            f"- `views/<id>/`: the five GD images of the scene for {views['cards_with_views']} of "
+            f"{views['cards_with_views'] + views['cards_without_views']} cards (the others have no finished views: "
+            "graded failure, not run, or failed; `cards.jsonl` says why per card under `views`): `v0.png` (the "
+            "reference view) and `v1.png`..`v4.png` (the four quad-corner views), 8-bit grey; `v0_depth.exr`.."
+            "`v4_depth.exr`, float32 channel `Y`, depth along each view's -z axis in baseline units (up to scale), "
+            "finite and > 0 at every pixel (EXR as KeystoneDepth's maps); `views.json`, the five cameras (OpenGL "
+            "convention, `x_cam = R x_world + t`, world = v0's camera, focal length in px, principal point at the "
+            "image centre); `preview.webp`, an animated parallax preview. `views/views.jsonl` lists them.")
     layout += ["- `cards.jsonl`: one JSON record per card (museum metadata and URL, boxes, transforms, grade, review "
                "decision, pipeline versions and parameter hashes).",
                "- `croissant.json` (Croissant 1.1 with Responsible-AI fields), `SHA256SUMS`, `CHANGELOG.md`.",

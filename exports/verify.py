@@ -4,7 +4,8 @@ Checks, naming each problem with the path it concerns: every line of ``SHA256SUM
 well-formed, its file exists and has that sha256; every file present is listed; ``croissant.json``
 parses, conforms to Croissant 1.1, lists each file with the same sha256 as ``SHA256SUMS``, and
 (when ``mlcroissant`` is installed) passes its validation; every Parquet shard has the release
-schema, and the shards and ``cards.jsonl`` hold the same number of cards.
+schema, and the shards and ``cards.jsonl`` hold the same number of cards; every ``views/<key>/``
+folder holds all twelve files of a card's views and ``views/views.jsonl`` lists exactly those cards.
 """
 
 from __future__ import annotations
@@ -89,6 +90,7 @@ def verify_release(path: str | os.PathLike[str], *, validate_croissant: bool = T
         report.problem(relative, "present but not listed in SHA256SUMS")
     _check_croissant(root, listed, report, validate_croissant)
     _check_parquet(root, listed, report)
+    _check_views(root, listed, report)
     return report
 
 
@@ -160,3 +162,33 @@ def _check_parquet(root: Path, listed: dict[str, str], report: VerifyReport) -> 
             cards = sum(1 for line in handle if line.strip())
         if cards != rows:
             report.problem("data/", f"Parquet shards hold {rows} cards, cards.jsonl {cards}")
+
+
+def _check_views(root: Path, listed: dict[str, str], report: VerifyReport) -> None:
+    from .writers import VIEWS_INDEX, view_files
+
+    folders: dict[str, set[str]] = {}
+    for relative in listed:
+        parts = relative.split("/")
+        if len(parts) == 3 and parts[0] == "views":
+            folders.setdefault(parts[1], set()).add(relative)
+    if not folders and VIEWS_INDEX not in listed:
+        return
+    for key, present in sorted(folders.items()):
+        missing = sorted(set(view_files(key)) - present)
+        extra = sorted(present - set(view_files(key)))
+        if missing:
+            report.problem(f"views/{key}/", f"incomplete views: {', '.join(p.rsplit('/', 1)[1] for p in missing)} not listed")
+        if extra:
+            report.problem(f"views/{key}/", f"unexpected files: {', '.join(p.rsplit('/', 1)[1] for p in extra)}")
+    index = root / VIEWS_INDEX
+    if VIEWS_INDEX not in listed or not index.is_file():
+        report.problem(VIEWS_INDEX, "missing: views folders are present but not indexed")
+        return
+    try:
+        keys = [json.loads(line)["key"] for line in index.read_text().splitlines() if line.strip()]
+    except (UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+        report.problem(VIEWS_INDEX, f"not one JSON record with a key per line: {exc}")
+        return
+    if sorted(keys) != sorted(folders):
+        report.problem(VIEWS_INDEX, f"lists {len(keys)} card(s) with views, the release has {len(folders)} views folder(s)")

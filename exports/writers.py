@@ -1,4 +1,4 @@
-"""Format writers: KeystoneDepth folders, Parquet shards, WebDataset tars. No database here.
+"""Format writers: KeystoneDepth folders, Parquet shards, WebDataset tars, views. No database here.
 
 Each writer takes one :class:`CardPayload` at a time and keeps at most one shard's buffer
 (Parquet: one row group) in memory. Everything is byte-reproducible: PNGs are encoded with
@@ -14,16 +14,19 @@ import io
 import json
 import os
 import tarfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .records import ReleaseCard
+from .records import VIEW_NAMES, VIEWS_FOLDER, ReleaseCard
 
 PNG_COMPRESS_LEVEL = 3  # as pipeline.io.write_png: level 6 took twice the time for ~5 % smaller files
-PARQUET_ROW_GROUP = 16  # cards per row group: the most a Parquet writer holds in memory
+PARQUET_ROW_GROUP = 16  # cards per row group at most
+# ... and payload bytes per row group at most: Arrow copies a row group two to three times on its
+# way into the file, so 16 real-size cards (~10 MB each: 800 x 600 views and maps) peaked at 620 MB.
+PARQUET_ROW_GROUP_BYTES = 24 * 1024 * 1024
 SHARD_BYTES = 256 * 1024 * 1024  # start a new shard past this many payload bytes
 TAR_SHARD_CARDS = 1000
 
@@ -109,6 +112,34 @@ def _load_map(path: Path, name: str) -> np.ndarray:
 
 
 @dataclass
+class ViewsPayload:
+    """A card's five GD images as released: PNG bytes (v0..v4), depth maps ((H, W) float32,
+    finite and > 0), the cameras document (``depth`` entries already naming the EXR files) and
+    the preview WebP bytes."""
+
+    images: list[bytes]
+    depths: list[np.ndarray]
+    scene: dict[str, Any]
+    preview: bytes
+
+
+def read_views(card: ReleaseCard) -> ViewsPayload:
+    """Read and check a card's views artifacts (raises ``ValueError``/``OSError`` on bad input)."""
+    scene = json.loads(card.views["scene"].read_text())
+    if not isinstance(scene, dict) or len(scene.get("views") or []) != len(VIEW_NAMES):
+        raise ValueError(f"views.json does not describe {len(VIEW_NAMES)} views")
+    for view in scene["views"]:
+        view["depth"] = f"{view['name']}_depth.exr"
+    depths = [_load_map(card.views[f"{name}_depth"], f"{name}_depth") for name in VIEW_NAMES]
+    if any(depth.shape != depths[0].shape for depth in depths):
+        raise ValueError("the five views' depth maps differ in size")
+    if not all(np.isfinite(depth).all() and (depth > 0).all() for depth in depths):
+        raise ValueError("a view's depth map is not finite and > 0 everywhere")
+    return ViewsPayload(images=[card.views[name].read_bytes() for name in VIEW_NAMES], depths=depths, scene=scene,
+                        preview=card.views["preview"].read_bytes())
+
+
+@dataclass
 class CardPayload:
     """A card's released bytes and arrays, built once and shared by every writer."""
 
@@ -123,6 +154,7 @@ class CardPayload:
     disparity_right: np.ndarray
     depth_512: np.ndarray  # (512, 512) float32, depth up to scale
     record: dict[str, Any]
+    views: ViewsPayload | None = None
 
     @property
     def record_json(self) -> bytes:
@@ -136,8 +168,18 @@ class CardPayload:
 
 
 def build_payload(card: ReleaseCard) -> CardPayload:
-    """Read a card's files and cut its cropped views (raises ``ValueError``/``OSError`` on bad input)."""
+    """Read a card's files and cut its cropped views (raises ``ValueError``/``OSError`` on bad input).
+
+    Views are optional: unreadable views leave the card released without them, the payload's
+    card saying why (``views_note``), so its manifest entry and record match what is written."""
     from pipeline.io import read_image
+
+    views: ViewsPayload | None = None
+    if card.views:
+        try:
+            views = read_views(card)
+        except (OSError, ValueError) as exc:
+            card = replace(card, views={}, views_note=f"views unreadable: {exc}")
 
     scan = read_image(card.original)
     if "rotated 180 deg" in card.orientation:
@@ -156,7 +198,7 @@ def build_payload(card: ReleaseCard) -> CardPayload:
         rectified_left=card.rectified_left.read_bytes(), rectified_right=card.rectified_right.read_bytes(),
         disparity_left=_load_map(card.disparity_left, "disparity_left"),
         disparity_right=_load_map(card.disparity_right, "disparity_right"),
-        depth_512=_load_map(card.depth_512, "depth_512"), record=card.record(),
+        depth_512=_load_map(card.depth_512, "depth_512"), record=card.record(), views=views,
     )
 
 
@@ -244,7 +286,8 @@ def _map_column(maps: list[np.ndarray]):  # type: ignore[no-untyped-def]
 
 class ParquetWriter:
     """``data/train-<n>-of-<N>.parquet`` shards (Hugging Face's naming), ZSTD, row groups of
-    :data:`PARQUET_ROW_GROUP` cards."""
+    :data:`PARQUET_ROW_GROUP` cards or :data:`PARQUET_ROW_GROUP_BYTES` payload bytes, whichever
+    comes first."""
 
     name = "parquet"
 
@@ -252,6 +295,7 @@ class ParquetWriter:
         self.ledger = ledger
         self.schema = parquet_schema()
         self.rows: list[CardPayload] = []
+        self.group_bytes = 0
         self.writer: Any = None
         self.shard_bytes = 0
         self.shards: list[str] = []
@@ -263,7 +307,8 @@ class ParquetWriter:
             self._close_shard()
         self.rows.append(payload)
         self.shard_bytes += payload.size
-        if len(self.rows) >= PARQUET_ROW_GROUP:
+        self.group_bytes += payload.size
+        if len(self.rows) >= PARQUET_ROW_GROUP or self.group_bytes >= PARQUET_ROW_GROUP_BYTES:
             self._flush()
 
     def _flush(self) -> None:
@@ -314,6 +359,7 @@ class ParquetWriter:
         self.writer.write_table(table, row_group_size=len(self.rows))
         self.row_counts[-1] += len(self.rows)
         self.rows = []
+        self.group_bytes = 0
 
     def _close_shard(self) -> None:
         if self.writer is not None:
@@ -386,3 +432,61 @@ class WebDatasetWriter:
 
     def close(self) -> None:
         self._close_shard()
+
+
+# ---- Views: the five GD images per card (optional component) ---------------------------------
+
+VIEWS_INDEX = f"{VIEWS_FOLDER}/views.jsonl"
+
+
+def view_files(key: str) -> tuple[str, ...]:
+    """The release paths of one card's views, in the order they are written."""
+    folder = f"{VIEWS_FOLDER}/{key}"
+    return (*(f"{folder}/{name}.png" for name in VIEW_NAMES), *(f"{folder}/{name}_depth.exr" for name in VIEW_NAMES),
+            f"{folder}/views.json", f"{folder}/preview.webp")
+
+
+class ViewsWriter:
+    """``views/<key>/v0.png`` .. ``v4.png`` (8-bit grey, copied byte for byte), ``v<i>_depth.exr``
+    (float32 channel ``Y``, depth along view i's -z axis, baseline 1, finite and > 0), ``views.json``
+    (the cameras; its ``depth`` entries name the EXR files) and ``preview.webp`` (animated
+    parallax), plus ``views/views.jsonl``, one line per card that has views. Cards without a
+    finished views result are counted by reason in :attr:`without`."""
+
+    name = "views"
+
+    def __init__(self, ledger: FileLedger, scratch: Path) -> None:
+        self.ledger, self.scratch = ledger, scratch
+        (ledger.root / VIEWS_FOLDER).mkdir(parents=True, exist_ok=True)
+        (ledger.root / VIEWS_INDEX).write_bytes(b"")
+        self.closed = False
+        self.with_views = 0
+        self.without: dict[str, int] = {}
+
+    def add(self, payload: CardPayload) -> None:
+        card, views = payload.card, payload.views
+        if views is None:
+            reason = card.views_note or "views not run"
+            self.without[reason] = self.without.get(reason, 0) + 1
+            return
+        key, ledger = card.key, self.ledger
+        paths = view_files(key)
+        for relative, data in zip(paths[:5], views.images):
+            ledger.write_bytes(relative, data)
+        for relative, depth in zip(paths[5:10], views.depths):
+            ledger.write_bytes(relative, encode_exr(depth, self.scratch))
+        ledger.write_bytes(paths[10], json.dumps(views.scene, sort_keys=True, indent=1, allow_nan=False).encode())
+        ledger.write_bytes(paths[11], views.preview)
+        scene = views.scene
+        line = {"key": key, "card_id": card.card_id, "folder": f"{VIEWS_FOLDER}/{key}", "width": scene.get("width"),
+                "height": scene.get("height"), "focal_px": scene["views"][0].get("focal_px"),
+                "quad_radius": scene.get("quad_radius"), "preview": paths[11]}
+        # Appended per card (not held open) so a release that stops half-way leaks no handle.
+        with open(self.ledger.root / VIEWS_INDEX, "ab") as index:
+            index.write(json.dumps(line, sort_keys=True, allow_nan=False).encode() + b"\n")
+        self.with_views += 1
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.ledger.record_file(VIEWS_INDEX)

@@ -52,7 +52,7 @@ def test_export_without_accepted_cards_exits_1_with_a_clear_error(runner, tmp_pa
 
 def test_export_refuses_an_unknown_format(runner, tmp_path) -> None:
     result = runner.invoke(args=["export", "--out", str(tmp_path / "out"), "--format", "zip"])
-    assert result.exit_code == 2 and "Expected formats from keystonedepth, parquet, webdataset, got zip" in result.output
+    assert result.exit_code == 2 and "Expected formats from keystonedepth, parquet, webdataset, views, got zip" in result.output
 
 
 def test_bench_export_small(runner) -> None:
@@ -61,6 +61,28 @@ def test_bench_export_small(runner) -> None:
     document = json.loads(result.stdout)
     assert document["benchmark"] == "export" and document["cards"] == 20 and document["verified"] is True
     assert document["cards_per_second"] > 0 and 50 < document["peak_rss_mb"] < document["target_rss_mb"]
+
+
+def test_bench_export_map_size_scales_the_synthetic_maps(runner) -> None:
+    result = runner.invoke(args=["bench", "export", "--cards", "6", "--map-size", "64", "--format", "parquet", "--json"])
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.stdout)
+    assert document["view_size"] == [100, 75] and document["depth_size"] == [64, 64]
+    assert document["cards"] == 6 and document["verified"] is True
+
+
+def test_bench_export_refuses_a_tiny_map_size(runner) -> None:
+    result = runner.invoke(args=["bench", "export", "--cards", "6", "--map-size", "8"])
+    assert result.exit_code == 2 and "--map-size" in result.output
+
+
+@pytest.mark.bench
+def test_bench_export_real_size_maps_stay_under_500_mb(runner) -> None:
+    result = runner.invoke(args=["bench", "export", "--cards", "250", "--map-size", "512", "--json"])
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.stdout)
+    assert document["view_size"] == [800, 600] and document["verified"] is True
+    assert document["peak_rss_mb"] < 500
 
 
 @pytest.mark.bench

@@ -21,6 +21,14 @@ Conventions
   the composite and ``TV(C) = mean|C[:, 1:] - C[:, :-1]| + mean|C[1:, :] - C[:-1, :]|``. The
   perceptual and style terms of the paper are **omitted** (no feature network is available offline).
 * Depth L1 in the benchmark is measured on D^ (normalised inverse depth, over known pixels).
+* Guided networks (the default, ``InpaintConfig.guided``): each network also sees the classical
+  fill of both channels (:func:`classical_init`: Navier-Stokes for intensity, :func:`background_fill`
+  for D^, the farther depth wins, as a disocclusion shows the background) through an ordinary
+  convolution in its first layer, and outputs that fill plus a learned residual (last layer
+  zero-initialised: an untrained network is the classical fill). The partial convolution still
+  sees the masked inputs only. On the 64 px benchmark the network from scratch lost to
+  Navier-Stokes on depth (0.121 against 0.102); the guided one wins (``keystone bench inpainting``).
+  Checkpoints written before these options load as unguided networks (:meth:`InpaintConfig.from_dict`).
 """
 
 from __future__ import annotations
@@ -41,10 +49,12 @@ __all__ = [
     "CHECKPOINT_NAME",
     "InpaintConfig",
     "Sample",
+    "background_fill",
     "baseline_inpaint",
     "benchmark_inpainting",
     "build_network",
     "builtin_gd_images",
+    "classical_init",
     "inpaint",
     "inpainting_loss",
     "load_checkpoint",
@@ -57,6 +67,7 @@ __all__ = [
 CHECKPOINT_NAME = "checkpoint.pt"
 CONFIG_NAME = "config.json"
 METHODS = ("network", "telea", "navier-stokes", "none")
+GUIDE_CHANNELS = 2  # classical_init's (intensity, D^)
 MOTORCYCLE_FOCAL_PX = 3979.911  # MiddEval3 Motorcycle calib (cam0), full resolution
 
 
@@ -73,8 +84,13 @@ class InpaintConfig:
     seed: int = 0
     hole_weight: float = 6.0
     tv_weight: float = 0.1
+    guided: bool = True  # refine a classical fill (residual) instead of inpainting from scratch
+    schedule: str = "cosine"  # learning rate over the steps: "cosine" (to 0 at config.steps) or "constant"
+    augment: bool = True  # random horizontal / vertical flips of each batch
 
     def __post_init__(self) -> None:
+        if self.schedule not in ("cosine", "constant"):
+            raise InvalidInputError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
         if self.depth < 1 or self.width < 1 or self.batch_size < 1 or self.steps < 0 or self.checkpoint_every < 1:
             raise InvalidInputError(f"bad inpainting configuration {self!r}")
         if not (math.isfinite(self.lr) and self.lr > 0):
@@ -82,20 +98,37 @@ class InpaintConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> InpaintConfig:
-        return cls(**{k: v for k, v in d.items() if k in cls.__dataclass_fields__})
+        """From a stored configuration; keys a checkpoint written before they existed take the
+        values that reproduce that checkpoint (an unguided network, constant rate, no flips)."""
+        return cls(**{**_LEGACY, **{k: v for k, v in d.items() if k in cls.__dataclass_fields__}})
+
+    def architecture(self) -> tuple[int, int, bool]:
+        """What must match for a state dict to load: (depth, width, guided)."""
+        return (self.depth, self.width, self.guided)
+
+
+_LEGACY = {"guided": False, "schedule": "constant", "augment": False}
 
 
 @dataclass(frozen=True)
 class Sample:
     """One training / evaluation sample (all (H, W) float32): ``intensity`` in [0, 1], ``dhat``
     normalised inverse depth over known pixels, ``hole`` (1 = hole), ``boundary``, ``known`` (1 where
-    ground truth exists: valid depth)."""
+    ground truth exists: valid depth). ``init`` (2, H, W): the classical fill the guided networks
+    refine (:func:`classical_init`); computed on first use when not given."""
 
     intensity: np.ndarray
     dhat: np.ndarray
     hole: np.ndarray
     boundary: np.ndarray
     known: np.ndarray
+    init: np.ndarray | None = None
+
+    def guide(self) -> np.ndarray:
+        if self.init is not None:
+            return self.init
+        fill = (self.hole > 0) | (self.known <= 0)
+        return classical_init(self.intensity, self.dhat, fill)
 
 
 # ------------------------------------------------------------------------------------- helpers
@@ -114,6 +147,43 @@ def normalise_known(depth: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, f
         hi = lo + max(lo, 1e-12)
     out = np.where(ok, (inv - lo) / (hi - lo), 0.0)
     return out.astype(np.float32), lo, hi
+
+
+def background_fill(dhat: np.ndarray, hole: np.ndarray) -> np.ndarray:
+    """Fill ``hole`` (H, W) bool in ``dhat`` (H, W) normalised inverse depth (larger = nearer),
+    biased to the **background**: ring by ring from the hole's edge inwards, each hole pixel takes
+    the smallest D^ (the farthest depth) among its known or already-filled 8-neighbours. A
+    disocclusion uncovers what lay behind the foreground; diffusion (Telea, Navier-Stokes) blends
+    both sides instead. Measured on the benchmark's held-out holes (size 64): L1 0.086 against 0.108
+    (Telea) and 0.102 (Navier-Stokes). Sources restricted to the background side (known pixels
+    outside B) measured worse (0.140): a one-sided sweep carries one value across the whole hole.
+    Returns float32 (H, W), known pixels unchanged; with no known pixel at all, 0 everywhere.
+    Cost: one 3x3 min filter per ring (rings = the hole's half width)."""
+    from scipy import ndimage
+
+    hole = np.asarray(hole, bool)
+    base = np.nan_to_num(np.asarray(dhat, np.float64))
+    if hole.all():
+        return np.zeros(hole.shape, np.float32)
+    eight = np.ones((3, 3), bool)
+    v = np.where(hole, np.inf, base)
+    done = ~hole
+    while not done.all():
+        ring = ndimage.grey_erosion(v, footprint=eight, mode="nearest")
+        new = ~done & np.isfinite(ring)
+        v[new] = ring[new]
+        done |= new
+    return v.astype(np.float32)
+
+
+def classical_init(intensity: np.ndarray, dhat: np.ndarray, fill: np.ndarray) -> np.ndarray:
+    """The classical fill the guided networks refine: (2, H, W) float32, channel 0 the intensity
+    filled by Navier-Stokes (the better of OpenCV's two on intensity in the benchmark), channel 1
+    D^ filled by :func:`background_fill`. ``fill`` (H, W) bool: pixels to fill."""
+    fill = np.asarray(fill, bool)
+    i0 = baseline_inpaint(np.where(fill, 0.0, intensity), fill, "navier-stokes", "intensity")
+    d0 = background_fill(np.where(fill, 0.0, dhat), fill)
+    return np.stack([i0, d0]).astype(np.float32)
 
 
 def _dhat_to_depth(dhat: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -137,8 +207,9 @@ def make_samples(gd_images, shift_px: float | None = None) -> list[Sample]:
                 continue
             known = gd.valid & ~hole
             dhat, _, _ = normalise_known(gd.depth, known)
-            samples.append(Sample(gd.intensity.astype(np.float32), dhat, hole.astype(np.float32),
-                                  boundary.astype(np.float32), gd.valid.astype(np.float32)))
+            intensity = gd.intensity.astype(np.float32)
+            samples.append(Sample(intensity, dhat, hole.astype(np.float32), boundary.astype(np.float32),
+                                  gd.valid.astype(np.float32), classical_init(intensity, dhat, ~known)))
     return samples
 
 
@@ -162,14 +233,26 @@ def partial_conv2d(x, mask, weight, bias=None, stride: int = 1, padding: int = 0
     return out * new_mask, new_mask
 
 
-def build_network(config: InpaintConfig):
-    """A partial-convolution U-Net (3 input channels, 1 output channel) as a ``torch.nn.Module``:
-    ``net(x, mask) -> output`` with ``x`` (N, 3, H, W), ``mask`` (N, 1, H, W); H and W multiples of
-    ``2**config.depth``. Encoder: per level a stride-2 5x5 (first level 7x7 ... kept 5x5 for CPU)
-    partial conv + ReLU; decoder: nearest upsampling, concatenation with the skip, 3x3 partial conv
-    + LeakyReLU(0.2); a final 3x3 partial conv to one channel (linear output)."""
+def build_network(config: InpaintConfig, channel: str = "depth"):
+    """A partial-convolution U-Net (one output channel) as a ``torch.nn.Module``:
+    ``net(x, mask, guide=None) -> output`` with ``x`` (N, 3, H, W) = (I M, D^ M, B M), ``mask``
+    (N, 1, H, W) and, for a guided network, ``guide`` (N, 2, H, W) = :func:`classical_init`'s
+    (intensity, D^) fill; H and W multiples of ``2**config.depth``. Encoder: per level a stride-2
+    partial conv (5x5 first, then 3x3) + ReLU; decoder: nearest upsampling, concatenation with the
+    skip, 3x3 partial conv + LeakyReLU(0.2); a final 3x3 partial conv to one channel (linear).
+
+    Guided (``config.guided``): the first layer adds an ordinary 5x5 stride-2 convolution of the
+    guide to the partial convolution of the masked inputs (the holes still contribute nothing
+    through ``x``; the mask logic applies to them), after which every position carries information
+    and the mask is all ones; the full-resolution skip also carries the guide and the mask; the
+    output is ``guide[channel] + residual`` with the last layer initialised to zero, so an
+    untrained network returns the classical fill exactly and training only has to correct it.
+    ``channel``: which guide channel the output refines ("intensity" or "depth")."""
     import torch
     from torch import nn
+
+    if channel not in ("intensity", "depth"):
+        raise InvalidInputError(f"channel must be 'intensity' or 'depth', got {channel!r}")
 
     class PConv(nn.Module):
         def __init__(self, cin: int, cout: int, k: int, stride: int) -> None:
@@ -181,20 +264,30 @@ def build_network(config: InpaintConfig):
             return partial_conv2d(x, m, self.conv.weight, self.conv.bias, self.stride, self.padding)
 
     class PartialUNet(nn.Module):
-        def __init__(self, depth: int, width: int) -> None:
+        def __init__(self, depth: int, width: int, guided: bool, out_index: int) -> None:
             super().__init__()
             chans = [3] + [width * 2 ** i for i in range(depth)]
+            skip0 = 3 + GUIDE_CHANNELS + 1 if guided else 3  # (x, guide, mask) at full resolution
             self.enc = nn.ModuleList(PConv(chans[i], chans[i + 1], 5 if i == 0 else 3, 2) for i in range(depth))
-            self.dec = nn.ModuleList(PConv(chans[i + 1] + chans[i], chans[i] if i > 0 else width, 3, 1)
+            self.dec = nn.ModuleList(PConv(chans[i + 1] + (chans[i] if i > 0 else skip0), chans[i] if i > 0 else width, 3, 1)
                                      for i in reversed(range(depth)))
             self.out = PConv(width, 1, 3, 1)
-            self.depth = depth
+            self.guide_in = nn.Conv2d(GUIDE_CHANNELS, chans[1], 5, stride=2, padding=2, bias=False) if guided else None
+            if guided:
+                nn.init.zeros_(self.out.conv.weight)
+                nn.init.zeros_(self.out.conv.bias)
+            self.depth, self.guided, self.out_index = depth, guided, out_index
 
-        def forward(self, x, m):
-            skips = [(x, m)]
+        def forward(self, x, m, guide=None):
+            if self.guided and guide is None:
+                raise InvalidInputError("a guided inpainting network needs the classical fill as guide")
+            skips = [(torch.cat([x, guide, m], 1), torch.ones_like(m)) if self.guided else (x, m)]
             h, hm = x, m
-            for layer in self.enc:
+            for i, layer in enumerate(self.enc):
                 h, hm = layer(h, hm)
+                if i == 0 and self.guided:
+                    h = h + self.guide_in(guide)
+                    hm = torch.ones_like(hm)
                 h = torch.relu(h)
                 skips.append((h, hm))
             skips.pop()
@@ -205,9 +298,11 @@ def build_network(config: InpaintConfig):
                 h, hm = layer(torch.cat([h, s], 1), torch.maximum(hm, sm))
                 h = nn.functional.leaky_relu(h, 0.2)
             out, _ = self.out(h, torch.ones_like(hm))
+            if self.guided:
+                out = out + guide[:, self.out_index:self.out_index + 1]
             return out
 
-    return PartialUNet(config.depth, config.width)
+    return PartialUNet(config.depth, config.width, config.guided, 0 if channel == "intensity" else 1)
 
 
 def inpainting_loss(output, target, mask, known=None, hole_weight: float = 6.0, tv_weight: float = 0.1):
@@ -241,15 +336,16 @@ def _pad_to(arr: np.ndarray, multiple: int) -> tuple[np.ndarray, int, int]:
 
 
 def _stack(samples: list[Sample], multiple: int):
-    xs, ms, its, ds, ks = [], [], [], [], []
+    xs, ms, gs, its, ds, ks = [], [], [], [], [], []
     for s in samples:
         x, m = _inputs(s.intensity, s.dhat, s.hole, s.boundary)
         xs.append(_pad_to(x, multiple)[0])
         ms.append(_pad_to(m * s.known[None], multiple)[0])  # unknown (invalid) pixels are not inputs
+        gs.append(_pad_to(s.guide(), multiple)[0])
         its.append(_pad_to(s.intensity[None], multiple)[0])
         ds.append(_pad_to(s.dhat[None], multiple)[0])
         ks.append(_pad_to(s.known[None], multiple)[0])
-    return tuple(np.stack(a) for a in (xs, ms, its, ds, ks))
+    return tuple(np.stack(a) for a in (xs, ms, gs, its, ds, ks))
 
 
 # ------------------------------------------------------------------------------------ training
@@ -280,7 +376,7 @@ def load_checkpoint(path: str | os.PathLike[str]):
     config = InpaintConfig.from_dict(state["config"])
     nets = []
     for key in ("intensity", "depth"):
-        net = build_network(config)
+        net = build_network(config, key)
         net.load_state_dict(state[key])
         net.eval()
         nets.append(net)
@@ -288,7 +384,7 @@ def load_checkpoint(path: str | os.PathLike[str]):
 
 
 def train(samples: list[Sample], config: InpaintConfig, out_dir: str | os.PathLike[str] | None,
-          resume: bool = True) -> dict[str, Any]:
+          resume: bool = True, stop_at: int | None = None) -> dict[str, Any]:
     """Train the intensity and depth networks (Adam) for ``config.steps`` steps in total.
 
     Each step draws a batch of ``config.batch_size`` samples from a generator seeded by
@@ -296,45 +392,64 @@ def train(samples: list[Sample], config: InpaintConfig, out_dir: str | os.PathLi
     uninterrupted one. Every ``config.checkpoint_every`` steps and at the end, model + optimiser +
     step + configuration are written atomically to ``out_dir/checkpoint.pt`` (and the configuration to
     ``config.json``); with ``resume`` an existing checkpoint there is loaded and training continues
-    from its step. Returns ``{"step", "start_step", "losses" (per step: [intensity, depth]),
-    "seconds", "checkpoint"}``."""
+    from its step. ``stop_at`` pauses after that step (checkpoint written), as an interruption
+    would. The learning rate follows ``config.schedule`` over ``config.steps`` (cosine:
+    ``lr (1 + cos(pi step / steps)) / 2``), a function of the step alone, so an interrupted and
+    resumed run with the same configuration matches an uninterrupted one (resuming with a larger
+    ``steps`` stretches the rest of the schedule). Flips (``config.augment``) come from the same
+    per-step generator. Returns ``{"step", "start_step", "losses" (per step: [intensity, depth]),
+    "seconds", "checkpoint", "networks"}``."""
     import torch
 
     if not samples:
         raise InvalidInputError("no training samples (no holes from double reprojection)")
     torch.manual_seed(config.seed)
-    nets = [build_network(config), build_network(config)]
+    nets = [build_network(config, "intensity"), build_network(config, "depth")]
     opts = [torch.optim.Adam(n.parameters(), lr=config.lr) for n in nets]
     out = Path(out_dir) if out_dir is not None else None
     start, losses = 0, []
     if out is not None and resume and (out / CHECKPOINT_NAME).is_file():
-        _, _, _, state = load_checkpoint(out)
+        stored, _, _, state = load_checkpoint(out)
+        if stored.architecture() != config.architecture():
+            raise InvalidInputError(
+                f"the checkpoint in {out} has another architecture (depth, width, guided) = "
+                f"{stored.architecture()}, not {config.architecture()}: train without resume or into another folder")
         nets[0].load_state_dict(state["intensity"])
         nets[1].load_state_dict(state["depth"])
         opts[0].load_state_dict(state["opt_intensity"])
         opts[1].load_state_dict(state["opt_depth"])
         start, losses = int(state["step"]), list(state.get("losses", []))
     multiple = 2 ** config.depth
-    x, m, gi, gd, k = (torch.from_numpy(a) for a in _stack(samples, multiple))
+    x, m, g, gi, gd, k = (torch.from_numpy(a) for a in _stack(samples, multiple))
     for n in nets:
         n.train()
     t0 = time.perf_counter()
     gen = torch.Generator()
     step = start
-    while step < config.steps:
+    end = config.steps if stop_at is None else max(start, min(config.steps, stop_at))
+    while step < end:
         gen.manual_seed(config.seed * 1_000_003 + step)
         idx = torch.randint(len(samples), (config.batch_size,), generator=gen)
+        flips = torch.randint(2, (2,), generator=gen).tolist() if config.augment else [0, 0]
+        dims = [d for d, f in zip((-1, -2), flips) if f]
+        batch = [t[idx] for t in (x, m, g, gi, gd, k)]
+        if dims:  # the flip of a disocclusion is a disocclusion seen from the mirrored camera
+            batch = [t.flip(dims) for t in batch]
+        bx, bm, bg, bi, bd, bk = batch
+        lr = config.lr * (0.5 * (1.0 + math.cos(math.pi * step / config.steps)) if config.schedule == "cosine" else 1.0)
         row = []
-        for net, opt, target in ((nets[0], opts[0], gi), (nets[1], opts[1], gd)):
+        for net, opt, target in ((nets[0], opts[0], bi), (nets[1], opts[1], bd)):
+            for group in opt.param_groups:
+                group["lr"] = lr
             opt.zero_grad()
-            o = net(x[idx], m[idx])
-            loss = inpainting_loss(o, target[idx], m[idx], k[idx], config.hole_weight, config.tv_weight)
+            o = net(bx, bm, bg if config.guided else None)
+            loss = inpainting_loss(o, target, bm, bk, config.hole_weight, config.tv_weight)
             loss.backward()
             opt.step()
             row.append(float(loss.detach()))
         losses.append(row)
         step += 1
-        if out is not None and (step % config.checkpoint_every == 0 or step == config.steps):
+        if out is not None and (step % config.checkpoint_every == 0 or step == end):
             _save_checkpoint(out, step, config, nets, opts, losses)
     if out is not None and step == start and not (out / CHECKPOINT_NAME).is_file():
         _save_checkpoint(out, step, config, nets, opts, losses)
@@ -345,7 +460,9 @@ def train(samples: list[Sample], config: InpaintConfig, out_dir: str | os.PathLi
 
 
 # ----------------------------------------------------------------------------------- inference
-def _run_nets(nets, intensity, dhat, hole, boundary, known):
+def _run_nets(nets, intensity, dhat, hole, boundary, known, guide=None):
+    """Both networks on one (H, W) view; ``guide`` (2, H, W) = :func:`classical_init` (computed
+    here when a guided network needs it and none is given). Returns [intensity, D^] outputs."""
     import torch
 
     torch.manual_seed(0)
@@ -354,12 +471,18 @@ def _run_nets(nets, intensity, dhat, hole, boundary, known):
     multiple = 2 ** nets[0].depth
     x, m = _inputs(intensity, dhat, hole, boundary)
     m = m * known[None]
+    gt = None
+    if any(net.guided for net in nets):
+        if guide is None:
+            guide = classical_init(intensity, dhat, m[0] <= 0)
+        gt = torch.from_numpy(_pad_to(np.asarray(guide, np.float32), multiple)[0][None])
     x, h, w = _pad_to(x, multiple)
     mp = _pad_to(m, multiple)[0]
     try:
         with torch.no_grad():
             xt, mt = torch.from_numpy(x[None]), torch.from_numpy(mp[None])
-            outs = [net.eval()(xt, mt)[0, 0, :h, :w].numpy().astype(np.float32) for net in nets]
+            outs = [net.eval()(xt, mt, gt if net.guided else None)[0, 0, :h, :w].numpy().astype(np.float32)
+                    for net in nets]
     finally:
         torch.use_deterministic_algorithms(was)
     return [np.nan_to_num(o, nan=0.0, posinf=0.0, neginf=0.0) for o in outs]
@@ -488,40 +611,51 @@ def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig
         raise InvalidInputError("double reprojection left no holes in the built-in images")
     result = train(train_samples, cfg, out_dir, resume=False)
     nets = result["networks"]
-    sums = {(m, c): [0.0, 0] for m in METHODS for c in ("intensity", "depth")}
+    channels = ("intensity", "depth")
+    # per held-out sample: (sum of |error| in its holes, pixel count) per (method, channel)
+    per: dict[tuple[str, str], list[tuple[float, int]]] = {(m, c): [] for m in (*METHODS, "init") for c in channels}
+    t1 = time.perf_counter()
     for s in test_samples:
         hole = s.hole > 0
         known = s.known > 0
         sel = hole & known
         if not sel.any():
             continue
-        oi, od = _run_nets(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known)
+        guide = s.guide()
+        oi, od = _run_nets(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known, guide)
         inp = {"intensity": s.intensity, "depth": s.dhat}
         fill = hole | ~known
-        for c, net_out in (("intensity", oi), ("depth", od)):
-            preds = {"network": np.where(fill, net_out, inp[c])}
+        for ci, (c, net_out) in enumerate((("intensity", oi), ("depth", od))):
+            preds = {"network": np.where(fill, net_out, inp[c]), "init": guide[ci]}
             for mth in ("telea", "navier-stokes", "none"):
                 preds[mth] = baseline_inpaint(np.where(fill, 0.0, inp[c]), fill, mth, c)
             for mth, p in preds.items():
-                acc = sums[(mth, c)]
-                acc[0] += float(np.abs(p - inp[c])[sel].sum())
-                acc[1] += int(sel.sum())
-    results = [{"method": m, "channel": c, "l1": (sums[(m, c)][0] / sums[(m, c)][1]) if sums[(m, c)][1] else None}
-               for c in ("intensity", "depth") for m in METHODS]
+                per[(mth, c)].append((float(np.abs(p - inp[c])[sel].sum()), int(sel.sum())))
+    inference = time.perf_counter() - t1
+
+    def l1(key: tuple[str, str]) -> float | None:
+        n = sum(c for _, c in per[key])
+        return sum(e for e, _ in per[key]) / n if n else None
+
+    results = [{"method": m, "channel": c, "l1": l1((m, c))} for c in channels for m in METHODS]
     by = {(r["method"], r["channel"]): r["l1"] for r in results}
     beats = all(by[("network", "depth")] is not None and by[("network", "depth")] < by[(m, "depth")]
                 for m in ("telea", "navier-stokes"))
     losses = result["losses"]
     return {
         "results": results,
+        "init_results": [{"method": "background-fill" if c == "depth" else "navier-stokes", "channel": c,
+                          "l1": l1(("init", c))} for c in channels],
+        "depth_per_sample": _paired_summary(per, cfg.seed),
         "training_seconds": round(result["seconds"], 3),
+        "inference_seconds": round(inference, 3),
         "preparation_seconds": round(prep, 3),
         "steps": result["step"],
         "size": size,
         "config": asdict(cfg),
         "train_samples": len(train_samples),
         "test_samples": len(test_samples),
-        "hole_pixels": sums[("none", "depth")][1],
+        "hole_pixels": sum(c for _, c in per[("none", "depth")]),
         "first_loss": losses[0] if losses else None,
         "last_loss": [float(np.mean([l[i] for l in losses[-10:]])) for i in range(2)] if losses else None,
         "network_beats_classical_on_depth": bool(beats),
@@ -529,4 +663,30 @@ def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig
         "threads": torch.get_num_threads(),
         "checkpoint": result["checkpoint"],
         "data": "scikit-image stereo_motorcycle (left + GT disparity); train = left 60 % + flips, test = right 40 %",
+    }
+
+
+def _paired_summary(per: dict[tuple[str, str], list[tuple[float, int]]], seed: int,
+                    resamples: int = 2000) -> dict[str, Any]:
+    """Depth, per held-out sample: how often the network's hole L1 beats the best classical one
+    (the lower of Telea and Navier-Stokes on that sample), and a bootstrap over samples (seeded) of
+    the pooled difference network - min(Telea, Navier-Stokes) in D^ with its 95 % interval."""
+    net = np.array(per[("network", "depth")], np.float64)
+    if not len(net):
+        return {"samples": 0}
+    tel = np.array(per[("telea", "depth")], np.float64)
+    ns = np.array(per[("navier-stokes", "depth")], np.float64)
+    init = np.array(per[("init", "depth")], np.float64)
+    n = net[:, 1]
+    best = np.minimum(tel[:, 0], ns[:, 0])
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, len(n), (resamples, len(n)))
+    diff = (net[draws, 0].sum(1) - np.minimum(tel[draws, 0].sum(1), ns[draws, 0].sum(1))) / n[draws].sum(1)
+    return {
+        "samples": len(n),
+        "network_beats_best_classical": int((net[:, 0] < best).sum()),
+        "network_beats_init": int((net[:, 0] < init[:, 0]).sum()),
+        "l1_difference_vs_best_classical": float(net[:, 0].sum() / n.sum() - min(tel[:, 0].sum(), ns[:, 0].sum()) / n.sum()),
+        "bootstrap_ci95": [float(np.quantile(diff, 0.025)), float(np.quantile(diff, 0.975))],
+        "bootstrap_resamples": resamples,
     }

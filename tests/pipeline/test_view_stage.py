@@ -75,8 +75,8 @@ def test_motorcycle_gives_five_complete_views_with_parallax_and_an_animated_prev
     assert all(np.abs(greys[0].astype(float) - g.astype(float)).mean() > 4 for g in greys[1:])
     m = record.metrics
     assert 0.05 < min(m["hole_fractions"]) <= max(m["hole_fractions"]) < 0.5
-    assert m["inpainting"]["status"] == "done" and m["inpainting"]["method"] == "telea"
-    assert m["reference_depth_fill"] == "telea" and 0 < m["reference_depth_filled_fraction"] < 0.2
+    assert m["inpainting"]["status"] == "done" and m["inpainting"]["method"] == "classical"
+    assert m["reference_depth_fill"] == "classical" and 0 < m["reference_depth_filled_fraction"] < 0.2
     assert 1.0 < m["zoom"] < 1.05 and m["shift_px"] == pytest.approx(96 * h / 512, rel=1e-3)
     assert json.dumps(m, allow_nan=False)
     # the preview is an animated WebP under 300 KB
@@ -218,5 +218,5 @@ def test_a_trained_checkpoint_fills_the_holes_with_the_network(tmp_path, motorcy
     assert all(np.isfinite(d).all() and (d > 0).all() for d in depths)
     # a checkpoint that is not there: Telea, and the record says why
     missing = views_task(task, replace(FAST, checkpoint=str(tmp_path / "absent.pt")))
-    assert missing.metrics["inpainting"]["method"] == "telea"
+    assert missing.metrics["inpainting"]["method"] == "classical"
     assert "does not exist" in missing.metrics["inpainting"]["note"]

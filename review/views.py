@@ -204,7 +204,7 @@ def card(card_id: int) -> Any:
         view = crowd_view(card_id)
         return render_template(
             "review/card.html", card=card, review=review, rectify=latest.get("rectify"),
-            disparity=latest.get("disparity"), grade_result=grade_result, reasons=grade_reasons(grade_result),
+            disparity=latest.get("disparity"), views_result=latest.get("views"), grade_result=grade_result, reasons=grade_reasons(grade_result),
             crowd=view, crowd_boxes=_crowd_boxes(view), judgements=_judgement_counts(view.judge_answers),
             previous=previous, following=following, filters=filters, grades=GRADES, grade_names=GRADE_NAMES,
             kinds=SEND_BACK_KINDS, anaglyph_url=_anaglyph_url(card, latest.get("rectify")),

@@ -252,3 +252,19 @@ def test_disputes_are_listed_shown_with_boxes_and_resolved_as_gold(app, client, 
     assert again.status_code == 409 and "already resolved by curator-" in again.get_data(as_text=True)
     card_page = client.get(f"/review/cards/{card_id}").get_data(as_text=True)
     assert "has no automatic grade yet" in card_page and "crowd-aggregate" in card_page
+
+
+def test_card_page_shows_the_parallax_preview_when_views_exist(app, client, login, make_card, add_stage_result,
+                                                              card_image) -> None:  # type: ignore[no-untyped-def]
+    from app.db import db
+    from review.models import CardReview
+
+    login("curator")
+    with_views, without = make_card(card_image()[:, 1:], state="pass"), make_card(card_image()[:, 2:], state="pass")
+    add_stage_result(with_views, "views", outcome=None, artifacts={"preview": "derived/x/views/preview.webp"})
+    with app.app_context():
+        db.session.add_all([CardReview(card_id=with_views, auto_grade="few"), CardReview(card_id=without, auto_grade="few")])
+        db.session.commit()
+    page = client.get(f"/review/cards/{with_views}").get_data(as_text=True)
+    assert f"/viewer/cards/{with_views}/files/preview" in page and f'href="/viewer/cards/{with_views}"' in page
+    assert "/files/preview" not in client.get(f"/review/cards/{without}").get_data(as_text=True)

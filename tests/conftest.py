@@ -377,3 +377,63 @@ def as_role(login) -> Callable[[str | None], PersonInfo | None]:  # type: ignore
         return login(role) if role else None
 
     return do
+
+
+# ---- real-browser tests: the app under a threaded WSGI server, Debian's headless Chromium ----
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+# --use-angle/--enable-unsafe-swiftshader: WebGL without a GPU (ANGLE on SwiftShader), which
+# Chromium only allows when asked; the 3D viewer's test needs it, the others do not mind it.
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--disable-quic", "--use-angle=swiftshader",
+                 "--enable-unsafe-swiftshader"]
+
+
+@pytest.fixture
+def server(app) -> Iterator[str]:  # type: ignore[no-untyped-def]
+    """The test app served on a free loopback port; yields its base URL."""
+    import threading
+
+    from werkzeug.serving import make_server
+
+    httpd = make_server("127.0.0.1", 0, app, threaded=True)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_port}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+        thread.join(timeout=10)
+
+
+@pytest.fixture
+def browser() -> Iterator[Any]:
+    """Debian's Chromium driven by Playwright (never a downloaded browser)."""
+    if not Path(CHROMIUM).exists():
+        pytest.skip("Debian's chromium is not installed (apt install chromium)")
+    playwright_api = pytest.importorskip("playwright.sync_api")
+    with playwright_api.sync_playwright() as playwright:
+        instance = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            yield instance
+        finally:
+            instance.close()
+
+
+def _wait_until(page: Any, expression: str, timeout_s: float = 15.0) -> None:
+    """Poll a page expression from Python: Playwright's string ``wait_for_function`` compiles the
+    predicate with ``new Function``, which the app's Content-Security-Policy (no 'unsafe-eval')
+    may refuse, while ``page.evaluate`` runs through the debugging protocol."""
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {expression}")
+        page.wait_for_timeout(50)
+
+
+@pytest.fixture
+def wait_until() -> Callable[..., None]:
+    return _wait_until

@@ -8,10 +8,6 @@ externalSubmit; Prolific participants are redirected with the completion code.
 from __future__ import annotations
 
 import re
-import shutil
-import threading
-from collections.abc import Iterator
-from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
 import pytest
@@ -20,50 +16,9 @@ from sqlalchemy import select
 from annotation.models import Answer, Reservation
 from app.db import db
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian's chromium is not installed")
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--disable-quic"]
-
-
-def wait_until(page, expression: str, timeout_s: float = 15.0) -> None:  # type: ignore[no-untyped-def]
-    """Poll a page expression from Python: Playwright's string ``wait_for_function`` compiles the
-    predicate with ``new Function``, which the app's Content-Security-Policy (no 'unsafe-eval')
-    may refuse, while ``page.evaluate`` runs through the debugging protocol."""
-    import time
-
-    deadline = time.monotonic() + timeout_s
-    while not page.evaluate(expression):
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {expression}")
-        page.wait_for_timeout(50)
-
-
-@pytest.fixture
-def server(app) -> Iterator[str]:  # type: ignore[no-untyped-def]
-    from werkzeug.serving import make_server
-
+@pytest.fixture(autouse=True)
+def prolific_completion_code(app) -> None:  # type: ignore[no-untyped-def]
     app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C0DE42"
-    httpd = make_server("127.0.0.1", 0, app, threaded=True)
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{httpd.server_port}"
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
-        thread.join(timeout=10)
-
-
-@pytest.fixture
-def browser() -> Iterator[object]:
-    playwright_api = pytest.importorskip("playwright.sync_api")
-    with playwright_api.sync_playwright() as playwright:
-        instance = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield instance
-        finally:
-            instance.close()
 
 
 @pytest.fixture
@@ -193,7 +148,8 @@ def test_prolific_participants_are_redirected_with_the_completion_code(app, serv
     assert re.match(r"https://app\.prolific\.com/submissions/complete", landed[0])
 
 
-def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, server, browser, make_card, card_image):
+def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, server, browser, make_card, card_image,
+                                                                    wait_until):
     from annotation.tasks import create_batch
 
     card_id = make_card(card_image(), state="pass")

@@ -5,11 +5,6 @@ from __future__ import annotations
 
 import base64
 import io
-import shutil
-import threading
-import time
-from collections.abc import Iterator
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,40 +14,6 @@ from PIL import Image
 from pipeline.io import write_npy, write_png
 from pipeline.records import CardTask
 from pipeline.view_stage import ViewsStageParams, views_task
-
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-pytestmark = pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian's chromium is not installed")
-# WebGL without a GPU: ANGLE on SwiftShader (software Vulkan), which Chromium only allows when asked.
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--disable-quic", "--use-angle=swiftshader",
-                 "--enable-unsafe-swiftshader"]
-
-
-@pytest.fixture
-def server(app) -> Iterator[str]:  # type: ignore[no-untyped-def]
-    from werkzeug.serving import make_server
-
-    httpd = make_server("127.0.0.1", 0, app, threaded=True)
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{httpd.server_port}"
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
-        thread.join(timeout=10)
-
-
-@pytest.fixture
-def browser() -> Iterator[object]:
-    playwright_api = pytest.importorskip("playwright.sync_api")
-    with playwright_api.sync_playwright() as playwright:
-        instance = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield instance
-        finally:
-            instance.close()
-
 
 @pytest.fixture
 def card_with_views(app, data_dir, make_card, add_stage_result) -> tuple[int, object]:  # type: ignore[no-untyped-def]
@@ -82,23 +43,12 @@ def canvas_pixels(page) -> np.ndarray:  # type: ignore[no-untyped-def]
     return np.asarray(Image.open(io.BytesIO(payload)).convert("L"), float)
 
 
-def wait_until(page, expression: str, timeout_s: float) -> None:  # type: ignore[no-untyped-def]
-    """Poll a page expression from Python: Playwright's string ``wait_for_function`` compiles the
-    predicate with ``new Function``, which the app's Content-Security-Policy (no 'unsafe-eval')
-    may refuse, while ``page.evaluate`` runs through the debugging protocol."""
-    deadline = time.monotonic() + timeout_s
-    while not page.evaluate(expression):
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {expression}")
-        page.wait_for_timeout(50)
-
-
-def settle(page, frames_before: int) -> None:  # type: ignore[no-untyped-def]
+def settle(page, frames_before: int, wait_until) -> None:  # type: ignore[no-untyped-def]
     wait_until(page, "(() => { const c = document.getElementById('viewer-canvas');"
                      f" return +c.dataset.frames > {int(frames_before)} && c.dataset.moving === '0'; }})()", 20)
 
 
-def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app, server, browser, make_person,
+def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app, server, browser, make_person, wait_until,
                                                                               data_dir, card_with_views):
     card_id, record = card_with_views
     person = make_person("annotator")
@@ -114,7 +64,7 @@ def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app
     wait_until(page, "['ready', 'error', 'no-webgl'].includes(document.getElementById('viewer-canvas').dataset.state)", 30)
     state = page.evaluate("document.getElementById('viewer-canvas').dataset.state")
     assert state == "ready", page.inner_text("#viewer-status")
-    settle(page, 0)
+    settle(page, 0, wait_until)
     centre = canvas_pixels(page)
     assert centre.std() > 20  # a photograph, not a blank or flat canvas
     # From v0's own position the picture is v0, zoomed by the corner views' focal length (< 1 %):
@@ -128,7 +78,7 @@ def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app
     box = page.locator("#viewer-canvas").bounding_box()
     frames = int(page.evaluate("+document.getElementById('viewer-canvas').dataset.frames"))
     page.mouse.move(box["x"] + box["width"] - 2, box["y"] + 2, steps=4)  # top-right: corner v1 at (+r, +r)
-    settle(page, frames)
+    settle(page, frames, wait_until)
     near_corner = canvas_pixels(page)
     weights = [float(w) for w in page.evaluate("document.getElementById('viewer-canvas').dataset.weights").split(",")]
     assert weights[1] > 0.95 and weights[2] == weights[3] == 0
@@ -140,7 +90,7 @@ def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app
     frames = int(page.evaluate("+document.getElementById('viewer-canvas').dataset.frames"))
     for key in ("ArrowRight", "ArrowUp"):
         page.keyboard.press(key)
-    settle(page, frames)
+    settle(page, frames, wait_until)
     assert page.evaluate("document.getElementById('viewer-canvas').dataset.position") == "1.000,1.000"
     assert page.evaluate("document.getElementById('viewer-canvas').dataset.weights") == "0.000,1.000,0.000,0.000,0.000"
     corner = canvas_pixels(page)
@@ -150,7 +100,7 @@ def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app
 
     frames = int(page.evaluate("+document.getElementById('viewer-canvas').dataset.frames"))
     page.mouse.move(box["x"] + box["width"] * 0.25, box["y"] + box["height"] * 0.75, steps=4)  # between v0 and v3
-    settle(page, frames)
+    settle(page, frames, wait_until)
     weights = [float(w) for w in page.evaluate("document.getElementById('viewer-canvas').dataset.weights").split(",")]
     assert weights[0] > 0 and weights[3] > 0 and weights[1] == 0 and sum(weights) == pytest.approx(1, abs=0.01)
     between = canvas_pixels(page)

@@ -6,35 +6,14 @@ from __future__ import annotations
 import base64
 import io
 
-import cv2
 import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline.io import write_npy, write_png
-from pipeline.records import CardTask
-from pipeline.view_stage import ViewsStageParams, views_task
 
 @pytest.fixture
-def card_with_views(app, data_dir, make_card, add_stage_result) -> tuple[int, object]:  # type: ignore[no-untyped-def]
-    from skimage import data
-
-    left, _, disp = data.stereo_motorcycle()
-    scale = 240 / left.shape[1]
-    size = (240, round(left.shape[0] * scale))
-    view = cv2.resize(np.asarray(left), size, interpolation=cv2.INTER_AREA)
-    d = cv2.resize(np.asarray(disp, np.float32), size, interpolation=cv2.INTER_NEAREST) * scale
-    write_png(data_dir / "rect" / "left.png", view)
-    write_npy(data_dir / "rect" / "disparity_left.npy", np.where(np.isfinite(d), d, np.nan).astype(np.float32))
-    card_id = make_card(state="pass")
-    task = CardTask(card_id=card_id, content_hash="d" * 64, image_path="", work_dir=str(data_dir / "derived" / "views"),
-                    data_dir=str(data_dir), inputs={"left": "rect/left.png", "disparity_left": "rect/disparity_left.npy",
-                                                    "focal_px": 3979.911 * scale, "grade": "some"})
-    record = views_task(task, ViewsStageParams(preview_side=120, preview_frames=4))
-    assert record.status == "done", record.reason
-    add_stage_result(card_id, "views", status="done", outcome=None, param_hash=record.param_hash,
-                     metrics=record.metrics, artifacts=record.artifacts)
-    return card_id, record
+def card_with_views(make_card_with_views):  # type: ignore[no-untyped-def]
+    return make_card_with_views(240, "some")
 
 
 def canvas_pixels(page) -> np.ndarray:  # type: ignore[no-untyped-def]

@@ -7,38 +7,13 @@ import json
 import re
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
-from pipeline.io import write_npy, write_png
-from pipeline.records import CardTask
-from pipeline.view_stage import ViewsStageParams, views_task
-
-PARAMS = ViewsStageParams(preview_side=120, preview_frames=4)
-
 
 @pytest.fixture
-def card_with_views(app, data_dir, make_card, add_stage_result):  # type: ignore[no-untyped-def]
-    """A stored card whose latest views result is the real output of views_task (Motorcycle at 160 px)."""
-    from skimage import data
-
-    left, _, disp = data.stereo_motorcycle()
-    scale = 160 / left.shape[1]
-    size = (160, round(left.shape[0] * scale))
-    view = cv2.resize(np.asarray(left), size, interpolation=cv2.INTER_AREA)
-    d = cv2.resize(np.asarray(disp, np.float32), size, interpolation=cv2.INTER_NEAREST) * scale
-    write_png(data_dir / "rect" / "left.png", view)
-    write_npy(data_dir / "rect" / "disparity_left.npy", np.where(np.isfinite(d), d, np.nan).astype(np.float32))
-    card_id = make_card(state="pass")
-    task = CardTask(card_id=card_id, content_hash="c" * 64, image_path="", work_dir=str(data_dir / "derived" / "views"),
-                    data_dir=str(data_dir), inputs={"left": "rect/left.png", "disparity_left": "rect/disparity_left.npy",
-                                                    "focal_px": 3979.911 * scale, "grade": "few"})
-    record = views_task(task, PARAMS)
-    assert record.status == "done", record.reason
-    add_stage_result(card_id, "views", status="done", outcome=None, param_hash=record.param_hash,
-                     metrics=record.metrics, artifacts=record.artifacts)
-    return card_id, record
+def card_with_views(make_card_with_views):  # type: ignore[no-untyped-def]
+    return make_card_with_views(160, "few")
 
 
 def test_the_viewer_needs_a_login(client, card_with_views):

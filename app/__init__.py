@@ -53,11 +53,4 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     app.register_blueprint(exports_bp)
     app.register_blueprint(viewer.bp)
     security.init_app(app)
-
-    # The same commands on the app's own CLI group, so `flask --app app ...` and the test CLI
-    # runner reach every `keystone` command.
-    from .cli import cli as keystone_cli
-
-    for name, command in keystone_cli.commands.items():
-        app.cli.add_command(command, name)
     return app

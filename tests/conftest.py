@@ -161,7 +161,16 @@ def client(app):  # type: ignore[no-untyped-def]
 
 @pytest.fixture
 def runner(app):  # type: ignore[no-untyped-def]
-    return app.test_cli_runner()
+    """A CLI runner bound to the test app whose ``invoke(args=[...])`` runs ``keystone`` commands."""
+    from flask.testing import FlaskCliRunner
+
+    from app.cli import cli
+
+    class KeystoneCliRunner(FlaskCliRunner):
+        def invoke(self, cli_group=None, args=None, **kwargs):  # type: ignore[no-untyped-def,override]
+            return super().invoke(cli_group or cli, args, **kwargs)
+
+    return KeystoneCliRunner(app)
 
 
 @pytest.fixture(scope="session")

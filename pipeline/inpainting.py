@@ -592,6 +592,40 @@ def builtin_gd_images(size: int, train_fraction: float = 0.6, stride: int | None
     return train, test
 
 
+def crop_gd_images(gd_images, size: int, stride: int | None = None, min_valid: float = 0.5,
+                   flips: bool = True) -> list:
+    """``size`` x ``size`` training crops of whole GD images (e.g. the catalogue's own v0 views),
+    each downscaled first so its shorter side is at most 3 crop sizes (focal scaled with it), plus
+    horizontal flips. Crops with less than ``min_valid`` valid depth are dropped."""
+    from .views import make_gd_image
+
+    crops = []
+    for gd in gd_images:
+        h, w = gd.shape
+        s = min(1.0, 3 * size / min(h, w))
+        if s < 1.0:
+            new = (max(size, round(w * s)), max(size, round(h * s)))
+            intensity = cv2.resize(gd.intensity, new, interpolation=cv2.INTER_AREA)
+            depth = cv2.resize(gd.depth, new, interpolation=cv2.INTER_NEAREST)
+            valid = cv2.resize(gd.valid.astype(np.uint8), new, interpolation=cv2.INTER_NEAREST).astype(bool)
+            focal = gd.focal_px * new[0] / w
+        else:
+            intensity, depth, valid, focal = gd.intensity, gd.depth, gd.valid, gd.focal_px
+        st = stride or max(4, size // 2)
+        for y in range(0, depth.shape[0] - size + 1, st):
+            for x in range(0, depth.shape[1] - size + 1, st):
+                sl = (slice(y, y + size), slice(x, x + size))
+                if valid[sl].mean() < min_valid:
+                    continue
+                for flip in ((False, True) if flips else (False,)):
+                    gi, di, vi = intensity[sl], depth[sl], valid[sl]
+                    if flip:
+                        gi, di, vi = gi[:, ::-1], di[:, ::-1], vi[:, ::-1]
+                    crops.append(make_gd_image(np.ascontiguousarray(gi), np.ascontiguousarray(di), focal,
+                                               np.ascontiguousarray(vi)))
+    return crops
+
+
 def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig | None = None,
                          out_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
     """Train briefly on double-reprojection holes of the training crops, then L1 inside the holes

@@ -1,4 +1,7 @@
-"""Curator review: queues, quality labels, decisions, audit, agreement reports.
+"""Curator review: the queue, decisions, disputes and gold, the audit trail, grade models, reports.
 
-Empty until the review feature lands; see ``annotation/__init__.py`` for why it exists now.
+``review.tasks`` holds the use cases (sync new grades into the queue, decide with optimistic
+locking, resolve disputed crowd answers); ``review.views`` the pages; ``review.grading`` stores
+and refits the grader's thresholds (the thresholds themselves are pure: ``pipeline.grading``);
+``review.report`` the figures of ``keystone report``.
 """

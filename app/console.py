@@ -62,6 +62,16 @@ def progress_bar(description: str, enabled: bool) -> Iterator[_Progress]:
         yield _Progress(progress, progress.add_task(description, total=None))
 
 
+def fail(message: str, as_json: bool) -> None:
+    """End a command with exit status 1: ``{"error": message}`` on stdout under --json, else
+    ``Error: message`` on stderr."""
+    if as_json:
+        emit_json({"error": message})
+    else:
+        click.echo(f"Error: {message}", err=True)
+    raise SystemExit(1)
+
+
 def say(message: str, as_json: bool) -> None:
     """Human messages go to stderr under --json so stdout stays one JSON document."""
     click.echo(message, err=as_json)

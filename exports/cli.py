@@ -28,7 +28,7 @@ def export_command(out_dir: Path, min_grade: str, formats: str, dry_run: bool, n
     WebDataset tars; always croissant.json, README.md (dataset card), CHANGELOG.md, SHA256SUMS.
     Exits 1 when no accepted card is ready to release.
     """
-    from app.console import emit_json, ensure_database, progress_bar, say
+    from app.console import emit_json, ensure_database, fail, progress_bar, say
 
     from .records import parse_formats
     from .release import ReleaseError, plan_release, publish_release
@@ -47,11 +47,7 @@ def export_command(out_dir: Path, min_grade: str, formats: str, dry_run: bool, n
             with progress_bar("export", enabled=not as_json) as progress:
                 report = publish_release(out_dir, min_grade=min_grade, formats=chosen, notes=notes, progress=progress)
     except ReleaseError as exc:
-        if as_json:
-            emit_json({"error": str(exc)})
-        else:
-            click.echo(f"Error: {exc}", err=True)
-        raise SystemExit(1) from exc
+        fail(str(exc), as_json)
     if as_json:
         emit_json(report.as_json())
         return

@@ -99,7 +99,7 @@ def grade_show_command(as_json: bool) -> None:
 def grade_fit_command(folds: int, seed: int, dry_run: bool, as_json: bool) -> None:
     """Refit the grade thresholds to the curators' labels so far and report their agreement on
     labels they were not fitted on. Then `keystone run --stages grade` regrades with them."""
-    from app.console import emit_json, ensure_database
+    from app.console import emit_json, ensure_database, fail
 
     from .grading import GradingError, fit_from_curators
 
@@ -107,11 +107,7 @@ def grade_fit_command(folds: int, seed: int, dry_run: bool, as_json: bool) -> No
     try:
         document = fit_from_curators(folds=folds, seed=seed, save=not dry_run)
     except GradingError as exc:
-        if as_json:
-            emit_json({"error": str(exc)})
-        else:
-            click.echo(f"error: {exc}", err=True)
-        raise SystemExit(1) from exc
+        fail(str(exc), as_json)
     if as_json:
         emit_json(document)
         return

@@ -15,12 +15,17 @@ Conventions
   goes back to the pool.
 - Gold items are *not* capped at N: every worker should be testable on every gold item, and
   their answers are never aggregated into the batch result.
+- Among equally complete items the highest :func:`item_rank` wins: one fixed pseudo-random
+  rank per item (the batch's shuffle), the same for every worker. Why not a per-worker order: a
+  database can walk one stored order with an index and stop at the first open item, so the
+  web app finds a task in time independent of the batch size (see :mod:`annotation.tasks`,
+  which implements this rule in SQL and is tested against this function).
 """
 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Collection, Hashable, Iterable
+from collections.abc import Collection, Hashable, Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from enum import StrEnum
@@ -33,6 +38,8 @@ __all__ = [
     "NoTaskReason",
     "Reservation",
     "gold_draw",
+    "item_rank",
+    "least_seen_gold",
     "next_assignment",
 ]
 
@@ -42,10 +49,13 @@ class BatchItem:
     """One item (a card's judge or crop task) of a batch, as stored so far.
 
     ``answered_by`` holds the workers with a stored answer; its size is the answer count.
+    ``rank`` is the item's place in the batch's shuffle; None means :func:`item_rank` of the
+    policy's seed and the item id (what the web app stores).
     """
 
     item_id: Hashable
     answered_by: frozenset[Hashable] = field(default_factory=frozenset)
+    rank: int | None = None
 
     @property
     def answer_count(self) -> int:
@@ -112,14 +122,33 @@ def _unit_hash(*parts: object) -> float:
     return int.from_bytes(digest, "big") / 2.0**64
 
 
-def gold_draw(worker_id: Hashable, answer_count: int, policy: AssignmentPolicy) -> bool:
+RANK_BITS = 63  # ranks fit a signed 64-bit integer column on SQLite and PostgreSQL
+
+
+def item_rank(seed: Hashable, item_id: Hashable) -> int:
+    """The item's place in its batch's shuffle: a stable pseudo-random integer in [0, 2**63)."""
+    digest = hashlib.blake2b(f"{seed}:rank:{item_id}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "big") >> (64 - RANK_BITS)
+
+
+def gold_draw(worker_id: Hashable, served: int, policy: AssignmentPolicy) -> bool:
     """Whether this worker's next task should be gold.
 
-    Keyed on (seed, worker, how many answers the worker has given) so that a page reload
-    before answering draws the same way (no fishing for non-gold tasks), while successive
-    tasks are independent draws at rate ``gold_rate``.
+    Keyed on (seed, worker, ``served``: how many items of the batch the worker has answered
+    or holds open) so that a page reload before answering draws the same way (no fishing for
+    non-gold tasks), while successive tasks, the preloaded one included, are independent
+    draws at rate ``gold_rate``.
     """
-    return _unit_hash(policy.seed, "gold", worker_id, answer_count) < policy.gold_rate
+    return _unit_hash(policy.seed, "gold", worker_id, served) < policy.gold_rate
+
+
+def least_seen_gold(answer_counts: Mapping[Hashable, int], worker_id: Hashable, policy: AssignmentPolicy) -> Hashable:
+    """The gold item to serve among ``answer_counts`` (gold item -> answers so far; not empty).
+
+    Least-answered first, so gold answers spread over all gold items; ties break on a
+    per-worker hash, so workers do not all meet the gold items in one order.
+    """
+    return min(answer_counts, key=lambda item_id: (answer_counts[item_id], _unit_hash(policy.seed, worker_id, item_id)))
 
 
 def next_assignment(
@@ -155,8 +184,7 @@ def next_assignment(
     Among open regular items the one closest to completion wins (most answers + holds).
     Why: aggregation, approval and the pipeline consume *finished* items; spreading answers
     thinly leaves the whole batch at N - 1 for a long time, and a worker who leaves early
-    then costs the least. Ties break on a per-worker hash, so concurrent workers asking at
-    once mostly pick different items instead of racing for the same row.
+    then costs the least. Ties go to the highest rank in the batch's shuffle (:func:`item_rank`).
     """
     if worker_id in flagged_workers:
         return NoTask(NoTaskReason.WORKER_FLAGGED)
@@ -176,7 +204,7 @@ def next_assignment(
         expiry_by_item[r.item_id] = r.expires_at if first is None else min(first, r.expires_at)
 
     expires_at = now + policy.reservation_ttl
-    answers_by_worker = sum(1 for it in items if worker_id in it.answered_by)
+    served = sum(1 for it in items if worker_id in it.answered_by) + len(held_by_worker)
 
     def available_to_worker(it: BatchItem) -> bool:
         return worker_id not in it.answered_by and it.item_id not in held_by_worker
@@ -190,20 +218,16 @@ def next_assignment(
     ]
     gold_open = [it for it in items if it.item_id in gold and available_to_worker(it)]
 
-    if gold_open and regular_open and gold_draw(worker_id, answers_by_worker, policy):
-        # Least-seen gold first, so gold answers spread over all gold items.
-        chosen = min(
-            gold_open,
-            key=lambda it: (it.answer_count, _unit_hash(policy.seed, worker_id, it.item_id)),
-        )
-        return Assignment(chosen.item_id, True, expires_at)
+    if gold_open and regular_open and gold_draw(worker_id, served, policy):
+        chosen_gold = least_seen_gold({it.item_id: it.answer_count for it in gold_open}, worker_id, policy)
+        return Assignment(chosen_gold, True, expires_at)
 
     if regular_open:
-        chosen = min(
+        chosen = max(
             regular_open,
             key=lambda it: (
-                -(it.answer_count + open_holds.get(it.item_id, 0)),
-                _unit_hash(policy.seed, worker_id, it.item_id),
+                it.answer_count + open_holds.get(it.item_id, 0),
+                it.rank if it.rank is not None else item_rank(policy.seed, it.item_id),
             ),
         )
         return Assignment(chosen.item_id, False, expires_at)

@@ -10,14 +10,17 @@ from datetime import datetime
 from typing import Any
 
 from sqlalchemy import (
+    BigInteger,
     CheckConstraint,
     DateTime,
     Float,
     ForeignKey,
+    Index,
     Integer,
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
@@ -53,14 +56,31 @@ class Batch(db.Model):
 
 
 class BatchItem(db.Model):
+    """One card to answer in a batch, with its slot counters.
+
+    ``answers`` (usable answers: not flagged) and ``taken`` (usable answers + open
+    reservations) are a cache of counts over this item's rows, recounted from those rows by
+    :mod:`annotation.tasks` in the same transaction as every change to them. They let fetch-next
+    walk ``ix_crowd_batch_items_open`` (most taken first, then ``rank``, the batch's shuffle:
+    :func:`annotation.assignment.item_rank`) and stop at the first open item, whatever the
+    batch's size.
+    """
+
     __tablename__ = "crowd_batch_items"
-    __table_args__ = (UniqueConstraint("batch_id", "card_id", name="crowd_item_batch_card"),)
+    __table_args__ = (
+        UniqueConstraint("batch_id", "card_id", name="crowd_item_batch_card"),
+        Index("ix_crowd_batch_items_open", "batch_id", "is_gold", "taken", "rank"),
+        Index("ix_crowd_batch_items_unfinished", "batch_id", "is_gold", "answers"),
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     batch_id: Mapped[int] = mapped_column(ForeignKey("crowd_batches.id", ondelete="CASCADE"), index=True)
     card_id: Mapped[int] = mapped_column(ForeignKey("cards.id", ondelete="CASCADE"), index=True)
     is_gold: Mapped[bool] = mapped_column(default=False)
     gold_answer: Mapped[dict[str, Any] | None] = mapped_column(JSONType)
+    answers: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    taken: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    rank: Mapped[int] = mapped_column(BigInteger, default=0, server_default="0")
 
     batch: Mapped[Batch] = relationship(back_populates="items")
     card: Mapped[Card] = relationship()
@@ -90,10 +110,21 @@ class Reservation(db.Model):
     """An item handed to a worker. Open while ``expires_at`` is ahead and ``answered_at`` is empty.
 
     Kept after the answer (``answered_at`` set) so a late or replayed post gets an exact reason.
+    ``released_at`` is set when a lapsed, unanswered reservation stopped counting toward its
+    item's ``taken`` (the sweep in :mod:`annotation.tasks`; renewing it clears it again).
     """
 
     __tablename__ = "crowd_reservations"
-    __table_args__ = (UniqueConstraint("item_id", "worker_id", name="crowd_reservation_item_worker"),)
+    __table_args__ = (
+        UniqueConstraint("item_id", "worker_id", name="crowd_reservation_item_worker"),
+        # Counted holds only: a worker's open tasks, and the holds due to lapse.
+        Index("ix_crowd_reservations_held", "worker_id", "expires_at",
+              sqlite_where=text("answered_at IS NULL AND released_at IS NULL"),
+              postgresql_where=text("answered_at IS NULL AND released_at IS NULL")),
+        Index("ix_crowd_reservations_lapsing", "expires_at",
+              sqlite_where=text("answered_at IS NULL AND released_at IS NULL"),
+              postgresql_where=text("answered_at IS NULL AND released_at IS NULL")),
+    )
 
     id: Mapped[int] = mapped_column(primary_key=True)
     item_id: Mapped[int] = mapped_column(ForeignKey("crowd_batch_items.id", ondelete="CASCADE"), index=True)
@@ -102,6 +133,7 @@ class Reservation(db.Model):
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     expires_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
     answered_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+    released_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
 
     item: Mapped[BatchItem] = relationship()
     worker: Mapped[Worker] = relationship()

@@ -18,15 +18,14 @@ from typing import Any, NamedTuple
 import numpy as np
 from flask import current_app
 from sqlalchemy import (
-    Boolean,
+    Integer,
+    and_,
     bindparam,
     case,
     delete,
     func,
-    literal,
-    null,
+    or_,
     select,
-    union_all,
     update,
 )
 from sqlalchemy import inspect as sa_inspect
@@ -112,6 +111,9 @@ def create_batch(card_ids: Sequence[int], kind: str = "judge", n: int = 3, gold_
     for card_id in wanted:
         batch.items.append(BatchItem(card_id=card_id, is_gold=card_id in gold, gold_answer=gold.get(card_id)))
     db.session.add(batch)
+    db.session.flush()  # ids: the shuffle is keyed on them
+    for item in batch.items:
+        item.rank = strategy.item_rank(batch.id, item.id)
     db.session.commit()
     return batch
 
@@ -143,21 +145,26 @@ def get_or_create_worker(provider: str, external_id: str, person_id: int | None 
 # Fetching a task
 #
 # Why it is built this way (measured with `keystone bench crowd`, 50 annotators under waitress
-# on SQLite): SQLite runs one write transaction at a time, and the server runs Python on one
-# core, so both the time spent holding the write lock and the Python spent per request turn
-# into queueing for fifty annotators. Fetch-next used to load every item, reservation and
-# answer of the batch as ORM rows inside its write transaction, once per task topped up. Now:
-# - the plan is made in a deferred read transaction (WAL readers neither wait for nor block the
-#   writer), from column queries joined on the batch; finished batches are skipped in SQL;
-# - the write transaction re-checks the planned items with one query and inserts with Core
-#   statements; what a plan gone stale (another worker took the last slot in between) could not
-#   reserve is planned again and tried in a new transaction. On PostgreSQL the planned item rows
-#   are locked first (FOR NO KEY UPDATE, in id order), so two workers never both see one last
-#   slot free;
-# - the plan carries spare choices, so a first choice taken in between rarely forces a replan
-#   under the lock; and threads of one process queue for the write lock on a Python lock
-#   (:func:`one_writer`) rather than in SQLite's sleeping busy handler;
-# - hot statements are built once with bound parameters and run on the session's connection:
+# on SQLite, and at 25,000 items): SQLite runs one write transaction at a time and the server
+# runs Python on one core, so the write-lock hold time and the Python spent per request both
+# turn into queueing for fifty annotators; and a collection of 250,000 cards makes batches of
+# tens of thousands of items, so nothing on the hot path may load a whole batch.
+# - Every item carries slot counters, ``answers`` (usable) and ``taken`` (usable answers + open
+#   reservations), and a fixed ``rank`` in the batch's shuffle. Every write that changes an
+#   item's answers or reservations recounts that item from its rows in the same transaction
+#   (:data:`_RECOUNT`), so the counters never drift from the rows they cache.
+# - Fetch-next reads the worker's open tasks; when it needs more it opens one short write
+#   transaction: release the holds that lapsed (an index seek when none did), walk
+#   ``ix_crowd_batch_items_open`` (most taken first, then rank, as the pure strategy orders
+#   them) to the first items this worker may take, insert their reservations and recount them.
+#   None of it grows with the batch.
+# - PostgreSQL: the walk locks the items it takes FOR NO KEY UPDATE SKIP LOCKED, so concurrent
+#   fetches take different items instead of queueing on one, and re-checks ``taken < N`` on the
+#   locked row; every statement after a lock sees what was committed before it (READ
+#   COMMITTED), so recounts are exact. Waiting locks are taken in id order (no deadlocks).
+#   SQLite's BEGIN IMMEDIATE serializes writers, and threads of one process queue for it on a
+#   Python lock (:func:`one_writer`) rather than in SQLite's sleeping busy handler.
+# - Hot statements are built once with bound parameters and run on the session's connection:
 #   building a select() costs about as much Python as running it, ORM row handling more.
 
 
@@ -197,58 +204,102 @@ def _task(reservation: Reservation) -> Task:
                 _aware(reservation.expires_at))
 
 
-_reservations, _answers = Reservation.__table__, Answer.__table__
+_items, _reservations, _answers = BatchItem.__table__, Reservation.__table__, Answer.__table__
+# A reservation counts toward its item's ``taken`` while neither answered nor released.
+_HELD = and_(_reservations.c.answered_at.is_(None), _reservations.c.released_at.is_(None))
+
+
+def _held_by(worker: Any, item: Any = _items.c.id) -> Any:
+    """EXISTS: ``worker`` answered ``item`` or holds it (a released reservation does not count)."""
+    # Aliases: the enclosing query may join the answers or reservations tables itself.
+    answers, reservations = _answers.alias("worker_answers"), _reservations.alias("worker_holds")
+    return or_(
+        select(answers.c.id).where(answers.c.item_id == item, answers.c.worker_id == worker).exists(),
+        select(reservations.c.id).where(reservations.c.item_id == item, reservations.c.worker_id == worker,
+                                        reservations.c.answered_at.is_(None), reservations.c.released_at.is_(None))
+        .exists())
+
+
+def _recount_statement() -> Any:
+    usable = (select(func.count()).select_from(_answers)
+              .where(_answers.c.item_id == _items.c.id, _answers.c.flagged.is_(False)).scalar_subquery())
+    held = (select(func.count()).select_from(_reservations)
+            .where(_reservations.c.item_id == _items.c.id, _HELD).scalar_subquery())
+    return (_items.update().where(_items.c.id.in_(bindparam("item_ids", expanding=True)))
+            .values(answers=usable, taken=usable + held))
+
+
+_RECOUNT = _recount_statement()
+# FOR NO KEY UPDATE: it serializes writers of one item, but not the KEY SHARE locks that
+# inserting an answer or a reservation (foreign keys to the item) takes.
+_LOCK_ITEMS = (select(_items.c.id).where(_items.c.id.in_(bindparam("item_ids", expanding=True)))
+               .order_by(_items.c.id).with_for_update(key_share=True))
+_LOCK_FREE_ITEMS = (select(_items.c.id).where(_items.c.id.in_(bindparam("item_ids", expanding=True)))
+                    .order_by(_items.c.id).with_for_update(key_share=True, skip_locked=True))
+SWEEP_LIMIT = 500  # lapsed holds released per fetch; the next fetch releases the rest
+_LAPSED_ITEMS = (select(_reservations.c.item_id)
+                 .where(_HELD, _reservations.c.expires_at <= bindparam("now")).limit(SWEEP_LIMIT))
+_RELEASE_LAPSED = (_reservations.update()
+                   .where(_reservations.c.item_id.in_(bindparam("item_ids", expanding=True)), _HELD,
+                          _reservations.c.expires_at <= bindparam("now"))
+                   .values(released_at=bindparam("now")))
+
 _OPEN_TASKS = (
     select(Reservation.token, BatchItem.batch_id, Batch.kind, BatchItem.card_id, Card.width, Card.height,
            Reservation.expires_at)
     .join(BatchItem, Reservation.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id)
     .join(Card, BatchItem.card_id == Card.id)
     .where(Reservation.worker_id == bindparam("worker_id"), Reservation.answered_at.is_(None),
-           Batch.kind == bindparam("kind"), Reservation.expires_at > bindparam("now"))
+           Reservation.released_at.is_(None), Batch.kind == bindparam("kind"),
+           Reservation.expires_at > bindparam("now"))
     .order_by(Reservation.created_at, Reservation.id))
 _WORKER_FLAGGED = select(Worker.flagged).where(Worker.id == bindparam("worker_id"))
 _ANSWER_COUNT = select(func.count()).select_from(Answer).where(Answer.worker_id == bindparam("worker_id"))
-# Batches with a regular item below N stored answers: one indexed count per item, stopping at
-# the first open one, instead of loading finished batches into the strategy on every fetch.
+# Batches with a regular item below N usable answers: one index seek per batch.
 _OPEN_BATCHES = (
     select(Batch.id, Batch.answers_per_item, Batch.gold_rate)
     .where(Batch.kind == bindparam("kind"),
-           select(BatchItem.id).where(
-               BatchItem.batch_id == Batch.id, BatchItem.is_gold.is_(False),
-               select(func.count()).select_from(Answer)
-               .where(Answer.item_id == BatchItem.id, Answer.flagged.is_(False)).scalar_subquery()
-               < Batch.answers_per_item).exists())
+           select(_items.c.id).where(_items.c.batch_id == Batch.id, _items.c.is_gold.is_(False),
+                                     _items.c.answers < Batch.answers_per_item).exists())
     .order_by(Batch.id))
-_BATCH_ITEMS = (select(BatchItem.id, BatchItem.is_gold, BatchItem.card_id, Card.width, Card.height)
-                .join(Card, BatchItem.card_id == Card.id).where(BatchItem.batch_id == bindparam("batch_id")))
-# Open reservations and usable answers of a batch in ONE statement: under READ COMMITTED
-# (PostgreSQL) two statements may straddle a submit's commit and count it twice (held, then
-# answered), and a worker told "nothing left" while slots remain would stop working. Flagged
-# answers (their worker failed gold) are left out of aggregation, so they do not fill a slot
-# either: the item is served to someone else until it has N usable answers; their worker is
-# no longer served, so cannot be handed it again. ``expires_at`` is NULL on answers.
-_BATCH_TAKERS = union_all(
-    select(Reservation.item_id, Reservation.worker_id, Reservation.expires_at)
-    .join(BatchItem, Reservation.item_id == BatchItem.id)
-    .where(BatchItem.batch_id == bindparam("batch_id"), Reservation.answered_at.is_(None),
-           Reservation.expires_at > bindparam("now")),
-    select(Answer.item_id, Answer.worker_id, null()).join(BatchItem, Answer.item_id == BatchItem.id)
-    .where(BatchItem.batch_id == bindparam("batch_id"), Answer.flagged.is_(False)))
-# Everyone who answered or ever held the given items; the reservation columns are NULL on
-# answers, ``flagged`` is False on reservations.
-_ITEM_TAKERS = union_all(
-    select(Reservation.item_id, Reservation.worker_id, Reservation.id, Reservation.answered_at,
-           Reservation.expires_at, literal(False, Boolean()).label("flagged"))
-    .where(Reservation.item_id.in_(bindparam("item_ids", expanding=True))),
-    select(Answer.item_id, Answer.worker_id, null(), null(), null(), Answer.flagged)
-    .where(Answer.item_id.in_(bindparam("item_ids", expanding=True))))
-# FOR NO KEY UPDATE: it still serializes two fetches of one item, but not the KEY SHARE locks
-# that inserting an answer or a reservation (foreign keys to the item) takes.
-_LOCK_ITEMS = (select(BatchItem.id).where(BatchItem.id.in_(bindparam("item_ids", expanding=True)))
-               .order_by(BatchItem.id).with_for_update(key_share=True))
+# The walk: open regular items this worker may take, in the pure strategy's order, on the
+# index (batch_id, is_gold, taken, rank) read backwards. ``mine`` is this worker's released
+# (lapsed) reservation of the item, renewed rather than duplicated.
+_mine = _reservations.alias("mine")
+_OPEN_ITEMS = (
+    select(_items.c.id, _items.c.card_id, Card.width, Card.height, _mine.c.id.label("mine"),
+           _mine.c.token.label("mine_token"))
+    .join(Card, _items.c.card_id == Card.id)
+    .outerjoin(_mine, and_(_mine.c.item_id == _items.c.id, _mine.c.worker_id == bindparam("worker_id")))
+    .where(_items.c.batch_id == bindparam("batch_id"), _items.c.is_gold.is_(False),
+           _items.c.taken < bindparam("n"), ~_held_by(bindparam("worker_id")))
+    .order_by(_items.c.taken.desc(), _items.c.rank.desc())
+    .limit(bindparam("limit", type_=Integer)))
+_OPEN_ITEMS_LOCKED = _OPEN_ITEMS.with_for_update(key_share=True, skip_locked=True, of=_items)
+# Gold is never capped at N: every gold item this worker has not seen, with how often it was answered.
+_OPEN_GOLD = (
+    select(_items.c.id, _items.c.card_id, _items.c.answers, Card.width, Card.height, _mine.c.id.label("mine"),
+           _mine.c.token.label("mine_token"))
+    .join(Card, _items.c.card_id == Card.id)
+    .outerjoin(_mine, and_(_mine.c.item_id == _items.c.id, _mine.c.worker_id == bindparam("worker_id")))
+    .where(_items.c.batch_id == bindparam("batch_id"), _items.c.is_gold.is_(True), ~_held_by(bindparam("worker_id"))))
+# How many items of the batch this worker answered or holds: the key of the gold draw.
+_SERVED = (select(func.count()).select_from(_items)
+           .where(_items.c.batch_id == bindparam("batch_id"), _held_by(bindparam("worker_id"))))
+# Why a batch has nothing for this worker: its unfinished regular items this worker has not
+# touched, and the earliest lapse of a hold on them (they are all held by others, else the
+# walk would have found one).
+_UNFINISHED = (select(func.count(_items.c.id.distinct()), func.min(_reservations.c.expires_at))
+               .select_from(_items)
+               .outerjoin(_reservations, and_(_reservations.c.item_id == _items.c.id, _HELD))
+               .where(_items.c.batch_id == bindparam("batch_id"), _items.c.is_gold.is_(False),
+                      _items.c.answers < bindparam("n"), ~_held_by(bindparam("worker_id"))))
+_ANY_UNFINISHED = select(_items.c.id).where(_items.c.batch_id == bindparam("batch_id"), _items.c.is_gold.is_(False),
+                                            _items.c.answers < bindparam("n")).limit(1)
 _INSERT_RESERVATION = _reservations.insert()
 _RENEW_RESERVATION = (_reservations.update().where(_reservations.c.id == bindparam("reservation_id"))
-                      .values(expires_at=bindparam("expires"), answered_at=None, created_at=bindparam("created")))
+                      .values(expires_at=bindparam("expires"), answered_at=None, released_at=None,
+                              created_at=bindparam("created")))
 
 
 _SQLITE_WRITER = threading.Lock()
@@ -267,7 +318,7 @@ def one_writer() -> Iterator[None]:
     SQLite's write lock on another path cannot deadlock with this gate): after
     ``WRITER_GATE_TIMEOUT_S`` it goes on without the gate. PostgreSQL needs none of this.
     """
-    if db.session.get_bind().dialect.name != "sqlite":
+    if not _on_sqlite():
         yield
         return
     acquired = _SQLITE_WRITER.acquire(timeout=WRITER_GATE_TIMEOUT_S)
@@ -278,12 +329,50 @@ def one_writer() -> Iterator[None]:
             _SQLITE_WRITER.release()
 
 
+def _on_sqlite() -> bool:
+    return db.session.get_bind().dialect.name == "sqlite"
+
+
 def _core(statement: Any, params: Mapping[str, Any]) -> Any:
     """Run a prebuilt statement on the session's connection: plain rows, none of the ORM's row handling.
 
     Same transaction as the session (a read-only one inside :func:`read_only`).
     """
     return db.session.connection().execute(statement, params)
+
+
+def recount_items(item_ids: Iterable[int], *, locked: bool = False) -> None:
+    """Recount ``answers`` and ``taken`` of these items from their rows, in the caller's write transaction.
+
+    Every change to an item's answers or reservations calls this before committing. On
+    PostgreSQL the items are locked first, in id order, unless the caller holds them already
+    (``locked``), so this statement sees every change committed to them before it.
+    """
+    ids = sorted(set(item_ids))
+    if not ids:
+        return
+    if not locked and not _on_sqlite():
+        _core(_LOCK_ITEMS, {"item_ids": ids})
+    _core(_RECOUNT, {"item_ids": ids})
+
+
+def release_lapsed_holds(now: datetime) -> int:
+    """Put the slots of reservations that lapsed by ``now`` back in the pool; how many items changed.
+
+    The reservation rows stay (``released_at`` set), so a late submit gets an exact reason and
+    the same worker renews rather than duplicates them. PostgreSQL: items another transaction
+    holds are skipped; that transaction recounts them itself, and the next fetch sweeps again.
+    """
+    ids = sorted(set(_core(_LAPSED_ITEMS, {"now": now}).scalars()))
+    if not ids:
+        return 0
+    if not _on_sqlite():
+        ids = list(_core(_LOCK_FREE_ITEMS, {"item_ids": ids}).scalars())
+        if not ids:
+            return 0
+    _core(_RELEASE_LAPSED, {"item_ids": ids, "now": now})
+    recount_items(ids, locked=True)
+    return len(ids)
 
 
 def open_tasks(worker: Worker | int, kind: str, now: datetime) -> list[Task]:
@@ -301,154 +390,109 @@ def _reservation_ttl() -> timedelta:
     return timedelta(minutes=float(_config("KEYSTONE_CROWD_RESERVATION_MINUTES", DEFAULT_RESERVATION_MINUTES)))
 
 
-@dataclass(frozen=True)
-class _Planned:
-    """An item the strategy would hand the worker, with what its task shows and the write must re-check."""
-
-    item_id: int
-    is_gold: bool
-    answers_per_item: int
-    expires_at: datetime
-    batch_id: int
-    card_id: int
-    card_size: tuple[int, int]
-
-
-def _batch_state(batch_id: int, now: datetime) -> tuple[dict[int, Any], list[strategy.BatchItem],
-                                                        list[strategy.Reservation]]:
-    """One batch as the pure strategy sees it: item rows by id, items with their answerers, open holds."""
-    params = {"batch_id": batch_id, "now": now}
-    items = {row.id: row for row in _core(_BATCH_ITEMS, params)}
-    holds: list[strategy.Reservation] = []
-    answered: dict[int, set[int]] = {}
-    for item_id, worker_id, expires_at in _core(_BATCH_TAKERS, params):
-        if expires_at is None:
-            answered.setdefault(item_id, set()).add(worker_id)
-        else:
-            holds.append(strategy.Reservation(item_id, worker_id, _aware(expires_at)))
-    return items, [strategy.BatchItem(i, frozenset(answered.get(i, ()))) for i in items], holds
-
-
-SPARE_CHOICES = 2
-
-
-def _plan(worker_id: int, flagged: bool, kind: str, wanted: int, now: datetime,
-          spare: int = 0) -> tuple[list[_Planned], strategy.NoTask | None]:
-    """Up to ``wanted`` + ``spare`` items the strategy hands this worker now (first batch first), and why no more.
-
-    The spares are the strategy's next choices were the first ones taken: concurrent planners
-    see the same snapshot and the strategy prefers the items closest to completion, so the
-    first choice is often gone by the time the write lock is held (measured: one fetch in six
-    had to plan again without spares, one in twenty-five with two).
-    """
-    batches = _core(_OPEN_BATCHES, {"kind": kind}).all()
-    if not batches:
-        return [], strategy.NoTask(strategy.NoTaskReason.BATCH_COMPLETE)
-    if flagged:
-        return [], strategy.NoTask(strategy.NoTaskReason.WORKER_FLAGGED)
-    ttl = _reservation_ttl()
-    planned: list[_Planned] = []
-    why: strategy.NoTask | None = None
-    wanted += spare
-    for batch_id, n, gold_rate in batches:
-        rows, items, holds = _batch_state(batch_id, now)
-        gold = frozenset(i for i, row in rows.items() if row.is_gold)
-        policy = strategy.AssignmentPolicy(answers_per_item=n, gold_rate=gold_rate, reservation_ttl=ttl, seed=batch_id)
-        while len(planned) < wanted:
-            result = strategy.next_assignment(items, holds, gold, worker_id, now, policy=policy)
-            if isinstance(result, strategy.NoTask):
-                if why is None or result.reason != strategy.NoTaskReason.BATCH_COMPLETE:
-                    why = result
-                break
-            row = rows[int(result.item_id)]
-            planned.append(_Planned(row.id, row.is_gold, n, result.expires_at, batch_id, row.card_id,
-                                    (row.width, row.height)))
-            holds.append(strategy.Reservation(row.id, worker_id, result.expires_at))  # the next draw sees it
-        if len(planned) >= wanted:
-            break
-    return planned, why
-
-
-def _reserve_planned(planned: Sequence[_Planned], worker_id: int, kind: str, now: datetime,
-                     limit: int) -> list[Task]:
-    """Inside the write transaction: reserve, in plan order, up to ``limit`` planned items that still
-    have a slot for this worker."""
-    ids = sorted(p.item_id for p in planned)
-    if db.session.get_bind().dialect.name != "sqlite":
-        # Lock in id order so two workers cannot deadlock; SQLite's BEGIN IMMEDIATE already serializes.
-        _core(_LOCK_ITEMS, {"item_ids": ids})
-    takers: dict[int, int] = dict.fromkeys(ids, 0)  # stored answers + open reservations
-    blocked: set[int] = set()  # items this worker answered or holds open
-    mine_closed: dict[int, int] = {}  # item -> this worker's lapsed reservation: renewed, never duplicated
-    for item_id, taker, reservation_id, answered_at, expires_at, flagged in _core(_ITEM_TAKERS, {"item_ids": ids}):
-        is_answer = reservation_id is None
-        is_open_hold = not is_answer and answered_at is None and _aware(expires_at) > now
-        # An answered reservation is not counted (its answer row is), nor is a flagged answer.
-        takers[item_id] += (is_answer and not flagged) or is_open_hold
-        if taker == worker_id:
-            if is_answer or is_open_hold:
-                blocked.add(item_id)
-            else:
-                mine_closed[item_id] = reservation_id
-    tasks: list[Task] = []
-    for p in planned:
-        if len(tasks) >= limit:
-            break
-        if p.item_id in blocked or (not p.is_gold and takers[p.item_id] >= p.answers_per_item):
-            continue
+def _hold(row: Any, worker_id: int, batch_id: int, kind: str, now: datetime, expires_at: datetime) -> Task:
+    """Reserve the item of a walk row for the worker: renew their lapsed reservation or insert one."""
+    if row.mine is not None:
+        _core(_RENEW_RESERVATION, {"reservation_id": row.mine, "expires": expires_at, "created": now})
+        token = row.mine_token
+    else:
         token = secrets.token_urlsafe(24)
-        if p.item_id in mine_closed:
-            _core(_RENEW_RESERVATION, {"reservation_id": mine_closed[p.item_id],
-                                                    "expires": p.expires_at, "created": now})
-            token = db.session.scalar(select(Reservation.token).where(Reservation.id == mine_closed[p.item_id]))
+        _core(_INSERT_RESERVATION, {"item_id": row.id, "worker_id": worker_id, "token": token,
+                                    "created_at": now, "expires_at": expires_at})
+    return Task(token, batch_id, kind, row.card_id, (row.width, row.height), _aware(expires_at))
+
+
+def _reserve_in_batch(batch: Any, worker_id: int, kind: str, wanted: int,
+                      now: datetime) -> tuple[list[Task], strategy.NoTask | None]:
+    """Inside the write transaction: up to ``wanted`` tasks of one batch for the worker, and why no more.
+
+    The same rules as :func:`annotation.assignment.next_assignment` (a test holds the two to
+    the same choices), answered from the index instead of the whole batch.
+    """
+    batch_id, n, gold_rate = batch
+    params = {"batch_id": batch_id, "worker_id": worker_id, "n": n, "limit": wanted}
+    regular = list(_core(_OPEN_ITEMS if _on_sqlite() else _OPEN_ITEMS_LOCKED, params))
+    if not regular:
+        return [], _why_nothing(batch_id, n, worker_id)
+    policy = strategy.AssignmentPolicy(answers_per_item=n, gold_rate=gold_rate, reservation_ttl=_reservation_ttl(),
+                                       seed=batch_id)
+    expires_at = now + policy.reservation_ttl
+    gold = {row.id: row for row in _core(_OPEN_GOLD, params)} if gold_rate > 0 else {}
+    served = _core(_SERVED, params).scalar() if gold else 0
+    taken: list[Any] = []
+    while regular and len(taken) < wanted:
+        if gold and strategy.gold_draw(worker_id, served, policy):
+            pick = strategy.least_seen_gold({item_id: row.answers for item_id, row in gold.items()}, worker_id, policy)
+            taken.append(gold.pop(int(pick)))
         else:
-            _core(_INSERT_RESERVATION, {"item_id": p.item_id, "worker_id": worker_id, "token": token,
-                                                     "created_at": now, "expires_at": p.expires_at})
-        tasks.append(Task(token, p.batch_id, kind, p.card_id, p.card_size, _aware(p.expires_at)))
-    return tasks
+            taken.append(regular.pop(0))
+        served += 1
+    tasks = [_hold(row, worker_id, batch_id, kind, now, expires_at) for row in taken]
+    recount_items([row.id for row in taken], locked=True)
+    return tasks, None
+
+
+def _why_nothing(batch_id: int, n: int, worker_id: int) -> strategy.NoTask:
+    """Why the walk found no regular item of the batch for this worker (the pure strategy's reasons)."""
+    params = {"batch_id": batch_id, "n": n, "worker_id": worker_id}
+    if _core(_ANY_UNFINISHED, params).first() is None:
+        return strategy.NoTask(strategy.NoTaskReason.BATCH_COMPLETE)
+    count, retry_after = _core(_UNFINISHED, params).one()
+    if count and retry_after is not None:
+        return strategy.NoTask(strategy.NoTaskReason.ALL_RESERVED, retry_after=_aware(retry_after))
+    return strategy.NoTask(strategy.NoTaskReason.NOTHING_LEFT_FOR_WORKER)
 
 
 def next_tasks(worker: Worker | int, kind: str = "judge", hold: int = 2,
                now: datetime | None = None) -> tuple[list[Task], strategy.NoTask | None]:
     """The worker's open tasks, topping up to ``hold`` of them (the second is preloaded by the page).
 
-    Plans in a read transaction, then re-checks and reserves in a short write transaction (see
-    the section comment), so two workers asking at once never push an item beyond N and a
-    worker never holds or answers one item twice. Returns the tasks oldest first and, when
-    fewer than ``hold``, why there are no more.
+    One short write transaction (see the section comment), so two workers asking at once never
+    push an item beyond N and a worker never holds or answers one item twice. Returns the tasks
+    oldest first and, when fewer than ``hold``, why there are no more (the first batch with
+    work wins; otherwise the last batch's reason that is not "complete").
     """
     now = now or utcnow()
     worker_id = worker_id_of(worker)
-    with read_only():
-        held = open_tasks(worker_id, kind, now)
-        if len(held) >= hold:
-            return held, None
-        flagged = bool(_core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar())
-        wanted = hold - len(held)
-        planned, why = _plan(worker_id, flagged, kind, wanted, now, spare=SPARE_CHOICES)
-    if not planned:
-        return held, why
-    wanted, added = min(wanted, len(planned)), []
-    for attempt in range(3):
-        # One write transaction per attempt, each locking one id-ordered set of items on
-        # PostgreSQL: replanning inside a transaction that already holds item locks could take
-        # them out of order and deadlock with another worker's fetch.
+    try:
         with one_writer():
-            if _core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar():  # flagged since the plan
-                db.session.rollback()
-                why = strategy.NoTask(strategy.NoTaskReason.WORKER_FLAGGED)
-                break
-            added += _reserve_planned(planned, worker_id, kind, now, limit=wanted - len(added))
+            tasks, why = _top_up(worker_id, kind, hold, now)
             db.session.commit()
-        if len(added) >= wanted or attempt == 2:
-            break
-        # Someone took a planned slot since the read: plan the rest again.
+    except IntegrityError:
+        # The same worker fetching in two tabs at once on PostgreSQL: one of them reserved the
+        # item first. Whatever that fetch reserved is this worker's open tasks now.
+        db.session.rollback()
         with read_only():
-            planned, why = _plan(worker_id, False, kind, wanted - len(added), now, spare=SPARE_CHOICES)
-        if not planned:
-            break
-    tasks = held + added
-    return tasks, (why if len(tasks) < hold else None)
+            return open_tasks(worker_id, kind, now)[:hold], None
+    return tasks, why
+
+
+def _top_up(worker_id: int, kind: str, hold: int, now: datetime) -> tuple[list[Task], strategy.NoTask | None]:
+    """:func:`next_tasks` inside its write transaction.
+
+    Why one transaction and not a read first: in the steady state the worker holds one task
+    (the preloaded one) and asks for one more, so a read transaction before the write was
+    almost always followed by the write anyway, and a transaction costs as much Python as
+    three statements.
+    """
+    held = open_tasks(worker_id, kind, now)
+    if len(held) >= hold:
+        return held, None
+    if _core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar():
+        return held, strategy.NoTask(strategy.NoTaskReason.WORKER_FLAGGED)
+    batches = _core(_OPEN_BATCHES, {"kind": kind}).all()
+    if not batches:
+        return held, strategy.NoTask(strategy.NoTaskReason.BATCH_COMPLETE)
+    release_lapsed_holds(now)
+    tasks, why = list(held), None
+    for batch in batches:
+        added, reason = _reserve_in_batch(batch, worker_id, kind, hold - len(tasks), now)
+        tasks += added
+        if len(tasks) >= hold:
+            return tasks, None
+        if reason is not None and (why is None or reason.reason != strategy.NoTaskReason.BATCH_COMPLETE):
+            why = reason
+    return tasks, why or strategy.NoTask(strategy.NoTaskReason.BATCH_COMPLETE)
 
 
 def _store_reservation(item_id: int, worker_id: int, expires_at: datetime) -> Reservation:
@@ -460,7 +504,7 @@ def _store_reservation(item_id: int, worker_id: int, expires_at: datetime) -> Re
                           expires_at=expires_at)
         db.session.add(row)
     else:
-        row.expires_at, row.answered_at, row.created_at = expires_at, None, utcnow()
+        row.expires_at, row.answered_at, row.released_at, row.created_at = expires_at, None, None, utcnow()
     db.session.flush()
     return row
 
@@ -520,16 +564,19 @@ class Submitted:
 
 _ANSWER_BY_KEY = select(Answer.id, Answer.worker_id).where(Answer.idempotency_key == bindparam("key"))
 _RESERVATION_TO_ANSWER = (
-    select(Reservation.id, Reservation.worker_id, Reservation.answered_at, Reservation.expires_at,
-           Reservation.item_id, BatchItem.is_gold, Batch.kind, Card.width, Card.height)
+    select(Reservation.id, Reservation.worker_id, Reservation.answered_at, Reservation.released_at,
+           Reservation.expires_at, Reservation.item_id, BatchItem.is_gold, Batch.kind, Card.width, Card.height)
     .join(BatchItem, Reservation.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id)
     .join(Card, BatchItem.card_id == Card.id).where(Reservation.token == bindparam("token")))
-_RESERVATION_STATE = (select(Reservation.id, Reservation.worker_id, Reservation.answered_at, Reservation.expires_at)
+_RESERVATION_STATE = (select(Reservation.id, Reservation.worker_id, Reservation.answered_at, Reservation.released_at,
+                             Reservation.expires_at)
                       .where(Reservation.id == bindparam("reservation_id")))
-# Matches only while the reservation is this worker's and unanswered: the claim and the check in one.
+# Matches only while the reservation is this worker's, unanswered and still counted (not lapsed,
+# not released by a sweep): the claim and the check in one.
 _CLAIM_RESERVATION = (_reservations.update()
                       .where(_reservations.c.id == bindparam("reservation_id"),
-                             _reservations.c.worker_id == bindparam("claimant"), _reservations.c.answered_at.is_(None))
+                             _reservations.c.worker_id == bindparam("claimant"), _HELD,
+                             _reservations.c.expires_at > bindparam("at"))
                       .values(answered_at=bindparam("at")))
 _INSERT_ANSWER = _answers.insert()
 
@@ -539,7 +586,8 @@ def submit(worker: Worker | int, reservation_token: str, payload: Any, idempoten
     """Store one answer for an open reservation of ``worker``; replays return the stored one.
 
     Checks and validation run in a read transaction; the write transaction only claims the
-    reservation (an UPDATE that matches while it is still unanswered) and inserts the answer.
+    reservation (an UPDATE that matches while it is still open), inserts the answer and
+    recounts the item.
     """
     now = now or utcnow()
     worker_id = worker_id_of(worker)
@@ -556,11 +604,14 @@ def submit(worker: Worker | int, reservation_token: str, payload: Any, idempoten
         flagged = bool(_core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar())
     try:
         with one_writer():
+            if not _on_sqlite():
+                _core(_LOCK_ITEMS, {"item_ids": [held.item_id]})
             claimed = _core(_CLAIM_RESERVATION, {"reservation_id": held.id, "claimant": worker_id, "at": now})
             if claimed.rowcount == 1:
                 answer_id = _core(_INSERT_ANSWER, {
                     "item_id": held.item_id, "worker_id": worker_id, "payload": answer, "submitted_at": now,
                     "idempotency_key": idempotency_key, "flagged": flagged}).inserted_primary_key[0]
+                recount_items([held.item_id], locked=True)
                 db.session.commit()
             else:
                 db.session.rollback()
@@ -598,14 +649,14 @@ def _answer_by_key(idempotency_key: str, worker_id: int) -> Submitted | None:
 
 
 def _check_reservation(held: Any, worker_id: int, now: datetime) -> None:
-    """TaskError unless ``held`` (a row with worker_id, answered_at, expires_at) is this worker's open task."""
+    """TaskError unless ``held`` (a row with worker_id, answered_at, released_at, expires_at) is this worker's open task."""
     if held is None:
         raise TaskError("No such task; fetch a new one", 404)
     if held.worker_id != worker_id:
         raise TaskError("This task is reserved for another worker", 403)
     if held.answered_at is not None:
         raise TaskError("You already answered this task", 409)
-    if _aware(held.expires_at) <= now:
+    if _aware(held.expires_at) <= now or held.released_at is not None:
         raise TaskError(f"Your reservation of this task expired at {_aware(held.expires_at):%H:%M:%S} UTC; "
                         "fetch a new task", 409)
 
@@ -626,6 +677,7 @@ def undo_last(worker: Worker | int, now: datetime | None = None) -> Task:
     db.session.delete(last)
     reservation = _store_reservation(item_id, worker_id, now + _reservation_ttl())
     task = _task(reservation)
+    recount_items([item_id])
     db.session.commit()
     return task
 
@@ -662,13 +714,24 @@ def update_worker_quality(worker_ids: Iterable[int] | None = None) -> dict[int, 
                                                                  Worker.flagged.is_(False)))) if flagged else []
     if newly:
         no_sync = {"synchronize_session": False}  # the commit below expires whatever the session holds
-        db.session.execute(update(Worker).where(Worker.id.in_(newly)).values(flagged=True).execution_options(**no_sync))
-        db.session.execute(update(Answer).where(Answer.worker_id.in_(newly)).values(flagged=True)
-                           .execution_options(**no_sync))
-        # Their open reservations go back to the pool at once.
-        db.session.execute(delete(Reservation).where(Reservation.worker_id.in_(newly), Reservation.answered_at.is_(None))
-                           .execution_options(**no_sync))
-        db.session.commit()
+        with one_writer():
+            # Their answers stop filling slots and their open reservations go back to the pool
+            # at once: every item they touched is recounted (locked first on PostgreSQL, so a
+            # submit holding one of those items cannot wait on these rows while we wait on it).
+            touched = sorted(set(db.session.scalars(select(Answer.item_id).where(Answer.worker_id.in_(newly))))
+                             | set(db.session.scalars(select(Reservation.item_id).where(
+                                 Reservation.worker_id.in_(newly), Reservation.answered_at.is_(None)))))
+            if touched and not _on_sqlite():
+                _core(_LOCK_ITEMS, {"item_ids": touched})
+            db.session.execute(update(Worker).where(Worker.id.in_(newly)).values(flagged=True)
+                               .execution_options(**no_sync))
+            db.session.execute(update(Answer).where(Answer.worker_id.in_(newly)).values(flagged=True)
+                               .execution_options(**no_sync))
+            db.session.execute(delete(Reservation).where(Reservation.worker_id.in_(newly),
+                                                         Reservation.answered_at.is_(None))
+                               .execution_options(**no_sync))
+            recount_items(touched, locked=True)
+            db.session.commit()
     return {int(w): {"correct": s.correct, "total": s.total, "accuracy": s.accuracy, "flagged": w in flagged}
             for w, s in scores.items()}
 

@@ -160,3 +160,26 @@ def test_gold_falls_back_to_regular_work_when_the_worker_saw_all_gold() -> None:
 def test_bad_policy_is_refused(kwargs: dict[str, object], message: str) -> None:
     with pytest.raises(ValueError, match=message):
         AssignmentPolicy(**kwargs)  # type: ignore[arg-type]
+
+
+def test_equally_complete_items_go_by_the_batchs_shuffle_the_same_for_every_worker() -> None:
+    items = [BatchItem("low", rank=5), BatchItem("high", rank=9), BatchItem("mid", rank=7)]
+    for worker in ("w1", "w2", "w3"):
+        got = next_assignment(items, [], set(), worker, NOW, policy=NO_GOLD)
+        assert isinstance(got, Assignment) and got.item_id == "high"
+    # Completion still comes first: one answer beats the highest rank.
+    items.append(BatchItem("started", frozenset({"x"}), rank=0))
+    got = next_assignment(items, [], set(), "w1", NOW, policy=NO_GOLD)
+    assert isinstance(got, Assignment) and got.item_id == "started"
+
+
+def test_item_rank_is_stable_and_spread() -> None:
+    from annotation.assignment import item_rank
+
+    ranks = [item_rank(12, i) for i in range(2000)]
+    assert ranks == [item_rank(12, i) for i in range(2000)]  # no process-salted hash()
+    assert all(0 <= r < 2**63 for r in ranks) and len(set(ranks)) == 2000
+    assert item_rank(12, 1) != item_rank(13, 1)  # each batch has its own shuffle
+    # Roughly uniform: each quarter of the range holds about a quarter of the items.
+    quarters = [sum(1 for r in ranks if q * 2**61 <= r < (q + 1) * 2**61) for q in range(4)]
+    assert all(430 <= q <= 570 for q in quarters), quarters

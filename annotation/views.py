@@ -34,7 +34,7 @@ from app.extensions import csrf
 from app.security import frameable_by
 
 from .models import TASK_KINDS, Batch, Worker
-from .providers import MTURK_SUBMIT_ORIGINS, PROVIDERS, Entry, load_entry, sign_entry
+from .providers import MTURK_SUBMIT_ORIGINS, PROVIDERS, Entry, SignedWorker, load_signed_worker, sign_entry
 from .tasks import (
     DEFAULT_MIN_BOX_PX,
     TaskError,
@@ -98,24 +98,21 @@ def mturk() -> str:
 # JSON API (token in the X-Crowd-Token header; see the module docstring)
 
 
-def _api_entry() -> tuple[Entry, int, dict[str, Any]]:
-    """The worker (from the signed token), how many answers they had stored, and the JSON body.
+def _api_entry() -> tuple[SignedWorker, dict[str, Any]]:
+    """The worker (from the signed token, with their progress so far) and the JSON body.
 
     Only reads, in a deferred transaction: under SQLite's BEGIN IMMEDIATE they would queue every
-    API call behind the writers. The worker row comes back expired; the use cases take its id
-    without another query. The count is the worker's progress shown on the page; it is read
-    here, before the use case, to save a transaction per call (two tabs of one worker may see
-    it one behind for a moment).
+    API call behind the writers. The progress is read here, before the use case, to save a
+    transaction per call (two tabs of one worker may see it one behind for a moment).
     """
     with read_only():
-        entry = load_entry(request.headers.get(TOKEN_HEADER))
-        answered = answer_count(entry.worker) if entry.worker is not None else 0
+        caller = load_signed_worker(request.headers.get(TOKEN_HEADER))
     if not request.is_json:
         raise TaskError("Expected a JSON body (Content-Type: application/json)", 415)
     body = request.get_json(silent=True)
     if not isinstance(body, dict):
         raise TaskError("Expected a JSON object body; this one is malformed")
-    return entry, answered, body
+    return caller, body
 
 
 def _task_json(task: Any) -> dict[str, Any]:
@@ -125,13 +122,12 @@ def _task_json(task: Any) -> dict[str, Any]:
 @csrf.exempt
 @bp.route("/api/next", methods=["POST"])
 def api_next() -> Any:
-    entry, answered, body = _api_entry()
-    assert entry.worker is not None
+    caller, body = _api_entry()
     kind = body.get("kind", "judge")
     if kind not in TASK_KINDS:
         raise TaskError(f"Expected kind judge or crop, got {kind!r}")
-    tasks, why = next_tasks(entry.worker, kind)
-    return jsonify({"tasks": [_task_json(t) for t in tasks], "answered": answered,
+    tasks, why = next_tasks(caller.worker_id, kind)
+    return jsonify({"tasks": [_task_json(t) for t in tasks], "answered": caller.answered,
                     "reason": why.reason.value if why else None,
                     "retry_after": why.retry_after.isoformat() if why and why.retry_after else None})
 
@@ -139,30 +135,29 @@ def api_next() -> Any:
 @csrf.exempt
 @bp.route("/api/submit", methods=["POST"])
 def api_submit() -> Any:
-    entry, answered, body = _api_entry()
-    assert entry.worker is not None
-    result = submit(entry.worker, body.get("token"), body.get("answer"), body.get("key"))
+    caller, body = _api_entry()
+    result = submit(caller.worker_id, body.get("token"), body.get("answer"), body.get("key"))
     document = {"answer": result.answer_id, "duplicate": result.duplicate,
-                "answered": answered + (not result.duplicate)}
-    if entry.provider == "mturk":
-        document["finish"] = PROVIDERS["mturk"].finish(entry.context)
+                "answered": caller.answered + (not result.duplicate)}
+    if caller.provider == "mturk":
+        document["finish"] = PROVIDERS["mturk"].finish(caller.context)
     return jsonify(document), 200 if result.duplicate else 201
 
 
 @csrf.exempt
 @bp.route("/api/undo", methods=["POST"])
 def api_undo() -> Any:
-    entry, answered, _ = _api_entry()
-    assert entry.worker is not None
-    task = undo_last(entry.worker)
-    return jsonify({"task": _task_json(task), "answered": answered - 1})
+    caller, _ = _api_entry()
+    task = undo_last(caller.worker_id)
+    return jsonify({"task": _task_json(task), "answered": caller.answered - 1})
 
 
 @bp.route("/finish")
 def finish() -> Response:
     """The end of a session: Prolific's completion redirect (the token comes in the link)."""
-    entry = load_entry(request.args.get("t"))
-    outcome = PROVIDERS[entry.provider].finish(entry.context)
+    with read_only():
+        caller = load_signed_worker(request.args.get("t"))
+    outcome = PROVIDERS[caller.provider].finish(caller.context)
     if "redirect" not in outcome:
         return Response(render_template("annotation/message.html", title="Thank you",
                                         message="Your answers are saved. You can close this page."))

@@ -67,10 +67,10 @@ def _configure_sqlite(dbapi_connection: Any, _record: Any) -> None:
 def _begin_sqlite(connection: Any) -> None:
     if connection.dialect.name != "sqlite":
         return
-    if connection.get_execution_options().get(READ_ONLY_OPTION):
-        connection.exec_driver_sql("BEGIN DEFERRED")
-    else:
-        connection.exec_driver_sql("BEGIN IMMEDIATE")
+    # Straight to the driver: BEGIN returns no rows, and every transaction pays for this hook
+    # (exec_driver_sql's result machinery was a third of an empty read transaction's cost).
+    mode = "DEFERRED" if connection.get_execution_options().get(READ_ONLY_OPTION) else "IMMEDIATE"
+    connection.connection.driver_connection.execute(f"BEGIN {mode}")
 
 
 @contextmanager

@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import math
 import secrets
-import threading
-from collections.abc import Iterable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from typing import Any, NamedTuple
@@ -31,7 +29,7 @@ from sqlalchemy import (
 from sqlalchemy import inspect as sa_inspect
 from sqlalchemy.exc import IntegrityError
 
-from app.db import db, read_only, utcnow
+from app.db import db, one_writer, read_only, utcnow
 from app.models import Card
 
 from . import assignment as strategy
@@ -162,8 +160,8 @@ def get_or_create_worker(provider: str, external_id: str, person_id: int | None 
 #   fetches take different items instead of queueing on one, and re-checks ``taken < N`` on the
 #   locked row; every statement after a lock sees what was committed before it (READ
 #   COMMITTED), so recounts are exact. Waiting locks are taken in id order (no deadlocks).
-#   SQLite's BEGIN IMMEDIATE serializes writers, and threads of one process queue for it on a
-#   Python lock (:func:`one_writer`) rather than in SQLite's sleeping busy handler.
+#   SQLite's BEGIN IMMEDIATE serializes writers, and the writers of every server process queue
+#   for it at :func:`app.db.one_writer` rather than in SQLite's sleeping busy handler.
 # - Hot statements are built once with bound parameters and run on the session's connection:
 #   building a select() costs about as much Python as running it, ORM row handling more.
 
@@ -283,9 +281,22 @@ _OPEN_GOLD = (
     .join(Card, _items.c.card_id == Card.id)
     .outerjoin(_mine, and_(_mine.c.item_id == _items.c.id, _mine.c.worker_id == bindparam("worker_id")))
     .where(_items.c.batch_id == bindparam("batch_id"), _items.c.is_gold.is_(True), ~_held_by(bindparam("worker_id"))))
-# How many items of the batch this worker answered or holds: the key of the gold draw.
-_SERVED = (select(func.count()).select_from(_items)
-           .where(_items.c.batch_id == bindparam("batch_id"), _held_by(bindparam("worker_id"))))
+# How many items of the batch this worker answered or holds: the key of the gold draw. Driven
+# from the worker's own rows (their indexes) with the item's batch looked up per row: a join
+# lets SQLite's planner start from the batch's items instead. The two sets are disjoint, since
+# an answer closes its reservation and an undo deletes the answer before renewing it.
+def _batch_of(item: Any) -> Any:
+    return select(_items.c.batch_id).where(_items.c.id == item).scalar_subquery()
+
+
+_SERVED = select(
+    select(func.count()).select_from(_answers)
+    .where(_answers.c.worker_id == bindparam("worker_id"), _batch_of(_answers.c.item_id) == bindparam("batch_id"))
+    .scalar_subquery()
+    + select(func.count()).select_from(_reservations)
+    .where(_reservations.c.worker_id == bindparam("worker_id"), _HELD,
+           _batch_of(_reservations.c.item_id) == bindparam("batch_id"))
+    .scalar_subquery())
 # Why a batch has nothing for this worker: its unfinished regular items this worker has not
 # touched, and the earliest lapse of a hold on them (they are all held by others, else the
 # walk would have found one).
@@ -300,33 +311,6 @@ _INSERT_RESERVATION = _reservations.insert()
 _RENEW_RESERVATION = (_reservations.update().where(_reservations.c.id == bindparam("reservation_id"))
                       .values(expires_at=bindparam("expires"), answered_at=None, released_at=None,
                               created_at=bindparam("created")))
-
-
-_SQLITE_WRITER = threading.Lock()
-WRITER_GATE_TIMEOUT_S = 5.0
-
-
-@contextmanager
-def one_writer() -> Iterator[None]:
-    """On SQLite, let one thread of this process at a time into a crowd write transaction.
-
-    Why: a writer that finds the database locked sleeps in SQLite's busy handler in growing
-    steps (1, 2, 5, 10 ... 100 ms) however soon the lock frees; with the server's eight threads
-    that sleeping, not the work, made the latency tail of fetch-next and submit. Threads queued
-    on a Python lock wake the moment it is released. Writers in other processes still meet the
-    busy handler, which stays the arbiter. The wait is bounded (a caller that already holds
-    SQLite's write lock on another path cannot deadlock with this gate): after
-    ``WRITER_GATE_TIMEOUT_S`` it goes on without the gate. PostgreSQL needs none of this.
-    """
-    if not _on_sqlite():
-        yield
-        return
-    acquired = _SQLITE_WRITER.acquire(timeout=WRITER_GATE_TIMEOUT_S)
-    try:
-        yield
-    finally:
-        if acquired:
-            _SQLITE_WRITER.release()
 
 
 def _on_sqlite() -> bool:
@@ -417,15 +401,20 @@ def _reserve_in_batch(batch: Any, worker_id: int, kind: str, wanted: int,
     policy = strategy.AssignmentPolicy(answers_per_item=n, gold_rate=gold_rate, reservation_ttl=_reservation_ttl(),
                                        seed=batch_id)
     expires_at = now + policy.reservation_ttl
-    gold = {row.id: row for row in _core(_OPEN_GOLD, params)} if gold_rate > 0 else {}
-    served = _core(_SERVED, params).scalar() if gold else 0
+    served = _core(_SERVED, params).scalar() if gold_rate > 0 else 0
+    gold: dict[int, Any] | None = None  # read on the first gold draw only (one draw in ten by default)
     taken: list[Any] = []
     while regular and len(taken) < wanted:
-        if gold and strategy.gold_draw(worker_id, served, policy):
-            pick = strategy.least_seen_gold({item_id: row.answers for item_id, row in gold.items()}, worker_id, policy)
-            taken.append(gold.pop(int(pick)))
-        else:
-            taken.append(regular.pop(0))
+        if gold_rate > 0 and strategy.gold_draw(worker_id, served, policy):
+            if gold is None:
+                gold = {row.id: row for row in _core(_OPEN_GOLD, params)}
+            if gold:  # none left unseen by this worker: regular work, as the pure strategy does
+                pick = strategy.least_seen_gold({item_id: row.answers for item_id, row in gold.items()},
+                                                worker_id, policy)
+                taken.append(gold.pop(int(pick)))
+                served += 1
+                continue
+        taken.append(regular.pop(0))
         served += 1
     tasks = [_hold(row, worker_id, batch_id, kind, now, expires_at) for row in taken]
     recount_items([row.id for row in taken], locked=True)

@@ -11,7 +11,9 @@ caller marks it read-only with :func:`read_only`; PostgreSQL needs none of this.
 
 from __future__ import annotations
 
+import os
 import sqlite3
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime, timezone
@@ -89,3 +91,71 @@ def read_only(session: Session | None = None) -> Iterator[Session]:
         yield session
     finally:
         session.rollback()
+
+
+# ---------------------------------------------------------------------------------------------
+# One writer at a time, queued in the operating system instead of SQLite's busy handler
+
+try:
+    import fcntl
+except ImportError:  # Windows: threads are gated, processes meet SQLite's busy handler
+    fcntl = None  # type: ignore[assignment]
+
+_THREAD_GATE = threading.Lock()
+THREAD_GATE_TIMEOUT_S = 5.0
+
+
+@contextmanager
+def _process_gate(database: str) -> Iterator[None]:
+    """An exclusive flock of ``<database>-writer-lock`` for the block (nothing for in-memory databases).
+
+    Opened per use (a few microseconds): nothing to leak, and nothing a forked server worker
+    could share with its parent. Read-only is enough for flock, so a lock file made by another
+    user still works.
+    """
+    if fcntl is None or not database or database == ":memory:" or database.startswith("file:"):
+        yield
+        return
+    try:
+        descriptor = os.open(f"{database}-writer-lock", os.O_RDONLY | os.O_CREAT, 0o644)
+    except OSError:  # a read-only folder: SQLite's busy handler alone, as without the gate
+        yield
+        return
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(descriptor)  # releases the lock
+
+
+@contextmanager
+def one_writer(session: Session | None = None) -> Iterator[None]:
+    """On SQLite, let one short write transaction at a time in, across threads and server processes.
+
+    Why: a writer that finds the database locked sleeps in SQLite's busy handler in growing
+    steps (1, 2, 5, 10 ... 100 ms) however soon the lock frees, so under a crowd the sleeping,
+    not the work, made the latency tail, and between two server processes the lock sat idle
+    while both slept. Here threads of a process queue on a Python lock and processes on an
+    flock of ``<database>-writer-lock``; both wake the moment the holder leaves. SQLite's busy
+    handler stays the arbiter for writers that do not come through here (the pipeline runner,
+    other commands). A session already in a write transaction holds SQLite's lock and goes
+    straight in (waiting here could deadlock with a gate holder waiting for that lock); the
+    thread gate gives up waiting after ``THREAD_GATE_TIMEOUT_S`` for the same reason.
+    PostgreSQL needs none of this.
+    """
+    session = session or db.session()
+    bind = session.get_bind()
+    if bind.dialect.name != "sqlite" or (session.in_transaction() and not
+                                          session.connection().get_execution_options().get(READ_ONLY_OPTION)):
+        yield
+        return
+    acquired = _THREAD_GATE.acquire(timeout=THREAD_GATE_TIMEOUT_S)
+    try:
+        if acquired:
+            with _process_gate(bind.url.database or ""):
+                yield
+        else:
+            yield
+    finally:
+        if acquired:
+            _THREAD_GATE.release()

@@ -152,6 +152,12 @@ def test_hot_queries_walk_their_indexes(app, bare_cards):  # type: ignore[no-unt
         assert "ix_crowd_reservations_held" in mine, mine
         opened = plan(tasks._OPEN_BATCHES, kind="judge")
         assert "ix_crowd_batch_items_unfinished" in opened, opened
+        # The gold draw's count starts from the worker's own rows, never from the batch's items.
+        served = plan(tasks._SERVED, batch_id=batch.id, worker_id=worker)
+        assert "ix_crowd_answers_worker_id" in served and "ix_crowd_reservations_held" in served, served
+        assert "ix_crowd_batch_items_batch_id" not in served, served
+        gold = plan(tasks._OPEN_GOLD, batch_id=batch.id, worker_id=worker)
+        assert "(batch_id=? AND is_gold=?)" in gold, gold  # the gold items only
 
 
 @pytest.mark.both_databases

@@ -65,3 +65,82 @@ def test_read_only_transactions_do_not_take_the_write_lock(app):
             with db.engine.connect() as other:
                 other.exec_driver_sql("SELECT 1")
                 other.commit()
+
+
+GATED_WRITER = """
+import sys, time
+from pathlib import Path
+from app import create_app
+from app.db import db, one_writer
+from sqlalchemy import text
+database, log, rounds = sys.argv[1], Path(sys.argv[2]), int(sys.argv[3])
+app = create_app({"SQLALCHEMY_DATABASE_URI": database, "SECRET_KEY": "x", "KEYSTONE_DATA_DIR": str(log.parent)},
+                 instance_path=log.parent / "instance")
+with app.app_context():
+    for i in range(rounds):
+        with one_writer():
+            entered = time.monotonic()  # before any SQL: only the gate keeps the others out here
+            time.sleep(0.003)
+            db.session.execute(text("SELECT 1"))
+            db.session.commit()
+            left = time.monotonic()
+        with log.open("a") as handle:
+            handle.write(f"{entered} {left}\\n")
+"""
+
+
+def test_one_writer_lets_one_process_in_at_a_time(app, tmp_path):
+    """Three real processes take the gate 40 times each and stay 3 ms before touching the database:
+    no two stays overlap, so the processes queue at the gate (an flock), not in SQLite."""
+    import subprocess
+    import sys
+
+    if not app.config["SQLALCHEMY_DATABASE_URI"].startswith("sqlite"):
+        pytest.skip("the process gate is SQLite's")
+    log = tmp_path / "stays.txt"
+    workers = [subprocess.Popen([sys.executable, "-c", GATED_WRITER, app.config["SQLALCHEMY_DATABASE_URI"],
+                                 str(log), "40"]) for _ in range(3)]
+    assert [w.wait(120) for w in workers] == [0, 0, 0]
+    stays = sorted(tuple(map(float, line.split())) for line in log.read_text().splitlines())
+    assert len(stays) == 120
+    assert all(left <= next_entered for (_, left), (next_entered, _) in zip(stays, stays[1:]))
+    assert (tmp_path / "keystone.sqlite3-writer-lock").exists()
+
+
+def test_a_session_holding_the_write_lock_goes_through_the_gate(app):
+    """A thread that already holds SQLite's write lock must not wait at the gate for a thread that
+    is waiting for that lock (it would wait out the gate's timeout, or forever)."""
+    import time
+
+    from app.db import one_writer
+
+    if not app.config["SQLALCHEMY_DATABASE_URI"].startswith("sqlite"):
+        pytest.skip("the gate is SQLite's")
+    holder_has_lock, gate_taken = threading.Event(), threading.Event()
+    timings: dict[str, float] = {}
+
+    def gate_holder() -> None:
+        with app.app_context():
+            holder_has_lock.wait(10)
+            with one_writer():
+                gate_taken.set()
+                db.session.add(Collection(name="after"))  # waits for the other's write lock
+                db.session.commit()
+            db.session.remove()
+
+    other = threading.Thread(target=gate_holder)
+    other.start()
+    with app.app_context():
+        db.session.add(Collection(name="first"))
+        db.session.flush()  # BEGIN IMMEDIATE: this session holds SQLite's write lock
+        holder_has_lock.set()
+        assert gate_taken.wait(10)
+        start = time.monotonic()
+        with one_writer():  # the gate is taken, but this session is the one writing
+            db.session.add(Collection(name="second"))
+        db.session.commit()
+        timings["inside"] = time.monotonic() - start
+    other.join(30)
+    assert timings["inside"] < 1.0
+    with app.app_context():
+        assert sorted(db.session.scalars(select(Collection.name))) == ["after", "first", "second"]

@@ -57,14 +57,19 @@ def init_command(as_json: bool) -> None:
 @cli.command("serve")
 @click.option("--host", default="127.0.0.1", show_default=True, help="Interface to listen on.")
 @click.option("--port", default=5000, show_default=True, type=int, help="Port to listen on.")
-@click.option("--threads", default=8, show_default=True, type=int, help="Worker threads of the WSGI server.")
+@click.option("--processes", type=click.IntRange(1, 64), default=None,
+              help="Server processes [default: one per core on Linux and macOS (gunicorn), 1 elsewhere]. "
+                   "1 runs waitress.")
+@click.option("--threads", type=click.IntRange(1, 256), default=None,
+              help="Threads per process [default: 1 with several processes, 8 with one].")
 @with_appcontext
-def serve_command(host: str, port: int, threads: int) -> None:
-    """Serve the web app with a production WSGI server (waitress)."""
+def serve_command(host: str, port: int, threads: int | None, processes: int | None) -> None:
+    """Serve the web app with a production WSGI server: gunicorn's pre-forked workers, or waitress."""
     from .serving import serve
 
     ensure_database()
-    serve(current_app._get_current_object(), host=host, port=port, threads=threads)  # type: ignore[attr-defined]
+    serve(current_app._get_current_object(), host=host, port=port, threads=threads,  # type: ignore[attr-defined]
+          processes=processes)
 
 
 def _register() -> None:

@@ -1,10 +1,11 @@
-"""``keystone bench crowd``: simulated annotators against the app under waitress on SQLite, over HTTP.
+"""``keystone bench crowd``: simulated annotators against the served app on SQLite, over HTTP.
 
 Wire with ``bench_group.add_command(bench_crowd_command)`` (the command is named "crowd").
 
 What runs: a throwaway instance (SQLite file, data dir) with generated cards ingested the normal
-way, one batch and invited workers; the app is served by waitress in a *child process* (so the
-server does not share a GIL with the 50 client threads, as in production); each simulated
+way, one batch and invited workers; the app is served by :func:`app.serving.serve` (waitress, or
+gunicorn's workers) in a *child process* (so the server does not share a GIL with the 50 client
+threads, as in production); annotators arrive over ``ramp_s`` seconds; each simulated
 annotator is a thread with one keep-alive ``http.client`` connection that opens its invite page,
 then fetches and submits through the JSON API with the signed ``X-Crowd-Token`` header, thinking
 for a random while between seeing a task and answering it. Every tenth submit is posted twice
@@ -25,6 +26,7 @@ import os
 import random
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -39,6 +41,7 @@ import click
 import numpy as np
 
 TARGET_P95_MS = 100.0
+DEFAULT_RAMP_S = 2.0  # annotators arrive over two seconds, then all work at once
 REPLAY_EVERY = 10  # every tenth submit is posted twice, as a retried POST would be
 ALL_RESERVED_RETRIES = 200  # bounded wait when every open slot is held by someone else
 _WORKER_TOKEN = re.compile(r'data-worker-token="([^"]*)"')
@@ -130,41 +133,75 @@ def _truth(kind: str, card: Any) -> dict[str, Any]:
 
 
 def _serve_child() -> None:
-    """Child process (``python -m annotation.bench``): the app under waitress on an ephemeral loopback port.
+    """Child process (``python -m annotation.bench``): the app served on an ephemeral loopback port.
 
-    Reads ``{"config", "instance_path", "threads"}`` as JSON on stdin, prints the port on stdout.
+    Reads ``{"config", "instance_path", "threads", "processes"}`` as JSON on stdin, prints the
+    port on stdout once listening; :func:`app.serving.serve` picks the server.
     """
-    import logging
     import sys
 
-    from waitress import create_server
-
     from app import create_app
+    from app.serving import serve
 
-    # waitress warns "Task queue depth is N" whenever the load queues; the bench measures that itself.
-    logging.getLogger("waitress.queue").setLevel(logging.ERROR)
     setup = json.loads(sys.stdin.readline())
-    app = create_app(setup["config"], instance_path=setup["instance_path"])
-    server = create_server(app, host="127.0.0.1", port=0, threads=int(setup["threads"]), ident="keystone")
-    print(server.effective_port, flush=True)
-    server.run()
+    app = _noop_app if setup.get("noop") else create_app(setup["config"], instance_path=setup["instance_path"])
+    serve(app, "127.0.0.1", 0, threads=setup["threads"], processes=setup["processes"],
+          on_ready=lambda port: print(port, flush=True))
+
+
+def _noop_app(environ: dict[str, Any], start_response: Callable[..., Any]) -> list[bytes]:
+    """A WSGI app that reads the body and answers a fixed JSON document: the harness floor."""
+    environ["wsgi.input"].read(int(environ.get("CONTENT_LENGTH") or 0))
+    start_response("200 OK", [("Content-Type", "application/json"), ("Content-Length", "28")])
+    return [b'{"tasks": [], "answered": 0}']
+
+
+def harness_burst(clients: int, threads: int | None = None, processes: int | None = None) -> dict[str, float | int | None]:
+    """Latency of ``clients`` simultaneous POSTs (one keep-alive connection each, as the annotators
+    have) to :func:`_noop_app` served the same way: what this machine and client add to a burst."""
+    with ServedApp(None, threads=threads, processes=processes) as served:
+        latencies: list[float] = []
+        barrier = threading.Barrier(clients)
+
+        def post() -> None:
+            client = _Client(served.port)
+            try:
+                client.request("GET", "/")  # connect, as the invite page does
+                barrier.wait(timeout=60)
+                latencies.append(client.request("POST", "/crowd/api/next", {"kind": "judge"},
+                                                {"X-Crowd-Token": "x" * 120})[2])
+            finally:
+                client.close()
+
+        threads_ = [threading.Thread(target=post, daemon=True) for _ in range(clients)]
+        for thread in threads_:
+            thread.start()
+        for thread in threads_:
+            thread.join(timeout=120)
+    return latency_summary(latencies)
 
 
 class ServedApp:
-    """The app under waitress in a child process, for ``with`` use; ``port`` once started."""
+    """The app served from a child process, for ``with`` use; ``port`` once started."""
 
-    def __init__(self, instance: CrowdInstance, threads: int = 8) -> None:
+    def __init__(self, instance: CrowdInstance | None, threads: int | None = None, processes: int | None = None) -> None:
+        """``instance`` None serves :func:`_noop_app` instead of Keystone."""
         self._instance = instance
         self._threads = threads
+        self._processes = processes
         self._process: subprocess.Popen[str] | None = None
         self.port = 0
 
     def __enter__(self) -> Self:
         self._process = subprocess.Popen([sys.executable, "-m", "annotation.bench"], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, text=True)
+                                         stdout=subprocess.PIPE, text=True, start_new_session=True)
         assert self._process.stdin is not None and self._process.stdout is not None
-        self._process.stdin.write(json.dumps({"config": self._instance.config, "threads": self._threads,
-                                              "instance_path": str(self._instance.root / "instance")}) + "\n")
+        setup: dict[str, Any] = {"threads": self._threads, "processes": self._processes}
+        if self._instance is None:
+            setup["noop"] = True
+        else:
+            setup.update(config=self._instance.config, instance_path=str(self._instance.root / "instance"))
+        self._process.stdin.write(json.dumps(setup) + "\n")
         self._process.stdin.close()
         line = self._process.stdout.readline().strip()
         if not line.isdigit():
@@ -174,26 +211,31 @@ class ServedApp:
         return self
 
     def cpu_seconds(self) -> float | None:
-        """User + system CPU the server process has used so far (Linux /proc; None elsewhere).
+        """User + system CPU the server's processes have used so far (Linux /proc; None elsewhere).
 
-        Unlike latency, this does not grow when other programs compete for the cores.
+        All processes of the server's process group count (gunicorn's workers as well as its
+        master). Unlike latency, this does not grow when other programs compete for the cores.
         """
-        if self._process is None:
+        if self._process is None or not Path("/proc/self/stat").exists():
             return None
-        try:
-            fields = Path(f"/proc/{self._process.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            return None
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime in clock ticks
+        ticks = 0
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                fields = stat.read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue  # a process that ended meanwhile
+            if int(fields[2]) == self._process.pid:  # pgrp: the child leads its own session
+                ticks += int(fields[11]) + int(fields[12])  # utime, stime in clock ticks
+        return ticks / os.sysconf("SC_CLK_TCK")
 
     def __exit__(self, *_: object) -> None:
         if self._process is None:
             return
-        self._process.terminate()
+        self._process.terminate()  # gunicorn's master stops its workers on SIGTERM
         try:
             self._process.wait(30)
         except subprocess.TimeoutExpired:
-            self._process.kill()
+            os.killpg(self._process.pid, signal.SIGKILL)
             self._process.wait(10)
         if self._process.stdout is not None:
             self._process.stdout.close()
@@ -264,8 +306,10 @@ def _answer_for(kind: str, task: dict[str, Any], rng: random.Random) -> dict[str
 
 
 def run_annotator(port: int, invite_token: str, kind: str, tasks: int, think_s: tuple[float, float],
-                  seed: int, start: threading.Barrier | None = None, replay_every: int = REPLAY_EVERY) -> AnnotatorLog:
-    """Open the invite page, then fetch-next / think / submit until ``tasks`` answers are acknowledged."""
+                  seed: int, start: threading.Barrier | None = None, replay_every: int = REPLAY_EVERY,
+                  arrive_after_s: float = 0.0) -> AnnotatorLog:
+    """Open the invite page, wait for the start line and ``arrive_after_s`` more, then fetch-next /
+    think / submit until ``tasks`` answers are acknowledged."""
     log = AnnotatorLog()
     rng = random.Random(seed)
     client = _Client(port)
@@ -279,6 +323,7 @@ def run_annotator(port: int, invite_token: str, kind: str, tasks: int, think_s: 
         headers = {"X-Crowd-Token": match.group(1)}
         if start is not None:
             start.wait()
+        time.sleep(arrive_after_s)
         waits = 0
         while len(log.acknowledged) < tasks:
             status, body, ms = client.request("POST", "/crowd/api/next", {"kind": kind}, headers)
@@ -367,7 +412,8 @@ def _stored_figures(instance: CrowdInstance, acknowledged: set[int]) -> dict[str
 
 
 def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind: str = "judge", n: int = 3,
-                    think_ms: tuple[float, float] = (250.0, 750.0), server_threads: int = 8, seed: int = 0,
+                    think_ms: tuple[float, float] = (250.0, 750.0), ramp_s: float = DEFAULT_RAMP_S,
+                    server_threads: int | None = None, server_processes: int | None = None, seed: int = 0,
                     replay_every: int = REPLAY_EVERY, root: Path | None = None,
                     on_progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Set up, serve, run ``annotators`` concurrent annotators, check the database; one JSON-able report.
@@ -375,10 +421,17 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
     ``think_ms`` is the (min, max) of the uniform time an annotator looks at a task before
     answering; (0, 0) measures the server saturated (latency then reflects queueing, i.e.
     concurrency divided by throughput, not the cost of one request). Every ``replay_every``-th
-    submit of an annotator is posted twice (0: never). ``root`` (default: a temporary folder,
-    removed afterwards) holds the throwaway database and data dir.
+    submit of an annotator is posted twice (0: never). Annotators arrive one after another
+    over ``ramp_s`` seconds (0: all at the same instant, a burst no real crowd makes; the
+    report then also has ``harness_burst``, the same burst against a WSGI app that does
+    nothing, which is what the machine and this client add by themselves). ``root`` (default:
+    a temporary folder, removed afterwards) holds the throwaway database and data dir.
     """
+    from app.serving import default_processes, default_threads, describe
+
     say = on_progress or (lambda _message: None)
+    server_processes = default_processes() if server_processes is None else server_processes
+    server_threads = default_threads(server_processes) if server_threads is None else server_threads
     owned = root is None
     root = Path(tempfile.mkdtemp(prefix="keystone-bench-crowd-")) if root is None else root
     try:
@@ -387,13 +440,14 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
                                   kind=kind, seed=seed)
         logs: list[AnnotatorLog] = [AnnotatorLog() for _ in range(annotators)]
         think_s = (think_ms[0] / 1000.0, think_ms[1] / 1000.0)
-        with ServedApp(instance, threads=server_threads) as served:
-            say(f"serving on 127.0.0.1:{served.port} (waitress, {server_threads} threads)")
+        with ServedApp(instance, threads=server_threads, processes=server_processes) as served:
+            say(f"serving on 127.0.0.1:{served.port} ({describe(server_processes, server_threads)})")
             barrier = threading.Barrier(annotators + 1)
 
             def work(index: int) -> None:
                 logs[index] = run_annotator(served.port, instance.invite_tokens[index], kind, tasks_per_annotator,
-                                            think_s, seed * 100_003 + index, barrier, replay_every)
+                                            think_s, seed * 100_003 + index, barrier, replay_every,
+                                            arrive_after_s=ramp_s * index / max(1, annotators - 1))
 
             threads = [threading.Thread(target=work, args=(i,), daemon=True) for i in range(annotators)]
             for thread in threads:
@@ -410,6 +464,7 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
             cpu_after = served.cpu_seconds()
         acknowledged = {a for log in logs for a in log.acknowledged}
         figures = _stored_figures(instance, acknowledged)
+        floor = harness_burst(annotators, server_threads, server_processes) if ramp_s == 0 else None
     finally:
         if owned:
             shutil.rmtree(root, ignore_errors=True)
@@ -419,14 +474,15 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
     stops: dict[str, int] = {}
     for log in logs:
         stops[log.stopped] = stops.get(log.stopped, 0) + 1
-    # Each annotator's first fetch reserves two tasks at the same instant as everyone else's
-    # (the start line is a barrier): a burst, reported apart from the steady state as well.
+    # Each annotator's first fetch reserves two tasks (the one shown and the preloaded next);
+    # with ramp_s = 0 all of them at the same instant: reported apart from the steady state.
     first = [log.fetch_ms[0] for log in logs if log.fetch_ms]
     steady = [ms for log in logs for ms in log.fetch_ms[1:]]
     report: dict[str, Any] = {
         "annotators": annotators, "tasks_per_annotator": tasks_per_annotator, "kind": kind,
-        "answers_per_item": n, "items": instance.items, "think_ms": list(think_ms),
-        "server": f"waitress, {server_threads} threads, separate process", "database": "sqlite",
+        "answers_per_item": n, "items": instance.items, "think_ms": list(think_ms), "ramp_s": ramp_s,
+        "server": describe(server_processes, server_threads), "server_processes": server_processes,
+        "server_threads": server_threads, "database": "sqlite",
         "seconds": round(seconds, 3), "requests": len(statuses),
         "throughput_rps": round(len(fetch) / seconds + len(submits) / seconds, 1) if seconds else None,
         # Server CPU per API request (fetch-next, submit, replays): the cost of a request, free
@@ -442,6 +498,7 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
         "status_4xx": sum(1 for s in statuses if 400 <= s < 500),
         "client_errors": [e for log in logs for e in log.errors][:10],
         "stopped": stops, "target_p95_ms": TARGET_P95_MS,
+        **({"harness_burst": floor} if floor is not None else {}),
     }
     p95s = [report[k]["p95_ms"] for k in ("fetch_next", "submit")]
     report["meets_target"] = all(p is not None and p < TARGET_P95_MS for p in p95s)
@@ -457,33 +514,45 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
 @click.option("--n", "n", default=3, show_default=True, type=click.IntRange(1, 20), help="Answers per item.")
 @click.option("--think-ms", nargs=2, type=click.FloatRange(0, 60_000), default=(250.0, 750.0), show_default=True,
               help="Min and max of an annotator's uniform thinking time per task; 0 0 saturates the server.")
-@click.option("--server-threads", default=8, show_default=True, type=click.IntRange(1, 64),
-              help="waitress worker threads (keystone serve uses 8).")
+@click.option("--ramp-s", default=DEFAULT_RAMP_S, show_default=True, type=click.FloatRange(0, 600),
+              help="Annotators arrive evenly over this many seconds; 0 starts them all at the same instant "
+                   "and also measures that burst against an app that does nothing.")
+@click.option("--server-processes", type=click.IntRange(1, 16), default=None,
+              help="Server processes, as keystone serve --processes [default: keystone serve's].")
+@click.option("--server-threads", type=click.IntRange(1, 64), default=None,
+              help="Threads per server process, as keystone serve --threads [default: keystone serve's].")
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
 def bench_crowd_command(annotators: int, tasks_per_annotator: int, kind: str, n: int, think_ms: tuple[float, float],
-                        server_threads: int, seed: int, as_json: bool) -> None:
-    """Latency of fetch-next and submit with concurrent annotators over real HTTP (waitress, SQLite).
+                        ramp_s: float, server_processes: int | None, server_threads: int | None, seed: int,
+                        as_json: bool) -> None:
+    """Latency of fetch-next and submit with concurrent annotators over real HTTP (SQLite; waitress,
+    or gunicorn with --server-processes above 1).
 
     Exits 1 when an answer was lost or duplicated or a 5xx occurred (the p95 target is reported, not enforced).
     """
     if think_ms[0] > think_ms[1]:
         raise click.BadParameter(f"expected min <= max, got {think_ms[0]:g} > {think_ms[1]:g}", param_hint="--think-ms")
-    report = run_crowd_bench(annotators, tasks_per_annotator, kind=kind, n=n, think_ms=think_ms,
-                             server_threads=server_threads, seed=seed,
+    report = run_crowd_bench(annotators, tasks_per_annotator, kind=kind, n=n, think_ms=think_ms, ramp_s=ramp_s,
+                             server_threads=server_threads, server_processes=server_processes, seed=seed,
                              on_progress=None if as_json else (lambda m: click.echo(m, err=True)))
     broken = (report["lost"] or report["unacknowledged"] or report["duplicates"] or report["over_capacity_items"]
               or report["status_5xx"] or report["client_errors"] or report["replays_ok"] != report["replays"])
     if as_json:
         click.echo(json.dumps(report, indent=2))
     else:
-        click.echo(f"{annotators} annotators x {tasks_per_annotator} {kind} tasks, think {think_ms[0]:g}-"
-                   f"{think_ms[1]:g} ms, {report['seconds']:.1f} s, {report['throughput_rps']} requests/s, "
-                   f"server CPU {report['server_cpu_ms_per_request']} ms per request")
+        click.echo(f"{annotators} annotators x {tasks_per_annotator} {kind} tasks, arriving over {ramp_s:g} s, "
+                   f"think {think_ms[0]:g}-{think_ms[1]:g} ms, {report['server']}: {report['seconds']:.1f} s, "
+                   f"{report['throughput_rps']} requests/s, server CPU {report['server_cpu_ms_per_request']} ms "
+                   "per request")
         for name in ("fetch_next", "fetch_next_first", "fetch_next_steady", "submit"):
             row = report[name]
             click.echo(f"  {name:<17} n={row['count']:<5} p50 {row['p50_ms']} ms  p95 {row['p95_ms']} ms  "
                        f"max {row['max_ms']} ms")
+        if "harness_burst" in report:
+            row = report["harness_burst"]
+            click.echo(f"  the same burst against an app that does nothing: p50 {row['p50_ms']} ms  "
+                       f"p95 {row['p95_ms']} ms  max {row['max_ms']} ms")
         click.echo(f"  answers: {report['answers_submitted']} acknowledged, {report['answers_stored']} stored, "
                    f"{report['lost']} lost, {report['duplicates']} duplicated, {report['over_capacity_items']} items "
                    f"over N; replays {report['replays_ok']}/{report['replays']} ok; 5xx {report['status_5xx']}")

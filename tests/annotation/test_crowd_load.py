@@ -1,4 +1,4 @@
-"""Load on loopback: 50 simulated annotators against the app under waitress on SQLite, over real HTTP.
+"""Load on loopback: 50 simulated annotators against the served app on SQLite, over real HTTP.
 
 Bounded in time (a few hundred requests, short thinking). Correctness is asserted here; speed
 is reported by ``keystone bench crowd`` and not asserted (a shared 2-core machine makes timed
@@ -17,10 +17,15 @@ from annotation.bench import latency_summary, run_crowd_bench
 ANNOTATORS, TASKS, N, REPLAY_EVERY = 50, 4, 3, 2
 
 
-@pytest.fixture(scope="module")
-def report(tmp_path_factory: pytest.TempPathFactory) -> dict:
+@pytest.fixture(scope="module", params=[(None, 0.5), (1, 0.0)], ids=["default-server", "waitress-all-at-once"])
+def report(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The default server (one gunicorn process per core here: SQLite writers in several
+    processes), annotators arriving over half a second; and a lone waitress process with 8
+    threads (many threads, one process), everyone starting at the same instant."""
+    processes, ramp_s = request.param
     root: Path = tmp_path_factory.mktemp("crowd-load")
-    return run_crowd_bench(ANNOTATORS, TASKS, n=N, think_ms=(0.0, 20.0), replay_every=REPLAY_EVERY, root=root)
+    return run_crowd_bench(ANNOTATORS, TASKS, n=N, think_ms=(0.0, 20.0), ramp_s=ramp_s, replay_every=REPLAY_EVERY,
+                           server_processes=processes, root=root)
 
 
 @pytest.mark.timeout(120)
@@ -48,6 +53,12 @@ def test_every_latency_was_recorded(report: dict) -> None:
         assert 0 < row["p50_ms"] <= row["p95_ms"] <= row["max_ms"] and math.isfinite(row["max_ms"])
     assert report["requests"] == fetches["count"] + submits["count"] + report["replays"]
     assert report["throughput_rps"] > 0
+    # Starting everyone at once also measures that burst against an app that does nothing.
+    if report["ramp_s"] == 0:
+        floor = report["harness_burst"]
+        assert floor["count"] == ANNOTATORS and 0 < floor["p50_ms"] <= floor["max_ms"]
+    else:
+        assert "harness_burst" not in report
 
 
 def test_latency_summary_percentiles() -> None:

@@ -65,3 +65,15 @@ def test_latency_summary_percentiles() -> None:
     assert latency_summary([]) == {"count": 0, "p50_ms": None, "p95_ms": None, "max_ms": None}
     row = latency_summary([float(v) for v in range(1, 101)])
     assert row == {"count": 100, "p50_ms": 50.5, "p95_ms": 95.05, "max_ms": 100.0}
+
+
+@pytest.mark.bench
+@pytest.mark.timeout(300)
+def test_fifty_annotators_meet_the_p95_target_on_the_default_server(tmp_path: Path) -> None:
+    """The issue's target, as `keystone bench crowd` measures it: 50 annotators x 10 tasks arriving
+    over two seconds, p95 of fetch-next and of submit under 100 ms (kept out of the default run:
+    a timing on a shared machine)."""
+    report = run_crowd_bench(50, 10, root=tmp_path)
+    assert report["lost"] == 0 and report["duplicates"] == 0 and report["status_5xx"] == 0
+    assert report["fetch_next"]["p95_ms"] < 100, report["fetch_next"]
+    assert report["submit"]["p95_ms"] < 100, report["submit"]

@@ -153,11 +153,10 @@ class SignedWorker:
     worker_id: int
     provider: str
     context: dict[str, str]
-    flagged: bool
     answered: int  # answers stored so far: the progress the page shows
 
 
-_WORKER_STATE = (select(Worker.provider, Worker.flagged,
+_WORKER_STATE = (select(Worker.provider,
                         select(func.count()).select_from(Answer).where(Answer.worker_id == Worker.id).scalar_subquery())
                  .where(Worker.id == bindparam("worker_id")))
 
@@ -178,4 +177,4 @@ def load_signed_worker(token: str | None) -> SignedWorker:
     row = db.session.connection().execute(_WORKER_STATE, {"worker_id": worker_id}).first()
     if row is None or row.provider != data["p"]:
         raise TaskError("Unknown worker: reload the task page", 403)
-    return SignedWorker(worker_id, data["p"], dict(data.get("c") or {}), bool(row.flagged), int(row[2] or 0))
+    return SignedWorker(worker_id, data["p"], dict(data.get("c") or {}), int(row[1] or 0))

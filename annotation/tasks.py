@@ -151,8 +151,8 @@ def get_or_create_worker(provider: str, external_id: str, person_id: int | None 
 #   reservations), and a fixed ``rank`` in the batch's shuffle. Every write that changes an
 #   item's answers or reservations recounts that item from its rows in the same transaction
 #   (:data:`_RECOUNT`), so the counters never drift from the rows they cache.
-# - Fetch-next reads the worker's open tasks; when it needs more it opens one short write
-#   transaction: release the holds that lapsed (an index seek when none did), walk
+# - Fetch-next is one short write transaction: read the worker's open tasks and, when it needs
+#   more, release the holds that lapsed (an index seek when none did), walk
 #   ``ix_crowd_batch_items_open`` (most taken first, then rank, as the pure strategy orders
 #   them) to the first items this worker may take, insert their reservations and recount them.
 #   None of it grows with the batch.
@@ -203,8 +203,14 @@ def _task(reservation: Reservation) -> Task:
 
 
 _items, _reservations, _answers = BatchItem.__table__, Reservation.__table__, Answer.__table__
-# A reservation counts toward its item's ``taken`` while neither answered nor released.
-_HELD = and_(_reservations.c.answered_at.is_(None), _reservations.c.released_at.is_(None))
+
+
+def _held(reservations: Any) -> Any:
+    """A reservation counts toward its item's ``taken`` while neither answered nor released."""
+    return and_(reservations.c.answered_at.is_(None), reservations.c.released_at.is_(None))
+
+
+_HELD = _held(_reservations)
 
 
 def _held_by(worker: Any, item: Any = _items.c.id) -> Any:
@@ -214,8 +220,7 @@ def _held_by(worker: Any, item: Any = _items.c.id) -> Any:
     return or_(
         select(answers.c.id).where(answers.c.item_id == item, answers.c.worker_id == worker).exists(),
         select(reservations.c.id).where(reservations.c.item_id == item, reservations.c.worker_id == worker,
-                                        reservations.c.answered_at.is_(None), reservations.c.released_at.is_(None))
-        .exists())
+                                        _held(reservations)).exists())
 
 
 def _recount_statement() -> Any:

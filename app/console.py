@@ -7,7 +7,7 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import click
 from flask import current_app
@@ -62,7 +62,7 @@ def progress_bar(description: str, enabled: bool) -> Iterator[_Progress]:
         yield _Progress(progress, progress.add_task(description, total=None))
 
 
-def fail(message: str, as_json: bool) -> None:
+def fail(message: str, as_json: bool) -> NoReturn:
     """End a command with exit status 1: ``{"error": message}`` on stdout under --json, else
     ``Error: message`` on stderr."""
     if as_json:

@@ -2,8 +2,8 @@
 
 Measured with `keystone bench crowd` (50 annotators, SQLite, the shared 2-core machine; see
 the README): a Python process runs Python on one core at a time, and threads of one process
-fight over that lock at every database call. Saturated, one waitress process served 180-240
-requests/s with 8 threads but 465 with one, at 2.0 instead of 4.2 ms of CPU per request; two
+fight over that lock at every database call. Saturated, one waitress process served 180-340
+requests/s with 8 threads but 465 with one, at 2.0 instead of 2.9-5.6 ms of CPU per request; two
 gunicorn ``sync`` worker processes of one thread each served 488 with a p95 of 5 ms. A sync
 worker takes a connection only when it is free, so the kernel spreads requests over idle
 workers and a slow request (publishing a release from the web) holds one worker, not the

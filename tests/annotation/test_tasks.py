@@ -10,7 +10,7 @@ import pytest
 from sqlalchemy import func, select, text
 
 from annotation import assignment as strategy
-from annotation.models import Answer, Batch, BatchItem, Reservation, Worker
+from annotation.models import Answer, BatchItem, Reservation, Worker
 from app.db import db, utcnow
 from app.models import Card, Collection
 
@@ -124,7 +124,6 @@ def test_the_index_walk_makes_the_pure_strategys_choices(app, bare_cards):  # ty
         per_item = dict(db.session.execute(select(Answer.item_id, func.count()).join(BatchItem).where(
             BatchItem.batch_id == batch_id, BatchItem.is_gold.is_(False), Answer.flagged.is_(False))
             .group_by(Answer.item_id)).all())
-        assert db.session.get(Batch, batch_id) is not None
     # The run exercised every branch, and no item ever went past N usable answers.
     assert all(v > 0 for v in decisions.values()), decisions
     assert max(per_item.values()) <= 3

@@ -13,12 +13,21 @@ gunicorn's ``gthread`` workers instead, and one process runs waitress (pure Pyth
 The app is created once in the parent; database connections are dropped before the fork
 (SQLite and psycopg connections must not cross one). SQLite writers of all the processes queue
 at :func:`app.db.one_writer`.
+
+Every request runs in a fresh :class:`contextvars.Context` (:func:`one_context_per_request`).
+``keystone serve`` is a click command, and Flask's CLI pushes an app context for it; a sync
+worker forked from that process serves requests on the thread that holds it, and Flask reuses
+an app context that is already current for the same app. ``flask.g`` (the logged-in person,
+the CSRF token, the open database session) then outlived its request: fresh clients could not
+log in, cookie-less requests were served as the last person on that worker, and a database
+transaction that was never torn down held SQLite's write lock against the other workers.
 """
 
 from __future__ import annotations
 
+import contextvars
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import click
@@ -47,6 +56,19 @@ def describe(processes: int, threads: int) -> str:
     return f"gunicorn {kind} workers, {processes} processes x {threads} thread{'s' if threads > 1 else ''}"
 
 
+def one_context_per_request(app: WSGIApp) -> WSGIApp:
+    """Wrap a WSGI app so each call starts from an empty context, whatever the serving thread holds.
+
+    Flask pushes (and pops) its own app and request contexts inside the call, so nothing set
+    by one request, or by the command that started the server, is visible to the next.
+    """
+
+    def isolated(environ: dict[str, Any], start_response: Callable[..., Any]) -> Iterable[bytes]:
+        return contextvars.Context().run(app, environ, start_response)  # type: ignore[no-any-return]
+
+    return isolated
+
+
 def serve(app: WSGIApp, host: str, port: int, threads: int | None = None, processes: int | None = None,
           on_ready: Ready | None = None) -> None:
     """Serve until interrupted; ``on_ready(port)`` is called once listening (port 0 picks a free one).
@@ -57,12 +79,13 @@ def serve(app: WSGIApp, host: str, port: int, threads: int | None = None, proces
     threads = default_threads(processes) if threads is None else threads
     if processes < 1 or threads < 1:
         raise click.UsageError(f"Expected at least one process and one thread, got {processes} and {threads}")
+    wsgi = one_context_per_request(app)
     on_ready = on_ready or (lambda bound: click.echo(
         f"Keystone is serving on http://{host}:{bound}/ ({describe(processes, threads)}; Ctrl+C to stop)", err=True))
     if processes == 1:
-        _serve_waitress(app, host, port, threads, on_ready)
+        _serve_waitress(wsgi, host, port, threads, on_ready)
     else:
-        _serve_gunicorn(app, host, port, threads, processes, on_ready)
+        _serve_gunicorn(app, wsgi, host, port, threads, processes, on_ready)
 
 
 def _serve_waitress(app: WSGIApp, host: str, port: int, threads: int, on_ready: Ready) -> None:
@@ -78,7 +101,8 @@ def _serve_waitress(app: WSGIApp, host: str, port: int, threads: int, on_ready: 
     server.run()
 
 
-def _serve_gunicorn(app: WSGIApp, host: str, port: int, threads: int, processes: int, on_ready: Ready) -> None:
+def _serve_gunicorn(app: WSGIApp, wsgi: WSGIApp, host: str, port: int, threads: int, processes: int,
+                    on_ready: Ready) -> None:
     if os.name != "posix":
         raise click.UsageError("--processes above 1 needs gunicorn, which runs on Linux and macOS only")
     from gunicorn.app.base import BaseApplication
@@ -107,6 +131,6 @@ def _serve_gunicorn(app: WSGIApp, host: str, port: int, threads: int, processes:
                 self.cfg.set(key, value)
 
         def load(self) -> WSGIApp:
-            return app
+            return wsgi
 
     _Application().run()

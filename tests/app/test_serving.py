@@ -78,3 +78,140 @@ def test_serve_answers_from_the_requested_processes_and_stops_cleanly(tmp_path, 
     assert "Traceback" not in rest, rest
     time.sleep(0.2)
     assert _group_pids(server.pid) == set(), "a worker outlived the server"
+
+
+# -- One identity per request under the real default server -----------------------------------
+
+CSRF_FIELD = re.compile(r'name="csrf_token"[^>]*value="([^"]+)"')
+
+
+def _start_server(env: dict[str, str], *options: str) -> tuple[subprocess.Popen[str], int]:
+    server = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", "0", *options], env=env,
+                              stderr=subprocess.PIPE, text=True, start_new_session=True)
+    assert server.stderr is not None
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        line = server.stderr.readline()
+        assert line, f"the server stopped before listening (exit {server.poll()})"
+        if match := SERVING.search(line):
+            return server, int(match.group(1))
+    raise AssertionError("no 'serving on' line within 60 s")
+
+
+def _stop_server(server: subprocess.Popen[str]) -> str:
+    server.send_signal(signal.SIGTERM)
+    try:
+        _, rest = server.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(server.pid, signal.SIGKILL)
+        server.communicate()
+        raise
+    return rest
+
+
+def _socket_inodes(server_port: int, client_port: int) -> set[str]:
+    """Inodes of the server-side sockets of the connection from ``client_port`` (IPv4 loopback)."""
+    inodes = set()
+    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+        fields = line.split()
+        local_port, remote_port = int(fields[1].split(":")[1], 16), int(fields[2].split(":")[1], 16)
+        if local_port == server_port and remote_port == client_port:
+            inodes.add(fields[9])
+    return inodes
+
+
+def _serving_worker(workers: set[int], server_port: int, client_port: int) -> int | None:
+    """The worker process whose file descriptors hold the accepted end of this connection."""
+    inodes = _socket_inodes(server_port, client_port)
+    for pid in workers:
+        try:
+            links = {os.readlink(fd) for fd in Path(f"/proc/{pid}/fd").iterdir()}
+        except OSError:
+            continue
+        if any(f"socket:[{inode}]" in links for inode in inodes):
+            return pid
+    return None
+
+
+def _fetch(port: int, path: str, workers: set[int], cookie: str | None = None, method: str = "GET",
+           body: str | None = None) -> tuple[int, dict[str, str], str, int | None]:
+    """One request on its own connection: status, headers, body and the worker that served it.
+
+    The connection is opened first and the worker found while it waits for the request line
+    (a sync worker accepts a connection, then blocks reading it).
+    """
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+    connection.connect()
+    client_port = connection.sock.getsockname()[1]
+    worker = None
+    deadline = time.monotonic() + 10
+    while worker is None and time.monotonic() < deadline:
+        worker = _serving_worker(workers, port, client_port)
+        if worker is None:
+            time.sleep(0.01)
+    headers = {"Cookie": cookie} if cookie else {}
+    if body is not None:
+        headers["Content-Type"] = "application/x-www-form-urlencoded"
+    connection.request(method, path, body=body, headers=headers)
+    response = connection.getresponse()
+    text = response.read().decode()
+    connection.close()
+    return response.status, {k.lower(): v for k, v in response.getheaders()}, text, worker
+
+
+def _log_in(port: int, workers: set[int], username: str, password: str) -> tuple[int, str | None, int | None]:
+    """A fresh client's login through the form: the POST's status and the session cookie it got."""
+    from urllib.parse import urlencode
+
+    status, headers, page, _ = _fetch(port, "/auth/login", workers)
+    assert status == 200
+    token = CSRF_FIELD.search(page)
+    assert token, "the login form carries no CSRF token"
+    cookie = headers.get("set-cookie", "").split(";")[0]
+    body = urlencode({"csrf_token": token.group(1), "username": username, "password": password, "next": ""})
+    status, headers, page, worker = _fetch(port, "/auth/login", workers, cookie=cookie, method="POST", body=body)
+    session = headers.get("set-cookie", "").split(";")[0] or None
+    return status, session, worker
+
+
+@pytest.mark.skipif(not Path("/proc/net/tcp").exists(), reason="finds the serving worker in Linux /proc")
+def test_default_server_gives_each_request_its_own_identity(tmp_path):
+    """Fresh clients log in, and after an admin has, cookie-less requests go to the login page on
+    every worker (the CLI's app context once leaked flask.g between requests of a sync worker)."""
+    from app.serving import default_processes
+
+    env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(tmp_path / "instance")}
+    password = "correct horse battery"
+    subprocess.run([sys.executable, "-m", "app", "users", "add", "boss", "--role", "admin", "--password", password],
+                   env=env, check=True, capture_output=True)
+    options = [] if default_processes() >= 2 else ["--processes", "2"]
+    server, port = _start_server(env, *options)
+    try:
+        expected = max(2, default_processes())
+        deadline = time.monotonic() + 20
+        while len(_group_pids(server.pid) - {server.pid}) < expected and time.monotonic() < deadline:
+            time.sleep(0.05)
+        workers = _group_pids(server.pid) - {server.pid}
+        assert len(workers) == expected
+
+        logins = [_log_in(port, workers, "boss", password) for _ in range(6)]
+        assert [status for status, _, _ in logins] == [302] * 6, "a fresh client could not log in"
+        assert all(session for _, session, _ in logins)
+
+        admin_cookie = logins[-1][1]
+        status, _, page, _ = _fetch(port, "/auth/people", workers, cookie=admin_cookie)
+        assert status == 200 and "boss" in page
+        seen: dict[int, list[int]] = {}
+        for _ in range(80):
+            status, headers, _, worker = _fetch(port, "/auth/people", workers)
+            assert worker is not None, "no worker accepted the connection"
+            seen.setdefault(worker, []).append(status)
+            assert status == 302 and "/auth/login" in headers["location"], (worker, status)
+            if set(seen) == workers and min(len(v) for v in seen.values()) >= 3:
+                break
+            # An admin request between the anonymous ones, on whichever worker takes it.
+            _fetch(port, "/auth/people", workers, cookie=admin_cookie)
+        assert set(seen) == workers, f"only workers {sorted(seen)} of {sorted(workers)} answered"
+    finally:
+        rest = _stop_server(server)
+    assert "Traceback" not in rest, rest

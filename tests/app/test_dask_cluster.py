@@ -1,0 +1,184 @@
+"""``keystone run --executor dask --scheduler ADDR`` against a real scheduler and worker processes.
+
+The cluster is the one an operator starts (``dask scheduler``, ``dask worker``), on 127.0.0.1:
+the driver sends cards out in a bounded window and alone writes the database. Outcomes must
+equal the local process pool's, and a worker killed mid-run costs only its cards in flight,
+which the scheduler hands to another worker.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("distributed", reason="the cluster path needs dask[distributed] (the 'cluster' extra)")
+
+STAGES = "filter,rectify,disparity,grade"
+SCHEDULER_AT = re.compile(r"Scheduler at:\s+(tcp://127\.0\.0\.1:\d+)")
+
+
+def _mounted(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    gap = np.full((left.shape[0], 24, 3), (214, 200, 170), np.uint8)
+    return np.concatenate([left, gap, right], axis=1)
+
+
+@pytest.fixture(scope="module")
+def scans(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Six stereo cards cut from the Motorcycle pair at different places (six content hashes)."""
+    from skimage import data
+
+    left, right, _ = data.stereo_motorcycle()
+    folder = tmp_path_factory.mktemp("scans")
+    for index in range(6):
+        x0, y0 = 40 * index, 12 * index
+        crop = (slice(y0, y0 + 360), slice(x0, x0 + 480))
+        Image.fromarray(_mounted(left[crop], right[crop])).save(folder / f"card{index}.png")
+    return folder
+
+
+def _spawn(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "dask", *args], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, env=env)
+
+
+def _stop(process: subprocess.Popen[str]) -> None:
+    if process.poll() is None:
+        os.killpg(process.pid, signal.SIGTERM)
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+
+
+class Cluster:
+    def __init__(self) -> None:
+        self.scheduler = _spawn("scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard")
+        assert self.scheduler.stderr is not None
+        self.address = ""
+        deadline = time.monotonic() + 60
+        while not self.address and time.monotonic() < deadline:
+            line = self.scheduler.stderr.readline()
+            assert line, f"the dask scheduler stopped (exit {self.scheduler.poll()})"
+            if match := SCHEDULER_AT.search(line):
+                self.address = match.group(1)
+        assert self.address, "the dask scheduler did not say where it listens within 60 s"
+        # The scheduler keeps logging; nobody reads it after start-up, so let it write nowhere.
+        self.scheduler.stderr.close()
+        self.workers: list[subprocess.Popen[str]] = []
+
+    def add_worker(self) -> subprocess.Popen[str]:
+        # Workers import the project's pipeline by name, as they would on a cluster node
+        # where the project is installed.
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path.cwd()), os.environ.get("PYTHONPATH")]))}
+        worker = _spawn("worker", self.address, "--host", "127.0.0.1", "--nworkers", "1", "--nthreads", "1",
+                        "--no-dashboard", "--memory-limit", "2GiB", env=env)
+        assert worker.stderr is not None
+        worker.stderr.close()
+        self.workers.append(worker)
+        return worker
+
+    def wait_for_workers(self, count: int) -> None:
+        from distributed import Client
+
+        with Client(self.address, timeout=30) as client:
+            client.wait_for_workers(count, timeout=90)
+
+    def close(self) -> None:
+        for worker in self.workers:
+            _stop(worker)
+        _stop(self.scheduler)
+
+
+@pytest.fixture
+def cluster() -> Iterator[Cluster]:
+    cluster = Cluster()
+    try:
+        for _ in range(2):
+            cluster.add_worker()
+        cluster.wait_for_workers(2)
+        yield cluster
+    finally:
+        cluster.close()
+
+
+def _keystone(instance: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(instance)}
+    env.pop("KEYSTONE_DATABASE_URL", None)
+    env.pop("KEYSTONE_DATA_DIR", None)
+    result = subprocess.run([sys.executable, "-m", "app", *args], env=env, capture_output=True, text=True, timeout=600)
+    if check:
+        assert result.returncode == 0, result.stderr[-3000:]
+    return result
+
+
+def _outcomes(instance: Path) -> dict[str, dict[str, tuple]]:
+    """Per card file and stage: status, outcome, reason and the grade's measurements rounded."""
+    cards = json.loads(_keystone(instance, "cards", "--json").stdout)["cards"]
+    table: dict[str, dict[str, tuple]] = {}
+    for card in cards:
+        row = {}
+        for stage in STAGES.split(","):
+            entry = card["stages"][stage]
+            metrics = entry.get("metrics") or {}
+            row[stage] = (entry["status"], entry.get("outcome"), entry.get("reason"),
+                          metrics.get("good_match_fraction"), metrics.get("grade"))
+        table[card["source"]] = row
+    return table
+
+
+def test_dask_cluster_gives_the_local_pools_outcomes(tmp_path, scans, cluster):
+    local, remote = tmp_path / "local", tmp_path / "remote"
+    for instance in (local, remote):
+        _keystone(instance, "ingest", str(scans), "--json")
+    _keystone(local, "run", "--stages", STAGES, "--workers", "2", "--json")
+    report = json.loads(_keystone(remote, "run", "--stages", STAGES, "--executor", "dask",
+                                  "--scheduler", cluster.address, "--json").stdout)
+    assert [stage["processed"] for stage in report["stages"]][0] == 6
+    assert all(stage["failed"] == 0 for stage in report["stages"]), report
+    expected, got = _outcomes(local), _outcomes(remote)
+    assert set(got) == {f"card{index}.png" for index in range(6)}
+    assert got == expected
+    assert all(row["grade"][0] == "done" for row in got.values())
+
+
+def test_a_worker_killed_mid_run_costs_only_its_cards_in_flight(tmp_path, scans, cluster):
+    from distributed import Client
+
+    instance = tmp_path / "instance"
+    _keystone(instance, "ingest", str(scans), "--json")
+    env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(instance)}
+    run = subprocess.Popen([sys.executable, "-m", "app", "run", "--stages", STAGES, "--executor", "dask",
+                            "--scheduler", cluster.address, "--json"], env=env, stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True)
+    victim = cluster.workers[0]
+    killed_with_work = False
+    with Client(cluster.address, timeout=30) as client:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and run.poll() is None:
+            processing = client.processing()
+            busy = [address for address, keys in processing.items() if keys]
+            if len(busy) == 2:  # both workers hold a card: kill one of them with its card in flight
+                os.killpg(victim.pid, signal.SIGKILL)
+                killed_with_work = True
+                break
+            time.sleep(0.05)
+        cluster.add_worker()  # the cluster heals, as an autoscaler would; the run does not wait for it
+    out, err = run.communicate(timeout=600)
+    assert run.returncode == 0, err[-3000:]
+    assert killed_with_work, "the run finished before both workers were busy"
+    report = json.loads(out)
+    assert all(stage["failed"] == 0 for stage in report["stages"]), report
+    statuses = _outcomes(instance)
+    assert all(row[stage][0] == "done" for row in statuses.values() for stage in STAGES.split(","))

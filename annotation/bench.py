@@ -1,8 +1,8 @@
-"""``keystone bench crowd``: simulated annotators against the served app on SQLite, over HTTP.
+"""``keystone bench crowd``: simulated annotators against the served app over HTTP (SQLite or PostgreSQL).
 
 Wire with ``bench_group.add_command(bench_crowd_command)`` (the command is named "crowd").
 
-What runs: a throwaway instance (SQLite file, data dir) with generated cards ingested the normal
+What runs: a throwaway instance (a SQLite file, or an empty database named by URL; a data dir) with generated cards ingested the normal
 way, one batch and invited workers; the app is served by :func:`app.serving.serve` (waitress, or
 gunicorn's workers) in a *child process* (so the server does not share a GIL with the 50 client
 threads, as in production); annotators arrive over ``ramp_s`` seconds; each simulated
@@ -79,19 +79,21 @@ def _generated_cards(folder: Path, count: int, seed: int) -> list[Path]:
     return paths
 
 
-def _app_config(root: Path) -> dict[str, Any]:
+def _app_config(root: Path, database_url: str | None = None) -> dict[str, Any]:
     import secrets
 
-    return {"SQLALCHEMY_DATABASE_URI": f"sqlite:///{root / 'keystone.sqlite3'}",
+    return {"SQLALCHEMY_DATABASE_URI": database_url or f"sqlite:///{root / 'keystone.sqlite3'}",
             "KEYSTONE_DATA_DIR": str(root / "data"), "SECRET_KEY": secrets.token_hex(16)}
 
 
 def build_instance(root: Path, *, annotators: int, tasks_per_annotator: int, n: int = 3, kind: str = "judge",
-                   hold: int = 2, gold_cards: int = 5, gold_rate: float = 0.1, seed: int = 0) -> CrowdInstance:
+                   hold: int = 2, gold_cards: int = 5, gold_rate: float = 0.1, seed: int = 0,
+                   database_url: str | None = None) -> CrowdInstance:
     """Ingest enough generated cards for the load (every worker can finish, holding ``hold``), batch, invite.
 
     Items: ceil(annotators * (tasks + hold) / n), so slots never run out before every annotator
-    has answered ``tasks_per_annotator`` times; plus ``gold_cards`` gold items.
+    has answered ``tasks_per_annotator`` times; plus ``gold_cards`` gold items. ``database_url``
+    (default: a SQLite file under ``root``) must name an empty database: the bench owns it.
     """
     from app import create_app
     from app.db import db
@@ -103,9 +105,14 @@ def build_instance(root: Path, *, annotators: int, tasks_per_annotator: int, n: 
     from .tasks import create_batch
 
     items = math.ceil(annotators * (tasks_per_annotator + hold) / n)
-    config = _app_config(root)
+    config = _app_config(root, database_url)
     app = create_app(config, instance_path=root / "instance")
     with app.app_context():
+        from sqlalchemy import inspect
+
+        if inspect(db.engine).get_table_names():
+            raise click.ClickException(f"the bench needs an empty database; "
+                                       f"{db.engine.url.render_as_string(hide_password=True)} has tables")
         upgrade(db.engine)
         paths = _generated_cards(root / "scans", items + gold_cards, seed)
         report = ingest(paths, data_dir=Path(config["KEYSTONE_DATA_DIR"]), collection_name="bench",
@@ -414,7 +421,7 @@ def _stored_figures(instance: CrowdInstance, acknowledged: set[int]) -> dict[str
 def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind: str = "judge", n: int = 3,
                     think_ms: tuple[float, float] = (250.0, 750.0), ramp_s: float = DEFAULT_RAMP_S,
                     server_threads: int | None = None, server_processes: int | None = None, seed: int = 0,
-                    replay_every: int = REPLAY_EVERY, root: Path | None = None,
+                    replay_every: int = REPLAY_EVERY, root: Path | None = None, database_url: str | None = None,
                     on_progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Set up, serve, run ``annotators`` concurrent annotators, check the database; one JSON-able report.
 
@@ -425,7 +432,8 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
     over ``ramp_s`` seconds (0: all at the same instant, a burst no real crowd makes; the
     report then also has ``harness_burst``, the same burst against a WSGI app that does
     nothing, which is what the machine and this client add by themselves). ``root`` (default:
-    a temporary folder, removed afterwards) holds the throwaway database and data dir.
+    a temporary folder, removed afterwards) holds the throwaway database and data dir;
+    ``database_url`` puts the catalogue in another, empty database instead (PostgreSQL).
     """
     from app.serving import default_processes, default_threads, describe
 
@@ -437,7 +445,7 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
     try:
         say(f"setting up {annotators} annotators x {tasks_per_annotator} tasks in {root}")
         instance = build_instance(root, annotators=annotators, tasks_per_annotator=tasks_per_annotator, n=n,
-                                  kind=kind, seed=seed)
+                                  kind=kind, seed=seed, database_url=database_url)
         logs: list[AnnotatorLog] = [AnnotatorLog() for _ in range(annotators)]
         think_s = (think_ms[0] / 1000.0, think_ms[1] / 1000.0)
         with ServedApp(instance, threads=server_threads, processes=server_processes) as served:
@@ -482,7 +490,8 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
         "annotators": annotators, "tasks_per_annotator": tasks_per_annotator, "kind": kind,
         "answers_per_item": n, "items": instance.items, "think_ms": list(think_ms), "ramp_s": ramp_s,
         "server": describe(server_processes, server_threads), "server_processes": server_processes,
-        "server_threads": server_threads, "database": "sqlite",
+        "server_threads": server_threads,
+        "database": (database_url or "sqlite").split(":", 1)[0].split("+", 1)[0],
         "seconds": round(seconds, 3), "requests": len(statuses),
         "throughput_rps": round(len(fetch) / seconds + len(submits) / seconds, 1) if seconds else None,
         # Server CPU per API request (fetch-next, submit, replays): the cost of a request, free
@@ -522,12 +531,15 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
 @click.option("--server-threads", type=click.IntRange(1, 64), default=None,
               help="Threads per server process, as keystone serve --threads [default: keystone serve's].")
 @click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--database-url", default=None, metavar="URL",
+              help="An empty database for the bench's catalogue, e.g. postgresql+psycopg://user@host/db "
+                   "[default: a throwaway SQLite file].")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
 def bench_crowd_command(annotators: int, tasks_per_annotator: int, kind: str, n: int, think_ms: tuple[float, float],
                         ramp_s: float, server_processes: int | None, server_threads: int | None, seed: int,
-                        as_json: bool) -> None:
-    """Latency of fetch-next and submit with concurrent annotators over real HTTP (SQLite; waitress,
-    or gunicorn with --server-processes above 1).
+                        database_url: str | None, as_json: bool) -> None:
+    """Latency of fetch-next and submit with concurrent annotators over real HTTP (SQLite by default,
+    or an empty PostgreSQL database with --database-url; waitress, or gunicorn with --server-processes above 1).
 
     Exits 1 when an answer was lost or duplicated or a 5xx occurred (the p95 target is reported, not enforced).
     """
@@ -535,7 +547,7 @@ def bench_crowd_command(annotators: int, tasks_per_annotator: int, kind: str, n:
         raise click.BadParameter(f"expected min <= max, got {think_ms[0]:g} > {think_ms[1]:g}", param_hint="--think-ms")
     report = run_crowd_bench(annotators, tasks_per_annotator, kind=kind, n=n, think_ms=think_ms, ramp_s=ramp_s,
                              server_threads=server_threads, server_processes=server_processes, seed=seed,
-                             on_progress=None if as_json else (lambda m: click.echo(m, err=True)))
+                             database_url=database_url, on_progress=None if as_json else (lambda m: click.echo(m, err=True)))
     broken = (report["lost"] or report["unacknowledged"] or report["duplicates"] or report["over_capacity_items"]
               or report["status_5xx"] or report["client_errors"] or report["replays_ok"] != report["replays"])
     if as_json:

@@ -1,4 +1,4 @@
-"""Load on loopback: 50 simulated annotators against the served app on SQLite, over real HTTP.
+"""Load on loopback: 50 simulated annotators against the served app on SQLite and PostgreSQL, over real HTTP.
 
 Bounded in time (a few hundred requests, short thinking). Correctness is asserted here; speed
 is reported by ``keystone bench crowd`` and not asserted (a shared 2-core machine makes timed
@@ -17,15 +17,23 @@ from annotation.bench import latency_summary, run_crowd_bench
 ANNOTATORS, TASKS, N, REPLAY_EVERY = 50, 4, 3, 2
 
 
-@pytest.fixture(scope="module", params=[(None, 0.5), (1, 0.0)], ids=["default-server", "waitress-all-at-once"])
+@pytest.fixture(scope="module", params=[(None, 0.5, "sqlite"), (1, 0.0, "sqlite"), (None, 0.5, "postgresql")],
+                ids=["default-server", "waitress-all-at-once", "default-server-postgresql"])
 def report(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The default server (one gunicorn process per core here: SQLite writers in several
-    processes), annotators arriving over half a second; and a lone waitress process with 8
-    threads (many threads, one process), everyone starting at the same instant."""
-    processes, ramp_s = request.param
+    processes), annotators arriving over half a second; a lone waitress process with 8
+    threads (many threads, one process), everyone starting at the same instant; and the
+    default server on PostgreSQL."""
+    processes, ramp_s, backend = request.param
+    database_url = None
+    if backend == "postgresql":
+        cluster = request.getfixturevalue("postgres_cluster")  # skips when no PostgreSQL binaries
+        database_url = cluster.url(cluster.create_database())
     root: Path = tmp_path_factory.mktemp("crowd-load")
-    return run_crowd_bench(ANNOTATORS, TASKS, n=N, think_ms=(0.0, 20.0), ramp_s=ramp_s, replay_every=REPLAY_EVERY,
-                           server_processes=processes, root=root)
+    report = run_crowd_bench(ANNOTATORS, TASKS, n=N, think_ms=(0.0, 20.0), ramp_s=ramp_s, replay_every=REPLAY_EVERY,
+                             server_processes=processes, root=root, database_url=database_url)
+    assert report["database"] == backend
+    return report
 
 
 @pytest.mark.timeout(120)

@@ -1,13 +1,42 @@
-"""``keystone bench ...``: the benchmarks that check the speed targets (numbers over adjectives)."""
+"""``keystone bench ...``: the benchmarks that check the speed targets (numbers over adjectives).
+
+Benchmarks in the top-level ``benchmarks`` package are loaded only when their command runs (or
+``keystone bench --help`` lists them), so the product never imports them.
+"""
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 import click
 
+# command name -> "module:attribute" of its click command in the benchmarks package
+LAZY_BENCHMARKS = {
+    "catalogue": "benchmarks.catalogue:bench_catalogue_command",
+}
 
-@click.group("bench")
+
+class BenchGroup(click.Group):
+    """A click group whose benchmark commands are imported on first use (click's lazy-group pattern)."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted({*super().list_commands(ctx), *LAZY_BENCHMARKS})
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name in LAZY_BENCHMARKS and cmd_name not in self.commands:
+            module_name, attribute = LAZY_BENCHMARKS[cmd_name].split(":")
+            try:
+                module = importlib.import_module(module_name)
+            except ImportError as exc:
+                raise click.ClickException(
+                    f"the {cmd_name!r} benchmark lives in the source checkout's benchmarks/ folder, "
+                    f"which this install does not have ({exc})") from exc
+            self.add_command(getattr(module, attribute), cmd_name)
+        return super().get_command(ctx, cmd_name)
+
+
+@click.group("bench", cls=BenchGroup)
 def bench_group() -> None:
     """Benchmarks of pipeline stages on real images (medians over repeats, one core)."""
 

@@ -36,7 +36,8 @@ regions outside the source's field of view). No anti-aliasing: intensities are s
 centres, so resampling blurs like bilinear interpolation. The mesh ends at the source's border
 pixel centres, so a target pixel whose centre falls just outside that footprint is a hole (a round
 trip v0 -> v' -> v0 loses up to one pixel along v0's border on the sides v' does not see).
-Cost: vectorised over triangles, ~0.1 s for 256 x 256 and ~0.4 s for 512 x 512 on one core.
+Cost: vectorised over triangles (per-vertex columns, an unbuffered minimum for the z-buffer),
+~0.09 s for 256 x 256 and ~0.3 s for 512 x 512 on one core of the shared 2-core machine.
 
 Boundary mask (:func:`boundary_mask`)
 -------------------------------------
@@ -312,13 +313,22 @@ def _unproject(gd: GDImage, cam: Camera) -> np.ndarray:
     return (pc - cam.translation) @ cam.rotation  # R^T (x - t), row-vector form
 
 
-def _triangles(h: int, w: int) -> np.ndarray:
-    """(2 (H-1)(W-1), 3) flat vertex indices: each quad (p00, p01, p10, p11) -> (p00, p01, p10)
-    and (p01, p11, p10)."""
+def _triangles(h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat vertex indices of the 2 (H-1)(W-1) triangles as three (T,) columns: each quad
+    (p00, p01, p10, p11) -> (p00, p01, p10) and (p01, p11, p10). Columns, not a (T, 3) array:
+    numpy reduces over a short last axis an order of magnitude slower than it combines columns."""
     idx = np.arange(h * w).reshape(h, w)
     p00, p01 = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel()
     p10, p11 = idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-    return np.concatenate([np.stack([p00, p01, p10], 1), np.stack([p01, p11, p10], 1)])
+    return np.concatenate([p00, p01]), np.concatenate([p01, p11]), np.concatenate([p10, p10])
+
+
+def _min3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    return np.minimum(np.minimum(a, b), c)
+
+
+def _max3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    return np.maximum(np.maximum(a, b), c)
 
 
 def reproject(
@@ -326,12 +336,14 @@ def reproject(
     source: Camera,
     target: Camera,
     max_relative_step: float = MAX_RELATIVE_DEPTH_STEP,
+    with_boundary: bool = True,
 ) -> Reprojection:
     """Render the GD image seen from ``source`` into ``target`` as a textured triangle mesh
     (module docstring): triangles with a vertex invalid or behind the target, or with
     ``max |D_i - D_j| / min(D_i, D_j) > max_relative_step`` over their source depths, are dropped;
     the rest are rasterised exactly with a z-buffer. Output arrays are (target.height,
-    target.width); never NaN."""
+    target.width); never NaN. ``with_boundary=False`` leaves the boundary mask empty (a render
+    that is only looked at, never inpainted, does not need it)."""
     h, w = gd.shape
     if (source.width, source.height) != (w, h):
         raise InvalidInputError(f"source camera {source.width}x{source.height} does not match GD image {w}x{h}")
@@ -342,8 +354,8 @@ def reproject(
     th, tw = target.height, target.width
     if min(th, tw) < 1:
         raise ViewImageTooSmallError(f"target view {tw}x{th} is empty")
-    tris = _triangles(h, w)
-    total = len(tris)
+    a, b, c = _triangles(h, w)
+    total = len(a)
     d_src = gd.depth.ravel().astype(np.float64)
     ok_v = gd.valid.ravel() & (d_src > 0)
     world = _unproject(gd, source).reshape(-1, 3)
@@ -356,28 +368,31 @@ def reproject(
     px = tcx + target.focal_px * pc[:, 0] / zs
     py = tcy - target.focal_px * pc[:, 1] / zs
 
-    keep = ok_v[tris].all(axis=1)
-    dt = d_src[tris]
-    dmin, dmax = dt.min(axis=1), dt.max(axis=1)
-    keep &= (dmax - dmin) <= max_relative_step * np.maximum(dmin, 1e-300)
-    tris = tris[keep]
-    kept = len(tris)
-    xs, ys = px[tris], py[tris]  # (T, 3)
-    finite = np.isfinite(xs).all(1) & np.isfinite(ys).all(1)
-    xs, ys, tris = xs[finite], ys[finite], tris[finite]
-    iw = 1.0 / zs[tris]  # inverse target depth per vertex
-    ia = gd.intensity.ravel().astype(np.float64)[tris] * iw
+    keep = ok_v[a] & ok_v[b] & ok_v[c]
+    da, db, dc = d_src[a], d_src[b], d_src[c]
+    dmin = _min3(da, db, dc)
+    keep &= (_max3(da, db, dc) - dmin) <= max_relative_step * np.maximum(dmin, 1e-300)
+    a, b, c = a[keep], b[keep], c[keep]
+    kept = len(a)
+    finite = np.isfinite(px[a]) & np.isfinite(px[b]) & np.isfinite(px[c]) \
+        & np.isfinite(py[a]) & np.isfinite(py[b]) & np.isfinite(py[c])
+    a, b, c = a[finite], b[finite], c[finite]
+    xa, xb, xc, ya, yb, yc = px[a], px[b], px[c], py[a], py[b], py[c]
+    inverse_z = 1.0 / zs  # inverse target depth per vertex
+    intensity = gd.intensity.ravel().astype(np.float64) * inverse_z  # intensity / z, for perspective correction
 
     # screen-space bounding boxes, clipped to the target
-    x0 = np.maximum(np.ceil(xs.min(1) - 1e-9), 0).astype(np.int64)
-    x1 = np.minimum(np.floor(xs.max(1) + 1e-9), tw - 1).astype(np.int64)
-    y0 = np.maximum(np.ceil(ys.min(1) - 1e-9), 0).astype(np.int64)
-    y1 = np.minimum(np.floor(ys.max(1) + 1e-9), th - 1).astype(np.int64)
+    x0 = np.maximum(np.ceil(_min3(xa, xb, xc) - 1e-9), 0).astype(np.int64)
+    x1 = np.minimum(np.floor(_max3(xa, xb, xc) + 1e-9), tw - 1).astype(np.int64)
+    y0 = np.maximum(np.ceil(_min3(ya, yb, yc) - 1e-9), 0).astype(np.int64)
+    y1 = np.minimum(np.floor(_max3(ya, yb, yc) + 1e-9), th - 1).astype(np.int64)
     nx, ny = x1 - x0 + 1, y1 - y0 + 1
-    denom = (ys[:, 1] - ys[:, 2]) * (xs[:, 0] - xs[:, 2]) + (xs[:, 2] - xs[:, 1]) * (ys[:, 0] - ys[:, 2])
+    denom = (yb - yc) * (xa - xc) + (xc - xb) * (ya - yc)
     live = (nx > 0) & (ny > 0) & (np.abs(denom) > 1e-12)
     sel = np.flatnonzero(live)
     count = (nx * ny)[sel]
+    mesh = _ScreenMesh(xa, xb, xc, ya, yb, yc, x0, y0, nx, denom,
+                       inverse_z[a], inverse_z[b], inverse_z[c], intensity[a], intensity[b], intensity[c])
 
     zbuf = np.full(th * tw, np.inf)
     ibuf = np.zeros(th * tw)
@@ -387,7 +402,7 @@ def reproject(
         base = csum[start - 1] if start else 0
         stop = int(np.searchsorted(csum, base + _CHUNK, side="right"))
         stop = max(stop, start + 1)
-        _raster_chunk(sel[start:stop], count[start:stop], xs, ys, x0, y0, nx, denom, iw, ia, tw, zbuf, ibuf)
+        _raster_chunk(sel[start:stop], count[start:stop], mesh, tw, zbuf, ibuf)
         start = stop
 
     covered = np.isfinite(zbuf)
@@ -397,26 +412,48 @@ def reproject(
     depth[depth <= 0] = 0.0
     hole |= depth <= 0
     inten[hole] = 0.0
-    boundary = boundary_mask(hole, depth, ~hole, max_relative_step)
+    boundary = boundary_mask(hole, depth, ~hole, max_relative_step) if with_boundary else np.zeros_like(hole)
     return Reprojection(inten, depth, hole, boundary, kept, total - kept)
 
 
-def _raster_chunk(
-    sel: np.ndarray, count: np.ndarray, xs: np.ndarray, ys: np.ndarray, x0: np.ndarray, y0: np.ndarray,
-    nx: np.ndarray, denom: np.ndarray, iw: np.ndarray, ia: np.ndarray, tw: int,
-    zbuf: np.ndarray, ibuf: np.ndarray,
-) -> None:
+@dataclass(frozen=True)
+class _ScreenMesh:
+    """The kept triangles in target pixels, one (T,) column per vertex quantity: positions
+    ``x*``/``y*``, clipped bounding-box corner ``x0``/``y0`` and width ``nx``, the barycentric
+    denominator, inverse depth ``w*`` and intensity over depth ``i*`` at vertices a, b, c."""
+
+    xa: np.ndarray
+    xb: np.ndarray
+    xc: np.ndarray
+    ya: np.ndarray
+    yb: np.ndarray
+    yc: np.ndarray
+    x0: np.ndarray
+    y0: np.ndarray
+    nx: np.ndarray
+    denom: np.ndarray
+    wa: np.ndarray
+    wb: np.ndarray
+    wc: np.ndarray
+    ia: np.ndarray
+    ib: np.ndarray
+    ic: np.ndarray
+
+
+def _raster_chunk(sel: np.ndarray, count: np.ndarray, mesh: _ScreenMesh, tw: int,
+                  zbuf: np.ndarray, ibuf: np.ndarray) -> None:
     """Rasterise triangles ``sel`` into the z-buffer ``zbuf`` / intensity ``ibuf`` (flat, in place)."""
     n = int(count.sum())
     rep = np.repeat(sel, count)
     offs = np.arange(n) - np.repeat(np.cumsum(count) - count, count)
-    nxr = nx[rep]
-    qx = (x0[rep] + offs % nxr).astype(np.float64)
-    qy = (y0[rep] + offs // nxr).astype(np.float64)
-    X, Y = xs[rep], ys[rep]
-    den = denom[rep]
-    l0 = ((Y[:, 1] - Y[:, 2]) * (qx - X[:, 2]) + (X[:, 2] - X[:, 1]) * (qy - Y[:, 2])) / den
-    l1 = ((Y[:, 2] - Y[:, 0]) * (qx - X[:, 2]) + (X[:, 0] - X[:, 2]) * (qy - Y[:, 2])) / den
+    nxr = mesh.nx[rep]
+    qx = (mesh.x0[rep] + offs % nxr).astype(np.float64)
+    qy = (mesh.y0[rep] + offs // nxr).astype(np.float64)
+    xa, xb, xc = mesh.xa[rep], mesh.xb[rep], mesh.xc[rep]
+    ya, yb, yc = mesh.ya[rep], mesh.yb[rep], mesh.yc[rep]
+    den = mesh.denom[rep]
+    l0 = ((yb - yc) * (qx - xc) + (xc - xb) * (qy - yc)) / den
+    l1 = ((yc - ya) * (qx - xc) + (xa - xc) * (qy - yc)) / den
     l2 = 1.0 - l0 - l1
     eps = -1e-7
     inside = (l0 >= eps) & (l1 >= eps) & (l2 >= eps)
@@ -424,22 +461,18 @@ def _raster_chunk(
         return
     rep, l0, l1, l2 = rep[inside], l0[inside], l1[inside], l2[inside]
     pid = qy[inside].astype(np.int64) * tw + qx[inside].astype(np.int64)
-    W = iw[rep]
-    inv = l0 * W[:, 0] + l1 * W[:, 1] + l2 * W[:, 2]
+    inv = l0 * mesh.wa[rep] + l1 * mesh.wb[rep] + l2 * mesh.wc[rep]
     good = inv > 0
     if not good.all():
         rep, l0, l1, l2, pid, inv = rep[good], l0[good], l1[good], l2[good], pid[good], inv[good]
-    A = ia[rep]
-    val = (l0 * A[:, 0] + l1 * A[:, 1] + l2 * A[:, 2]) / inv
+    val = (l0 * mesh.ia[rep] + l1 * mesh.ib[rep] + l2 * mesh.ic[rep]) / inv
     dep = 1.0 / inv
-    order = np.lexsort((dep, pid))
-    pid, dep, val = pid[order], dep[order], val[order]
-    first = np.ones(len(pid), bool)
-    first[1:] = pid[1:] != pid[:-1]
-    pid, dep, val = pid[first], dep[first], val[first]
-    better = dep < zbuf[pid]
-    zbuf[pid[better]] = dep[better]
-    ibuf[pid[better]] = val[better]
+    # z-buffer: the nearest fragment per pixel (an unbuffered minimum, O(n); a sort by pixel
+    # and depth cost twice the whole rasterisation). Fragments at exactly the winning depth
+    # then write their intensity; equal depths are one surface, so any of them will do.
+    np.minimum.at(zbuf, pid, dep)
+    nearest = dep == zbuf[pid]
+    ibuf[pid[nearest]] = val[nearest]
 
 
 # ----------------------------------------------------------------------------------- boundaries
@@ -462,11 +495,16 @@ def boundary_mask(
     lab = np.where(border, lab, 0)
     inv = np.zeros(hole.shape, np.float64)
     inv[border] = 1.0 / depth[border].astype(np.float64)
-    index = np.arange(1, n + 1)
-    near = np.asarray(ndimage.maximum(inv, lab, index), np.float64)  # largest 1/D = nearest
-    far = np.asarray(ndimage.minimum(inv, lab, index), np.float64)
+    # Per component, over its border pixels only: the largest 1/D (nearest) and the smallest.
+    owner, border_inv = lab[border], inv[border]
+    near = np.full(n + 1, -np.inf)
+    far = np.full(n + 1, np.inf)
+    np.maximum.at(near, owner, border_inv)
+    np.minimum.at(far, owner, border_inv)
+    near, far = near[1:], far[1:]
     has = np.isfinite(near) & np.isfinite(far) & (far > 0) & (near > far * (1.0 + max_relative_step))
-    mid = np.where(has, (near + far) / 2.0, np.inf)
+    mid = np.full(n, np.inf)  # a component with no border (or no depth step) marks nothing
+    mid[has] = (near[has] + far[has]) / 2.0
     mid_px = np.concatenate([[np.inf], mid])[lab]
     out = border & (inv > mid_px)
     return out

@@ -14,6 +14,7 @@ import click
 # command name -> "module:attribute" of its click command in the benchmarks package
 LAZY_BENCHMARKS = {
     "catalogue": "benchmarks.catalogue:bench_catalogue_command",
+    "pipeline": "benchmarks.pipeline_cost:bench_pipeline_command",
 }
 
 

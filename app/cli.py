@@ -73,30 +73,18 @@ def serve_command(host: str, port: int, threads: int | None, processes: int | No
 
 
 def _register() -> None:
+    import exports.cli
+    import review.cli
+    from annotation.cli import crowd_group
+
     from .bench import bench_group
     from .demo import demo_command
     from .geometry import check_homographies_command
     from .ingest import ingest_command
+    from .inpainting_cli import train_inpainting_command
     from .people import users_group
     from .runs import cards_command, run_command
 
-    from annotation.cli import crowd_group
-
-    from .disparity_cli import bench_disparity_command
-    from .inpainting_cli import bench_inpainting_command, train_inpainting_command
-    from .rectify_cli import bench_rectify_command
-
-    bench_group.add_command(bench_disparity_command)
-    bench_group.add_command(bench_rectify_command)
-    bench_group.add_command(bench_inpainting_command)
-    import exports.cli
-    import review.cli
-    from annotation.bench import bench_crowd_command
-
-    bench_group.add_command(bench_crowd_command)
-
-    for command in exports.cli.bench_commands():
-        bench_group.add_command(command)
     for command in (ingest_command, run_command, cards_command, bench_group, demo_command, users_group,
                     check_homographies_command, crowd_group, train_inpainting_command,
                     *review.cli.commands(), *exports.cli.commands()):

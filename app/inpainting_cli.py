@@ -1,7 +1,8 @@
-"""``keystone bench inpainting`` and ``keystone train-inpainting`` (issue 8, sections 3 and 4).
+"""``keystone train-inpainting``: train the hole-filling networks of the views stage.
 
-Wire with ``bench_group.add_command(bench_inpainting_command)`` (named "inpainting") and
-``cli.add_command(train_inpainting_command)`` (named "train-inpainting"). Training reads the catalogue only with ``--source catalogue``.
+Added to ``keystone`` as "train-inpainting". Training reads the catalogue only with
+``--source catalogue``; the benchmark of the networks is ``keystone bench inpainting``
+(``benchmarks/inpainting.py``).
 """
 
 from __future__ import annotations
@@ -11,47 +12,6 @@ from pathlib import Path
 
 import click
 import numpy as np
-
-
-@click.command("inpainting")
-@click.option("--steps", default=300, show_default=True, type=click.IntRange(1, 1_000_000),
-              help="Training steps (each trains both networks on one batch).")
-@click.option("--size", default=64, show_default=True, type=click.IntRange(16, 1024),
-              help="Side of the square GD crops in px.")
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
-def bench_inpainting_command(steps: int, size: int, as_json: bool) -> None:
-    """L1 inside held-out double-reprojection holes for the partial-conv network, OpenCV Telea,
-    Navier-Stokes and no inpainting, for intensity and depth (D^), plus training time (CPU). The
-    networks refine a classical fill (background fill for depth, Navier-Stokes for intensity),
-    whose own L1 is reported too, with a per-sample comparison and a bootstrap interval.
-    Data: scikit-image's Motorcycle with its ground-truth disparity (train: left 60 % of the image
-    and flips; test: the right 40 %)."""
-    from pipeline.errors import PipelineError
-    from pipeline.inpainting import benchmark_inpainting
-
-    try:
-        document = benchmark_inpainting(steps=steps, size=size)
-    except PipelineError as exc:
-        raise click.ClickException(exc.reason()) from exc
-    if as_json:
-        click.echo(json.dumps(document, indent=2, allow_nan=False))
-        return
-    click.echo(f"{'method':<14} {'channel':<10} {'L1 in holes':>12}")
-    for r in document["results"]:
-        l1 = "n/a" if r["l1"] is None else f"{r['l1']:.4f}"
-        click.echo(f"{r['method']:<14} {r['channel']:<10} {l1:>12}")
-    for r in document["init_results"]:
-        l1 = "n/a" if r["l1"] is None else f"{r['l1']:.4f}"
-        click.echo(f"  (the network's init: {r['method']} on {r['channel']}: {l1})")
-    paired = document["depth_per_sample"]
-    if paired.get("samples"):
-        low, high = paired["bootstrap_ci95"]
-        click.echo(f"depth, per held-out sample: network beats the better of Telea / Navier-Stokes on "
-                   f"{paired['network_beats_best_classical']} of {paired['samples']}; pooled L1 difference "
-                   f"{paired['l1_difference_vs_best_classical']:+.4f} (bootstrap 95 % CI {low:+.4f} .. {high:+.4f})")
-    click.echo(f"training: {document['steps']} steps in {document['training_seconds']:.1f} s "
-               f"({document['train_samples']} train / {document['test_samples']} test samples, {size} px)")
-    click.echo(f"network beats Telea and Navier-Stokes on depth: {document['network_beats_classical_on_depth']}")
 
 
 def catalogue_gd_images() -> list:

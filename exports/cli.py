@@ -89,42 +89,6 @@ def verify_command(path: Path, no_mlcroissant: bool, as_json: bool) -> None:
         raise SystemExit(1)
 
 
-@click.command("export")
-@click.option("--cards", "card_count", default=10_000, show_default=True, type=click.IntRange(1, 1_000_000),
-              help="Synthetic accepted cards in the catalogue.")
-@click.option("--format", "formats", default=",".join(DEFAULT_FORMATS), show_default=True,
-              help=f"Comma-separated layouts: {', '.join(FORMATS)}.")
-@click.option("--dir", "folder", type=click.Path(path_type=Path, file_okay=False),
-              help="Work folder (catalogue, store, release); default a temporary folder, removed after.")
-@click.option("--map-size", type=click.IntRange(16, 4096), default=None,
-              help="Real-size cards: depth maps MAP_SIZE x MAP_SIZE, rectified views and disparity 4:3 at "
-                   "MAP_SIZE*25/16 wide (512 gives 800 x 600, ~9 MB per card and format). "
-                   "Default: small maps (160 x 108 views, 128 x 128 depth).")
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
-def bench_export_command(card_count: int, formats: str, folder: Path | None, map_size: int | None,
-                         as_json: bool) -> None:
-    """Release throughput (cards/s) and peak memory on a synthetic catalogue of accepted cards.
-
-    The export runs in a child process so its peak resident memory is its own."""
-    from app.console import emit_json
-
-    from .bench import benchmark_export
-
-    document = benchmark_export(card_count, formats=formats, folder=folder, map_size=map_size,
-                                echo=(lambda m: click.echo(m, err=True)) if as_json else click.echo)
-    if as_json:
-        emit_json(document)
-        return
-    click.echo(f"{document['cards']} cards in {document['export_seconds']:.1f} s: {document['cards_per_second']:.1f} "
-               f"cards/s, {document['mb_per_second']:.1f} MB/s; peak RSS {document['peak_rss_mb']:.0f} MB "
-               f"(target < {document['target_rss_mb']} MB); verify {document['verify_seconds']:.1f} s, ok={document['verified']}")
-
-
 def commands() -> list[click.Command]:
     """Top-level commands this feature adds to ``keystone``."""
     return [export_command, verify_command]
-
-
-def bench_commands() -> list[click.Command]:
-    """Commands this feature adds to ``keystone bench``."""
-    return [bench_export_command]

@@ -10,6 +10,14 @@ import cv2
 import numpy as np
 import pytest
 
+from benchmarks.disparity import (
+    PFMError,
+    disparity_errors,
+    pareto_front,
+    perturb,
+    read_pfm,
+    write_pfm,
+)
 from pipeline.disparity import (
     DEFAULT_BACKEND,
     DisparityParams,
@@ -19,14 +27,6 @@ from pipeline.disparity import (
     estimate_disparity,
     normalised_inverse_depth,
     resample_512,
-)
-from pipeline.disparity_bench import (
-    PFMError,
-    disparity_errors,
-    pareto_front,
-    perturb,
-    read_pfm,
-    write_pfm,
 )
 from pipeline.errors import InvalidInputError
 

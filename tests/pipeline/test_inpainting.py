@@ -15,7 +15,6 @@ from pipeline.inpainting import (
     Sample,
     background_fill,
     baseline_inpaint,
-    benchmark_inpainting,
     build_network,
     classical_init,
     inpaint,
@@ -275,12 +274,3 @@ def test_legacy_unguided_checkpoint_still_loads_and_resume_checks_architecture(s
     assert np.isfinite(d).all() and (d > 0).all()
     with pytest.raises(InvalidInputError, match="architecture"):
         train(samples, _tiny(4), tmp_path, resume=True)
-
-
-@pytest.mark.bench
-def test_shipped_bench_network_beats_classical_on_depth():
-    doc = benchmark_inpainting()
-    by = {(r["method"], r["channel"]): r["l1"] for r in doc["results"]}
-    assert by[("network", "depth")] < min(by[("telea", "depth")], by[("navier-stokes", "depth")])
-    assert by[("network", "depth")] < by[("none", "depth")]
-    assert doc["network_beats_classical_on_depth"] is True

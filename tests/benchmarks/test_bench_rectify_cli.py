@@ -7,7 +7,7 @@ import json
 
 from click.testing import CliRunner
 
-from app.rectify_cli import bench_rectify_command
+from benchmarks.rectify import bench_rectify_command
 
 ROW_KEYS = {"pair", "method", "dy_median", "dy_p95", "midline_deviation", "aspect_change", "epe", "bad2",
             "seconds", "error"}

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from app.disparity_cli import bench_disparity_command
-from pipeline.disparity_bench import write_pfm
+from benchmarks.disparity import bench_disparity_command, write_pfm
 
 
 @pytest.fixture

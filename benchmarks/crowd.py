@@ -95,14 +95,13 @@ def build_instance(root: Path, *, annotators: int, tasks_per_annotator: int, n: 
     has answered ``tasks_per_annotator`` times; plus ``gold_cards`` gold items. ``database_url``
     (default: a SQLite file under ``root``) must name an empty database: the bench owns it.
     """
+    from annotation.providers import InviteProvider
+    from annotation.tasks import create_batch
     from app import create_app
     from app.db import db
     from app.ingest import ingest
     from app.models import Card
     from app.schema import upgrade
-
-    from .providers import InviteProvider
-    from .tasks import create_batch
 
     items = math.ceil(annotators * (tasks_per_annotator + hold) / n)
     config = _app_config(root, database_url)
@@ -140,7 +139,7 @@ def _truth(kind: str, card: Any) -> dict[str, Any]:
 
 
 def _serve_child() -> None:
-    """Child process (``python -m annotation.bench``): the app served on an ephemeral loopback port.
+    """Child process (``python -m benchmarks.crowd``): the app served on an ephemeral loopback port.
 
     Reads ``{"config", "instance_path", "threads", "processes"}`` as JSON on stdin, prints the
     port on stdout once listening; :func:`app.serving.serve` picks the server.
@@ -200,7 +199,7 @@ class ServedApp:
         self.port = 0
 
     def __enter__(self) -> Self:
-        self._process = subprocess.Popen([sys.executable, "-m", "annotation.bench"], stdin=subprocess.PIPE,
+        self._process = subprocess.Popen([sys.executable, "-m", "benchmarks.crowd"], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, text=True, start_new_session=True)
         assert self._process.stdin is not None and self._process.stdout is not None
         setup: dict[str, Any] = {"threads": self._threads, "processes": self._processes}
@@ -387,10 +386,9 @@ def _stored_figures(instance: CrowdInstance, acknowledged: set[int]) -> dict[str
     """Ground truth from the database: lost, unacknowledged, duplicated and over-capacity answers."""
     from sqlalchemy import func, select
 
+    from annotation.models import Answer, Batch, BatchItem, Reservation
     from app import create_app
     from app.db import db, utcnow
-
-    from .models import Answer, Batch, BatchItem, Reservation
 
     app = create_app(instance.config, instance_path=instance.root / "instance")
     with app.app_context():

@@ -1,4 +1,4 @@
-"""pipeline.rectify_bench: ours (Loop-Zhang) against OpenCV's Hartley on the same F and inliers.
+"""benchmarks.rectify: ours (Loop-Zhang) against OpenCV's Hartley on the same F and inliers.
 
 Synthetic pairs warp Motorcycle's right view (rotation, vertical shift, keystone), so the ground
 truth disparity of the left view still holds and the recovered disparity can be scored.
@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.disparity_bench import motorcycle_scene
-from pipeline.rectify_bench import (
+from benchmarks.disparity import motorcycle_scene
+from benchmarks.rectify import (
     BenchPair,
     benchmark_rectify,
     keystone_warp,

@@ -25,7 +25,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import click
 import numpy as np
+
+from exports.records import DEFAULT_FORMATS, FORMATS
 
 VARIANTS = 4
 VIEW_SIZE = (160, 108)  # (width, height) of each half in the default (small) synthetic cards
@@ -156,8 +159,7 @@ def _child_export(database_url: str, data_dir: str, out_dir: str, formats: str) 
     """Runs in the child process: export, then report time and this process's peak RSS."""
     from app import create_app
     from app.db import db
-
-    from .release import publish_release
+    from exports.release import publish_release
 
     app = create_app({"SQLALCHEMY_DATABASE_URI": database_url, "KEYSTONE_DATA_DIR": data_dir})
     with app.app_context():
@@ -177,8 +179,7 @@ def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", fold
     from app import create_app
     from app.db import db
     from app.schema import upgrade
-
-    from .verify import verify_release
+    from exports.verify import verify_release
 
     root = Path(folder) if folder else Path(tempfile.mkdtemp(prefix="keystone-bench-export-"))
     root.mkdir(parents=True, exist_ok=True)
@@ -192,7 +193,7 @@ def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", fold
             build_synthetic_catalogue(count, data_dir, echo, map_size)
             db.session.remove()
             db.engine.dispose()
-        code = ("import json, sys; from exports.bench import _child_export; "
+        code = ("import json, sys; from benchmarks.export import _child_export; "
                 "print(json.dumps(_child_export(*sys.argv[1:])))")
         env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(root / "instance")}
         done = subprocess.run([sys.executable, "-c", code, database_url, str(data_dir), str(root / "releases"), formats],
@@ -216,3 +217,32 @@ def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", fold
     finally:
         if folder is None:
             shutil.rmtree(root, ignore_errors=True)
+
+
+@click.command("export")
+@click.option("--cards", "card_count", default=10_000, show_default=True, type=click.IntRange(1, 1_000_000),
+              help="Synthetic accepted cards in the catalogue.")
+@click.option("--format", "formats", default=",".join(DEFAULT_FORMATS), show_default=True,
+              help=f"Comma-separated layouts: {', '.join(FORMATS)}.")
+@click.option("--dir", "folder", type=click.Path(path_type=Path, file_okay=False),
+              help="Work folder (catalogue, store, release); default a temporary folder, removed after.")
+@click.option("--map-size", type=click.IntRange(16, 4096), default=None,
+              help="Real-size cards: depth maps MAP_SIZE x MAP_SIZE, rectified views and disparity 4:3 at "
+                   "MAP_SIZE*25/16 wide (512 gives 800 x 600, ~9 MB per card and format). "
+                   "Default: small maps (160 x 108 views, 128 x 128 depth).")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
+def bench_export_command(card_count: int, formats: str, folder: Path | None, map_size: int | None,
+                         as_json: bool) -> None:
+    """Release throughput (cards/s) and peak memory on a synthetic catalogue of accepted cards.
+
+    The export runs in a child process so its peak resident memory is its own."""
+    from app.console import emit_json
+
+    document = benchmark_export(card_count, formats=formats, folder=folder, map_size=map_size,
+                                echo=(lambda m: click.echo(m, err=True)) if as_json else click.echo)
+    if as_json:
+        emit_json(document)
+        return
+    click.echo(f"{document['cards']} cards in {document['export_seconds']:.1f} s: {document['cards_per_second']:.1f} "
+               f"cards/s, {document['mb_per_second']:.1f} MB/s; peak RSS {document['peak_rss_mb']:.0f} MB "
+               f"(target < {document['target_rss_mb']} MB); verify {document['verify_seconds']:.1f} s, ok={document['verified']}")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from annotation.bench import latency_summary, run_crowd_bench
+from benchmarks.crowd import latency_summary, run_crowd_bench
 
 ANNOTATORS, TASKS, N, REPLAY_EVERY = 50, 4, 3, 2
 

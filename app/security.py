@@ -22,12 +22,11 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from typing import Any, TypeVar
-
 from urllib.parse import urlsplit
 
 from flask import Flask, Response, current_app, jsonify, render_template, request, url_for
 from flask_wtf.csrf import CSRFError
-from werkzeug.exceptions import HTTPException, InternalServerError
+from werkzeug.exceptions import BadRequest, HTTPException, InternalServerError
 from werkzeug.middleware.proxy_fix import ProxyFix
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -126,6 +125,7 @@ def render_error(error: HTTPException) -> tuple[Any, int]:
 # Flask-WTF's reason when the session holds no CSRF token: it expired, or cookies were lost.
 CSRF_SESSION_MISSING = "The CSRF session token is missing."
 SESSION_EXPIRED = "Your session expired: log in again."
+STALE_FORM = "This form was opened before you logged in."
 
 
 def page_to_return_to() -> str | None:
@@ -143,9 +143,14 @@ def page_to_return_to() -> str | None:
 
 
 def render_csrf_error(error: CSRFError) -> tuple[Any, int]:
+    from flask_login import current_user
+
     if error.description != CSRF_SESSION_MISSING:
         return render_error(error)
     back = page_to_return_to()
+    if current_user.is_authenticated:
+        # Logging in starts a new session with a new token: a form opened before it is stale.
+        return render_error(BadRequest(f"{STALE_FORM} (Reload {back or 'the page'} and submit it again.)"))
     login_path = url_for("auth.login")
     if back and urlsplit(back).path == login_path:
         login_url = back  # the login form itself: log in from a fresh copy of it, keeping its next

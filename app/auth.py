@@ -4,6 +4,14 @@
 so loading it never takes SQLite's write lock and never leaves a transaction open that a
 view's own :func:`app.db.read_only` block would collide with. Its columns and roles are
 loaded; to reference the person in a row you write, use ``current_user.id``.
+
+Sessions end on the server, not only in the browser. A login stores the person's
+``session_version`` and the login time in the (signed) session; the loader refuses a session
+whose version is older than the person's (logging out, a new password and deactivation raise
+it) or that is older than ``PERMANENT_SESSION_LIFETIME`` (``KEYSTONE_SESSION_HOURS``), so a
+copied cookie stops working at logout. Wrong passwords are throttled per account and per
+client address (:mod:`app.login_throttle`); every login, failure, lockout, logout and refused
+session is written to the append-only ``auth_events`` trail.
 """
 
 from __future__ import annotations
@@ -11,13 +19,26 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from datetime import datetime, timedelta
 from typing import Any, TypeVar
 from urllib.parse import urlsplit
 
-from flask import Blueprint, Flask, abort, current_app, flash, redirect, render_template, request, url_for
+from flask import (
+    Blueprint,
+    Flask,
+    abort,
+    current_app,
+    flash,
+    make_response,
+    redirect,
+    render_template,
+    request,
+    session,
+    url_for,
+)
 from flask_login import current_user, login_user, logout_user
 from flask_wtf import FlaskForm
-from sqlalchemy import select
+from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from werkzeug.security import check_password_hash, generate_password_hash
 from werkzeug.wrappers import Response
@@ -25,9 +46,10 @@ from wtforms import HiddenField, PasswordField, SelectMultipleField, StringField
 from wtforms.validators import DataRequired, Length, Regexp
 from wtforms.widgets import CheckboxInput, ListWidget
 
-from .db import db, read_only
+from .db import db, one_writer, read_only
 from .extensions import login_manager
-from .models import ROLES, Person
+from .login_throttle import Lockout, ThrottlePolicy, client_address, clock, give_back_attempt, reserve_attempt
+from .models import ROLES, AuthEvent, Person
 from .people import create_person
 from .security import prefers_json
 
@@ -40,27 +62,84 @@ MIN_PASSWORD_LENGTH = 8  # as `keystone users add`
 _DUMMY_HASH = generate_password_hash("keystone-no-such-person")
 
 
+# Keys this module adds to the session beside Flask-Login's ``_user_id``.
+SESSION_VERSION_KEY = "_keystone_session_version"
+LOGIN_AT_KEY = "_keystone_login_at"  # seconds since the epoch, UTC
+# Why the loader refused a session, for the message on the login page (request-scoped).
+SESSION_ENDED_ENVIRON_KEY = "keystone.session_ended"
+SESSION_EXPIRED_MESSAGE = "Your session expired: log in again."
+SESSION_ENDED_MESSAGE = "Your session has ended (logged out, or the password changed): log in again."
+
+
+def session_refusal(person: Person, version: object, login_at: object, now: datetime,
+                    lifetime: timedelta) -> str | None:
+    """Why the session holding ``version`` and ``login_at`` may not act as ``person``, or None."""
+    if not person.active:
+        return "account disabled"
+    if not isinstance(version, int) or version != person.session_version:
+        return "session ended"  # logged out, a new password, or a session from before versions
+    if not isinstance(login_at, (int, float)) or now.timestamp() - login_at > lifetime.total_seconds():
+        return "session expired"
+    return None
+
+
+def _forget_login() -> None:
+    for key in ("_user_id", "_fresh", "_id", SESSION_VERSION_KEY, LOGIN_AT_KEY):
+        session.pop(key, None)
+
+
+def record_auth_event(action: str, username: str, *, person_id: int | None = None, address: str = "",
+                      reason: str = "", at: datetime | None = None) -> AuthEvent:
+    """Add a sign-in event to the current session (committed with the change it describes)."""
+    event_row = AuthEvent(action=action, username=username[:120], person_id=person_id, address=address,
+                          reason=reason, at=at or clock())
+    db.session.add(event_row)
+    return event_row
+
+
 @login_manager.user_loader
 def load_person(person_id: str) -> Person | None:
     try:
         key = int(person_id)
     except ValueError:
         return None
-    if db.session().in_transaction():
-        return db.session.get(Person, key)
-    with read_only():
+    in_transaction = db.session().in_transaction()
+    if in_transaction:
         person = db.session.get(Person, key)
-        if person is not None:
-            db.session.expunge(person)  # keeps its loaded columns and roles past the rollback
-    return person
+    else:
+        with read_only():
+            person = db.session.get(Person, key)
+            if person is not None:
+                db.session.expunge(person)  # keeps its loaded columns and roles past the rollback
+    if person is None:
+        return None
+    now = clock()
+    refusal = session_refusal(person, session.get(SESSION_VERSION_KEY), session.get(LOGIN_AT_KEY), now,
+                              current_app.permanent_session_lifetime)
+    if refusal is None:
+        return person
+    _forget_login()
+    request.environ[SESSION_ENDED_ENVIRON_KEY] = refusal
+    # A loader called inside a view's transaction must not commit it; everywhere else (the role
+    # check, templates) the refusal goes on the trail: a stale session is what a copied cookie
+    # replayed after logout looks like.
+    if not in_transaction:
+        with one_writer():
+            record_auth_event("session_refused", person.username, person_id=person.id, address=client_address(),
+                              reason=refusal, at=now)
+            db.session.commit()
+    return None
 
 
 @login_manager.unauthorized_handler
 def unauthorized() -> Any:
     if prefers_json():
         abort(401, "Log in to use this page.")
+    ended = request.environ.get(SESSION_ENDED_ENVIRON_KEY)
     if request.accept_mimetypes.accept_html:  # not for <img> fetches: they would pile up messages
-        flash(login_manager.login_message, "info")
+        message = {"session expired": SESSION_EXPIRED_MESSAGE, "session ended": SESSION_ENDED_MESSAGE}.get(
+            ended or "", login_manager.login_message)
+        flash(message, "info")
     return redirect(url_for("auth.login", next=request.full_path.rstrip("?")))
 
 
@@ -175,6 +254,27 @@ def home_url() -> str:
     return url_for("catalog.index")
 
 
+def _locked_out(form: LoginForm, lockout: Lockout) -> Response:
+    who = "this account" if lockout.scope == "account" else "your network address"
+    minutes = f"{lockout.minutes} minute{'s' if lockout.minutes != 1 else ''}"
+    form.form_errors.append(f"Too many wrong passwords for {who}: logging in is paused. Try again in {minutes}.")
+    response = make_response(render_template("auth/login.html", form=form), 429)
+    response.headers["Retry-After"] = str(lockout.retry_after_s)
+    return response
+
+
+def _log_in(person: Person, username: str, address: str, policy: ThrottlePolicy, now: datetime) -> None:
+    with one_writer():
+        give_back_attempt(username, address, policy, now)
+        record_auth_event("login", person.username, person_id=person.id, address=address, at=now)
+        db.session.commit()
+    session.clear()  # nothing from before the login (a planted session) survives it
+    login_user(person)
+    session.permanent = True  # the cookie expires with the session, not with the browser
+    session[SESSION_VERSION_KEY] = person.session_version
+    session[LOGIN_AT_KEY] = int(now.timestamp())
+
+
 @bp.route("/login", methods=["GET", "POST"])
 def login() -> Any:
     form = LoginForm()
@@ -182,28 +282,60 @@ def login() -> Any:
         form.next.data = request.args.get("next", "")
     if current_user.is_authenticated and request.method == "GET":
         return redirect(safe_next(form.next.data) or home_url())
-    if form.validate_on_submit():
-        with read_only():
-            person = db.session.scalar(select(Person).where(Person.username == form.username.data.strip()))
-            if person is not None:
-                db.session.expunge(person)
-        if person is None:
-            check_password_hash(_DUMMY_HASH, form.password.data)
-        elif person.check_password(form.password.data):
-            if login_user(person):
-                return redirect(safe_next(form.next.data) or home_url())
-            form.form_errors.append("This account is disabled; ask an admin.")
-            return render_template("auth/login.html", form=form), 403
-        form.form_errors.append("Wrong username or password.")
-        return render_template("auth/login.html", form=form), 200
-    return render_template("auth/login.html", form=form), (400 if form.errors else 200)
+    if not form.validate_on_submit():
+        return render_template("auth/login.html", form=form), (400 if form.errors else 200)
+    username, address, now = form.username.data.strip(), client_address(), clock()
+    policy = ThrottlePolicy.from_config(current_app.config)
+    # Counted before the password is checked, so concurrent guesses cannot outrun the count.
+    with one_writer():
+        lockout = reserve_attempt(username, address, policy, now)
+        if lockout is not None:
+            record_auth_event("login_throttled", username, address=address, at=now,
+                              reason=f"{lockout.scope}: {lockout.failures} wrong passwords in the window; "
+                                     f"retry after {lockout.retry_after_s} s")
+        db.session.commit()
+    if lockout is not None:
+        return _locked_out(form, lockout)
+    with read_only():
+        person = db.session.scalar(select(Person).where(Person.username == username))
+        if person is not None:
+            db.session.expunge(person)
+    if person is None:
+        check_password_hash(_DUMMY_HASH, form.password.data)
+        failure = "unknown username"
+    elif not person.check_password(form.password.data):
+        failure = "wrong password"
+    elif not person.is_active:
+        failure = "account disabled"
+    else:
+        _log_in(person, username, address, policy, now)
+        return redirect(safe_next(form.next.data) or home_url())
+    with one_writer():
+        record_auth_event("login_failed", username, person_id=person.id if person else None, address=address,
+                          reason=failure, at=now)
+        db.session.commit()
+    if failure == "account disabled":
+        form.form_errors.append("This account is disabled; ask an admin.")
+        return render_template("auth/login.html", form=form), 403
+    form.form_errors.append("Wrong username or password.")
+    return render_template("auth/login.html", form=form), 200
 
 
 @bp.route("/logout", methods=["POST"])
 def logout() -> Response:
     # CSRFProtect checks the token on every POST before this runs: no one can log you out
     # from another site.
+    if current_user.is_authenticated:
+        person_id, username = current_user.id, current_user.username
+        with one_writer():
+            # Raising the version ends this session on the server: a copy of the cookie made
+            # before now is refused by the loader. (It ends the person's other sessions too.)
+            db.session.execute(update(Person).where(Person.id == person_id)
+                               .values(session_version=Person.session_version + 1))
+            record_auth_event("logout", username, person_id=person_id, address=client_address())
+            db.session.commit()
     logout_user()
+    session.clear()
     flash("You are logged out.", "info")
     return redirect(url_for("auth.login"))
 

@@ -8,12 +8,25 @@
 ``KEYSTONE_RELEASES_DIR``   where releases published from the web go; default ``<data dir>/releases``.
 ``KEYSTONE_INPAINT_CHECKPOINT`` a ``keystone train-inpainting`` checkpoint the views stage fills
                           holes with; default none (OpenCV Telea fills them).
+``KEYSTONE_SESSION_HOURS``  how long a login lasts, from the moment of logging in; default 8 (a
+                          working day). Logging out ends a session at once, on the server.
+``KEYSTONE_SECURE_COOKIES`` ``1`` behind HTTPS: the session cookie is then sent only over TLS.
+``KEYSTONE_TRUSTED_PROXIES`` how many reverse proxies in front of the app append to
+                          X-Forwarded-For (and set X-Forwarded-Proto); default 0: the peer's
+                          address is the client's. Login throttling counts per client address.
+``KEYSTONE_LOGIN_WINDOW_MINUTES``        the login throttle's window; default 15.
+``KEYSTONE_LOGIN_FAILURES_PER_ACCOUNT``  wrong passwords per account per window; default 5.
+``KEYSTONE_LOGIN_FAILURES_PER_ADDRESS``  wrong passwords per client address per window (an office
+                          behind one address shares it); default 30.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import secrets
+from collections.abc import Mapping
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -45,22 +58,57 @@ def normalise_database_url(url: str) -> str:
     return url
 
 
+def _positive_number(env: Mapping[str, str], name: str, default: float) -> float:
+    raw = env.get(name)
+    if raw is None or raw.strip() == "":
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"Expected {name} to be a positive number, got {raw!r}")
+    return value
+
+
+def _count(env: Mapping[str, str], name: str, default: int, *, allow_zero: bool = False) -> int:
+    raw = env.get(name)
+    if raw is None or raw.strip() == "":
+        return default
+    try:
+        value = int(raw)
+    except ValueError:
+        value = -1
+    if value < 0 or (value == 0 and not allow_zero):
+        kind = "a whole number >= 0" if allow_zero else "a positive whole number"
+        raise ValueError(f"Expected {name} to be {kind}, got {raw!r}")
+    return value
+
+
 def config_from_environment(instance_path: str) -> dict[str, Any]:
     instance = Path(instance_path)
     env = os.environ
+    secure_cookies = env.get("KEYSTONE_SECURE_COOKIES", "0").strip().lower() in ("1", "true", "yes", "on")
     database_url = normalise_database_url(env.get("KEYSTONE_DATABASE_URL") or f"sqlite:///{instance / 'keystone.sqlite3'}")
     return {
         "SQLALCHEMY_DATABASE_URI": database_url,
         "KEYSTONE_DATA_DIR": env.get("KEYSTONE_DATA_DIR") or str(instance / "data"),
         "SECRET_KEY": env.get("KEYSTONE_SECRET_KEY") or _persistent_secret(instance),
         "KEYSTONE_MAX_PIXELS": int(env.get("KEYSTONE_MAX_PIXELS", DEFAULT_MAX_PIXELS)),
+        # Flask's default is 31 days; the signed cookie is refused past this age, and the
+        # login time kept in the session ends it this long after logging in (app.auth).
+        "PERMANENT_SESSION_LIFETIME": timedelta(hours=_positive_number(env, "KEYSTONE_SESSION_HOURS", 8)),
         "SESSION_COOKIE_HTTPONLY": True,
         "SESSION_COOKIE_SAMESITE": "Lax",
         # Secure cookies need HTTPS; `keystone serve` on loopback is plain HTTP, so the
         # operator turns this on behind TLS (KEYSTONE_SECURE_COOKIES=1).
-        "SESSION_COOKIE_SECURE": env.get("KEYSTONE_SECURE_COOKIES", "0") == "1",
+        "SESSION_COOKIE_SECURE": secure_cookies,
         "REMEMBER_COOKIE_HTTPONLY": True,
-        "REMEMBER_COOKIE_SECURE": env.get("KEYSTONE_SECURE_COOKIES", "0") == "1",
+        "REMEMBER_COOKIE_SECURE": secure_cookies,
+        "KEYSTONE_TRUSTED_PROXIES": _count(env, "KEYSTONE_TRUSTED_PROXIES", 0, allow_zero=True),
+        "KEYSTONE_LOGIN_WINDOW": timedelta(minutes=_positive_number(env, "KEYSTONE_LOGIN_WINDOW_MINUTES", 15)),
+        "KEYSTONE_LOGIN_FAILURES_PER_ACCOUNT": _count(env, "KEYSTONE_LOGIN_FAILURES_PER_ACCOUNT", 5),
+        "KEYSTONE_LOGIN_FAILURES_PER_ADDRESS": _count(env, "KEYSTONE_LOGIN_FAILURES_PER_ADDRESS", 30),
         "WTF_CSRF_TIME_LIMIT": None,
         "CATALOG_PAGE_SIZE": 48,
         "KEYSTONE_INPAINT_CHECKPOINT": env.get("KEYSTONE_INPAINT_CHECKPOINT") or None,

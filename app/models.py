@@ -20,14 +20,19 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    event,
+    inspect,
 )
-from sqlalchemy.orm import Mapped, mapped_column, relationship
+from sqlalchemy.orm import Mapped, Session, mapped_column, relationship
 from werkzeug.security import check_password_hash, generate_password_hash
 
 from .db import JSONType, db, utcnow
 
 ROLES: tuple[str, ...] = ("annotator", "curator", "exporter", "admin")
 STAGE_STATUSES: tuple[str, ...] = ("done", "skipped", "failed")
+# What the append-only sign-in trail records (see AuthEvent).
+AUTH_ACTIONS: tuple[str, ...] = ("login", "login_failed", "login_throttled", "logout", "session_refused")
+THROTTLE_SCOPES: tuple[str, ...] = ("account", "address")
 # A card's current state: where it stands in the flow, derived from its latest stage results.
 CARD_STATES: tuple[str, ...] = ("ingested", "pass", "review", "culled", "failed")
 
@@ -142,6 +147,9 @@ class Person(UserMixin, db.Model):
     password_hash: Mapped[str | None] = mapped_column(String(300))
     active: Mapped[bool] = mapped_column(default=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    # Stored in the session at login; a session carrying an older number is refused. Logging out,
+    # a new password and deactivation raise it, which ends every session the person holds.
+    session_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
 
     role_rows: Mapped[list[PersonRole]] = relationship(
         back_populates="person", cascade="all, delete-orphan", lazy="selectin"
@@ -172,6 +180,15 @@ class Person(UserMixin, db.Model):
         return self.active
 
 
+@event.listens_for(Person.password_hash, "set")
+@event.listens_for(Person.active, "set")
+def _end_sessions_on_credential_change(person: Person, value: Any, old_value: Any, _initiator: Any) -> None:
+    # Any path that changes a stored person's password or active flag (the CLI, a future admin
+    # page, a shell) ends their sessions; a person being created has none to end.
+    if inspect(person).has_identity and value != old_value:
+        person.session_version = (person.session_version or 0) + 1
+
+
 class PersonRole(db.Model):
     __tablename__ = "person_roles"
     __table_args__ = (CheckConstraint(_in("role", ROLES), name="role"),)
@@ -180,3 +197,46 @@ class PersonRole(db.Model):
     role: Mapped[str] = mapped_column(String(20), primary_key=True)
 
     person: Mapped[Person] = relationship(back_populates="role_rows")
+
+
+class AuthEvent(db.Model):
+    """One sign-in event: who (or which name was tried), from where, what happened and why.
+
+    Append-only like ``review.models.AuditEvent``: the ORM refuses updates and deletes, and the
+    migration adds database triggers that refuse them too.
+    """
+
+    __tablename__ = "auth_events"
+    __table_args__ = (CheckConstraint(_in("action", AUTH_ACTIONS), name="action"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, index=True)
+    action: Mapped[str] = mapped_column(String(30))
+    username: Mapped[str] = mapped_column(String(120))  # as typed on the login form, or the person's
+    person_id: Mapped[int | None] = mapped_column(ForeignKey("people.id"), index=True)
+    address: Mapped[str] = mapped_column(String(64), default="")  # the client's, as throttled
+    reason: Mapped[str] = mapped_column(Text, default="")
+
+
+class AuthEventTamperError(RuntimeError):
+    """Raised when code tries to change or delete a sign-in event."""
+
+
+@event.listens_for(Session, "before_flush")
+def _refuse_auth_event_changes(session: Session, _context: Any, _instances: Any) -> None:
+    for instance in (*session.dirty, *session.deleted):
+        if isinstance(instance, AuthEvent) and (instance in session.deleted or session.is_modified(instance)):
+            raise AuthEventTamperError(f"sign-in event {instance.id} is append-only: it cannot be changed or deleted")
+
+
+class LoginThrottle(db.Model):
+    """Failed (and in-flight) password checks against one account or one client address in the
+    current window. Kept in the database so every server process counts against one budget."""
+
+    __tablename__ = "login_throttles"
+    __table_args__ = (CheckConstraint(_in("scope", THROTTLE_SCOPES), name="scope"),)
+
+    scope: Mapped[str] = mapped_column(String(10), primary_key=True)
+    subject: Mapped[str] = mapped_column(String(120), primary_key=True)  # a username or an address
+    window_started_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
+    failures: Mapped[int] = mapped_column(Integer, default=0)

@@ -7,6 +7,14 @@ MTurk ExternalQuestion page lives in an iframe on mturk.com) is decorated with
 ``X-Frame-Options`` (which cannot express a list of origins; browsers that honour CSP ignore
 it when ``frame-ancestors`` is present, the rest would block the frame). Such a page may also
 submit its forms to those origins (MTurk's ``externalSubmit``), so they join ``form-action``.
+
+A form posted after the session has expired (or with cookies lost) fails Flask-WTF's CSRF check
+with "The CSRF session token is missing."; that one is answered as what it is, "Your session
+expired: log in again", with a link to log in and come back to the page the form was on.
+
+Behind ``KEYSTONE_TRUSTED_PROXIES`` reverse proxies, Werkzeug's ProxyFix takes the client's
+address and scheme from the headers those proxies set (never more hops than configured, so a
+client cannot spoof its address by sending X-Forwarded-For itself).
 """
 
 from __future__ import annotations
@@ -14,9 +22,12 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from typing import Any, TypeVar
+from urllib.parse import urlsplit
 
-from flask import Flask, Response, current_app, jsonify, render_template, request
-from werkzeug.exceptions import HTTPException, InternalServerError
+from flask import Flask, Response, current_app, jsonify, render_template, request, url_for
+from flask_wtf.csrf import CSRFError
+from werkzeug.exceptions import BadRequest, HTTPException, InternalServerError
+from werkzeug.middleware.proxy_fix import ProxyFix
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -111,7 +122,52 @@ def render_error(error: HTTPException) -> tuple[Any, int]:
     return response, code
 
 
+# Flask-WTF's reason when the session holds no CSRF token: it expired, or cookies were lost.
+CSRF_SESSION_MISSING = "The CSRF session token is missing."
+SESSION_EXPIRED = "Your session expired: log in again."
+STALE_FORM = "This form was opened before you logged in."
+
+
+def page_to_return_to() -> str | None:
+    """The page a failed form was on: the Referer when it is this site (browsers send it to the
+    same origin under our Referrer-Policy), else this URL for a GET; None when unknown."""
+    from .auth import safe_next  # app.auth imports this module
+
+    referrer = request.referrer
+    if referrer:
+        parts = urlsplit(referrer)
+        if parts.netloc == request.host and parts.scheme in ("http", "https"):
+            return safe_next(parts.path + (f"?{parts.query}" if parts.query else ""))
+        return None
+    return safe_next(request.full_path.rstrip("?")) if request.method == "GET" else None
+
+
+def render_csrf_error(error: CSRFError) -> tuple[Any, int]:
+    from flask_login import current_user
+
+    if error.description != CSRF_SESSION_MISSING:
+        return render_error(error)
+    back = page_to_return_to()
+    if current_user.is_authenticated:
+        # Logging in starts a new session with a new token: a form opened before it is stale.
+        return render_error(BadRequest(f"{STALE_FORM} (Reload {back or 'the page'} and submit it again.)"))
+    login_path = url_for("auth.login")
+    if back and urlsplit(back).path == login_path:
+        login_url = back  # the login form itself: log in from a fresh copy of it, keeping its next
+    else:
+        login_url = url_for("auth.login", next=back) if back else login_path
+    if prefers_json():
+        body = {"error": {"code": 400, "name": "Session Expired", "message": SESSION_EXPIRED, "login_url": login_url}}
+        return jsonify(body), 400
+    return render_template("errors.html", code=400, name="Session expired", description=SESSION_EXPIRED,
+                           login_url=login_url), 400
+
+
 def init_app(app: Flask) -> None:
+    proxies = app.config.get("KEYSTONE_TRUSTED_PROXIES", 0)
+    if proxies:
+        app.wsgi_app = ProxyFix(app.wsgi_app, x_for=proxies, x_proto=proxies, x_host=0)  # type: ignore[method-assign]
+    app.register_error_handler(CSRFError, render_csrf_error)
     app.after_request(set_security_headers)
     # Code-specific handlers win over the HTTPException one; Flask hands routing redirects
     # (308 for a missing slash) back untouched, and turns any unhandled exception into a

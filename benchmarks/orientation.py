@@ -81,6 +81,8 @@ def measure(cards: list[tuple[str, np.ndarray]], params: OrientationParams) -> l
             rows.append({
                 "card": name, "truth": dict(zip(FLAGS, flags)), "split": "tune" if name in TUNE else "held_out",
                 "values": {c.name: c.value for c in estimate.cues}, "undecidable": estimate.undecidable,
+                "tie_decided": estimate.tie_decided,
+                "tie_right": (estimate.same_turn_and_swap >= 0.5) == (flags[0] == flags[2]),
                 "seconds": estimate.seconds, "cpu_seconds": cpu, "split_seconds": split_seconds,
                 "decided_by": estimate.orientation()["decided_by"],
             })
@@ -124,6 +126,12 @@ def evaluate(rows: list[dict], weights: dict[str, float], auto_probability: floa
             else:
                 any_doubt = True
         doubtful += any_doubt
+    ties = [r for r in rows if r["undecidable"] is None and r["tie_decided"]]
+    out["upside_down_equals_swapped"] = {"decided": len(ties), "right": sum(r["tie_right"] for r in ties)}
+    # cards people settle with one answer (is it upside down?): tie and inverted both confident
+    out["doubtful_needing_one_answer"] = sum(
+        1 for r in rows if r["undecidable"] is None and r["tie_decided"]
+        and max(p := flag_probabilities(r["values"], weights)["inverted"], 1 - p) >= auto_probability)
     for f, s in per_flag.items():
         s["accuracy_decided"] = round(s["right"] / s["decided"], 4) if s["decided"] else None
         s["accuracy_all"] = round(s["right_at_0.5"] / len(rows), 4)

@@ -45,8 +45,11 @@ Combination: a log-linear model over the eight hypotheses ``h = (upside_down, in
 swapped)``; cue ``c`` with value ``x_c`` (positive = evidence that its parity is even) and
 weight ``w_c`` adds ``w_c x_c`` to every hypothesis of even parity and ``-w_c x_c`` to the others;
 ``P(h)`` is the softmax of the sums and each flag's probability its marginal. A flag whose
-probability is within ``auto_probability`` of certain is decided (``decided_by="auto"``); any
-other card goes to people. Weights were fitted on half of the shared real cards and checked on
+probability is within ``auto_probability`` of certain is decided; a card with all three decided
+is ``decided_by="auto"``, any other goes to people. ``P(upside_down == swapped)`` is reported
+too: the ground plane makes it confident far more often than either flag (on every shared-card
+variant measured), and then one answer from people ("is it upside down?") settles both
+(:meth:`OrientationEstimate.with_upside_down`). Weights were fitted on half of the shared real cards and checked on
 the other half (``python -m benchmarks.orientation --json``).
 
 Degenerate inputs never get a silent guess: bad arrays, boxes and tiny photos raise
@@ -177,6 +180,17 @@ class OrientationEstimate:
     seconds: float
     undecidable: str | None = None  # a reason when the card gives no evidence at all
     details: dict[str, Any] = field(default_factory=dict)
+    same_turn_and_swap: float = 0.5  # P(upside_down == swapped)
+    tie_decided: bool = False  # that probability is confident: one answer settles both flags
+
+    def with_upside_down(self, upside_down: bool) -> dict[str, Any] | None:
+        """The orientation once a person has said whether the card is upside down: ``swapped``
+        follows from the ground plane's tie when that is confident, ``inverted`` from its own
+        decision. ``None`` when the tie or ``inverted`` is not confident (ask about them too)."""
+        if self.undecidable is not None or not self.tie_decided or not self.inverted.decided:
+            return None
+        swapped = upside_down if self.same_turn_and_swap >= 0.5 else not upside_down
+        return {"upside_down": upside_down, "inverted": self.inverted.value, "swapped": swapped}
 
     @property
     def flags(self) -> tuple[FlagEstimate, FlagEstimate, FlagEstimate]:
@@ -202,6 +216,7 @@ class OrientationEstimate:
 
     def as_dict(self) -> dict[str, Any]:
         return {"orientation": self.orientation(), "undecidable": self.undecidable,
+                "same_turn_and_swap": round(self.same_turn_and_swap, 4), "tie_decided": self.tie_decided,
                 "flags": {f.name: f.as_dict() for f in self.flags},
                 "seconds": round(self.seconds, 4), "details": self.details}
 
@@ -468,6 +483,16 @@ def flag_probabilities(values: dict[str, float], weights: dict[str, float]) -> d
     return {flag: float(sum(p[k] for k, h in enumerate(HYPOTHESES) if h[i])) for i, flag in enumerate(FLAGS)}
 
 
+def same_turn_and_swap_probability(values: dict[str, float], weights: dict[str, float]) -> float:
+    """``P(upside_down == swapped)`` under the same model: the ground plane sees exactly this
+    parity, so it is often certain while both flags are not (one answer then settles both)."""
+    scores = np.array([sum(weights[c] * values.get(c, 0.0) * (1 - 2 * parity(h, CUE_FLAGS[c])) for c in CUE_FLAGS)
+                       for h in HYPOTHESES])
+    p = np.exp(scores - scores.max())
+    p /= p.sum()
+    return float(sum(p[k] for k, h in enumerate(HYPOTHESES) if h[0] == h[2]))
+
+
 def _meaning(name: str, value: float) -> str:
     if value == 0.0:
         return "greyscale scan: no colour evidence" if name == "warm_tone" else "no measurable evidence"
@@ -547,7 +572,10 @@ def estimate_orientation(
         decided = p >= params.auto_probability or p <= 1.0 - params.auto_probability
         estimates.append(FlagEstimate(name=flag, probability=p, decided=decided,
                                       evidence=tuple(c for c in cues if flag in c.flags)))
-    return OrientationEstimate(*estimates, cues=cues, seconds=time.perf_counter() - clock, details=details)
+    tie = same_turn_and_swap_probability(values, weights)
+    tie_decided = tie >= params.auto_probability or tie <= 1.0 - params.auto_probability
+    return OrientationEstimate(*estimates, cues=cues, seconds=time.perf_counter() - clock, details=details,
+                               same_turn_and_swap=tie, tie_decided=tie_decided)
 
 
 def orient_variant(card: np.ndarray, left_box: Box, right_box: Box, upside_down: bool, inverted: bool,

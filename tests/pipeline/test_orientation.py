@@ -267,3 +267,16 @@ def test_real_cards_ground_plane_and_no_wrong_decision(load_card):
                     decided += 1
                     right += flag.value == truth
     assert decided >= 10 and right / decided >= 0.9, (right, decided)
+
+
+def test_one_answer_settles_a_doubtful_turn_and_swap(motorcycle_card):
+    """The Motorcycle's upside-down evidence conflicts, but the ground plane ties upside_down to
+    swapped: a person's answer to "is it upside down?" gives the whole orientation."""
+    card, lb, rb = motorcycle_card
+    for flags in [(False, False, False), (True, False, True), (True, True, False)]:
+        variant, vl, vr = orient_variant(card, lb, rb, *flags)
+        estimate = estimate_orientation(variant, vl, vr)
+        assert estimate.tie_decided
+        assert estimate.with_upside_down(flags[0]) == dict(zip(FLAGS, flags))
+    blank, lb, rb = mount(np.full((200, 240), 90, np.uint8), np.full((200, 240), 90, np.uint8))
+    assert estimate_orientation(blank, lb, rb).with_upside_down(False) is None

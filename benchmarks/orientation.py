@@ -6,7 +6,8 @@ eye and by near/far disparity, see the report), split with :func:`pipeline.split
 and turned into its eight variants (upside_down x inverted x swapped, made by
 :func:`pipeline.orientation.orient_variant`). Each variant is split again, as the pipeline
 would, and its cues measured. The cue weights are fitted (multinomial log-likelihood over the
-eight hypotheses, L2-regularised) on the TUNE cards only and the accuracy is reported on the
+eight hypotheses, L2-regularised, the L2 strength chosen by leave-one-card-out within the tune
+cards) on the TUNE cards only and the accuracy is reported on the
 HELD-OUT cards: per flag, the share right among decided flags, how many cards would go to
 people, and seconds per card. The defaults in :class:`OrientationParams` are this fit, rounded;
 ``held_out`` evaluates them, ``held_out_with_refitted_weights`` a fresh fit (should match).
@@ -89,7 +90,7 @@ def measure(cards: list[tuple[str, np.ndarray]], params: OrientationParams) -> l
     return rows
 
 
-def fit_weights(rows: list[dict], l2: float = 0.001) -> dict[str, float]:
+def fit_weights(rows: list[dict], l2: float) -> dict[str, float]:
     """Weights maximising the log-likelihood of the true hypothesis (softmax over eight), >= 0."""
     names = list(CUE_FLAGS)
     usable = [r for r in rows if r["undecidable"] is None]
@@ -105,6 +106,32 @@ def fit_weights(rows: list[dict], l2: float = 0.001) -> dict[str, float]:
 
     result = minimize(loss, np.ones(len(names)), method="L-BFGS-B", bounds=[(0, None)] * len(names))
     return {c: round(float(w), 3) for c, w in zip(names, result.x)}
+
+
+def log_loss(rows: list[dict], weights: dict[str, float]) -> float:
+    """Mean negative log-probability of the true hypothesis."""
+    names = list(CUE_FLAGS)
+    usable = [r for r in rows if r["undecidable"] is None]
+    signs = np.array([[1 - 2 * parity(h, CUE_FLAGS[c]) for c in names] for h in HYPOTHESES], float)
+    X = np.array([[r["values"][c] for c in names] for r in usable])
+    truth = np.array([HYPOTHESES.index(tuple(r["truth"][f] for f in FLAGS)) for r in usable])
+    scores = (X * np.array([weights[c] for c in names])) @ signs.T
+    scores -= scores.max(axis=1, keepdims=True)
+    log_p = scores - np.log(np.exp(scores).sum(axis=1, keepdims=True))
+    return float(-log_p[np.arange(len(truth)), truth].mean())
+
+
+def choose_l2(rows: list[dict], candidates: tuple[float, ...] = (1e-4, 1e-3, 3e-3, 1e-2, 3e-2)) -> dict:
+    """Leave-one-card-out within the tune cards: the L2 strength with the smallest held-back
+    log-loss (the held-out cards play no part)."""
+    cards = sorted({r["card"] for r in rows})
+    losses = {}
+    for l2 in candidates:
+        losses[l2] = float(np.mean([
+            log_loss([r for r in rows if r["card"] == card], fit_weights([r for r in rows if r["card"] != card], l2))
+            for card in cards]))
+    best = min(losses, key=losses.get)
+    return {"l2": best, "leave_one_card_out_log_loss": {str(k): round(v, 4) for k, v in losses.items()}}
 
 
 def evaluate(rows: list[dict], weights: dict[str, float], auto_probability: float) -> dict:
@@ -157,10 +184,11 @@ def main(argv: list[str] | None = None) -> int:
     rows = measure(load_cards(args.data), params)
     tune = [r for r in rows if r["split"] == "tune"]
     held = [r for r in rows if r["split"] == "held_out"]
-    fitted = fit_weights(tune)
+    selection = choose_l2(tune)
+    fitted = fit_weights(tune, selection["l2"])
     report = {
         "tune_cards": sorted(TUNE), "held_out_cards": sorted({r["card"] for r in held}),
-        "default_weights": params.weights(), "fitted_on_tune": fitted,
+        "default_weights": params.weights(), "l2_selection": selection, "fitted_on_tune": fitted,
         "held_out": evaluate(held, params.weights(), params.auto_probability),
         "tune": evaluate(tune, params.weights(), params.auto_probability),
         "held_out_with_refitted_weights": evaluate(held, fitted, params.auto_probability),

@@ -52,8 +52,20 @@ variant measured), and then one answer from people ("is it upside down?") settle
 (:meth:`OrientationEstimate.with_upside_down`). Weights were fitted on half of the shared real cards and checked on
 the other half (``python -m benchmarks.orientation --json``).
 
+Measured (``python -m benchmarks.orientation --json``; 15 shared real cards x 8 variants, weights
+fitted on 7 tune cards, reported on the 8 held-out ones): every flag the model decided was right
+(held out: upside_down 10/10, inverted 16/16, swapped 10/10), but no held-out card had all three
+confident, so all 64 go to people; ``P(upside_down == swapped)`` was confident on 57/64 and right
+on all, and 13/64 need only the one answer. The sign of each cue over all 120 variants:
+ground_plane 120/120, warm_tone 104/104 (colour scans), detail_bottom 96/120, sky_top 94/120,
+occlusion_side 76/119 (reliable with near objects, noise on far scenes). CPU about 0.04 s for a
+760 px card and 0.13 s for a 3000 px one (one thread). The printed frame (stereo window) was
+measured and left out: on the tune cards its disparity minus the scene's median ranged from
+-16 to +15 px, so it is not reliably in front of the scene.
+
 Degenerate inputs never get a silent guess: bad arrays, boxes and tiny photos raise
-:class:`OrientationInputError`; blank photos, identical photos and a card with a third photo
+:class:`OrientationInputError` (a numerical failure inside OpenCV raises
+:class:`OrientationFailedError`); blank photos, identical photos and a card with a third photo
 beside the boxes give a result with ``undecidable`` set and every flag undecided.
 
 Conventions: ``card`` is ``uint8`` or ``uint16`` ``(H, W)`` grey or ``(H, W, 3)`` RGB as scanned;
@@ -74,7 +86,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from .disparity import DisparityParams, estimate_disparity
-from .errors import InvalidInputError
+from .errors import InvalidInputError, PipelineError
 
 Box = tuple[int, int, int, int]
 
@@ -96,6 +108,12 @@ class OrientationInputError(InvalidInputError):
     """The card or its boxes break the contract (dtype, shape, box outside the card, too small)."""
 
     code = "orientation_input"
+
+
+class OrientationFailedError(PipelineError):
+    """A numerical corner case inside OpenCV/NumPy, recorded as a typed failure for the batch."""
+
+    code = "orientation_failed"
 
 
 @dataclass(frozen=True)
@@ -552,7 +570,10 @@ def estimate_orientation(
         return _undecidable(f"a third copy of the photo beside the boxes (NCC {third:.2f}): more than two photos",
                             clock, details)
 
-    occlusion, ground, stereo_details = _stereo_cues(left, right)
+    try:
+        occlusion, ground, stereo_details = _stereo_cues(left, right)
+    except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
     details.update(stereo_details)
     values = {
         "occlusion_side": occlusion,

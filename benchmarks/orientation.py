@@ -12,7 +12,18 @@ HELD-OUT cards: per flag, the share right among decided flags, how many cards wo
 people, and seconds per card. The defaults in :class:`OrientationParams` are this fit, rounded;
 ``held_out`` evaluates them, ``held_out_with_refitted_weights`` a fresh fit (should match).
 
-    python -m benchmarks.orientation [--json] [--data DIR]
+    python -m benchmarks.orientation [--json] [--data DIR] [--rows]
+
+Truth. Every card is taken as correct as stored. The NYPL cards are mounted prints; the JPS
+pairs were checked parallel in PROVENANCE.md; for the two Keystone-Mast raw scans (one was said
+to be eye-swapped as scanned) the near/far order was measured by template matching at full
+resolution: 09995's foreground bush has x_left - x_right = 82 px against 55-57 px for the trees
+behind the statue and 58-59 px for the statue (near = larger: left half is the left eye), and
+the detector's occlusion side agrees (+0.33: 838 bands ending at near edges, 420 starting);
+09997 is nearly all at infinity (within 1 px over the building, lawn and trees), but in the
+same columns the road and car at the bottom are 2-3 px larger than the lawn (again left = left
+eye; ground plane +0.49); its occlusion side is uninformative (150 vs 147 bands). Neither scan
+reads as swapped; if one is, it would be 09997, which the geometry here does not support.
 """
 
 from __future__ import annotations

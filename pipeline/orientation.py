@@ -1,0 +1,636 @@
+"""Which way up, positive or negative, and which eye: a card's orientation as scanned.
+
+Flags (the ``orientation`` field of /work/shared/DESIGN.md), in the order they are fixed:
+
+* ``upside_down``: the whole scan is turned 180 deg (fixed by turning the whole card, which also
+  moves each photo to the other side);
+* ``inverted``: a negative (fixed by ``255 - v``);
+* ``swapped``: after those two fixes, the photo on the left is the right eye's.
+
+Every cue measures the *parity* of a set of flags (their exclusive or), because that is all a
+single measurement can see: the sky is brighter at the top of an upright positive *and* of a
+negative turned upside down (``upside_down xor inverted``); the ground plane is nearer at the
+bottom of an upright correct pair *and* of a swapped pair turned upside down (``upside_down xor
+swapped``: turning a pair 180 deg moves each photo to the other side, which keeps the stereo
+geometry but turns the scene over); the occlusion side sees ``swapped`` alone (a pair turned
+180 deg is still a correct pair geometrically). Cues:
+
+``occlusion_side`` (swapped)
+    In a correct pair the background just left of a near object's left edge in the left view has
+    no partner in the right view, so the left-right check fails in a band that *ends* at the
+    object's edge; swapped, the band *starts* at it (the object is then on the band's left). The
+    disparity jumps across every such band, from a smaller value on its left to a larger on its
+    right, whichever the pair: only the image edge tells the two apart. Measured on dense
+    disparity of both views (:func:`pipeline.disparity.estimate_disparity`, ``keystone``
+    backend, left-right check) at ``working_width`` px per view: ``(n_end - n_start) /
+    (n_end + n_start)`` over the bands, ``n_end`` counting bands whose stronger image edge is at
+    the object-side end expected for a correct pair. The right view is read mirrored.
+``ground_plane`` (upside_down xor swapped)
+    Spearman correlation of the row with the disparity ``x_left - x_right`` (consistent pixels):
+    lower rows are usually nearer, which is larger disparity in a correct upright pair.
+``sky_top`` (upside_down xor inverted)
+    Mean grey of the top quarter minus the bottom quarter of both photos, in units of their
+    standard deviation: sky and light come from above.
+``detail_bottom`` (upside_down)
+    Mean gradient magnitude of the bottom third minus the top third, relative to their sum: the
+    near ground is textured, sky and distance are smooth; unchanged by inverting the tones.
+``warm_tone`` (inverted)
+    ``(R - B) / (R + G + B)`` of the card: albumen and gelatin prints and buff mounts are warm;
+    their negative is blue. No evidence on a greyscale scan.
+``dark_detail`` (inverted)
+    Black-hat minus top-hat energy at a small scale, relative to their sum: in a positive, fine
+    detail (text, branches, outlines) is mostly darker than its surround.
+
+Combination: a log-linear model over the eight hypotheses ``h = (upside_down, inverted,
+swapped)``; cue ``c`` with value ``x_c`` (positive = evidence that its parity is even) and
+weight ``w_c`` adds ``w_c x_c`` to every hypothesis of even parity and ``-w_c x_c`` to the others;
+``P(h)`` is the softmax of the sums and each flag's probability its marginal. A flag whose
+probability is within ``auto_probability`` of certain is decided; a card with all three decided
+is ``decided_by="auto"``, any other goes to people. ``P(upside_down == swapped)`` is reported
+too: the ground plane makes it confident far more often than either flag (on every shared-card
+variant measured), and then one answer from people ("is it upside down?") settles both
+(:meth:`OrientationEstimate.with_upside_down`). Weights were fitted on half of the shared real cards and checked on
+the other half (``python -m benchmarks.orientation --json``).
+
+Measured (``python -m benchmarks.orientation --json``; 15 shared real cards x 8 variants, weights
+fitted on 7 tune cards, reported on the 8 held-out ones): every flag the model decided was right
+(held out: upside_down 10/10, inverted 16/16, swapped 10/10; at 0.5 without abstaining 49, 64 and
+46 of 64), but no held-out card had all three confident, so all 64 go to people;
+``P(upside_down == swapped)`` was confident on 58/64 and right on all, and 14/64 need only that
+one answer. The sign of each cue over all 120 variants: ground_plane 120/120, warm_tone 104/104
+(colour scans), detail_bottom 96/120, sky_top 94/120, occlusion_side 74/120 (reliable with near
+objects, noise on far scenes). CPU about 0.09 s per card (0.04 s for a 760 px card, 0.13 s for
+a 3000 px one). The printed frame (stereo window) was measured and left out: on the tune cards
+its disparity minus the scene's median ranged from -16 to +15 px, so it is not reliably in front
+of the scene. The ground plane is a prior about scenes: a close-up with no ground in view (a
+demo card cropped to the top of the Motorcycle, true rho -0.31) turns it over, confidently.
+
+Degenerate inputs never get a silent guess: bad arrays, boxes and tiny photos raise
+:class:`OrientationInputError` (a numerical failure inside OpenCV raises
+:class:`OrientationFailedError`); blank photos, identical photos and a card with a third photo
+beside the boxes give a result with ``undecidable`` set and every flag undecided.
+
+Conventions: ``card`` is ``uint8`` or ``uint16`` ``(H, W)`` grey or ``(H, W, 3)`` RGB as scanned;
+boxes are ``(x0, y0, x1, y1)`` in card pixels, ``x1``/``y1`` exclusive, ``left_box`` the photo
+on the left of the scan.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.stats import spearmanr
+
+from .disparity import DisparityParams, estimate_disparity
+from .errors import InvalidInputError, PipelineError
+
+Box = tuple[int, int, int, int]
+
+FLAGS = ("upside_down", "inverted", "swapped")
+MIN_PHOTO_SIDE = 32  # px: a smaller photo has no stereo or tone evidence worth the name
+
+# The parity each cue measures (a cue's value > 0 says "an even number of these flags is set").
+CUE_FLAGS: dict[str, tuple[str, ...]] = {
+    "occlusion_side": ("swapped",),
+    "ground_plane": ("upside_down", "swapped"),
+    "sky_top": ("upside_down", "inverted"),
+    "detail_bottom": ("upside_down",),
+    "warm_tone": ("inverted",),
+    "dark_detail": ("inverted",),
+}
+
+
+class OrientationInputError(InvalidInputError):
+    """The card or its boxes break the contract (dtype, shape, box outside the card, too small)."""
+
+    code = "orientation_input"
+
+
+class OrientationFailedError(PipelineError):
+    """A numerical corner case inside OpenCV/NumPy, recorded as a typed failure for the batch."""
+
+    code = "orientation_failed"
+
+
+@dataclass(frozen=True)
+class OrientationParams:
+    """Parameters of :func:`estimate_orientation`. Weights are per unit of each cue's value
+    (fitted by ``benchmarks/orientation.py`` on the tuning half of the shared cards)."""
+
+    working_width: int = 512
+    """px: each photo is downscaled (area filter) to at most this width for every cue."""
+    auto_probability: float = 0.9
+    """A flag is decided automatically when its probability is >= this or <= 1 - this."""
+    min_texture: float = 2.0
+    """Grey levels: a photo whose robust spread (p99 - p1) / 2 is below this is blank."""
+    identical_tolerance: float = 0.5
+    """Grey levels: photos whose mean absolute difference is below this are the same image."""
+    third_photo_ncc: float = 0.6
+    """NCC above which a strip of the card beside the boxes counts as a third copy of the photo."""
+    # Fitted on the tune half of the shared cards (benchmarks/orientation.py; L2 0.01, chosen by
+    # leave-one-card-out within the tune cards). sky_top fits to 0: dark foliage fills the top of
+    # many real cards (right sign on 32 of 56 tune variants); it is measured and shown anyway.
+    w_occlusion_side: float = 3.6
+    w_ground_plane: float = 3.7
+    w_sky_top: float = 0.0
+    w_detail_bottom: float = 3.0
+    w_warm_tone: float = 5.5
+    w_dark_detail: float = 0.7
+
+    def __post_init__(self) -> None:
+        if self.working_width < 4 * MIN_PHOTO_SIDE:
+            raise InvalidInputError(f"Expected working_width >= {4 * MIN_PHOTO_SIDE} px, got {self.working_width}")
+        if not 0.5 < self.auto_probability < 1.0:
+            raise InvalidInputError(f"Expected 0.5 < auto_probability < 1, got {self.auto_probability}")
+        for name in self.weights():
+            if not math.isfinite(self.weights()[name]) or self.weights()[name] < 0:
+                raise InvalidInputError(f"Expected a finite weight >= 0 for {name}, got {self.weights()[name]}")
+
+    def weights(self) -> dict[str, float]:
+        return {cue: float(getattr(self, f"w_{cue}")) for cue in CUE_FLAGS}
+
+
+@dataclass(frozen=True)
+class Cue:
+    """One measurement: its value (> 0 = its flags' parity is even), its weight, and in words."""
+
+    name: str
+    flags: tuple[str, ...]
+    value: float  # 0.0 when the cue has no evidence on this card
+    weight: float
+    meaning: str
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"cue": self.name, "flags": list(self.flags), "value": round(self.value, 4),
+                "weight": self.weight, "meaning": self.meaning}
+
+
+@dataclass(frozen=True)
+class FlagEstimate:
+    """A flag's marginal probability of being set, and whether that is confident enough."""
+
+    name: str
+    probability: float  # P(flag is set) in 0..1
+    decided: bool
+    evidence: tuple[Cue, ...]  # the cues that see this flag
+
+    @property
+    def value(self) -> bool | None:
+        return (self.probability >= 0.5) if self.decided else None
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"probability": round(self.probability, 4), "decided": self.decided, "value": self.value,
+                "evidence": [cue.as_dict() for cue in self.evidence]}
+
+
+@dataclass(frozen=True)
+class OrientationEstimate:
+    """Per-flag estimates, the decision, and (when nothing can be said) why."""
+
+    upside_down: FlagEstimate
+    inverted: FlagEstimate
+    swapped: FlagEstimate
+    cues: tuple[Cue, ...]
+    seconds: float
+    undecidable: str | None = None  # a reason when the card gives no evidence at all
+    details: dict[str, Any] = field(default_factory=dict)
+    same_turn_and_swap: float = 0.5  # P(upside_down == swapped)
+    tie_decided: bool = False  # that probability is confident: one answer settles both flags
+
+    def with_upside_down(self, upside_down: bool) -> dict[str, Any] | None:
+        """The orientation once a person has said whether the card is upside down: ``swapped``
+        follows from the ground plane's tie when that is confident, ``inverted`` from its own
+        decision. ``None`` when the tie or ``inverted`` is not confident (ask about them too)."""
+        if self.undecidable is not None or not self.tie_decided or not self.inverted.decided:
+            return None
+        swapped = upside_down if self.same_turn_and_swap >= 0.5 else not upside_down
+        return {"upside_down": upside_down, "inverted": self.inverted.value, "swapped": swapped}
+
+    @property
+    def flags(self) -> tuple[FlagEstimate, FlagEstimate, FlagEstimate]:
+        return (self.upside_down, self.inverted, self.swapped)
+
+    @property
+    def decided(self) -> bool:
+        """True when every flag is confident: no person needs to look."""
+        return self.undecidable is None and all(flag.decided for flag in self.flags)
+
+    @property
+    def confidence(self) -> float:
+        """The smallest of the flags' probabilities of the chosen value (0 when undecidable)."""
+        if self.undecidable is not None:
+            return 0.0
+        return min(max(f.probability, 1.0 - f.probability) for f in self.flags)
+
+    def orientation(self) -> dict[str, Any]:
+        """The DESIGN.md ``orientation`` field: a flag is null while undecided; ``decided_by`` is
+        ``"auto"`` when every flag is decided, else null (the card waits for people)."""
+        values = {f.name: f.value if self.undecidable is None else None for f in self.flags}
+        return {**values, "decided_by": "auto" if self.decided else None, "confidence": round(self.confidence, 4)}
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"orientation": self.orientation(), "undecidable": self.undecidable,
+                "same_turn_and_swap": round(self.same_turn_and_swap, 4), "tie_decided": self.tie_decided,
+                "flags": {f.name: f.as_dict() for f in self.flags},
+                "seconds": round(self.seconds, 4), "details": self.details}
+
+
+# ------------------------------------------------------------------------------ input checks
+
+
+def _to_uint8(card: object) -> np.ndarray:
+    if not isinstance(card, np.ndarray):
+        raise OrientationInputError(f"Expected the card as a numpy array, got {type(card).__name__}")
+    if card.ndim not in (2, 3) or (card.ndim == 3 and card.shape[2] != 3):
+        raise OrientationInputError(f"Expected the card with shape (H, W) or (H, W, 3), got {card.shape}")
+    if card.dtype == np.uint8:
+        return card
+    if card.dtype == np.uint16:
+        # 16-bit scans: stretch the used range (as pipeline.io does), keep the tones' order.
+        lo, hi = int(card.min()), int(card.max())
+        scale = 255.0 / (hi - lo) if hi > lo else 0.0
+        return np.clip(np.rint((card.astype(np.float32) - lo) * scale), 0, 255).astype(np.uint8)
+    raise OrientationInputError(f"Expected the card with dtype uint8 or uint16, got {card.dtype}")
+
+
+def _check_box(box: object, name: str, width: int, height: int) -> Box:
+    try:
+        x0, y0, x1, y1 = (int(v) for v in box)  # type: ignore[union-attr]
+    except (TypeError, ValueError) as exc:
+        raise OrientationInputError(f"Expected {name} as (x0, y0, x1, y1), got {box!r}") from exc
+    if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
+        raise OrientationInputError(f"Expected {name} inside the {width}x{height} card, got {(x0, y0, x1, y1)}")
+    if x1 - x0 < MIN_PHOTO_SIDE or y1 - y0 < MIN_PHOTO_SIDE:
+        raise OrientationInputError(
+            f"Expected {name} of at least {MIN_PHOTO_SIDE}x{MIN_PHOTO_SIDE} px, got {x1 - x0}x{y1 - y0}")
+    return x0, y0, x1, y1
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def _working_scale(card: np.ndarray, lb: Box, rb: Box, width: int) -> tuple[np.ndarray, Box, Box]:
+    """The whole card downscaled once (area filter) so the narrower photo is at most ``width``
+    px wide, and the boxes in its pixels: every cue is measured on this copy."""
+    scale = min(1.0, width / min(lb[2] - lb[0], rb[2] - rb[0]))
+    if scale == 1.0:
+        return card, lb, rb
+    h, w = card.shape[:2]
+    small = cv2.resize(card, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+
+    def scaled(b: Box) -> Box:
+        return (int(b[0] * scale), int(b[1] * scale), max(int(b[0] * scale) + 1, round(b[2] * scale)),
+                max(int(b[1] * scale) + 1, round(b[3] * scale)))
+
+    return small, scaled(lb), scaled(rb)
+
+
+def _photo_pair(grey: np.ndarray, lb: Box, rb: Box) -> tuple[np.ndarray, np.ndarray]:
+    """Both photos cut to a common size (their top-left corners kept)."""
+    w = min(lb[2] - lb[0], rb[2] - rb[0])
+    h = min(lb[3] - lb[1], rb[3] - rb[1])
+    left = grey[lb[1]:lb[1] + h, lb[0]:lb[0] + w]
+    right = grey[rb[1]:rb[1] + h, rb[0]:rb[0] + w]
+    return np.ascontiguousarray(left), np.ascontiguousarray(right)
+
+
+def _third_photo(grey: np.ndarray, lb: Box, rb: Box, threshold: float) -> float:
+    """Best NCC of the left photo (downscaled) against the card beside the two boxes, where a
+    strip at least as wide as 60 % of a photo remains (0 when none does)."""
+    width = grey.shape[1]
+    photo_w = lb[2] - lb[0]
+    scale = min(1.0, 160.0 / photo_w)
+    small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    y0, y1 = round(lb[1] * scale), max(round(lb[1] * scale) + 8, round(lb[3] * scale))
+    x0, x1 = round((lb[0] + 0.2 * photo_w) * scale), round((lb[2] - 0.2 * photo_w) * scale)
+    template = small[y0 + (y1 - y0) // 5:y1 - (y1 - y0) // 5, x0:x1]
+    if template.size == 0 or float(template.std()) < 1.0:
+        return 0.0
+    best = 0.0
+    for a, b in ((0, min(lb[0], rb[0])), (max(lb[2], rb[2]), width)):
+        if b - a < 0.6 * photo_w:
+            continue
+        strip = small[:, round(a * scale):round(b * scale)]
+        if strip.shape[0] < template.shape[0] or strip.shape[1] < template.shape[1]:
+            continue
+        ncc = cv2.matchTemplate(strip, template, cv2.TM_CCOEFF_NORMED)
+        best = max(best, float(np.nan_to_num(ncc, nan=0.0).max()))
+    return best
+
+
+# ------------------------------------------------------------------------------------- cues
+
+
+def _occlusion_counts(view: np.ndarray, disp: np.ndarray, consistent: np.ndarray) -> tuple[int, int]:
+    """``(n_end, n_start)`` over the rows' bands of left-right failures with a disparity rise
+    across them of at least 1 px and a width of at most ``3 rise + 2`` px (a half-occlusion is
+    about as wide as the disparity jump): ``n_end`` bands whose horizontal image edge is 1.2x
+    stronger at their right end than at their left, ``n_start`` the reverse. (Measured: a
+    tighter band rule, width within ``1 + rise / 2`` of the rise and 1.5x edges, separated the
+    Motorcycle better but the tune cards worse.)
+
+    For a left view of a correct pair (``x_right = x_left - d``) the occluded background ends at
+    the near object's edge: ``n_end`` dominates; swapped, ``n_start`` does."""
+    h, w = disp.shape
+    grad = np.abs(cv2.Sobel(view.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3))
+    grad = cv2.dilate(grad, np.ones((3, 3), np.uint8))  # strongest edge within 1 px
+    bad = np.zeros((h, w + 2), bool)  # a consistent column on each side ends every row's runs
+    bad[:, 1:-1] = ~consistent
+    bad[:, [1, 2, -3, -2]] = False  # bands touching the border have no neighbour to compare
+    flat = np.diff(bad.astype(np.int8), axis=1)  # (h, w + 1): +1 where a band starts, -1 after it
+    ys, starts = np.nonzero(flat == 1)
+    _, ends = np.nonzero(flat == -1)  # same rows, same order: runs never cross a row
+    if ys.size == 0:
+        return 0, 0
+    d = np.nan_to_num(disp, nan=0.0)
+    rise = d[ys, ends] - d[ys, starts - 1]  # band [starts, ends) in view columns
+    keep = (rise >= 1.0) & (ends - starts <= 3 * rise + 2)
+    ys, starts, ends = ys[keep], starts[keep], ends[keep]
+    at_start = grad[ys, starts - 1]
+    at_end = grad[ys, np.minimum(ends, w - 1)]
+    return int((at_end > 1.2 * at_start).sum()), int((at_start > 1.2 * at_end).sum())
+
+
+def _align_rows(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+    """The right view resampled onto the left view: first the dominant translation (phase
+    correlation: the offset between two photos is arbitrary), then rows matched by a robust plane
+    fit ``v = c0 + c1 x + c2 y`` to the vertical component of DIS flow (a residual vertical
+    offset, a small rotation, a vertical scale difference: all common between the two photos of
+    a card). The fit is skipped when the flow does not support it (median residual > 1 px)."""
+    h, w = left.shape
+    window = cv2.createHanningWindow((w, h), cv2.CV_32F)
+    (sx, sy), response = cv2.phaseCorrelate(left.astype(np.float32), right.astype(np.float32), window)
+    if not (response > 0.05 and np.isfinite(sx) and np.isfinite(sy)) or abs(sy) > 0.2 * h or abs(sx) > 0.5 * w:
+        sx, sy = 0.0, 0.0
+    gy, gx = np.mgrid[0:h, 0:w].astype(np.float32)
+    shifted = cv2.remap(right, gx + np.float32(sx), gy + np.float32(sy), cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE)
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST).calc(left, shifted, None)
+    # The scene's horizontal spread around the dominant shift, px (sets the disparity search).
+    spread = float(np.nanmax(np.abs(np.nanpercentile(flow[..., 0], [1, 99]))))
+    model: dict[str, Any] = {"shift": [round(float(sx), 2), round(float(sy), 2)], "rows": None,
+                             "spread": round(spread, 2)}
+    step = max(1, int(np.sqrt(h * w / 20000)))
+    ys, xs = np.mgrid[0:h:step, 0:w:step]
+    v = flow[::step, ::step, 1].ravel().astype(np.float64)
+    A = np.stack([np.ones(v.size), xs.ravel(), ys.ravel()], axis=1)
+    keep = np.isfinite(v)
+    coef = np.zeros(3)
+    residual = np.zeros(v.size)
+    for _ in range(3):
+        if keep.sum() < 3:
+            return shifted, model
+        coef, *_ = np.linalg.lstsq(A[keep], v[keep], rcond=None)
+        residual = np.abs(A @ coef - v)
+        keep = np.isfinite(v) & (residual <= max(float(np.nanpercentile(residual, 70)), 1e-6))
+    if float(np.nanmedian(residual)) > 1.0 or abs(coef[0]) > 0.1 * h:
+        return shifted, model
+    c0, c1, c2 = (float(c) for c in coef)
+    cy = (h - 1) / 2.0
+    # c1 is a rotation's vertical part; its horizontal part (-c1 (y - cy)) is undone too, or it
+    # would read as disparity changing with the row (a false ground plane).
+    map_x = gx + np.float32(sx) - np.float32(c1) * (gy - np.float32(cy))
+    map_y = gy + np.float32(sy + c0) + np.float32(c1) * gx + np.float32(c2) * gy
+    model["rows"] = [round(c0, 3), round(c1, 5), round(c2, 5)]
+    return cv2.remap(right, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE), model
+
+
+def _stereo_cues(left: np.ndarray, right: np.ndarray) -> tuple[float, float, dict[str, Any]]:
+    """(occlusion_side, ground_plane, details) from SGBM disparity of both views.
+
+    The right view is first moved by the pair's dominant offset (phase correlation: the offset
+    between two photos is arbitrary) and its rows matched (:func:`_align_rows`), so a search of
+    +-``reach`` px around it covers the scene."""
+    w = left.shape[1]
+    right, alignment = _align_rows(left, right)
+    # disparity relative to the dominant offset, px: the flow's spread with a margin, at least
+    # w / 20 and at most w / 6 (measured: a fixed w / 20 clipped wide-baseline pairs such as
+    # Middlebury's Motorcycle and turned their ground plane over)
+    spread = alignment["spread"] if np.isfinite(alignment["spread"]) else 0.0
+    reach = float(np.clip(1.25 * spread + 4.0, max(16.0, w / 20), max(16.0, w / 6)))
+    result = estimate_disparity(left, right, "sgbm", DisparityParams(disparity_range=(-reach, reach)))
+    consistent = result.confidence >= 0.5
+    d_left = result.disp_left
+    end_l, start_l = _occlusion_counts(left, d_left, consistent)
+    # The right view, mirrored, is the left view of the mirrored pair (x' = W - 1 - x): a correct
+    # pair stays correct, so the same count applies, with the left-right check seen from the right.
+    d_right = result.disp_right
+    xs = np.arange(w, dtype=np.float32)[None, :] + np.nan_to_num(d_right, nan=-1e4)
+    inside = (xs >= 0) & (xs <= w - 1)
+    back = np.take_along_axis(d_left, np.clip(np.rint(xs).astype(np.int64), 0, w - 1), axis=1)
+    consistent_r = inside & (np.abs(back - d_right) <= 1.0)
+    end_r, start_r = _occlusion_counts(
+        np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(d_right[:, ::-1]),
+        np.ascontiguousarray(consistent_r[:, ::-1]))
+    n_end, n_start = end_l + end_r, start_l + start_r
+    # A handful of bands is noise: shrink towards 0 (10 pseudo-bands split evenly).
+    occlusion = (n_end - n_start) / (n_end + n_start + 10.0)
+    ground = 0.0
+    ys, xs_ = np.nonzero(consistent)
+    if ys.size >= 100:
+        step = max(1, ys.size // 20000)
+        values = d_left[ys[::step], xs_[::step]]
+        if float(np.ptp(values)) > 0.5 and float(np.ptp(ys)) > 0:
+            rho = spearmanr(ys[::step], values).statistic
+            ground = float(rho) if np.isfinite(rho) else 0.0
+    details = {"alignment": alignment, "search_px": round(reach, 1), "occlusion_bands_end": n_end, "occlusion_bands_start": n_start,
+               "consistent_fraction": round(result.confident_fraction, 4), "disparity_flags": list(result.flags)}
+    return occlusion, ground, details
+
+
+def _sky_top(left: np.ndarray, right: np.ndarray) -> float:
+    both = np.concatenate([left, right], axis=1).astype(np.float32)
+    q = max(1, both.shape[0] // 4)
+    spread = float(both.std())
+    if spread < 1e-3:
+        return 0.0
+    return float((both[:q].mean() - both[-q:].mean()) / spread)
+
+
+def _detail_bottom(left: np.ndarray, right: np.ndarray) -> float:
+    """Mean gradient magnitude of the bottom third minus the top third of both photos, relative
+    to their sum: the near ground is textured, the sky and far distance smooth. Unchanged by
+    inverting the tones (a gradient's magnitude does not change sign)."""
+    both = np.concatenate([left, right], axis=1).astype(np.float32)
+    grad = np.abs(cv2.Sobel(both, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(both, cv2.CV_32F, 0, 1, ksize=3))
+    third = max(1, both.shape[0] // 3)
+    top, bottom = float(grad[:third].mean()), float(grad[-third:].mean())
+    return 0.0 if top + bottom < 1e-3 else (bottom - top) / (bottom + top)
+
+
+def _fine_detail(grey: np.ndarray) -> tuple[float, float]:
+    """(dark, bright) fine-detail energy: mean black-hat and top-hat at a 5 px scale."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    dark = float(cv2.morphologyEx(grey, cv2.MORPH_BLACKHAT, kernel).mean())
+    bright = float(cv2.morphologyEx(grey, cv2.MORPH_TOPHAT, kernel).mean())
+    return dark, bright
+
+
+def _warm_tone(card: np.ndarray, lb: Box, rb: Box) -> float:
+    """``(mean R - mean B) / 255`` over the photos and the mount between and beside them
+    (exactly negated by inverting the card); 0 on a greyscale scan."""
+    if card.ndim == 2:
+        return 0.0
+    x0, x1 = min(lb[0], rb[0]), max(lb[2], rb[2])
+    region = card[:, x0:x1]
+    scale = min(1.0, 300.0 / region.shape[1])
+    small = cv2.resize(region, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    means = small.reshape(-1, 3).mean(axis=0)
+    return float((means[0] - means[2]) / 255.0)
+
+
+def _dark_detail(left: np.ndarray, right: np.ndarray) -> float:
+    dark, bright = _fine_detail(np.concatenate([left, right], axis=1))
+    return 0.0 if dark + bright < 0.05 else float((dark - bright) / (dark + bright))
+
+
+# --------------------------------------------------------------------------------- decision
+
+
+HYPOTHESES = tuple(itertools.product((False, True), repeat=3))  # (upside_down, inverted, swapped)
+
+
+def parity(hypothesis: tuple[bool, bool, bool], flags: tuple[str, ...]) -> int:
+    return sum(hypothesis[FLAGS.index(f)] for f in flags) % 2
+
+
+def flag_probabilities(values: dict[str, float], weights: dict[str, float]) -> dict[str, float]:
+    """Marginal ``P(flag set)`` under the log-linear model of the module docstring."""
+    scores = np.array([sum(weights[c] * values.get(c, 0.0) * (1 - 2 * parity(h, CUE_FLAGS[c])) for c in CUE_FLAGS)
+                       for h in HYPOTHESES])
+    p = np.exp(scores - scores.max())
+    p /= p.sum()
+    return {flag: float(sum(p[k] for k, h in enumerate(HYPOTHESES) if h[i])) for i, flag in enumerate(FLAGS)}
+
+
+def same_turn_and_swap_probability(values: dict[str, float], weights: dict[str, float]) -> float:
+    """``P(upside_down == swapped)`` under the same model: the ground plane sees exactly this
+    parity, so it is often certain while both flags are not (one answer then settles both)."""
+    scores = np.array([sum(weights[c] * values.get(c, 0.0) * (1 - 2 * parity(h, CUE_FLAGS[c])) for c in CUE_FLAGS)
+                       for h in HYPOTHESES])
+    p = np.exp(scores - scores.max())
+    p /= p.sum()
+    return float(sum(p[k] for k, h in enumerate(HYPOTHESES) if h[0] == h[2]))
+
+
+def _meaning(name: str, value: float) -> str:
+    if value == 0.0:
+        return "greyscale scan: no colour evidence" if name == "warm_tone" else "no measurable evidence"
+    even = value > 0
+    return {
+        "occlusion_side": ("occluded bands end at near objects as in a correct pair: eyes not swapped"
+                           if even else "occluded bands start at near objects: eyes swapped"),
+        "ground_plane": ("disparity grows towards the bottom: upright and not swapped, or turned and swapped"
+                         if even else "disparity grows towards the top: turned and not swapped, or upright and swapped"),
+        "sky_top": ("top lighter than bottom: upright positive, or a turned negative"
+                    if even else "top darker than bottom: a turned positive, or an upright negative"),
+        "detail_bottom": ("more texture in the bottom third (near ground): upright" if even
+                          else "more texture in the top third: turned"),
+        "warm_tone": "warm (sepia/buff) tones: a positive" if even else "cold (blue) tones: a negative",
+        "dark_detail": "fine detail mostly dark: a positive" if even else "fine detail mostly bright: a negative",
+    }[name]
+
+
+def _undecidable(reason: str, clock: float, details: dict[str, Any]) -> OrientationEstimate:
+    flags = [FlagEstimate(name=f, probability=0.5, decided=False, evidence=()) for f in FLAGS]
+    return OrientationEstimate(*flags, cues=(), seconds=time.perf_counter() - clock, undecidable=reason,
+                               details=details)
+
+
+def estimate_orientation(
+    card: np.ndarray, left_box: Box, right_box: Box, params: OrientationParams = OrientationParams()
+) -> OrientationEstimate:
+    """Estimate ``upside_down``, ``inverted`` and ``swapped`` for a card as scanned.
+
+    ``left_box``/``right_box``: the two photos (e.g. :func:`pipeline.split.split_card`), the left
+    one left of the right one. Order of decisions: contract checks (raise
+    :class:`OrientationInputError`); a blank photo, two identical photos or a third copy of the
+    photo beside the boxes -> ``undecidable`` with the reason; else the six cues, their
+    combination and the per-flag decision (module docstring).
+    """
+    clock = time.perf_counter()
+    card = _to_uint8(card)
+    height, width = card.shape[:2]
+    lb = _check_box(left_box, "left_box", width, height)
+    rb = _check_box(right_box, "right_box", width, height)
+    if (lb[0] + lb[2]) >= (rb[0] + rb[2]):
+        raise OrientationInputError(f"Expected left_box {lb} to lie left of right_box {rb}")
+    card, lb, rb = _working_scale(card, lb, rb, params.working_width)
+    grey = _grey(card)
+    left, right = _photo_pair(grey, lb, rb)
+    spreads = [float(np.subtract(*np.percentile(v, [99, 1]))) / 2 for v in (left, right)]
+    details: dict[str, Any] = {"working_size": [int(left.shape[1]), int(left.shape[0])]}
+    if min(spreads) < params.min_texture:
+        return _undecidable(f"blank photo: grey-level spread {min(spreads):.1f} < {params.min_texture}", clock, details)
+    difference = float(np.abs(left.astype(np.int16) - right.astype(np.int16)).mean())
+    if difference < params.identical_tolerance:
+        return _undecidable(f"identical photos (mean |difference| {difference:.2f} grey levels): no stereo", clock,
+                            details)
+    third = _third_photo(grey, lb, rb, params.third_photo_ncc)
+    details["third_photo_ncc"] = round(third, 4)
+    if third >= params.third_photo_ncc:
+        return _undecidable(f"a third copy of the photo beside the boxes (NCC {third:.2f}): more than two photos",
+                            clock, details)
+
+    try:
+        occlusion, ground, stereo_details = _stereo_cues(left, right)
+    except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
+    details.update(stereo_details)
+    values = {
+        "occlusion_side": occlusion,
+        "ground_plane": ground,
+        "sky_top": _sky_top(left, right),
+        "detail_bottom": _detail_bottom(left, right),
+        "warm_tone": _warm_tone(card, lb, rb),
+        "dark_detail": _dark_detail(left, right),
+    }
+    weights = params.weights()
+    cues = tuple(Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c],
+                     meaning=_meaning(c, float(values[c]))) for c in CUE_FLAGS)
+    probabilities = flag_probabilities(values, weights)
+    estimates = []
+    for flag in FLAGS:
+        p = probabilities[flag]
+        decided = p >= params.auto_probability or p <= 1.0 - params.auto_probability
+        estimates.append(FlagEstimate(name=flag, probability=p, decided=decided,
+                                      evidence=tuple(c for c in cues if flag in c.flags)))
+    tie = same_turn_and_swap_probability(values, weights)
+    tie_decided = tie >= params.auto_probability or tie <= 1.0 - params.auto_probability
+    return OrientationEstimate(*estimates, cues=cues, seconds=time.perf_counter() - clock, details=details,
+                               same_turn_and_swap=tie, tie_decided=tie_decided)
+
+
+def orient_variant(card: np.ndarray, left_box: Box, right_box: Box, upside_down: bool, inverted: bool,
+                   swapped: bool) -> tuple[np.ndarray, Box, Box]:
+    """The scan a correctly oriented card would give with these flags (the inverse of the
+    fixes, applied in reverse order: swap the photos, negate, turn), and its photos' boxes.
+
+    The boxes must be the same size (as :func:`pipeline.split.split_card` gives them)."""
+    out = _to_uint8(card).copy()
+    height, width = out.shape[:2]
+    lb = _check_box(left_box, "left_box", width, height)
+    rb = _check_box(right_box, "right_box", width, height)
+    if (lb[2] - lb[0], lb[3] - lb[1]) != (rb[2] - rb[0], rb[3] - rb[1]):
+        raise OrientationInputError(f"Expected boxes of one size to swap photos, got {lb} and {rb}")
+    if swapped:
+        a = out[lb[1]:lb[3], lb[0]:lb[2]].copy()
+        out[lb[1]:lb[3], lb[0]:lb[2]] = out[rb[1]:rb[3], rb[0]:rb[2]]
+        out[rb[1]:rb[3], rb[0]:rb[2]] = a
+    if inverted:
+        out = 255 - out
+    if upside_down:
+        out = np.ascontiguousarray(out[::-1, ::-1])
+
+        def turn(b: Box) -> Box:
+            return (width - b[2], height - b[3], width - b[0], height - b[1])
+
+        lb, rb = turn(rb), turn(lb)
+    return out, lb, rb

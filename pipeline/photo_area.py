@@ -65,7 +65,7 @@ class PhotoAreaParams:
     """Lab distance below which a pixel is mount even where it is not smooth (between letters)."""
     mount_sample_distance: float = 20.0
     """Ring pixels within this Lab distance of the ring's dominant colour sample the mount."""
-    mount_coverage: float = 0.3
+    mount_coverage: float = 0.6
     """Fraction of a ring side that the mount colour must cover, on three of the four sides."""
     smooth_spread: float = 8.0
     """Grey levels: a local standard deviation below this makes a pixel smooth."""
@@ -86,6 +86,10 @@ class PhotoAreaParams:
     a photo are ragged (measured on the real cards: 0.3-0.7)."""
     edge_step: float = 10.0
     """Grey levels: a pixel changes across a straight edge if it differs by more than this."""
+    foreign_strip: float = 0.3
+    """A straight edge is cut at only if at least this fraction of the strip outside it is
+    non-photo or plain (spread below ``plain_spread``): a caption band, a title, a film edge."""
+    plain_spread: float = 5.0
     edge_band: float = 0.15
     """Straight edges are looked for within this fraction of the box's height (width) of each side."""
     edge_passes: int = 1
@@ -108,7 +112,7 @@ class PhotoAreaParams:
     cells: at most 64 a side)."""
     clean_line: float = 0.01
     """A line (row or column) with at most this non-photo fraction is clean (edge refinement)."""
-    inset: float = 0.008
+    inset: float = 0.012
     """Each box is inset by this fraction of the card width: a photo's edge is blurred."""
     min_area: float = 0.2
     """A box smaller than this fraction of its half is not believed (fallback)."""
@@ -171,6 +175,9 @@ class _Mask:
     scale_y: float
     grey: np.ndarray  # float32 grey levels
     non_photo: np.ndarray  # bool: mount, text, film edge, margin
+    foreign: np.ndarray  # bool: non-photo or very plain (what lies outside a photo's straight edge)
+    line_columns: np.ndarray  # (w,) bool: film edge or separator line down the whole card
+    plain: np.ndarray  # bool: mount-coloured, dark or white plain pixels, before the flood
     mount: np.ndarray  # bool: smooth pixels of the mount colour (before closing)
     dark: np.ndarray  # bool: smooth and dark
     white: np.ndarray  # bool: smooth and white
@@ -200,26 +207,33 @@ def _mount_colour(lab: np.ndarray, grey: np.ndarray, params: PhotoAreaParams) ->
     ring_mask = np.zeros((height, width), bool)
     ring_mask[a : height - a, a : width - a] = True
     ring_mask[b : height - b, b : width - b] = False
-    ring_mask &= grey >= params.dark_level
     ys, xs = np.nonzero(ring_mask)
-    if ys.size < 16:
-        return None
     if ys.size > 6000:  # plenty for a 6-parameter fit; keeps the cost flat
         step = ys.size // 6000 + 1
         ys, xs = ys[::step], xs[::step]
-    ring = lab[ys, xs].astype(np.float64)
-    # Dominant colour: the most populated Lab bin (8 x 6 x 6 units), by a 1-D key.
-    bins = np.floor(ring / np.array([8.0, 6.0, 6.0])).astype(np.int64) + np.array([0, 32, 32])
-    keys = (bins[:, 0] * 64 + np.clip(bins[:, 1], 0, 63)) * 64 + np.clip(bins[:, 2], 0, 63)
-    mode = int(np.argmax(np.bincount(keys)))
-    centre = (np.array([mode // 4096, (mode // 64) % 64 - 32, mode % 64 - 32]) + 0.5) * np.array([8.0, 6.0, 6.0])
-    near = np.linalg.norm(ring - centre, axis=1) < params.mount_sample_distance
-    if near.sum() < 16:
+    if ys.size < 16:
         return None
-    # The mount must surround the photos: seen on three of the ring's four sides.
-    sides = [ys < b, ys >= height - b, xs < b, xs >= width - b]
-    if sum(float(near[s].mean()) >= params.mount_coverage for s in sides if s.any()) < 3:
+    lit = grey[ys, xs] >= params.dark_level
+    # The mount's colour is looked for among the lit ring pixels first (a dark scan background
+    # often fills part of the ring), then among all (a black mount, a negative of a card).
+    for chosen in (lit, np.ones_like(lit)):
+        if chosen.sum() < 16:
+            continue
+        ys_c, xs_c = ys[chosen], xs[chosen]
+        ring = lab[ys_c, xs_c].astype(np.float64)
+        # Dominant colour: the most populated Lab bin (8 x 6 x 6 units), by a 1-D key.
+        bins = np.floor(ring / np.array([8.0, 6.0, 6.0])).astype(np.int64) + np.array([0, 32, 32])
+        keys = (np.clip(bins[:, 0], 0, 63) * 64 + np.clip(bins[:, 1], 0, 63)) * 64 + np.clip(bins[:, 2], 0, 63)
+        mode = int(np.argmax(np.bincount(keys)))
+        centre = (np.array([mode // 4096, (mode // 64) % 64 - 32, mode % 64 - 32]) + 0.5) * np.array([8.0, 6.0, 6.0])
+        near = np.linalg.norm(ring - centre, axis=1) < params.mount_sample_distance
+        # The mount must surround the photos: seen on three of the ring's four sides.
+        sides = [ys_c < b, ys_c >= height - b, xs_c < b, xs_c >= width - b]
+        if near.sum() >= 16 and sum(float(near[s].mean()) >= params.mount_coverage for s in sides if s.any()) >= 3:
+            break
+    else:
         return None
+    ys, xs = ys_c, xs_c
     design = _quadratic_terms(xs / width - 0.5, ys / height - 0.5)
     keep = near
     for _ in range(2):  # refit without the outliers (text, stains) of the first fit
@@ -295,7 +309,8 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     # they run dark (or white) down nearly the whole card, which a photo's column never does.
     dark_column = (grey < params.dark_level).mean(axis=0) >= params.line_fraction
     white_column = (grey > params.white_line_level).mean(axis=0) >= params.line_fraction
-    raw[:, dark_column | white_column] = True
+    line_columns = dark_column | white_column
+    raw[:, line_columns] = True
     dark |= dark_column[None, :]
     white |= white_column[None, :]
     raw = raw.astype(np.uint8)
@@ -304,12 +319,18 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     non_photo = cv2.morphologyEx(raw, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
     return _Mask(
         scale_x=card.shape[1] / small.shape[1], scale_y=card.shape[0] / small.shape[0], grey=grey,
-        non_photo=non_photo.astype(bool), mount=mount & raw.astype(bool), dark=dark & raw.astype(bool),
+        non_photo=non_photo.astype(bool), line_columns=line_columns, plain=mount | dark | white, foreign=non_photo.astype(bool) | (spread < params.plain_spread), mount=mount & raw.astype(bool), dark=dark & raw.astype(bool),
         white=white & raw.astype(bool), mount_rgb=mount_rgb,
     )
 
 
 # ---------------------------------------------------------------------- largest rectangle
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """``[start, end)`` of each run of True in a 1-D boolean array."""
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
 
 
 def _largest_rectangle(good: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -396,20 +417,23 @@ def _prefer_full_width(
 
 
 def _cut_straight_edges(
-    grey: np.ndarray, box: tuple[int, int, int, int], params: PhotoAreaParams, sides: set[str],
+    grey: np.ndarray, foreign: np.ndarray, box: tuple[int, int, int, int], params: PhotoAreaParams, sides: set[str],
 ) -> tuple[int, int, int, int, list[str]]:
     """Cut ``box`` (``(y0, x0, y1, x1)``, ``grey``'s px) at straight edges near its sides.
 
     A straight edge is a line across the box where at least ``straight_edge`` of the pixels
     change by more than ``edge_step`` (comparing 2 px either side): the top of a caption band,
-    a film edge, a wedge. The innermost one within ``edge_band`` of a side becomes that side
-    (only for the named ``sides``).
+    a film edge, a wedge. Scenes have straight lines too (shelves, roofs, a horizon), so an edge
+    only counts if the strip it cuts off looks foreign: ``foreign`` (non-photo or very plain
+    pixels) covers at least ``foreign_strip`` of it. The innermost such edge within
+    ``edge_band`` of a side becomes that side (only for the named ``sides``).
     """
     y0, x0, y1, x1 = box
     cuts = []
     k = 2
     for axis in ("rows", "columns"):
         lines = grey[y0:y1, x0:x1] if axis == "rows" else grey[y0:y1, x0:x1].T
+        alien = foreign[y0:y1, x0:x1] if axis == "rows" else foreign[y0:y1, x0:x1].T
         n = lines.shape[0]
         if n < 4 * k + 4:
             continue
@@ -419,8 +443,14 @@ def _cut_straight_edges(
         step = along[2 * k :] - along[: -2 * k]
         change = np.maximum((step > params.edge_step).mean(axis=1), (step < -params.edge_step).mean(axis=1))  # [i]: edge at line i + k
         reach = max(k + 1, int(params.edge_band * n))
-        start_hits = np.flatnonzero(change[: reach - k] >= params.straight_edge)
-        end_hits = np.flatnonzero(change[max(0, n - reach - k) :] >= params.straight_edge) + max(0, n - reach - k)
+        per_line = np.concatenate(([0.0], np.cumsum(alien.mean(axis=1))))  # [j]: sum over lines [0, j)
+        edge_line = np.arange(change.size) + k  # the line each change value sits on
+        outside_start = per_line[edge_line] / np.maximum(edge_line, 1)  # strip [0, edge)
+        outside_end = (per_line[n] - per_line[edge_line + 1]) / np.maximum(n - edge_line - 1, 1)  # strip (edge, n)
+        straight = change >= params.straight_edge
+        start_hits = np.flatnonzero((straight & (outside_start >= params.foreign_strip))[: reach - k])
+        first_end = max(0, n - reach - k)
+        end_hits = np.flatnonzero((straight & (outside_end >= params.foreign_strip))[first_end:]) + first_end
         lo, hi = 0, n
         first, last = ("top", "bottom") if axis == "rows" else ("left", "right")
         if start_hits.size and first in sides:
@@ -464,25 +494,35 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
     if ch < 1 or cw < 1:
         return None
     pooled = bad[: ch * cell, : cw * cell].reshape(ch, cell, cw, cell).mean(axis=(1, 3))
-    found = _largest_rectangle(pooled < 0.5)
+    # A film edge or separator line may be thinner than a cell: it still separates.
+    lined = mask.line_columns[x0 : x0 + cw * cell].reshape(cw, cell).any(axis=1)
+    good = (pooled < 0.5) & ~lined[None, :]
+    found = _largest_rectangle(good)
     if found is None:
         return None
-    r0, c0, r1, c1 = _prefer_full_width(pooled < 0.5, found, params.full_width_preference)
+    r0, c0, r1, c1 = _prefer_full_width(good, found, params.full_width_preference)
     y0, bx0, y1, bx1 = _refine(bad, (r0 * cell, c0 * cell, r1 * cell, c1 * cell), params.clean_line, 2 * cell + 2)
     cuts: list[str] = []
     sides = {"top", "bottom", "left", "right"}
     for _ in range(params.edge_passes):
         # A further pass, on the sides just cut, finds a photo's edge behind a wide side title
         # or a caption band once those are cut off.
-        y0, bx0, y1, bx1, found_cuts = _cut_straight_edges(mask.grey[:, x0:x1], (y0, bx0, y1, bx1), params, sides)
+        y0, bx0, y1, bx1, found_cuts = _cut_straight_edges(
+            mask.grey[:, x0:x1], mask.foreign[:, x0:x1], (y0, bx0, y1, bx1), params, sides,
+        )
         cuts += [side for side in found_cuts if side not in cuts]
         sides = set(found_cuts)
         if not sides:
             break
 
-    # Two photos in one half (a three-photo card, a wrong split): two large separate regions.
+    # Two photos in one half (a three-photo card, a wrong split): two large separate regions,
+    # or a plain strip of mount running down the box (a gutter the flood could not reach).
     count, _, stats, _ = cv2.connectedComponentsWithStats((~bad).astype(np.uint8), connectivity=4)
     photos = int(sum(stats[i, cv2.CC_STAT_AREA] >= 0.15 * bad.size for i in range(1, count)))
+    margin = max(1, (bx1 - bx0) // 10)
+    strip = mask.plain[y0:y1, x0 + bx0 + margin : x0 + bx1 - margin].mean(axis=0) >= 0.9
+    if any(end - start >= 2 for start, end in _runs(strip)):
+        photos = max(photos, 2)
 
     notes = [f"straight edge inside the {side} border (caption band, film edge or wedge)" for side in cuts]
     above, below = bad[:y0, bx0:bx1], bad[y1:, bx0:bx1]
@@ -509,14 +549,6 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
 
 
 # ------------------------------------------------------------------------------------- API
-
-
-def _shrink(box: Box, width: int, height: int) -> Box:
-    """``box`` cut to ``width`` x ``height``, centred in itself."""
-    x0, y0, x1, y1 = box
-    nx0 = x0 + (x1 - x0 - width) // 2
-    ny0 = y0 + (y1 - y0 - height) // 2
-    return nx0, ny0, nx0 + width, ny0 + height
 
 
 def _fallback(split: CardSplit, reason: str, evidence: list[str], params: PhotoAreaParams) -> PhotoAreas:

@@ -213,10 +213,11 @@ def _mount_colour(lab: np.ndarray, grey: np.ndarray, params: PhotoAreaParams) ->
         ys, xs = ys[::step], xs[::step]
     if ys.size < 16:
         return None
-    lit = grey[ys, xs] >= params.dark_level
+    level = grey[ys, xs]
     # The mount's colour is looked for among the lit ring pixels first (a dark scan background
-    # often fills part of the ring), then among all (a black mount, a negative of a card).
-    for chosen in (lit, np.ones_like(lit)):
+    # often fills part of the ring), then among the not-white ones (the scan background of a
+    # negative is white), then among all (a black mount).
+    for chosen in (level >= params.dark_level, level <= 255 - params.dark_level, np.ones_like(level, bool)):
         if chosen.sum() < 16:
             continue
         ys_c, xs_c = ys[chosen], xs[chosen]
@@ -516,11 +517,12 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
             break
 
     # Two photos in one half (a three-photo card, a wrong split): two large separate regions,
-    # or a plain strip of mount running down the box (a gutter the flood could not reach).
+    # or a plain strip running down the whole card through the box (a gutter the flood could
+    # not reach; a pale wall in a picture does not go on through the mount above and below).
     count, _, stats, _ = cv2.connectedComponentsWithStats((~bad).astype(np.uint8), connectivity=4)
     photos = int(sum(stats[i, cv2.CC_STAT_AREA] >= 0.15 * bad.size for i in range(1, count)))
     margin = max(1, (bx1 - bx0) // 10)
-    strip = mask.plain[y0:y1, x0 + bx0 + margin : x0 + bx1 - margin].mean(axis=0) >= 0.9
+    strip = mask.plain[:, x0 + bx0 + margin : x0 + bx1 - margin].mean(axis=0) >= 0.9
     if any(end - start >= 2 for start, end in _runs(strip)):
         photos = max(photos, 2)
 

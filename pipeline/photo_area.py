@@ -4,30 +4,43 @@
 boxes often keep printed side titles, captions, arch corners, card edges and, on raw scans,
 film edges. This module looks inside each half of the split for the photograph itself.
 
-Method, on a copy downscaled (area filter) to ``working_width``:
+Method, on a copy downscaled (area filter) to ``working_width`` ("working px"):
 
-1. **Mount colour.** The mount is the colour that dominates a ring just inside the card's edge
-   (``mount_ring``, fractions of the card's smaller side): the most populated CIE Lab bin there,
-   refined to the median of the ring pixels within ``mount_distance`` of it. It counts as a
-   mount only if it covers at least ``mount_coverage`` of three of the ring's four sides; a
-   sky along one side of an unmounted photo must not pass for a mount.
-2. **Non-photo pixels.** A pixel is *smooth* if its local grey-level spread (5 x 5 px) is below
-   ``smooth_spread``. Smooth pixels of the mount's colour are mount; smooth pixels darker than
-   ``dark_level`` are film edges, black mounts or scan background; smooth pixels brighter than
-   ``white_level`` are white margins. A closing (``text_closing``, fraction of the working width)
-   makes printed text on the mount mount too: its strokes are thin and sit on plain mount.
-3. **Largest rectangle.** Inside each half of the split, the non-photo mask is pooled onto cells
-   of ``cell`` working px (a cell is non-photo when at least half of it is) and the largest
-   rectangle of photo cells is found (histogram method, O(cells)). Its edges are then moved in
-   working px: out while the next line is clean, in while the border line is not.
-   An arched top, round window corners or a caption band in the picture are cut off this way.
-4. **Consistency.** Both boxes are shrunk (centred in themselves) to the smaller width and the
-   smaller height of the two, then inset by ``inset`` (fraction of the card width) and mapped
-   back to card pixels. Shrinking never takes a box out of its photo, and the crop stage
-   (SIFT alignment, intersection) wants similar sizes.
+1. **Mount colour.** Ring pixels just inside the card's edge (``mount_ring``, fractions of the
+   card's smaller side) within ``mount_sample_distance`` (CIE Lab) of the ring's most populated
+   Lab bin sample the mount. It counts as a mount only if it covers ``mount_coverage`` of three
+   of the ring's four sides (a sky along one side of an unmounted photo is no mount). Mounts are
+   shaded and stained unevenly, so the mount colour is a quadratic surface over the card,
+   fitted to those samples. The lit ring pixels are tried first (a dark scan background often
+   fills part of the ring), then the not-white ones (a negative), then all (a black mount).
+2. **Non-photo mask.** *Plain* pixels are: of the mount's colour (within ``mount_distance`` and
+   smooth - 5 x 5 grey spread below ``smooth_spread`` - or within ``mount_exact``, as between
+   the letters of a title), dark and smooth (film edges, black mounts, scan background), or
+   white and smooth (white margins). A photo's content can look like mount (a pale sky, sepia
+   ground), so plain pixels count only in regions that reach the card's frame without crossing
+   an edge (Canny, plus long horizontal and vertical Hough segments bridged over faint stretches
+   of a photo's straight edge) and span half the card's width or height. Mount-coloured pieces
+   next to those regions join them (between the letters of a title); columns dark or white down
+   nearly the whole card are film edges or separator lines; a closing (``text_closing``)
+   absorbs printed text and the edges themselves.
+3. **Largest rectangle.** Inside each half of the split, the mask is pooled onto cells (at least
+   ``cell`` working px, at most 64 a side; a cell is non-photo when half of it is, or when a
+   film-edge line crosses it) and the largest rectangle of photo cells is found (histogram
+   method, O(cells)). Under an arched top that rectangle reaches up into the arch, narrower than
+   the photo; the photo's full width is preferred when it keeps ``full_width_preference`` of the
+   area (the box then starts where the arch meets the sides). The edges are refined in working
+   px (out while the next line is clean, in while the border line is not), then the box is cut
+   at *straight edges* near its sides: lines where most pixels change the same way, with a
+   foreign strip (non-photo or plain) outside them - a caption band, a film edge, a wedge.
+4. **Consistency.** Both boxes get the rows the two share (the intersection lies inside both
+   photo areas; a pair's photos are mounted level), keep their own widths (the crop stage
+   aligns by SIFT and cuts both to their intersection anyway), are inset by ``inset`` (fraction
+   of the card width: a photo's edge is blurred) and are mapped back to card pixels, rounding
+   inwards.
 
 What was found is said in words in :attr:`PhotoAreas.evidence`. When nothing trustworthy is
-found (a blank card, no border at all, two photos in one half, very different halves, no gutter),
+found (a blank card, no border at all, two photos in one half, halves sharing too few rows, no
+gutter),
 the result falls back to the split's boxes, says why in ``fallback_reason`` and has a
 confidence of at most ``fallback_confidence``: never a silent guess.
 

@@ -539,6 +539,40 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
         raise SystemExit(1)
 
 
+CARDS_CHUNK = 1000  # cards read, described and written per step of `keystone cards`
+
+
+def card_rows(stage: str | None = None, state: str | None = None, collection_name: str | None = None,
+              chunk: int = CARDS_CHUNK) -> Iterator[dict[str, Any]]:
+    """The rows of ``keystone cards``, in id order, read a chunk at a time (keyset paging on the
+    id, each chunk's results and people's work loaded together), so memory does not grow with
+    the catalogue. Call inside :func:`app.db.read_only`."""
+    from .models import Collection
+
+    after = 0
+    while True:
+        query = (select(Card).where(Card.id > after).order_by(Card.id).limit(chunk)
+                 .options(selectinload(Card.stage_results)))
+        if state:
+            query = query.where(Card.state == state)
+        if collection_name:
+            query = query.join(Collection).where(Collection.name == collection_name)
+        cards = list(db.session.scalars(query))
+        if not cards:
+            return
+        work = people_work([card.id for card in cards])
+        for card in cards:
+            yield {
+                "id": card.id,
+                "source": card.source_name,
+                "accession": card.accession,
+                "state": card.state,
+                "stages": card_stage_statuses(card, stage, work.get(card.id, {})),
+            }
+        after = cards[-1].id
+        db.session.expunge_all()  # this chunk's cards and results are written out: let them go
+
+
 @click.command("cards")
 @click.option("--stage", type=click.Choice(list(STAGES)),
               help="Show only this stage's status.")
@@ -547,37 +581,31 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
 @click.option("--json", "as_json", is_flag=True, help="Print the cards as one JSON document.")
 @with_appcontext
 def cards_command(stage: str | None, state: str | None, collection_name: str | None, as_json: bool) -> None:
-    """List cards with their stage statuses."""
-    from .console import emit_json, ensure_database
+    """List cards with their stage statuses (streamed: any catalogue size in constant memory)."""
+    import sys
+
+    from .console import ensure_database
     from .db import read_only
-    from .models import Collection
 
     ensure_database()
+    count = 0
     with read_only():
-        query = select(Card).order_by(Card.id).options(selectinload(Card.stage_results))
-        if state:
-            query = query.where(Card.state == state)
-        if collection_name:
-            query = query.join(Collection).where(Collection.name == collection_name)
-        cards = list(db.session.scalars(query))
-        work = people_work([card.id for card in cards])
-        rows = [
-            {
-                "id": card.id,
-                "source": card.source_name,
-                "accession": card.accession,
-                "state": card.state,
-                "stages": card_stage_statuses(card, stage, work.get(card.id, {})),
-            }
-            for card in cards
-        ]
-    if as_json:
-        emit_json({"cards": rows})
-        return
-    for row in rows:
-        summary = "  ".join(
-            f"{name}={info['outcome'] or info['status']}" for name, info in row["stages"].items()
-            if info["status"] != "pending"
-        )
-        click.echo(f"{row['id']:>6}  {row['state']:<8}  {row['source']:<48}  {summary}")
-    click.echo(f"{len(rows)} card(s)")
+        rows = card_rows(stage, state, collection_name)
+        if as_json:
+            # One JSON document, written a card at a time.
+            out = sys.stdout
+            out.write('{"cards": [')
+            for row in rows:
+                out.write(("\n  " if count == 0 else ",\n  ") + json.dumps(row, default=str))
+                count += 1
+            out.write("\n]}\n" if count else "]}\n")
+            out.flush()
+            return
+        for row in rows:
+            summary = "  ".join(
+                f"{name}={info['outcome'] or info['status']}" for name, info in row["stages"].items()
+                if info["status"] != "pending"
+            )
+            click.echo(f"{row['id']:>6}  {row['state']:<8}  {row['source']:<48}  {summary}")
+            count += 1
+    click.echo(f"{count} card(s)")

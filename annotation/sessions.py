@@ -1,0 +1,170 @@
+"""Crowd sessions: one visit of a worker, and the limits on opening new ones.
+
+A participant id in a Prolific or MTurk link is no secret (it travels in URLs, referrers,
+screenshots), so it names a *worker* (for quality and for the N-answers-per-item rule) but
+proves nothing. What a visit may touch (its reservations, the answers it may undo, its
+progress, its completion) is bound to its *session*: Prolific's ``SESSION_ID``, MTurk's
+``assignmentId``, or the invite link (one session per invited annotator). A session key is
+bound to the participant that opened it first, so another participant id cannot reuse it.
+
+Opening a new session is what an anonymous visitor can do in bulk, so it is limited per client
+address and per study (``KEYSTONE_CROWD_SESSIONS_PER_ADDRESS``, ``KEYSTONE_CROWD_SESSIONS_PER_STUDY``
+per ``KEYSTONE_CROWD_SESSION_WINDOW_S`` seconds); over a limit the entry page answers 429 with
+Retry-After. Every new worker opens a new session, so this also limits worker creation. Reopening
+a session the visitor already has is never limited. Only these entry pages check the limits:
+the JSON API (fetch-next, submit, undo) runs no extra query for them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import math
+from datetime import UTC, datetime, timedelta
+
+from flask import current_app, request
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+
+from app.db import db, utcnow
+
+from .models import CrowdSession, Worker
+from .tasks import TaskError, get_or_create_worker
+
+DEFAULT_SESSIONS_PER_ADDRESS = 20
+DEFAULT_SESSIONS_PER_STUDY = 1000
+DEFAULT_SESSION_WINDOW_S = 3600
+# A new session from an address where a worker flagged on gold in the same study came from is
+# refused work (see open_session); an operator whose participants share one address (a lab
+# behind NAT) can turn this off.
+DEFAULT_FLAG_SHARED_ADDRESS = True
+INVITE_SESSION_PREFIX = "invite-worker-"
+
+
+def client_address_key() -> str:
+    """A keyed hash of the client's address: enough to count and compare, never the address itself.
+
+    The address is what the WSGI server reports (``request.remote_addr``); behind a reverse
+    proxy that is the proxy's, unless the deployment rewrites it (werkzeug's ProxyFix).
+    """
+    address = request.remote_addr or "unknown"
+    key = str(current_app.config["SECRET_KEY"]).encode()
+    return hmac.new(key, f"crowd-address:{address}".encode(), hashlib.sha256).hexdigest()[:32]
+
+
+def _as_utc(moment: datetime) -> datetime:
+    # SQLite hands back naive datetimes for DateTime(timezone=True); they were stored as UTC.
+    return moment if moment.tzinfo else moment.replace(tzinfo=UTC)
+
+
+def _limit(name: str, default: int) -> int:
+    value = int(current_app.config.get(name, default))
+    if value < 1:
+        raise ValueError(f"Expected {name} >= 1, got {value}")
+    return value
+
+
+def _check_limit(where: object, limit: int, window: timedelta, now: datetime, what: str) -> None:
+    count, oldest = db.session.execute(
+        select(func.count(), func.min(CrowdSession.created_at)).where(where, CrowdSession.created_at > now - window)
+    ).one()
+    if count >= limit:
+        retry = max(1, math.ceil((_as_utc(oldest) + window - now).total_seconds()))
+        raise TaskError(f"Too many new sessions {what} ({count} in the last {int(window.total_seconds())} s); "
+                        f"try again in {retry} s", 429, retry_after=retry)
+
+
+def check_session_limits(provider: str, study: str, address: str, now: datetime) -> None:
+    """TaskError 429 when opening one more session would pass the per-address or per-study limit."""
+    window = timedelta(seconds=_limit("KEYSTONE_CROWD_SESSION_WINDOW_S", DEFAULT_SESSION_WINDOW_S))
+    _check_limit(CrowdSession.address == address,
+                 _limit("KEYSTONE_CROWD_SESSIONS_PER_ADDRESS", DEFAULT_SESSIONS_PER_ADDRESS), window, now,
+                 "from your network address")
+    _check_limit((CrowdSession.provider == provider) & (CrowdSession.study == study),
+                 _limit("KEYSTONE_CROWD_SESSIONS_PER_STUDY", DEFAULT_SESSIONS_PER_STUDY), window, now,
+                 "in this study")
+
+
+def _address_flagged_in_study(provider: str, study: str, address: str) -> bool:
+    """Whether a worker flagged on gold opened a session of this study from this address."""
+    if not current_app.config.get("KEYSTONE_CROWD_FLAG_SHARED_ADDRESS", DEFAULT_FLAG_SHARED_ADDRESS):
+        return False
+    return db.session.scalar(
+        select(CrowdSession.id).join(Worker, Worker.id == CrowdSession.worker_id)
+        .where(CrowdSession.provider == provider, CrowdSession.study == study, CrowdSession.address == address,
+               Worker.flagged.is_(True)).limit(1)) is not None
+
+
+def _existing(provider: str, participant: str, session_key: str, study: str) -> CrowdSession | None:
+    """The session with this key, if it is this participant's in this study; 409 if it is not."""
+    row = db.session.execute(select(CrowdSession, Worker.external_id).join(Worker, Worker.id == CrowdSession.worker_id)
+                             .where(CrowdSession.provider == provider,
+                                    CrowdSession.external_id == session_key)).first()
+    if row is None:
+        return None
+    session, owner = row
+    if owner != participant:
+        raise TaskError("This session was opened by another participant; open the study link you were given", 409)
+    if session.study != study:
+        raise TaskError("This session belongs to another study; open the study link you were given", 409)
+    return session
+
+
+def open_session(provider: str, participant: str, session_key: str, study: str) -> CrowdSession:
+    """The participant's session ``session_key``: the one they opened before, or a new one.
+
+    A new one passes the creation limits first (429 over them), then finds or makes the worker.
+    It is refused work from the start (``flagged``) when a worker flagged on gold in the same
+    study came from the same address: a spammer coming back under a new participant id.
+    """
+    existing = _existing(provider, participant, session_key, study)
+    if existing is not None:
+        return existing
+    now = utcnow()
+    address = client_address_key()
+    check_session_limits(provider, study, address, now)
+    worker = get_or_create_worker(provider, participant)
+    inherited = _address_flagged_in_study(provider, study, address)
+    session = CrowdSession(worker_id=worker.id, provider=provider, external_id=session_key, study=study,
+                           address=address, flagged=inherited, created_at=now)
+    db.session.add(session)
+    try:
+        db.session.commit()
+    except IntegrityError:
+        # The same session opened twice at once: the first one wins, if it is this participant's.
+        db.session.rollback()
+        existing = _existing(provider, participant, session_key, study)
+        if existing is None:
+            raise
+        return existing
+    return session
+
+
+def invite_session(worker: Worker) -> CrowdSession:
+    """An invited annotator's one session: their link is their credential, so every visit is it.
+
+    Invites are made by staff (``keystone crowd invite``), so no limit applies.
+    """
+    key = f"{INVITE_SESSION_PREFIX}{worker.id}"
+    query = select(CrowdSession).where(CrowdSession.provider == "invite", CrowdSession.external_id == key)
+    session = db.session.scalar(query)
+    if session is not None:
+        return session
+    session = CrowdSession(worker_id=worker.id, provider="invite", external_id=key, study="",
+                           address="", flagged=False)
+    db.session.add(session)
+    try:
+        db.session.commit()
+    except IntegrityError:
+        db.session.rollback()
+        session = db.session.scalar(query)
+        assert session is not None
+    return session
+
+
+def complete_session(session_id: int) -> None:
+    """Record the first time the session reached its provider's completion step (kept for payouts)."""
+    session = db.session.get(CrowdSession, session_id)
+    if session is not None and session.completed_at is None:
+        session.completed_at = utcnow()
+        db.session.commit()

@@ -482,7 +482,11 @@ def test_cli_create_invite_aggregate_export(app, runner, client, cards, tmp_path
 
     assert pq.read_table(out / "answers.parquet").num_rows == 3
     assert (out / "aggregates.csv").read_text().count("\n") == 4  # header + 3 cards
-    assert set(review) <= {int(r["card_id"]) for r in pq.read_table(out / "answers.parquet").to_pylist()}
+    exported_rows = pq.read_table(out / "answers.parquet").to_pylist()
+    assert set(review) <= {int(r["card_id"]) for r in exported_rows}
+    with app.app_context():
+        ada = db.session.scalar(select(Worker.id).where(Worker.external_id == "ada"))
+    assert {r["session"] for r in exported_rows} == {f"invite-worker-{ada}"}  # the session each answer came from
     bad = runner.invoke(args=["crowd", "create-batch", "--cards", "99999"])
     assert bad.exit_code == 1 and "No card with id 99999" in bad.output
 

@@ -12,13 +12,16 @@ address and per study (``KEYSTONE_CROWD_SESSIONS_PER_ADDRESS``, ``KEYSTONE_CROWD
 per ``KEYSTONE_CROWD_SESSION_WINDOW_S`` seconds); over a limit the entry page answers 429 with
 Retry-After. Every new worker opens a new session, so this also limits worker creation. Reopening
 a session the visitor already has is never limited. Only these entry pages check the limits:
-the JSON API (fetch-next, submit, undo) runs no extra query for them.
+the JSON API (fetch-next, submit, undo) runs no extra query for them. ``KEYSTONE_CROWD_STUDIES``
+(a list, or a comma-separated string, of Prolific STUDY_IDs / MTurk hitIds) closes the entry
+pages to any other study.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import ipaddress
 import math
 from datetime import UTC, datetime, timedelta
 
@@ -41,15 +44,47 @@ DEFAULT_FLAG_SHARED_ADDRESS = True
 INVITE_SESSION_PREFIX = "invite-worker-"
 
 
+def client_network(remote_addr: str | None) -> str:
+    """What the limits count as one client: the IPv4 address, or the IPv6 /64 network.
+
+    One IPv6 subscriber usually holds a whole /64, so counting single IPv6 addresses would let
+    them open sessions without limit.
+    """
+    try:
+        address = ipaddress.ip_address(remote_addr or "")
+    except ValueError:
+        return remote_addr or "unknown"
+    if isinstance(address, ipaddress.IPv6Address):
+        if address.ipv4_mapped is not None:
+            return str(address.ipv4_mapped)
+        return str(ipaddress.IPv6Network((address, 64), strict=False))
+    return str(address)
+
+
 def client_address_key() -> str:
-    """A keyed hash of the client's address: enough to count and compare, never the address itself.
+    """A keyed hash of the client's network (:func:`client_network`): enough to count and compare,
+    never the address itself.
 
     The address is what the WSGI server reports (``request.remote_addr``); behind a reverse
     proxy that is the proxy's, unless the deployment rewrites it (werkzeug's ProxyFix).
     """
-    address = request.remote_addr or "unknown"
     key = str(current_app.config["SECRET_KEY"]).encode()
-    return hmac.new(key, f"crowd-address:{address}".encode(), hashlib.sha256).hexdigest()[:32]
+    network = client_network(request.remote_addr)
+    return hmac.new(key, f"crowd-address:{network}".encode(), hashlib.sha256).hexdigest()[:32]
+
+
+def check_study(study: str) -> None:
+    """TaskError 404 unless ``study`` is one of ``KEYSTONE_CROWD_STUDIES`` (when that is set).
+
+    STUDY_ID and hitId come from the URL, so without this list a visitor can name any study,
+    and the per-study limit and flag inheritance are only as good as their honesty.
+    """
+    allowed = current_app.config.get("KEYSTONE_CROWD_STUDIES")
+    if not allowed:
+        return
+    names = {name.strip() for name in allowed.split(",")} if isinstance(allowed, str) else {str(a) for a in allowed}
+    if study not in names:
+        raise TaskError("This study is not open here; open the link from the study page", 404)
 
 
 def _as_utc(moment: datetime) -> datetime:
@@ -117,6 +152,7 @@ def open_session(provider: str, participant: str, session_key: str, study: str) 
     It is refused work from the start (``flagged``) when a worker flagged on gold in the same
     study came from the same address: a spammer coming back under a new participant id.
     """
+    check_study(study)
     existing = _existing(provider, participant, session_key, study)
     if existing is not None:
         return existing

@@ -691,3 +691,21 @@ def test_a_flagged_participant_stays_flagged_in_new_sessions_and_new_ids_from_it
     with app.app_context():
         flags = dict(db.session.execute(select(Worker.external_id, Worker.flagged)).all())
     assert flags == {"spammer": True, "spammer-renamed": False, "next-door": False, "honest": False}
+
+
+def test_one_ipv6_subscriber_counts_as_one_client_and_studies_can_be_closed(app, client, cards):
+    from annotation.sessions import client_network
+
+    assert client_network("2001:db8:1:2:3:4:5:6") == client_network("2001:db8:1:2:ffff::1") == "2001:db8:1:2::/64"
+    assert client_network("::ffff:192.0.2.9") == "192.0.2.9" and client_network("192.0.2.9") == "192.0.2.9"
+    new_batch(app, cards(1), n=1)
+    app.config["KEYSTONE_CROWD_SESSIONS_PER_ADDRESS"] = 2
+    opened = [prolific(client, f"v6-{i}", f"v6-session-{i}", address=f"2001:db8:1:2::{i + 1:x}").status_code
+              for i in range(3)]
+    assert opened == [200, 200, 429]
+    assert prolific(client, "v6-x", "v6-session-x", address="2001:db8:1:3::1").status_code == 200  # another /64
+    app.config["KEYSTONE_CROWD_STUDIES"] = "study-open, study-2"
+    closed = prolific(client, "p", "closed-1", study="made-up", address="198.51.100.1")
+    assert closed.status_code == 404 and "not open here" in closed.get_data(as_text=True)
+    assert prolific(client, "p", "open-1", study="study-open", address="198.51.100.1").status_code == 200
+    assert count(app, Worker) == 4

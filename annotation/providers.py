@@ -1,8 +1,10 @@
 """Where workers come from: one :class:`CrowdProvider` seam behind invite links, Prolific and MTurk.
 
 A provider turns the entry URL's parameters into a worker and says what happens when the
-worker is done. The page then carries the worker's identity as a *signed token* (never a
-session cookie): crowd pages live in third-party iframes (MTurk) where browsers drop cookies.
+worker is done. The page then carries the worker's identity and session as a *signed token*
+(never a session cookie): crowd pages live in third-party iframes (MTurk) where browsers drop
+cookies. The session (:mod:`annotation.sessions`), not the participant id, bounds what the token
+may touch.
 """
 
 from __future__ import annotations

@@ -23,16 +23,17 @@ import hashlib
 import hmac
 import ipaddress
 import math
+import secrets
 from datetime import UTC, datetime, timedelta
 
 from flask import current_app, request
-from sqlalchemy import func, select
+from sqlalchemy import func, select, text
 from sqlalchemy.exc import IntegrityError
 
 from app.db import db, utcnow
 
 from .models import CrowdSession, Worker
-from .tasks import TaskError, get_or_create_worker
+from .tasks import TaskError
 
 DEFAULT_SESSIONS_PER_ADDRESS = 20
 DEFAULT_SESSIONS_PER_STUDY = 1000
@@ -145,12 +146,26 @@ def _existing(provider: str, participant: str, session_key: str, study: str) -> 
     return session
 
 
-def open_session(provider: str, participant: str, session_key: str, study: str) -> CrowdSession:
+def _serialize_openings(provider: str, study: str, address: str) -> None:
+    """PostgreSQL: one opening at a time per address and per study, so the limits are exact.
+
+    Transaction-scoped advisory locks, always address first, then study (no lock cycles).
+    SQLite needs none: every write transaction there begins IMMEDIATE, one at a time.
+    """
+    if db.session.get_bind().dialect.name != "postgresql":
+        return
+    for key in (f"crowd-address:{address}", f"crowd-study:{provider}:{study}"):
+        db.session.execute(text("SELECT pg_advisory_xact_lock(hashtext(:key))"), {"key": key})
+
+
+def open_session(provider: str, participant: str, session_key: str, study: str, *,
+                 _retry: bool = True) -> CrowdSession:
     """The participant's session ``session_key``: the one they opened before, or a new one.
 
-    A new one passes the creation limits first (429 over them), then finds or makes the worker.
-    It is refused work from the start (``flagged``) when a worker flagged on gold in the same
-    study came from the same address: a spammer coming back under a new participant id.
+    A new one passes the creation limits first (429 over them), then finds or makes the worker,
+    in the same write transaction as the check. It is refused work from the start (``flagged``)
+    when a worker flagged on gold in the same study came from the same address: a spammer
+    coming back under a new participant id.
     """
     check_study(study)
     existing = _existing(provider, participant, session_key, study)
@@ -158,21 +173,25 @@ def open_session(provider: str, participant: str, session_key: str, study: str) 
         return existing
     now = utcnow()
     address = client_address_key()
+    _serialize_openings(provider, study, address)
     check_session_limits(provider, study, address, now)
-    worker = get_or_create_worker(provider, participant)
-    inherited = _address_flagged_in_study(provider, study, address)
-    session = CrowdSession(worker_id=worker.id, provider=provider, external_id=session_key, study=study,
-                           address=address, flagged=inherited, created_at=now)
+    worker = db.session.scalar(select(Worker).where(Worker.provider == provider, Worker.external_id == participant))
+    if worker is None:
+        worker = Worker(provider=provider, external_id=participant, token=secrets.token_urlsafe(24))
+        db.session.add(worker)
+    session = CrowdSession(worker=worker, provider=provider, external_id=session_key, study=study,
+                           address=address, flagged=_address_flagged_in_study(provider, study, address),
+                           created_at=now)
     db.session.add(session)
     try:
         db.session.commit()
     except IntegrityError:
-        # The same session opened twice at once: the first one wins, if it is this participant's.
+        # The same session or the same new worker made twice at once: the first one wins; this
+        # visit then reopens its session (or is refused, if it is another participant's).
         db.session.rollback()
-        existing = _existing(provider, participant, session_key, study)
-        if existing is None:
+        if not _retry:
             raise
-        return existing
+        return open_session(provider, participant, session_key, study, _retry=False)
     return session
 
 

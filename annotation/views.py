@@ -3,8 +3,9 @@
 Identity and anti-forgery: crowd routes do not use the session cookie. MTurk shows the page
 in an iframe on mturk.com, where browsers block third-party cookies, so a cookie-based login
 or CSRF token would silently fail there. The entry page instead embeds a token signed with
-the app's secret key (worker id + provider context). The page's script sends it in the
-``X-Crowd-Token`` header on every API call, with a JSON body. That header doubles as the
+the app's secret key (worker id, session id and provider context; :mod:`annotation.sessions`
+says why the API trusts a session and not a participant id). The page's script sends it in
+the ``X-Crowd-Token`` header on every API call, with a JSON body. That header doubles as the
 anti-forgery token: another site cannot read it, an HTML form cannot set a header, and a
 cross-origin ``fetch`` with a custom header or a JSON content type needs a CORS preflight
 that this app never grants. So the API routes are exempt from the cookie-based CSRFProtect

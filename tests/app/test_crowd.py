@@ -709,3 +709,29 @@ def test_one_ipv6_subscriber_counts_as_one_client_and_studies_can_be_closed(app,
     assert closed.status_code == 404 and "not open here" in closed.get_data(as_text=True)
     assert prolific(client, "p", "open-1", study="study-open", address="198.51.100.1").status_code == 200
     assert count(app, Worker) == 4
+
+
+@pytest.mark.both_databases
+def test_the_address_limit_holds_when_visitors_arrive_at_once(app, cards):
+    import threading
+
+    new_batch(app, cards(1), n=1)
+    app.config["KEYSTONE_CROWD_SESSIONS_PER_ADDRESS"] = 3
+    statuses: list[int] = []
+    lock = threading.Lock()
+    start = threading.Barrier(8)
+
+    def visit(i: int) -> None:
+        client = app.test_client()
+        start.wait()
+        status = prolific(client, f"rush-{i}", f"rush-session-{i}").status_code
+        with lock:
+            statuses.append(status)
+
+    threads = [threading.Thread(target=visit, args=(i,)) for i in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert sorted(statuses) == [200] * 3 + [429] * 5
+    assert count(app, Worker) == 3

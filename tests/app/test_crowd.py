@@ -735,3 +735,29 @@ def test_the_address_limit_holds_when_visitors_arrive_at_once(app, cards):
         thread.join(timeout=60)
     assert sorted(statuses) == [200] * 3 + [429] * 5
     assert count(app, Worker) == 3
+
+
+@pytest.mark.both_databases
+def test_invited_annotators_keep_their_work_across_the_sessions_migration(app, client, cards):
+    from alembic import command
+
+    from app.schema import alembic_config, upgrade
+
+    new_batch(app, cards(3), n=1)
+    before = invite(app, client, "mid-way")
+    task = fetch(client, before)["tasks"][0]
+    assert answer(client, before, task["token"], JUDGE_OK, "mid-way-key-1").status_code == 201
+    with app.app_context():
+        link = db.session.scalar(select(Worker.token).where(Worker.external_id == "mid-way"))
+        db.session.remove()
+        config = alembic_config(db.engine)
+        with db.engine.begin() as connection:
+            config.attributes["connection"] = connection
+            command.downgrade(config, "0004")
+        upgrade(db.engine)
+        assert db.session.scalar(select(func.count()).select_from(Answer).where(Answer.session_id.is_(None))) == 0
+    page = client.get(f"/crowd/invite/{link}").get_data(as_text=True)
+    assert re.search(r'<strong id="answered">1</strong>', page)
+    after = TOKEN.search(page).group(1)
+    undone = api(client, "undo", after, {})
+    assert undone.status_code == 200 and undone.get_json()["task"]["token"] == task["token"]

@@ -1,8 +1,9 @@
 """crowd sessions: reservations and answers belong to one visit (Prolific session, MTurk assignment, invite)
 
 Before this, a second visit with the same participant id got the same worker and could undo
-the first visit's answers. Existing reservations and answers keep session_id NULL: no web
-session can see, claim or undo them (they still count for the worker's N-answers rule).
+the first visit's answers. Invited annotators get their one session and keep their rows;
+existing Prolific and MTurk reservations and answers keep session_id NULL: no web session can
+see, claim or undo them (they still count for the worker's N-answers rule).
 
 Revision ID: 0005
 Revises: 0004
@@ -18,6 +19,7 @@ branch_labels = None
 depends_on = None
 
 SESSION_TABLES = ('crowd_reservations', 'crowd_answers')
+INVITE_SESSION_PREFIX = 'invite-worker-'  # a frozen copy of annotation.sessions.INVITE_SESSION_PREFIX
 
 
 def upgrade() -> None:
@@ -47,6 +49,17 @@ def upgrade() -> None:
     for table in SESSION_TABLES:
         op.add_column(table, sa.Column('session_id', sa.Integer(), nullable=True))
         op.create_index(f'ix_{table}_session_id', table, ['session_id'])
+
+    # An invited annotator has one session (their link is the credential), so their rows can
+    # be given it now and they carry on where they were, undo included. Prolific and MTurk rows
+    # cannot: which visit made them was never stored.
+    op.execute(f"INSERT INTO crowd_sessions (worker_id, provider, external_id, study, address, flagged, created_at) "
+               f"SELECT id, 'invite', '{INVITE_SESSION_PREFIX}' || id, '', '', FALSE, created_at "
+               f"FROM crowd_workers WHERE provider = 'invite'")
+    for table in SESSION_TABLES:
+        op.execute(f"UPDATE {table} SET session_id = (SELECT s.id FROM crowd_sessions s WHERE s.provider = 'invite' "
+                   f"AND s.worker_id = {table}.worker_id) "
+                   f"WHERE worker_id IN (SELECT id FROM crowd_workers WHERE provider = 'invite')")
 
 
 def downgrade() -> None:

@@ -940,8 +940,17 @@ def worker_progress() -> list[dict[str, Any]]:
     """Every worker across batches: answers, flagged answers, gold accuracy and whether they are flagged.
 
     ``gold_accuracy`` is None until the worker answered a gold item; ``served`` is False once
-    they fell below the threshold (they get no more tasks).
+    they fell below the threshold (they get no more tasks). ``sessions`` is how many visits
+    (Prolific sessions, MTurk assignments) they opened, ``completed_sessions`` how many reached
+    the completion step, ``refused_sessions`` how many got no work from the start (opened where
+    a worker flagged in the same study came from; :mod:`annotation.sessions`).
     """
+    sessions = {worker_id: (total, completed or 0, refused or 0)
+                for worker_id, total, completed, refused in db.session.execute(
+                    select(CrowdSession.worker_id, func.count(),
+                           func.sum(case((CrowdSession.completed_at.is_not(None), 1), else_=0)),
+                           func.sum(case((CrowdSession.flagged, 1), else_=0)))
+                    .group_by(CrowdSession.worker_id))}
     counts = {worker_id: (total, flagged or 0) for worker_id, total, flagged in db.session.execute(
         select(Answer.worker_id, func.count(), func.sum(case((Answer.flagged, 1), else_=0)))
         .group_by(Answer.worker_id))}
@@ -955,10 +964,12 @@ def worker_progress() -> list[dict[str, Any]]:
     rows = []
     for worker in db.session.scalars(select(Worker).order_by(Worker.id)):
         total, flagged = counts.get(worker.id, (0, 0))
+        opened, completed, refused = sessions.get(worker.id, (0, 0, 0))
         labels = gold.get(worker.id, [])
         rows.append({"worker": worker.id, "provider": worker.provider, "name": worker.external_id,
                      "answers": int(total), "flagged_answers": int(flagged), "gold_correct": sum(labels),
                      "gold_total": len(labels),
                      "gold_accuracy": round(sum(labels) / len(labels), 4) if labels else None,
-                     "served": not worker.flagged})
+                     "served": not worker.flagged, "sessions": int(opened),
+                     "completed_sessions": int(completed), "refused_sessions": int(refused)})
     return rows

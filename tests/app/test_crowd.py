@@ -666,7 +666,7 @@ def test_new_sessions_are_limited_per_address_and_per_study(app, client, cards):
 
 
 @pytest.mark.both_databases
-def test_a_flagged_participant_stays_flagged_in_new_sessions_and_new_ids_from_its_address(app, client, cards):
+def test_a_flagged_participant_stays_flagged_in_new_sessions_and_new_ids_from_its_address(app, client, cards, login):
     app.config.update(KEYSTONE_CROWD_MIN_GOLD=3, KEYSTONE_CROWD_GOLD_THRESHOLD=0.7)
     new_batch(app, cards(6), n=3, gold_rate=1.0, gold={g: JUDGE_OK for g in cards(3)})
     spam_address = "192.0.2.66"
@@ -691,6 +691,14 @@ def test_a_flagged_participant_stays_flagged_in_new_sessions_and_new_ids_from_it
     with app.app_context():
         flags = dict(db.session.execute(select(Worker.external_id, Worker.flagged)).all())
     assert flags == {"spammer": True, "spammer-renamed": False, "next-door": False, "honest": False}
+    from annotation.tasks import worker_progress
+
+    with app.app_context():
+        staff = {row["name"]: row for row in worker_progress()}
+    assert (staff["spammer"]["sessions"], staff["spammer"]["served"]) == (2, False)
+    assert (staff["spammer-renamed"]["refused_sessions"], staff["honest"]["refused_sessions"]) == (1, 0)
+    login("curator")
+    assert "1 refused (address of a flagged worker)" in client.get("/crowd/batches").get_data(as_text=True)
 
 
 def test_one_ipv6_subscriber_counts_as_one_client_and_studies_can_be_closed(app, client, cards):

@@ -14,7 +14,15 @@ from sqlalchemy import select
 
 from app.db import db
 
-from .models import TASK_KINDS, Aggregate, Answer, Batch, BatchItem, Worker
+from .models import (
+    TASK_KINDS,
+    Aggregate,
+    Answer,
+    Batch,
+    BatchItem,
+    CrowdSession,
+    Worker,
+)
 from .providers import InviteProvider
 from .tasks import (
     TaskError,
@@ -117,13 +125,16 @@ def aggregate_command(batch_id: int, as_json: bool) -> None:
 
 
 def _answer_rows(batch: Batch) -> list[dict[str, Any]]:
+    """One row per answer; ``session`` is the provider's session key (Prolific SESSION_ID, MTurk
+    assignmentId) the answer was given in, what a researcher approves submissions by."""
     rows = db.session.execute(
-        select(Answer, BatchItem, Worker).join(BatchItem, Answer.item_id == BatchItem.id)
-        .join(Worker, Answer.worker_id == Worker.id).where(BatchItem.batch_id == batch.id).order_by(Answer.id))
+        select(Answer, BatchItem, Worker, CrowdSession.external_id).join(BatchItem, Answer.item_id == BatchItem.id)
+        .join(Worker, Answer.worker_id == Worker.id).outerjoin(CrowdSession, CrowdSession.id == Answer.session_id)
+        .where(BatchItem.batch_id == batch.id).order_by(Answer.id))
     return [{"answer_id": a.id, "batch": batch.id, "card_id": it.card_id, "is_gold": it.is_gold,
-             "worker": f"{w.provider}:{w.external_id}", "flagged": a.flagged,
+             "worker": f"{w.provider}:{w.external_id}", "session": session or "", "flagged": a.flagged,
              "submitted_at": a.submitted_at.isoformat(), "payload": json.dumps(a.payload, sort_keys=True)}
-            for a, it, w in rows]
+            for a, it, w, session in rows]
 
 
 def _aggregate_rows(batch: Batch) -> list[dict[str, Any]]:
@@ -188,8 +199,8 @@ def export_command(batch_id: int, out: Path, as_json: bool) -> None:
     if batch is None:
         raise click.ClickException(f"no batch {batch_id}")
     out.mkdir(parents=True, exist_ok=True)
-    files = _write_table(_answer_rows(batch), ["answer_id", "batch", "card_id", "is_gold", "worker", "flagged",
-                                               "submitted_at", "payload"], out, "answers")
+    files = _write_table(_answer_rows(batch), ["answer_id", "batch", "card_id", "is_gold", "worker", "session",
+                                               "flagged", "submitted_at", "payload"], out, "answers")
     files += _write_table(_aggregate_rows(batch), ["batch", "card_id", "kind", "state", "confident", "answers",
                                                    "label", "posterior", "reasons"], out, "aggregates")
     if batch.kind == "crop":

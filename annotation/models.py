@@ -106,6 +106,40 @@ class Worker(db.Model):
     person: Mapped[Person | None] = relationship()
 
 
+class CrowdSession(db.Model):
+    """One visit of a worker through a provider: what reservations, undo and completion are bound to.
+
+    ``external_id`` is the provider's own session key: Prolific's ``SESSION_ID``, MTurk's
+    ``assignmentId``, or ``"invite"`` (the invite link is the whole credential, so an invited
+    annotator has one session). It is unique per provider, so a session opened by one
+    participant can never be reopened under another participant's id. ``study`` is Prolific's
+    ``STUDY_ID`` or MTurk's ``hitId`` (empty for invites): the unit of the creation limits.
+    ``address`` is a keyed hash of the client address (the address itself is never stored),
+    used only for the per-address limits. ``flagged`` marks a session refused work because a
+    worker flagged on gold in the same study came from the same address.
+    """
+
+    __tablename__ = "crowd_sessions"
+    __table_args__ = (
+        CheckConstraint(_in("provider", PROVIDERS), name="provider"),
+        UniqueConstraint("provider", "external_id", name="crowd_session_provider_external"),
+        Index("ix_crowd_sessions_address", "address", "created_at"),
+        Index("ix_crowd_sessions_study", "provider", "study", "created_at"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    worker_id: Mapped[int] = mapped_column(ForeignKey("crowd_workers.id", ondelete="CASCADE"), index=True)
+    provider: Mapped[str] = mapped_column(String(10))
+    external_id: Mapped[str] = mapped_column(String(200))
+    study: Mapped[str] = mapped_column(String(200), default="", server_default="")
+    address: Mapped[str] = mapped_column(String(64), default="", server_default="")
+    flagged: Mapped[bool] = mapped_column(default=False)
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    completed_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
+
+    worker: Mapped[Worker] = relationship()
+
+
 class Reservation(db.Model):
     """An item handed to a worker. Open while ``expires_at`` is ahead and ``answered_at`` is empty.
 
@@ -129,6 +163,10 @@ class Reservation(db.Model):
     id: Mapped[int] = mapped_column(primary_key=True)
     item_id: Mapped[int] = mapped_column(ForeignKey("crowd_batch_items.id", ondelete="CASCADE"), index=True)
     worker_id: Mapped[int] = mapped_column(ForeignKey("crowd_workers.id", ondelete="CASCADE"), index=True)
+    # The session that holds it (None: in-process callers such as the simulator, never the web).
+    # No foreign key: SQLite cannot add one to an existing table without copying it (see the
+    # 0005 migration); a session is deleted only with its worker, which takes these rows along.
+    session_id: Mapped[int | None] = mapped_column(Integer, index=True)
     token: Mapped[str] = mapped_column(String(64), unique=True)  # names the task in image and submit URLs
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     expires_at: Mapped[datetime] = mapped_column(DateTime(timezone=True))
@@ -146,6 +184,9 @@ class Answer(db.Model):
     id: Mapped[int] = mapped_column(primary_key=True)
     item_id: Mapped[int] = mapped_column(ForeignKey("crowd_batch_items.id", ondelete="CASCADE"), index=True)
     worker_id: Mapped[int] = mapped_column(ForeignKey("crowd_workers.id", ondelete="CASCADE"), index=True)
+    # The session that gave it: only that session may undo it or count it as its progress
+    # (no foreign key, as on reservations).
+    session_id: Mapped[int | None] = mapped_column(Integer, index=True)
     payload: Mapped[dict[str, Any]] = mapped_column(JSONType)
     submitted_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     idempotency_key: Mapped[str] = mapped_column(String(80), unique=True)

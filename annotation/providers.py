@@ -1,8 +1,10 @@
 """Where workers come from: one :class:`CrowdProvider` seam behind invite links, Prolific and MTurk.
 
 A provider turns the entry URL's parameters into a worker and says what happens when the
-worker is done. The page then carries the worker's identity as a *signed token* (never a
-session cookie): crowd pages live in third-party iframes (MTurk) where browsers drop cookies.
+worker is done. The page then carries the worker's identity and session as a *signed token*
+(never a session cookie): crowd pages live in third-party iframes (MTurk) where browsers drop
+cookies. The session (:mod:`annotation.sessions`), not the participant id, bounds what the token
+may touch.
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from sqlalchemy import bindparam, func, select
 
 from app.db import db
 
-from .models import Answer, Worker
+from .models import Answer, CrowdSession, Worker
+from .sessions import invite_session, open_session
 from .tasks import TaskError, get_or_create_worker
 
 TOKEN_SALT = "keystone-crowd-worker"
@@ -30,11 +33,12 @@ MTURK_SUBMIT_ORIGINS: tuple[str, ...] = ("https://www.mturk.com", "https://worke
 
 @dataclass(frozen=True)
 class Entry:
-    """A worker's way in: who they are (None in MTurk preview) and the provider's context."""
+    """A worker's way in: who they are and in which session (None in MTurk preview), and the provider's context."""
 
     provider: str
     worker: Worker | None
     context: dict[str, str] = field(default_factory=dict)
+    session: CrowdSession | None = None
 
     @property
     def preview(self) -> bool:
@@ -70,7 +74,7 @@ class InviteProvider:
         worker = db.session.scalar(select(Worker).where(Worker.provider == "invite", Worker.token == token))
         if worker is None:
             raise TaskError("This invite link is not valid; ask for a new one", 404)
-        return Entry(self.name, worker)
+        return Entry(self.name, worker, session=invite_session(worker))
 
     def finish(self, context: dict[str, str]) -> dict[str, Any]:
         return {}
@@ -89,8 +93,9 @@ class ProlificProvider:
     name: ClassVar[str] = "prolific"
 
     def enter(self, args: dict[str, str]) -> Entry:
-        pid, study, session = _required(args, "PROLIFIC_PID", "STUDY_ID", "SESSION_ID")
-        return Entry(self.name, get_or_create_worker(self.name, pid), {"study": study, "session": session})
+        pid, study, session_key = _required(args, "PROLIFIC_PID", "STUDY_ID", "SESSION_ID")
+        session = open_session(self.name, pid, session_key, study)
+        return Entry(self.name, session.worker, {"study": study, "session": session_key}, session)
 
     def finish(self, context: dict[str, str]) -> dict[str, Any]:
         code = current_app.config.get("KEYSTONE_PROLIFIC_COMPLETION_CODE")
@@ -117,8 +122,9 @@ class MTurkProvider:
             return Entry(self.name, None, {"assignment": assignment})
         assignment, hit, worker_id, submit_to = _required(args, "assignmentId", "hitId", "workerId", "turkSubmitTo")
         submit_url = mturk_submit_url(submit_to)
-        return Entry(self.name, get_or_create_worker(self.name, worker_id),
-                     {"assignment": assignment, "hit": hit, "submit_url": submit_url})
+        session = open_session(self.name, worker_id, assignment, hit)
+        return Entry(self.name, session.worker, {"assignment": assignment, "hit": hit, "submit_url": submit_url},
+                     session)
 
     def finish(self, context: dict[str, str]) -> dict[str, Any]:
         return {"post": {"url": context["submit_url"], "fields": {"assignmentId": context["assignment"]}}}
@@ -136,14 +142,14 @@ def _serializer() -> URLSafeSerializer:
 
 
 def sign_entry(entry: Entry) -> str:
-    """A token naming the worker and provider context; it authenticates every crowd API call.
+    """A token naming the worker, its session and the provider context; it authenticates every crowd API call.
 
     It includes a random nonce so two tabs of one worker get different tokens (nothing relies on
     that; it keeps tokens from being guessable from the worker id even if the key leaked partly).
     """
-    assert entry.worker is not None
-    return _serializer().dumps({"w": entry.worker.id, "p": entry.provider, "c": entry.context,
-                                "n": secrets.token_hex(4)})
+    assert entry.worker is not None and entry.session is not None
+    return _serializer().dumps({"w": entry.worker.id, "s": entry.session.id, "p": entry.provider,
+                                "c": entry.context, "n": secrets.token_hex(4)})
 
 
 @dataclass(frozen=True)
@@ -151,18 +157,22 @@ class SignedWorker:
     """Who calls the crowd API: the signed token's claims and one read of the worker's row."""
 
     worker_id: int
+    session_id: int
     provider: str
     context: dict[str, str]
-    answered: int  # answers stored so far: the progress the page shows
+    answered: int  # answers this session stored so far: the progress the page shows
 
 
-_WORKER_STATE = (select(Worker.provider,
-                        select(func.count()).select_from(Answer).where(Answer.worker_id == Worker.id).scalar_subquery())
-                 .where(Worker.id == bindparam("worker_id")))
+_SESSION_STATE = (select(Worker.provider, CrowdSession.worker_id,
+                         select(func.count()).select_from(Answer)
+                         .where(Answer.worker_id == CrowdSession.worker_id, Answer.session_id == CrowdSession.id)
+                         .scalar_subquery())
+                  .join(Worker, Worker.id == CrowdSession.worker_id)
+                  .where(CrowdSession.id == bindparam("session_id")))
 
 
 def load_signed_worker(token: str | None) -> SignedWorker:
-    """Check the token's signature and that its worker exists under its provider (one query, no ORM).
+    """Check the token's signature and that its session exists, of its worker, under its provider (one query, no ORM).
 
     Runs on every API call, so it is one prebuilt statement: the ORM's identity-map load of
     the worker and a second count query cost as much as the rest of a fetch.
@@ -173,8 +183,11 @@ def load_signed_worker(token: str | None) -> SignedWorker:
         data = _serializer().loads(token)
     except BadSignature as exc:
         raise TaskError("Invalid worker token: reload the task page", 403) from exc
-    worker_id = int(data["w"])
-    row = db.session.connection().execute(_WORKER_STATE, {"worker_id": worker_id}).first()
-    if row is None or row.provider != data["p"]:
+    if not isinstance(data, dict) or "s" not in data:
+        # Tokens signed before sessions existed name no session: the page must be opened again.
+        raise TaskError("This task page is out of date: reload it", 403)
+    worker_id, session_id = int(data["w"]), int(data["s"])
+    row = db.session.connection().execute(_SESSION_STATE, {"session_id": session_id}).first()
+    if row is None or row.worker_id != worker_id or row.provider != data["p"]:
         raise TaskError("Unknown worker: reload the task page", 403)
-    return SignedWorker(worker_id, data["p"], dict(data.get("c") or {}), int(row[1] or 0))
+    return SignedWorker(worker_id, session_id, data["p"], dict(data.get("c") or {}), int(row[2] or 0))

@@ -54,7 +54,16 @@ from .agreement import (
     krippendorff_alpha_nominal,
     percent_agreement,
 )
-from .models import TASK_KINDS, Aggregate, Answer, Batch, BatchItem, Reservation, Worker
+from .models import (
+    TASK_KINDS,
+    Aggregate,
+    Answer,
+    Batch,
+    BatchItem,
+    CrowdSession,
+    Reservation,
+    Worker,
+)
 
 DEFAULT_RESERVATION_MINUTES = 10
 DEFAULT_MIN_BOX_PX = 16
@@ -66,10 +75,11 @@ HALVES: tuple[str, ...] = ("left", "right")
 class TaskError(Exception):
     """Something the worker (or an admin) did wrong: shown to them, status for the HTTP reply."""
 
-    def __init__(self, message: str, status: int = 400) -> None:
+    def __init__(self, message: str, status: int = 400, retry_after: int | None = None) -> None:
         super().__init__(message)
         self.message = message
         self.status = status
+        self.retry_after = retry_after  # seconds, sent as Retry-After (429 answers)
 
 
 def _config(name: str, default: Any) -> Any:
@@ -252,12 +262,20 @@ _OPEN_TASKS = (
            Reservation.expires_at)
     .join(BatchItem, Reservation.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id)
     .join(Card, BatchItem.card_id == Card.id)
-    .where(Reservation.worker_id == bindparam("worker_id"), Reservation.answered_at.is_(None),
-           Reservation.released_at.is_(None), Batch.kind == bindparam("kind"),
+    .where(Reservation.worker_id == bindparam("worker_id"),
+           Reservation.session_id.is_not_distinct_from(bindparam("session_id", type_=Integer)),
+           Reservation.answered_at.is_(None), Reservation.released_at.is_(None), Batch.kind == bindparam("kind"),
            Reservation.expires_at > bindparam("now"))
     .order_by(Reservation.created_at, Reservation.id))
-_WORKER_FLAGGED = select(Worker.flagged).where(Worker.id == bindparam("worker_id"))
-_ANSWER_COUNT = select(func.count()).select_from(Answer).where(Answer.worker_id == bindparam("worker_id"))
+# Refused work: the worker is flagged on gold (in any session), or this session inherited a flag
+# (annotation.sessions: a flagged worker of the same study came from the same address).
+_WORKER_FLAGGED = select(or_(Worker.flagged, select(CrowdSession.id).where(
+    CrowdSession.id == bindparam("session_id", type_=Integer), CrowdSession.flagged.is_(True)).exists())
+).where(Worker.id == bindparam("worker_id"))
+# A session's progress: only its own answers (another session of the worker is not shown).
+_ANSWER_COUNT = select(func.count()).select_from(Answer).where(
+    Answer.worker_id == bindparam("worker_id"),
+    Answer.session_id.is_not_distinct_from(bindparam("session_id", type_=Integer)))
 # Batches with a regular item below N usable answers: one index seek per batch.
 _OPEN_BATCHES = (
     select(Batch.id, Batch.answers_per_item, Batch.gold_rate)
@@ -271,7 +289,7 @@ _OPEN_BATCHES = (
 _mine = _reservations.alias("mine")
 _OPEN_ITEMS = (
     select(_items.c.id, _items.c.card_id, Card.width, Card.height, _mine.c.id.label("mine"),
-           _mine.c.token.label("mine_token"))
+           _mine.c.token.label("mine_token"), _mine.c.session_id.label("mine_session"))
     .join(Card, _items.c.card_id == Card.id)
     .outerjoin(_mine, and_(_mine.c.item_id == _items.c.id, _mine.c.worker_id == bindparam("worker_id")))
     .where(_items.c.batch_id == bindparam("batch_id"), _items.c.is_gold.is_(False),
@@ -282,7 +300,7 @@ _OPEN_ITEMS_LOCKED = _OPEN_ITEMS.with_for_update(key_share=True, skip_locked=Tru
 # Gold is never capped at N: every gold item this worker has not seen, with how often it was answered.
 _OPEN_GOLD = (
     select(_items.c.id, _items.c.card_id, _items.c.answers, Card.width, Card.height, _mine.c.id.label("mine"),
-           _mine.c.token.label("mine_token"))
+           _mine.c.token.label("mine_token"), _mine.c.session_id.label("mine_session"))
     .join(Card, _items.c.card_id == Card.id)
     .outerjoin(_mine, and_(_mine.c.item_id == _items.c.id, _mine.c.worker_id == bindparam("worker_id")))
     .where(_items.c.batch_id == bindparam("batch_id"), _items.c.is_gold.is_(True), ~_held_by(bindparam("worker_id"))))
@@ -315,7 +333,8 @@ _ANY_UNFINISHED = select(_items.c.id).where(_items.c.batch_id == bindparam("batc
 _INSERT_RESERVATION = _reservations.insert()
 _RENEW_RESERVATION = (_reservations.update().where(_reservations.c.id == bindparam("reservation_id"))
                       .values(expires_at=bindparam("expires"), answered_at=None, released_at=None,
-                              created_at=bindparam("created")))
+                              created_at=bindparam("created"), session_id=bindparam("holder"),
+                              token=bindparam("new_token")))
 
 
 def _on_sqlite() -> bool:
@@ -364,34 +383,44 @@ def release_lapsed_holds(now: datetime) -> int:
     return len(ids)
 
 
-def open_tasks(worker: Worker | int, kind: str, now: datetime) -> list[Task]:
-    """The worker's open (unanswered, unexpired) tasks of ``kind``, oldest first."""
-    rows = _core(_OPEN_TASKS, {"worker_id": worker_id_of(worker), "kind": kind, "now": now})
+def open_tasks(worker: Worker | int, kind: str, now: datetime, session: int | None = None) -> list[Task]:
+    """The open (unanswered, unexpired) tasks of ``kind`` the worker holds in ``session``, oldest first.
+
+    ``session`` is a :class:`CrowdSession` id; None means the tasks held outside any session
+    (in-process callers: the simulator, tests), never another session's.
+    """
+    rows = _core(_OPEN_TASKS, {"worker_id": worker_id_of(worker), "session_id": session, "kind": kind, "now": now})
     return [Task(r.token, r.batch_id, r.kind, r.card_id, (r.width, r.height), _aware(r.expires_at)) for r in rows]
 
 
-def answer_count(worker: Worker | int) -> int:
-    """How many answers the worker has stored (their progress)."""
-    return _core(_ANSWER_COUNT, {"worker_id": worker_id_of(worker)}).scalar() or 0
+def answer_count(worker: Worker | int, session: int | None = None) -> int:
+    """How many answers the worker has stored in ``session`` (the progress its page shows)."""
+    return _core(_ANSWER_COUNT, {"worker_id": worker_id_of(worker), "session_id": session}).scalar() or 0
 
 
 def _reservation_ttl() -> timedelta:
     return timedelta(minutes=float(_config("KEYSTONE_CROWD_RESERVATION_MINUTES", DEFAULT_RESERVATION_MINUTES)))
 
 
-def _hold(row: Any, worker_id: int, batch_id: int, kind: str, now: datetime, expires_at: datetime) -> Task:
-    """Reserve the item of a walk row for the worker: renew their lapsed reservation or insert one."""
+def _hold(row: Any, worker_id: int, session: int | None, batch_id: int, kind: str, now: datetime,
+          expires_at: datetime) -> Task:
+    """Reserve the item of a walk row for the worker's session: renew their lapsed reservation or insert one.
+
+    A lapsed reservation of another session of the same worker gets a new token: the old
+    session still knows the old one, and a token is all the image and submit routes ask for.
+    """
     if row.mine is not None:
-        _core(_RENEW_RESERVATION, {"reservation_id": row.mine, "expires": expires_at, "created": now})
-        token = row.mine_token
+        token = row.mine_token if row.mine_session == session else secrets.token_urlsafe(24)
+        _core(_RENEW_RESERVATION, {"reservation_id": row.mine, "expires": expires_at, "created": now,
+                                   "holder": session, "new_token": token})
     else:
         token = secrets.token_urlsafe(24)
-        _core(_INSERT_RESERVATION, {"item_id": row.id, "worker_id": worker_id, "token": token,
+        _core(_INSERT_RESERVATION, {"item_id": row.id, "worker_id": worker_id, "session_id": session, "token": token,
                                     "created_at": now, "expires_at": expires_at})
     return Task(token, batch_id, kind, row.card_id, (row.width, row.height), _aware(expires_at))
 
 
-def _reserve_in_batch(batch: Any, worker_id: int, kind: str, wanted: int,
+def _reserve_in_batch(batch: Any, worker_id: int, session: int | None, kind: str, wanted: int,
                       now: datetime) -> tuple[list[Task], strategy.NoTask | None]:
     """Inside the write transaction: up to ``wanted`` tasks of one batch for the worker, and why no more.
 
@@ -421,7 +450,7 @@ def _reserve_in_batch(batch: Any, worker_id: int, kind: str, wanted: int,
                 continue
         taken.append(regular.pop(0))
         served += 1
-    tasks = [_hold(row, worker_id, batch_id, kind, now, expires_at) for row in taken]
+    tasks = [_hold(row, worker_id, session, batch_id, kind, now, expires_at) for row in taken]
     recount_items([row.id for row in taken], locked=True)
     return tasks, None
 
@@ -437,9 +466,12 @@ def _why_nothing(batch_id: int, n: int, worker_id: int) -> strategy.NoTask:
     return strategy.NoTask(strategy.NoTaskReason.NOTHING_LEFT_FOR_WORKER)
 
 
-def next_tasks(worker: Worker | int, kind: str = "judge", hold: int = 2,
-               now: datetime | None = None) -> tuple[list[Task], strategy.NoTask | None]:
-    """The worker's open tasks, topping up to ``hold`` of them (the second is preloaded by the page).
+def next_tasks(worker: Worker | int, kind: str = "judge", hold: int = 2, now: datetime | None = None,
+               session: int | None = None) -> tuple[list[Task], strategy.NoTask | None]:
+    """The open tasks of the worker's ``session``, topping up to ``hold`` of them (the page preloads the second).
+
+    The N-answers rule is the worker's, across sessions: no session gets an item the worker
+    answered or holds in another one. What a session holds is its own (see :func:`open_tasks`).
 
     One short write transaction (see the section comment), so two workers asking at once never
     push an item beyond N and a worker never holds or answers one item twice. Returns the tasks
@@ -450,18 +482,19 @@ def next_tasks(worker: Worker | int, kind: str = "judge", hold: int = 2,
     worker_id = worker_id_of(worker)
     try:
         with one_writer():
-            tasks, why = _top_up(worker_id, kind, hold, now)
+            tasks, why = _top_up(worker_id, session, kind, hold, now)
             db.session.commit()
     except IntegrityError:
         # The same worker fetching in two tabs at once on PostgreSQL: one of them reserved the
         # item first. Whatever that fetch reserved is this worker's open tasks now.
         db.session.rollback()
         with read_only():
-            return open_tasks(worker_id, kind, now)[:hold], None
+            return open_tasks(worker_id, kind, now, session)[:hold], None
     return tasks, why
 
 
-def _top_up(worker_id: int, kind: str, hold: int, now: datetime) -> tuple[list[Task], strategy.NoTask | None]:
+def _top_up(worker_id: int, session: int | None, kind: str, hold: int,
+            now: datetime) -> tuple[list[Task], strategy.NoTask | None]:
     """:func:`next_tasks` inside its write transaction.
 
     Why one transaction and not a read first: in the steady state the worker holds one task
@@ -469,10 +502,10 @@ def _top_up(worker_id: int, kind: str, hold: int, now: datetime) -> tuple[list[T
     almost always followed by the write anyway, and a transaction costs as much Python as
     three statements.
     """
-    held = open_tasks(worker_id, kind, now)
+    held = open_tasks(worker_id, kind, now, session)
     if len(held) >= hold:
         return held, None
-    if _core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar():
+    if _core(_WORKER_FLAGGED, {"worker_id": worker_id, "session_id": session}).scalar():
         return held, strategy.NoTask(strategy.NoTaskReason.WORKER_FLAGGED)
     batches = _core(_OPEN_BATCHES, {"kind": kind}).all()
     if not batches:
@@ -480,7 +513,7 @@ def _top_up(worker_id: int, kind: str, hold: int, now: datetime) -> tuple[list[T
     release_lapsed_holds(now)
     tasks, why = list(held), None
     for batch in batches:
-        added, reason = _reserve_in_batch(batch, worker_id, kind, hold - len(tasks), now)
+        added, reason = _reserve_in_batch(batch, worker_id, session, kind, hold - len(tasks), now)
         tasks += added
         if len(tasks) >= hold:
             return tasks, None
@@ -489,16 +522,19 @@ def _top_up(worker_id: int, kind: str, hold: int, now: datetime) -> tuple[list[T
     return tasks, why or strategy.NoTask(strategy.NoTaskReason.BATCH_COMPLETE)
 
 
-def _store_reservation(item_id: int, worker_id: int, expires_at: datetime) -> Reservation:
+def _store_reservation(item_id: int, worker_id: int, session: int | None, expires_at: datetime) -> Reservation:
     # A lapsed reservation of the same worker on the same item is renewed, not duplicated.
     row = db.session.scalar(select(Reservation).where(Reservation.item_id == item_id,
                                                       Reservation.worker_id == worker_id))
     if row is None:
-        row = Reservation(item_id=item_id, worker_id=worker_id, token=secrets.token_urlsafe(24),
+        row = Reservation(item_id=item_id, worker_id=worker_id, session_id=session, token=secrets.token_urlsafe(24),
                           expires_at=expires_at)
         db.session.add(row)
     else:
+        if row.session_id != session:
+            row.token = secrets.token_urlsafe(24)  # as in _hold: the other session knew the old token
         row.expires_at, row.answered_at, row.released_at, row.created_at = expires_at, None, None, utcnow()
+        row.session_id = session
     db.session.flush()
     return row
 
@@ -556,28 +592,31 @@ class Submitted:
     duplicate: bool  # True when this post repeated an answer already stored
 
 
-_ANSWER_BY_KEY = select(Answer.id, Answer.worker_id).where(Answer.idempotency_key == bindparam("key"))
+_ANSWER_BY_KEY = select(Answer.id, Answer.worker_id, Answer.session_id).where(Answer.idempotency_key == bindparam("key"))
 _RESERVATION_TO_ANSWER = (
-    select(Reservation.id, Reservation.worker_id, Reservation.answered_at, Reservation.released_at,
+    select(Reservation.id, Reservation.worker_id, Reservation.session_id, Reservation.answered_at,
+           Reservation.released_at,
            Reservation.expires_at, Reservation.item_id, BatchItem.is_gold, Batch.kind, Card.width, Card.height)
     .join(BatchItem, Reservation.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id)
     .join(Card, BatchItem.card_id == Card.id).where(Reservation.token == bindparam("token")))
-_RESERVATION_STATE = (select(Reservation.id, Reservation.worker_id, Reservation.answered_at, Reservation.released_at,
-                             Reservation.expires_at)
+_RESERVATION_STATE = (select(Reservation.id, Reservation.worker_id, Reservation.session_id, Reservation.answered_at,
+                             Reservation.released_at, Reservation.expires_at)
                       .where(Reservation.id == bindparam("reservation_id")))
-# Matches only while the reservation is this worker's, unanswered and still counted (not lapsed,
-# not released by a sweep): the claim and the check in one.
+# Matches only while the reservation is this worker's session's, unanswered and still counted
+# (not lapsed, not released by a sweep): the claim and the check in one.
 _CLAIM_RESERVATION = (_reservations.update()
                       .where(_reservations.c.id == bindparam("reservation_id"),
-                             _reservations.c.worker_id == bindparam("claimant"), _HELD,
+                             _reservations.c.worker_id == bindparam("claimant"),
+                             _reservations.c.session_id.is_not_distinct_from(bindparam("claimant_session", type_=Integer)),
+                             _HELD,
                              _reservations.c.expires_at > bindparam("at"))
                       .values(answered_at=bindparam("at")))
 _INSERT_ANSWER = _answers.insert()
 
 
 def submit(worker: Worker | int, reservation_token: str, payload: Any, idempotency_key: str,
-           now: datetime | None = None) -> Submitted:
-    """Store one answer for an open reservation of ``worker``; replays return the stored one.
+           now: datetime | None = None, session: int | None = None) -> Submitted:
+    """Store one answer for an open reservation of ``worker`` in ``session``; replays return the stored one.
 
     Checks and validation run in a read transaction; the write transaction only claims the
     reservation (an UPDATE that matches while it is still open), inserts the answer and
@@ -588,22 +627,24 @@ def submit(worker: Worker | int, reservation_token: str, payload: Any, idempoten
     if not isinstance(idempotency_key, str) or not 8 <= len(idempotency_key) <= 80:
         raise TaskError("Expected an idempotency key of 8 to 80 characters")
     with read_only():
-        earlier = _answer_by_key(idempotency_key, worker_id)
+        earlier = _answer_by_key(idempotency_key, worker_id, session)
         if earlier is not None:
             return earlier
         held = _core(_RESERVATION_TO_ANSWER, {"token": reservation_token}).first() \
             if isinstance(reservation_token, str) else None
-        _check_reservation(held, worker_id, now)
+        _check_reservation(held, worker_id, session, now)
         answer = validate_payload(held.kind, payload, CardSize(held.width, held.height))
-        flagged = bool(_core(_WORKER_FLAGGED, {"worker_id": worker_id}).scalar())
+        flagged = bool(_core(_WORKER_FLAGGED, {"worker_id": worker_id, "session_id": session}).scalar())
     try:
         with one_writer():
             if not _on_sqlite():
                 _core(_LOCK_ITEMS, {"item_ids": [held.item_id]})
-            claimed = _core(_CLAIM_RESERVATION, {"reservation_id": held.id, "claimant": worker_id, "at": now})
+            claimed = _core(_CLAIM_RESERVATION, {"reservation_id": held.id, "claimant": worker_id,
+                                                 "claimant_session": session, "at": now})
             if claimed.rowcount == 1:
                 answer_id = _core(_INSERT_ANSWER, {
-                    "item_id": held.item_id, "worker_id": worker_id, "payload": answer, "submitted_at": now,
+                    "item_id": held.item_id, "worker_id": worker_id, "session_id": session, "payload": answer,
+                    "submitted_at": now,
                     "idempotency_key": idempotency_key, "flagged": flagged}).inserted_primary_key[0]
                 recount_items([held.item_id], locked=True)
                 db.session.commit()
@@ -622,32 +663,34 @@ def submit(worker: Worker | int, reservation_token: str, payload: Any, idempoten
         # Answered (a double click with another key, a second tab) or withdrawn (the worker was
         # flagged) since the read: say which, as a fresh read would.
         with read_only():
-            earlier = _answer_by_key(idempotency_key, worker_id)
+            earlier = _answer_by_key(idempotency_key, worker_id, session)
             if earlier is not None:
                 return earlier
             _check_reservation(_core(_RESERVATION_STATE, {"reservation_id": held.id}).first(),
-                               worker_id, now)
+                               worker_id, session, now)
         raise TaskError("This task changed while you answered; fetch a new one", 409)
     if held.is_gold:
         update_worker_quality([worker_id])
     return Submitted(int(answer_id), False)
 
 
-def _answer_by_key(idempotency_key: str, worker_id: int) -> Submitted | None:
+def _answer_by_key(idempotency_key: str, worker_id: int, session: int | None) -> Submitted | None:
     earlier = _core(_ANSWER_BY_KEY, {"key": idempotency_key}).first()
     if earlier is None:
         return None
-    if earlier.worker_id != worker_id:
+    if earlier.worker_id != worker_id or earlier.session_id != session:
         raise TaskError("This idempotency key belongs to another answer", 409)
     return Submitted(earlier.id, True)
 
 
-def _check_reservation(held: Any, worker_id: int, now: datetime) -> None:
-    """TaskError unless ``held`` (a row with worker_id, answered_at, released_at, expires_at) is this worker's open task."""
+def _check_reservation(held: Any, worker_id: int, session: int | None, now: datetime) -> None:
+    """TaskError unless ``held`` (a reservation row) is an open task of this worker's session."""
     if held is None:
         raise TaskError("No such task; fetch a new one", 404)
     if held.worker_id != worker_id:
         raise TaskError("This task is reserved for another worker", 403)
+    if held.session_id != session:
+        raise TaskError("This task belongs to another session; fetch a new one", 403)
     if held.answered_at is not None:
         raise TaskError("You already answered this task", 409)
     if _aware(held.expires_at) <= now or held.released_at is not None:
@@ -655,11 +698,16 @@ def _check_reservation(held: Any, worker_id: int, now: datetime) -> None:
                         "fetch a new task", 409)
 
 
-def undo_last(worker: Worker | int, now: datetime | None = None) -> Task:
-    """Withdraw the worker's latest answer while it is not aggregated; its task is reserved again."""
+def undo_last(worker: Worker | int, now: datetime | None = None, session: int | None = None) -> Task:
+    """Withdraw the latest answer of the worker's ``session`` while it is not aggregated; its task is reserved again.
+
+    Never another session's answer, even of the same worker: a participant id in a URL is no
+    secret, so the session is what proves the answer is the caller's.
+    """
     now = now or utcnow()
     worker_id = worker_id_of(worker)
-    last = db.session.scalar(select(Answer).where(Answer.worker_id == worker_id)
+    last = db.session.scalar(select(Answer).where(Answer.worker_id == worker_id,
+                                                  Answer.session_id.is_not_distinct_from(session))
                              .order_by(Answer.submitted_at.desc(), Answer.id.desc()).limit(1))
     if last is None:
         raise TaskError("There is no answer to undo", 409)
@@ -669,7 +717,7 @@ def undo_last(worker: Worker | int, now: datetime | None = None) -> Task:
         raise TaskError("That answer was already counted in the results and cannot be undone", 409)
     item_id = last.item_id
     db.session.delete(last)
-    reservation = _store_reservation(item_id, worker_id, now + _reservation_ttl())
+    reservation = _store_reservation(item_id, worker_id, session, now + _reservation_ttl())
     task = _task(reservation)
     recount_items([item_id])
     db.session.commit()
@@ -892,8 +940,17 @@ def worker_progress() -> list[dict[str, Any]]:
     """Every worker across batches: answers, flagged answers, gold accuracy and whether they are flagged.
 
     ``gold_accuracy`` is None until the worker answered a gold item; ``served`` is False once
-    they fell below the threshold (they get no more tasks).
+    they fell below the threshold (they get no more tasks). ``sessions`` is how many visits
+    (Prolific sessions, MTurk assignments) they opened, ``completed_sessions`` how many reached
+    the completion step, ``refused_sessions`` how many got no work from the start (opened where
+    a worker flagged in the same study came from; :mod:`annotation.sessions`).
     """
+    sessions = {worker_id: (total, completed or 0, refused or 0)
+                for worker_id, total, completed, refused in db.session.execute(
+                    select(CrowdSession.worker_id, func.count(),
+                           func.sum(case((CrowdSession.completed_at.is_not(None), 1), else_=0)),
+                           func.sum(case((CrowdSession.flagged, 1), else_=0)))
+                    .group_by(CrowdSession.worker_id))}
     counts = {worker_id: (total, flagged or 0) for worker_id, total, flagged in db.session.execute(
         select(Answer.worker_id, func.count(), func.sum(case((Answer.flagged, 1), else_=0)))
         .group_by(Answer.worker_id))}
@@ -907,10 +964,12 @@ def worker_progress() -> list[dict[str, Any]]:
     rows = []
     for worker in db.session.scalars(select(Worker).order_by(Worker.id)):
         total, flagged = counts.get(worker.id, (0, 0))
+        opened, completed, refused = sessions.get(worker.id, (0, 0, 0))
         labels = gold.get(worker.id, [])
         rows.append({"worker": worker.id, "provider": worker.provider, "name": worker.external_id,
                      "answers": int(total), "flagged_answers": int(flagged), "gold_correct": sum(labels),
                      "gold_total": len(labels),
                      "gold_accuracy": round(sum(labels) / len(labels), 4) if labels else None,
-                     "served": not worker.flagged})
+                     "served": not worker.flagged, "sessions": int(opened),
+                     "completed_sessions": int(completed), "refused_sessions": int(refused)})
     return rows

@@ -3,8 +3,9 @@
 Identity and anti-forgery: crowd routes do not use the session cookie. MTurk shows the page
 in an iframe on mturk.com, where browsers block third-party cookies, so a cookie-based login
 or CSRF token would silently fail there. The entry page instead embeds a token signed with
-the app's secret key (worker id + provider context). The page's script sends it in the
-``X-Crowd-Token`` header on every API call, with a JSON body. That header doubles as the
+the app's secret key (worker id, session id and provider context; :mod:`annotation.sessions`
+says why the API trusts a session and not a participant id). The page's script sends it in
+the ``X-Crowd-Token`` header on every API call, with a JSON body. That header doubles as the
 anti-forgery token: another site cannot read it, an HTML form cannot set a header, and a
 cross-origin ``fetch`` with a custom header or a JSON content type needs a CORS preflight
 that this app never grants. So the API routes are exempt from the cookie-based CSRFProtect
@@ -34,7 +35,15 @@ from app.extensions import csrf
 from app.security import frameable_by
 
 from .models import TASK_KINDS, Batch, Worker
-from .providers import MTURK_SUBMIT_ORIGINS, PROVIDERS, Entry, SignedWorker, load_signed_worker, sign_entry
+from .providers import (
+    MTURK_SUBMIT_ORIGINS,
+    PROVIDERS,
+    Entry,
+    SignedWorker,
+    load_signed_worker,
+    sign_entry,
+)
+from .sessions import complete_session
 from .tasks import (
     DEFAULT_MIN_BOX_PX,
     TaskError,
@@ -56,15 +65,17 @@ TOKEN_HEADER = "X-Crowd-Token"
 @bp.errorhandler(TaskError)
 def task_error(error: TaskError) -> Any:
     db.session.rollback()
+    headers = {"Retry-After": str(error.retry_after)} if error.retry_after is not None else {}
     if request.path.startswith("/crowd/api/") or request.accept_mimetypes.best == "application/json":
-        return jsonify({"error": {"code": error.status, "message": error.message}}), error.status
-    return render_template("annotation/message.html", title="Cannot open this task", message=error.message), error.status
+        return jsonify({"error": {"code": error.status, "message": error.message}}), error.status, headers
+    return (render_template("annotation/message.html", title="Cannot open this task", message=error.message),
+            error.status, headers)
 
 
-def _answered(worker: Worker | int) -> int:
+def _answered(worker: Worker | int, session: int) -> int:
     # After a use case committed, this read must not take SQLite's write lock again.
     with read_only():
-        return answer_count(worker)
+        return answer_count(worker, session)
 
 
 def _task_page(entry: Entry) -> str:
@@ -73,7 +84,7 @@ def _task_page(entry: Entry) -> str:
     if kind not in TASK_KINDS:
         raise TaskError(f"Expected kind judge or crop, got {kind!r}")
     worker_token = sign_entry(entry) if entry.worker is not None else ""
-    answered = _answered(entry.worker) if entry.worker is not None else 0
+    answered = _answered(entry.worker, entry.session.id) if entry.worker is not None and entry.session else 0
     return render_template(f"annotation/{kind}.html", entry=entry, worker_token=worker_token, answered=answered,
                            min_box=current_app.config.get("KEYSTONE_CROWD_MIN_BOX_PX", DEFAULT_MIN_BOX_PX))
 
@@ -126,7 +137,7 @@ def api_next() -> Any:
     kind = body.get("kind", "judge")
     if kind not in TASK_KINDS:
         raise TaskError(f"Expected kind judge or crop, got {kind!r}")
-    tasks, why = next_tasks(caller.worker_id, kind)
+    tasks, why = next_tasks(caller.worker_id, kind, session=caller.session_id)
     return jsonify({"tasks": [_task_json(t) for t in tasks], "answered": caller.answered,
                     "reason": why.reason.value if why else None,
                     "retry_after": why.retry_after.isoformat() if why and why.retry_after else None})
@@ -136,7 +147,7 @@ def api_next() -> Any:
 @bp.route("/api/submit", methods=["POST"])
 def api_submit() -> Any:
     caller, body = _api_entry()
-    result = submit(caller.worker_id, body.get("token"), body.get("answer"), body.get("key"))
+    result = submit(caller.worker_id, body.get("token"), body.get("answer"), body.get("key"), session=caller.session_id)
     document = {"answer": result.answer_id, "duplicate": result.duplicate,
                 "answered": caller.answered + (not result.duplicate)}
     if caller.provider == "mturk":
@@ -148,16 +159,21 @@ def api_submit() -> Any:
 @bp.route("/api/undo", methods=["POST"])
 def api_undo() -> Any:
     caller, _ = _api_entry()
-    task = undo_last(caller.worker_id)
+    task = undo_last(caller.worker_id, session=caller.session_id)
     return jsonify({"task": _task_json(task), "answered": caller.answered - 1})
 
 
 @bp.route("/finish")
 def finish() -> Response:
-    """The end of a session: Prolific's completion redirect (the token comes in the link)."""
+    """The end of a session: Prolific's completion redirect (the token comes in the link).
+
+    The token names one session, so this completes that session only; when it was completed
+    is recorded on it (what a researcher checks before approving a submission).
+    """
     with read_only():
         caller = load_signed_worker(request.args.get("t"))
     outcome = PROVIDERS[caller.provider].finish(caller.context)
+    complete_session(caller.session_id)
     if "redirect" not in outcome:
         return Response(render_template("annotation/message.html", title="Thank you",
                                         message="Your answers are saved. You can close this page."))

@@ -147,7 +147,11 @@ def test_hot_queries_walk_their_indexes(app, bare_cards):  # type: ignore[no-unt
         assert "ix_crowd_batch_items_open" in walk and "TEMP B-TREE" not in walk, walk
         lapsed = plan(tasks._LAPSED_ITEMS, now=utcnow())
         assert "ix_crowd_reservations_lapsing" in lapsed, lapsed
-        mine = plan(tasks._OPEN_TASKS, worker_id=worker, kind="judge", now=utcnow())
+        # Bound, not literal: SQLite's compiler leaves the IS (NOT DISTINCT FROM) operand a placeholder.
+        compiled = tasks._OPEN_TASKS.compile(connection)
+        bound = {"worker_id": worker, "session_id": 1, "kind": "judge", "now": utcnow().isoformat(" ")}
+        mine = "\n".join(row[-1] for row in connection.exec_driver_sql(
+            f"EXPLAIN QUERY PLAN {compiled.string}", tuple(bound[name] for name in compiled.positiontup)))
         assert "ix_crowd_reservations_held" in mine, mine
         opened = plan(tasks._OPEN_BATCHES, kind="judge")
         assert "ix_crowd_batch_items_unfinished" in opened, opened

@@ -482,7 +482,11 @@ def test_cli_create_invite_aggregate_export(app, runner, client, cards, tmp_path
 
     assert pq.read_table(out / "answers.parquet").num_rows == 3
     assert (out / "aggregates.csv").read_text().count("\n") == 4  # header + 3 cards
-    assert set(review) <= {int(r["card_id"]) for r in pq.read_table(out / "answers.parquet").to_pylist()}
+    exported_rows = pq.read_table(out / "answers.parquet").to_pylist()
+    assert set(review) <= {int(r["card_id"]) for r in exported_rows}
+    with app.app_context():
+        ada = db.session.scalar(select(Worker.id).where(Worker.external_id == "ada"))
+    assert {r["session"] for r in exported_rows} == {f"invite-worker-{ada}"}  # the session each answer came from
     bad = runner.invoke(args=["crowd", "create-batch", "--cards", "99999"])
     assert bad.exit_code == 1 and "No card with id 99999" in bad.output
 
@@ -541,3 +545,227 @@ def test_concurrent_workers_lose_and_duplicate_nothing(app, cards):
         pairs = db.session.execute(select(Answer.item_id, Answer.worker_id)).all()
     assert sorted(per_item.values()) == [n] * k_items  # none lost, none beyond N
     assert len(pairs) == len(set(pairs)) == n * k_items
+
+
+# ---------------------------------------------------------------------------------------------
+# Sessions: a participant id is not a credential
+
+
+def prolific(client, pid: str, session: str, study: str = "study-1", address: str = "192.0.2.1"):  # type: ignore[no-untyped-def]
+    return client.get(f"/crowd/prolific?PROLIFIC_PID={pid}&STUDY_ID={study}&SESSION_ID={session}",
+                      environ_overrides={"REMOTE_ADDR": address})
+
+
+def prolific_token(client, pid: str, session: str, **kwargs) -> str:  # type: ignore[no-untyped-def]
+    page = prolific(client, pid, session, **kwargs)
+    assert page.status_code == 200, page.get_data(as_text=True)
+    return TOKEN.search(page.get_data(as_text=True)).group(1)
+
+
+@pytest.mark.both_databases
+def test_a_borrowed_participant_id_cannot_see_undo_or_complete_the_first_sessions_work(app, client, cards):
+    from annotation.models import CrowdSession
+
+    app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C0DE"
+    new_batch(app, cards(4), n=2)
+    first = prolific_token(client, "pid-victim", "session-a")
+    (task, preloaded) = fetch(client, first)["tasks"]
+    assert answer(client, first, task["token"], JUDGE_OK, "victim-key-1").status_code == 201
+    answered_item = item_of(app, task["token"])
+
+    # Someone who read the participant id opens their own session under it.
+    page = prolific(client, "pid-victim", "session-b", address="198.51.100.7")
+    assert page.status_code == 200 and re.search(r'<strong id="answered">0</strong>', page.get_data(as_text=True))
+    borrowed = TOKEN.search(page.get_data(as_text=True)).group(1)
+    refused = api(client, "undo", borrowed, {})
+    assert refused.status_code == 409 and refused.get_json()["error"]["message"] == "There is no answer to undo"
+    stolen = answer(client, borrowed, preloaded["token"], JUDGE_OK, "thief-key-01")
+    assert stolen.status_code == 403 and "another session" in stolen.get_json()["error"]["message"]
+    replayed = answer(client, borrowed, task["token"], JUDGE_OK, "victim-key-1")
+    assert replayed.status_code in (403, 409)
+    theirs = fetch(client, borrowed)
+    # Still one worker for the N-answers rule: never the item this participant answered or holds.
+    assert theirs["answered"] == 0 and len(theirs["tasks"]) == 2
+    assert {item_of(app, t["token"]) for t in theirs["tasks"]}.isdisjoint(
+        {answered_item, item_of(app, preloaded["token"])})
+    assert {t["token"] for t in theirs["tasks"]}.isdisjoint({task["token"], preloaded["token"]})
+    assert client.get(f"/crowd/finish?t={borrowed}").status_code == 303
+    with app.app_context():
+        assert db.session.scalar(select(func.count()).select_from(Worker)) == 1
+        completed = dict(db.session.execute(select(CrowdSession.external_id, CrowdSession.completed_at)).all())
+        answers = db.session.execute(select(Answer.item_id, Answer.idempotency_key)).all()
+    assert completed["session-a"] is None and completed["session-b"] is not None
+    assert answers == [(answered_item, "victim-key-1")]  # the first session's answer survived
+
+    # The first session works as before: its progress, its preloaded task, its own undo.
+    again = prolific(client, "pid-victim", "session-a")
+    assert re.search(r'<strong id="answered">1</strong>', again.get_data(as_text=True))
+    mine = fetch(client, first)
+    assert mine["answered"] == 1 and mine["tasks"][0]["token"] == preloaded["token"]
+    undone = api(client, "undo", first, {})
+    assert undone.status_code == 200 and undone.get_json()["task"]["token"] == task["token"]
+    assert answer(client, first, task["token"], {**JUDGE_OK, "inverted": True}, "victim-key-2").status_code == 201
+
+    # A session key stays with the participant that opened it.
+    hijack = prolific(client, "pid-other", "session-a")
+    assert hijack.status_code == 409 and "another participant" in hijack.get_data(as_text=True)
+    other_study = prolific(client, "pid-victim", "session-a", study="study-2")
+    assert other_study.status_code == 409 and "another study" in other_study.get_data(as_text=True)
+
+
+@pytest.mark.both_databases
+def test_a_second_mturk_assignment_of_one_worker_cannot_undo_the_first(app, client, cards):
+    new_batch(app, cards(3), n=2)
+    url = "/crowd/mturk?assignmentId={}&hitId=H1&workerId=W7&turkSubmitTo=https%3A%2F%2Fwww.mturk.com"
+    first = TOKEN.search(client.get(url.format("A-1")).get_data(as_text=True)).group(1)
+    task = fetch(client, first)["tasks"][0]
+    assert answer(client, first, task["token"], JUDGE_OK, "turk-key-01").status_code == 201
+    second = TOKEN.search(client.get(url.format("A-2")).get_data(as_text=True)).group(1)
+    assert api(client, "undo", second, {}).status_code == 409
+    assert count(app, Answer) == 1
+    assert api(client, "undo", first, {}).status_code == 200
+    assert count(app, Answer) == 0
+
+
+@pytest.mark.both_databases
+def test_new_sessions_are_limited_per_address_and_per_study(app, client, cards):
+    from annotation.models import CrowdSession
+
+    new_batch(app, cards(1), n=1)
+    # The default limit: the probe's 100 anonymous visits from one address make 20 workers, not 100.
+    statuses = [prolific(client, f"probe-{i}", f"probe-session-{i}").status_code for i in range(100)]
+    assert statuses == [200] * 20 + [429] * 80
+    assert count(app, Worker) == 20
+    refused = prolific(client, "probe-x", "probe-session-x")
+    assert refused.status_code == 429
+    retry = int(refused.headers["Retry-After"])
+    assert 3590 <= retry <= 3600
+    assert "Too many new sessions from your network address" in refused.get_data(as_text=True)
+    as_json = client.get("/crowd/prolific?PROLIFIC_PID=j&STUDY_ID=study-1&SESSION_ID=j",
+                         headers={"Accept": "application/json"}, environ_overrides={"REMOTE_ADDR": "192.0.2.1"})
+    assert as_json.status_code == 429 and as_json.get_json()["error"]["code"] == 429
+    # Reopening a session already made is never limited; another address is not limited by this one.
+    assert prolific(client, "probe-3", "probe-session-3").status_code == 200
+    assert prolific(client, "elsewhere", "elsewhere-1", address="203.0.113.9").status_code == 200
+
+    # Per study, across addresses.
+    app.config["KEYSTONE_CROWD_SESSIONS_PER_STUDY"] = 3
+    opened = [prolific(client, f"s-{i}", f"s-session-{i}", study="small", address=f"198.51.100.{i}").status_code
+              for i in range(4)]
+    assert opened == [200, 200, 200, 429]
+    assert "in this study" in prolific(client, "s-9", "s-9", study="small", address="198.51.100.99").get_data(
+        as_text=True)
+    assert prolific(client, "s-9", "s-9", study="other", address="198.51.100.99").status_code == 200
+
+    # The window slides: once the address's sessions are older than it, new ones open again.
+    with app.app_context():
+        for row in db.session.scalars(select(CrowdSession)):
+            row.created_at = row.created_at - timedelta(hours=2)
+        db.session.commit()
+    assert prolific(client, "probe-y", "probe-session-y").status_code == 200
+
+
+@pytest.mark.both_databases
+def test_a_flagged_participant_stays_flagged_in_new_sessions_and_new_ids_from_its_address(app, client, cards, login):
+    app.config.update(KEYSTONE_CROWD_MIN_GOLD=3, KEYSTONE_CROWD_GOLD_THRESHOLD=0.7)
+    new_batch(app, cards(6), n=3, gold_rate=1.0, gold={g: JUDGE_OK for g in cards(3)})
+    spam_address = "192.0.2.66"
+    spammer = prolific_token(client, "spammer", "spam-1", address=spam_address)
+    for step in range(20):
+        data = fetch(client, spammer)
+        if not data["tasks"]:
+            break
+        assert answer(client, spammer, data["tasks"][0]["token"], {**JUDGE_OK, "inverted": True},
+                      f"spam-key-{step:03d}").status_code == 201
+    assert data["reason"] == "worker_flagged"
+
+    # The same participant id in a new session, from anywhere: still flagged.
+    again = prolific_token(client, "spammer", "spam-2", address="203.0.113.50")
+    assert fetch(client, again) == {"tasks": [], "answered": 0, "reason": "worker_flagged", "retry_after": None}
+    # A new participant id in the same study from the spammer's address gets no work either.
+    renamed = prolific_token(client, "spammer-renamed", "spam-3", address=spam_address)
+    assert fetch(client, renamed)["reason"] == "worker_flagged"
+    # Not prevented elsewhere: another study from that address, or the same study from another address.
+    assert fetch(client, prolific_token(client, "next-door", "nd-1", study="study-2", address=spam_address))["tasks"]
+    assert fetch(client, prolific_token(client, "honest", "h-1", address="203.0.113.51"))["tasks"]
+    with app.app_context():
+        flags = dict(db.session.execute(select(Worker.external_id, Worker.flagged)).all())
+    assert flags == {"spammer": True, "spammer-renamed": False, "next-door": False, "honest": False}
+    from annotation.tasks import worker_progress
+
+    with app.app_context():
+        staff = {row["name"]: row for row in worker_progress()}
+    assert (staff["spammer"]["sessions"], staff["spammer"]["served"]) == (2, False)
+    assert (staff["spammer-renamed"]["refused_sessions"], staff["honest"]["refused_sessions"]) == (1, 0)
+    login("curator")
+    assert "1 refused (address of a flagged worker)" in client.get("/crowd/batches").get_data(as_text=True)
+
+
+def test_one_ipv6_subscriber_counts_as_one_client_and_studies_can_be_closed(app, client, cards):
+    from annotation.sessions import client_network
+
+    assert client_network("2001:db8:1:2:3:4:5:6") == client_network("2001:db8:1:2:ffff::1") == "2001:db8:1:2::/64"
+    assert client_network("::ffff:192.0.2.9") == "192.0.2.9" and client_network("192.0.2.9") == "192.0.2.9"
+    new_batch(app, cards(1), n=1)
+    app.config["KEYSTONE_CROWD_SESSIONS_PER_ADDRESS"] = 2
+    opened = [prolific(client, f"v6-{i}", f"v6-session-{i}", address=f"2001:db8:1:2::{i + 1:x}").status_code
+              for i in range(3)]
+    assert opened == [200, 200, 429]
+    assert prolific(client, "v6-x", "v6-session-x", address="2001:db8:1:3::1").status_code == 200  # another /64
+    app.config["KEYSTONE_CROWD_STUDIES"] = "study-open, study-2"
+    closed = prolific(client, "p", "closed-1", study="made-up", address="198.51.100.1")
+    assert closed.status_code == 404 and "not open here" in closed.get_data(as_text=True)
+    assert prolific(client, "p", "open-1", study="study-open", address="198.51.100.1").status_code == 200
+    assert count(app, Worker) == 4
+
+
+@pytest.mark.both_databases
+def test_the_address_limit_holds_when_visitors_arrive_at_once(app, cards):
+    import threading
+
+    new_batch(app, cards(1), n=1)
+    app.config["KEYSTONE_CROWD_SESSIONS_PER_ADDRESS"] = 3
+    statuses: list[int] = []
+    lock = threading.Lock()
+    start = threading.Barrier(8)
+
+    def visit(i: int) -> None:
+        client = app.test_client()
+        start.wait()
+        status = prolific(client, f"rush-{i}", f"rush-session-{i}").status_code
+        with lock:
+            statuses.append(status)
+
+    threads = [threading.Thread(target=visit, args=(i,)) for i in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert sorted(statuses) == [200] * 3 + [429] * 5
+    assert count(app, Worker) == 3
+
+
+@pytest.mark.both_databases
+def test_invited_annotators_keep_their_work_across_the_sessions_migration(app, client, cards):
+    from alembic import command
+
+    from app.schema import alembic_config, upgrade
+
+    new_batch(app, cards(3), n=1)
+    before = invite(app, client, "mid-way")
+    task = fetch(client, before)["tasks"][0]
+    assert answer(client, before, task["token"], JUDGE_OK, "mid-way-key-1").status_code == 201
+    with app.app_context():
+        link = db.session.scalar(select(Worker.token).where(Worker.external_id == "mid-way"))
+        db.session.remove()
+        config = alembic_config(db.engine)
+        with db.engine.begin() as connection:
+            config.attributes["connection"] = connection
+            command.downgrade(config, "0004")
+        upgrade(db.engine)
+        assert db.session.scalar(select(func.count()).select_from(Answer).where(Answer.session_id.is_(None))) == 0
+    page = client.get(f"/crowd/invite/{link}").get_data(as_text=True)
+    assert re.search(r'<strong id="answered">1</strong>', page)
+    after = TOKEN.search(page).group(1)
+    undone = api(client, "undo", after, {})
+    assert undone.status_code == 200 and undone.get_json()["task"]["token"] == task["token"]

@@ -40,9 +40,20 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import DateTime, Delete, ForeignKey, Index, String, UniqueConstraint, delete, select, update
+from sqlalchemy import (
+    DateTime,
+    Delete,
+    ForeignKey,
+    Index,
+    String,
+    UniqueConstraint,
+    delete,
+    select,
+    update,
+)
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import Connection, Engine
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Mapped, mapped_column
 
 from .db import db, one_writer, utcnow
@@ -93,11 +104,6 @@ class ClaimRound:
     held: dict[int, str] = field(default_factory=dict)  # card -> the live driver that holds it
 
 
-def _chunks(ids: list[int], size: int) -> Iterator[list[int]]:
-    for start in range(0, len(ids), size):
-        yield ids[start:start + size]
-
-
 def _insert(dialect: str) -> Any:
     return postgresql.insert if dialect == "postgresql" else sqlite.insert
 
@@ -144,7 +150,7 @@ class Driver:
         while not self._stop.wait(self.heartbeat_interval_s):
             try:
                 self.renew()
-            except Exception as exc:  # a busy or unreachable database: try again next beat
+            except SQLAlchemyError as exc:  # a busy or unreachable database: try again next beat
                 log.warning("claim heartbeat of %s failed: %s", self.id, exc)
 
     def renew(self) -> int:
@@ -172,7 +178,7 @@ class Driver:
         try:
             with self.engine.begin() as connection:
                 connection.execute(delete(StageClaim).where(StageClaim.driver == self.id))
-        except Exception as exc:  # the claims lapse on their own after ttl_s
+        except SQLAlchemyError as exc:  # the claims lapse on their own after ttl_s
             log.warning("could not release the claims of %s: %s", self.id, exc)
 
     def claim(self, stage: str, param_hash: str, card_ids: list[int],

@@ -464,8 +464,9 @@ def write_records(records: list[StageRecord], digests: dict[int, str] | None = N
                 "seconds": record.seconds, "code_version": record.code_version, "created_at": now,
             }
             # One row per key and statement (PostgreSQL refuses to upsert a row twice in one
-            # command); the latest record of a card wins, as it would row by row.
-            for record in {(r.card_id, r.stage, r.param_hash): r for r in records}.values()
+            # command); the latest record of a card wins, as it would row by row. Key order is
+            # the lock order, so two writers of the same rows queue instead of deadlocking.
+            for _, record in sorted({(r.card_id, r.stage, r.param_hash): r for r in records}.items())
         ]
         updated = {column: getattr(insert.excluded, column)
                    for column in ("status", "outcome", "reason", "metrics", "artifacts", "started_at", "seconds",

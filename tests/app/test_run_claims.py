@@ -79,7 +79,6 @@ class _Barrier:
             self.connection.execute("BEGIN IMMEDIATE")
         else:
             import psycopg
-
             from sqlalchemy.engine import make_url
 
             parsed = make_url(url)
@@ -211,11 +210,10 @@ def test_a_waiting_run_takes_over_a_claim_once_it_lapses(app, cards, runner):
 def test_write_records_upserts_a_row_another_transaction_inserted_meanwhile(app, cards, database):
     """The old read-then-insert died with UniqueViolation on PostgreSQL when another run inserted
     the same result between its read and its insert; the upsert waits and overwrites."""
-    from pipeline.records import StageRecord
+    from sqlalchemy import create_engine
 
     from app.runs import write_records
-
-    from sqlalchemy import create_engine
+    from pipeline.records import StageRecord
 
     other = create_engine(database)
     connection = other.connect()
@@ -230,7 +228,7 @@ def test_write_records_upserts_a_row_another_transaction_inserted_meanwhile(app,
             try:
                 write_records([StageRecord(card_id=cards[0], stage="filter", param_hash="p" * 16, status="done",
                                            outcome="pass", reason="second", code_version="mine")])
-            except BaseException as exc:  # reported to the test thread
+            except Exception as exc:  # noqa: BLE001 - reported to the test thread
                 errors.append(exc)
 
     writer = threading.Thread(target=write)
@@ -244,3 +242,36 @@ def test_write_records_upserts_a_row_another_transaction_inserted_meanwhile(app,
     with app.app_context():
         rows = list(db.session.scalars(select(StageResult).where(StageResult.card_id == cards[0])))
         assert [(row.status, row.reason, row.code_version) for row in rows] == [("done", "second", "mine")]
+
+
+def test_a_failed_result_is_retried_under_a_claim(app, cards, runner, add_stage_result):
+    from pipeline.filter import FilterParams
+    from pipeline.records import param_hash
+
+    add_stage_result(cards[7], status="failed", outcome=None, reason="unreadable_image: truncated",
+                     param_hash=param_hash(FilterParams()))
+    result = runner.invoke(cli, ["run", "--stages", "filter", "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)["stages"][0]
+    assert (report["processed"], report["done_by_other_run"]) == (CARDS, 0)
+    with app.app_context():
+        retried = db.session.scalar(select(StageResult).where(StageResult.card_id == cards[7]))
+        assert retried.status == "done"
+
+
+def test_the_heartbeat_renews_a_live_drivers_claims_and_release_frees_them(app, cards):
+    from app.claims import Driver
+
+    with app.app_context():
+        driver = Driver(db.engine, ttl_s=2)
+        with driver.running():
+            claim = driver.claim("filter", "f" * 16, cards[:3], {card_id: None for card_id in cards[:3]})
+            assert claim.claimed == sorted(cards[:3]) and claim.held == {}
+            first = {c.card_id: c.expires_at for c in _claims(app)}
+            time.sleep(1.2)  # two beats of 0.5 s
+            renewed = {c.card_id: c.expires_at for c in _claims(app)}
+            assert driver.heartbeats >= 1
+            assert all(renewed[card_id] > first[card_id] for card_id in first)
+            rival = Driver(db.engine, ttl_s=60).claim("filter", "f" * 16, cards[:4], {c: None for c in cards[:4]})
+            assert rival.claimed == [cards[3]] and set(rival.held) == set(cards[:3])
+        assert [claim.card_id for claim in _claims(app)] == [cards[3]]  # the first driver's claims are gone

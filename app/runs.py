@@ -23,6 +23,7 @@ from typing import Any
 import click
 from flask.cli import with_appcontext
 from sqlalchemy import exists, select
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import selectinload
 
 from pipeline.filter import FilterParams
@@ -31,11 +32,17 @@ from pipeline.runner import RestartingProcessPool, run_tasks
 from pipeline.rectify import RectifyParams
 from pipeline.stages import DisparityStageParams, disparity_task, filter_task, rectify_task
 
-from .db import db
+from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
+from .db import db, one_writer, utcnow
 from .models import CARD_STATES, Card, StageResult
 
 WRITE_BATCH = 50
 WRITE_INTERVAL_S = 2.0
+# How often a run waiting for cards another run holds looks again (at most; a quarter of the
+# claim lifetime when that is shorter).
+WAIT_POLL_S = 2.0
+# `keystone run` exit status when --no-wait left cards that another run holds.
+EXIT_HELD = 3
 
 
 @dataclass(frozen=True)
@@ -229,6 +236,14 @@ class StageReport:
     outcomes: dict[str, int] = field(default_factory=dict)
     failures: list[dict[str, Any]] = field(default_factory=list)
     seconds: float = 0.0
+    # Concurrent runs (see app.claims): cards another live run held when this one reached them,
+    # of those (or any) the ones another run finished meanwhile, the ones still held when this
+    # run gave up on them (--no-wait), and lapsed claims of a dead run this one took over.
+    held_by_other_run: int = 0
+    done_by_other_run: int = 0
+    still_held: int = 0
+    taken_over: int = 0
+    held_by: set[str] = field(default_factory=set)
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -240,6 +255,10 @@ class StageReport:
             "failed": self.failed,
             "outcomes": self.outcomes,
             "failures": self.failures,
+            "held_by_other_run": self.held_by_other_run,
+            "done_by_other_run": self.done_by_other_run,
+            "still_held": self.still_held,
+            "taken_over": self.taken_over,
             "seconds": round(self.seconds, 3),
             "cards_per_second": round(self.processed / self.seconds, 3) if self.seconds > 0 else None,
         }
@@ -317,12 +336,32 @@ def run_stage(
     executor: Executor | None,
     on_start: Callable[[int], None] | None = None,
     on_record: Callable[[StageRecord], None] | None = None,
+    driver: Driver | None = None,
+    wait_for_held: bool = True,
+    claim_batch: int = DEFAULT_CLAIM_BATCH,
+    on_wait: Callable[[int, set[str]], None] | None = None,
 ) -> StageReport:
+    """Run one stage over the cards that still need it, claiming each card before computing it.
+
+    Cards another live run holds are skipped in the first pass; afterwards, with
+    ``wait_for_held``, the run polls for them until that run finishes them (they are then
+    counted as ``done_by_other_run``) or its claims lapse (this run takes them over). Without
+    it they are left and counted as ``still_held``. ``driver`` is this run's claim identity;
+    without one the stage runs under a fresh one of its own.
+    """
+    if driver is None:
+        with Driver(db.engine).running() as own:
+            return run_stage(spec, data_dir=data_dir, executor=executor, on_start=on_start, on_record=on_record,
+                             driver=own, wait_for_held=wait_for_held, claim_batch=claim_batch, on_wait=on_wait)
     phash = param_hash(spec.params)
     report = StageReport(stage=spec.name, param_hash=phash)
     cards, report.skipped_existing = pending_cards(spec, phash)
-    tasks = [
-        CardTask(
+    seen = {}
+    for card, _ in cards:
+        row = next((r for r in card.stage_results if r.stage == spec.name and r.param_hash == phash), None)
+        seen[card.id] = None if row is None else result_fingerprint(row.status, row.started_at)
+    tasks = {
+        card.id: CardTask(
             card_id=card.id,
             content_hash=card.content_hash,
             image_path=str(data_dir / card.stored_path),
@@ -331,30 +370,60 @@ def run_stage(
             inputs=inputs,
         )
         for card, inputs in cards
-    ]
-    digests = {task.card_id: inputs_digest(task.inputs) for task in tasks if spec.inputs is not None}
+    }
+    digests = {task.card_id: inputs_digest(task.inputs) for task in tasks.values() if spec.inputs is not None}
     db.session.commit()  # release the read transaction while workers compute
     if on_start is not None:
         on_start(len(tasks))
 
     clock = time.perf_counter()
-    batch: list[StageRecord] = []
-    last_write = time.monotonic()
-    for record in run_tasks(spec.task, tasks, executor, stage=spec.name, param_hash=phash):
-        batch.append(record)
-        _count(report, record)
-        if on_record is not None:
-            on_record(record)
-        if len(batch) >= WRITE_BATCH or time.monotonic() - last_write > WRITE_INTERVAL_S:
-            write_records(batch, digests)
-            batch, last_write = [], time.monotonic()
-    if batch:
-        write_records(batch, digests)
-    if spec.name == "grade" and tasks:
+    computed: list[int] = []
+    held: dict[int, str] = {}
+
+    def claimed_tasks(card_ids: list[int]) -> Iterator[CardTask]:
+        # Claimed a batch at a time, just before the executor wants them, so a second run
+        # finds the cards this one has not reached yet.
+        for start in range(0, len(card_ids), claim_batch):
+            batch_ids = card_ids[start:start + claim_batch]
+            claim = driver.claim(spec.name, phash, batch_ids, seen)
+            report.taken_over += len(claim.taken_over)
+            report.done_by_other_run += len(claim.finished_elsewhere)
+            for card_id in batch_ids:
+                held.pop(card_id, None)
+            held.update(claim.held)
+            for card_id in claim.claimed:
+                yield tasks[card_id]
+
+    def compute(card_ids: list[int]) -> None:
+        batch: list[StageRecord] = []
+        last_write = time.monotonic()
+        for record in run_tasks(spec.task, claimed_tasks(card_ids), executor, stage=spec.name, param_hash=phash):
+            batch.append(record)
+            computed.append(record.card_id)
+            _count(report, record)
+            if on_record is not None:
+                on_record(record)
+            if len(batch) >= WRITE_BATCH or time.monotonic() - last_write > WRITE_INTERVAL_S:
+                write_records(batch, digests, driver)
+                batch, last_write = [], time.monotonic()
+        if batch:
+            write_records(batch, digests, driver)
+
+    compute(list(tasks))
+    report.held_by_other_run = len(held)
+    report.held_by = set(held.values())
+    poll_s = min(WAIT_POLL_S, driver.ttl_s / 4)
+    while held and wait_for_held:
+        if on_wait is not None:
+            on_wait(len(held), set(held.values()))
+        time.sleep(poll_s)
+        compute(sorted(held))
+    report.still_held = len(held)
+    if spec.name == "grade" and computed:
         # New automatic grades reach the curators' queue at once (decided cards keep theirs).
         from review.tasks import sync_reviews
 
-        sync_reviews([task.card_id for task in tasks])
+        sync_reviews(computed)
     report.seconds = time.perf_counter() - clock
     return report
 
@@ -370,32 +439,49 @@ def _count(report: StageReport, record: StageRecord) -> None:
             report.outcomes[record.outcome] = report.outcomes.get(record.outcome, 0) + 1
 
 
-def write_records(records: list[StageRecord], digests: dict[int, str] | None = None) -> None:
-    """Upsert results (one row per card, stage and parameters) and update card states."""
-    existing = {
-        (row.card_id, row.stage, row.param_hash): row
-        for row in db.session.scalars(
-            select(StageResult).where(StageResult.card_id.in_({r.card_id for r in records}))
-        )
-    }
-    cards = {card.id: card for card in db.session.scalars(select(Card).where(Card.id.in_({r.card_id for r in records})))}
-    for record in records:
-        row = existing.get((record.card_id, record.stage, record.param_hash))
-        if row is None:
-            row = StageResult(card_id=record.card_id, stage=record.stage, param_hash=record.param_hash)
-            db.session.add(row)
-        row.status = record.status
-        row.outcome = record.outcome
-        row.reason = record.reason
-        row.metrics = {**record.metrics, "inputs_digest": digests[record.card_id]} if digests else record.metrics
-        row.artifacts = record.artifacts
-        row.started_at = datetime.fromtimestamp(record.started_at, tz=timezone.utc) if record.started_at else None
-        row.seconds = record.seconds
-        row.code_version = record.code_version
-        card = cards.get(record.card_id)
-        if card is not None and record.stage == "filter":
-            card.state = record.outcome if record.status == "done" and record.outcome else "failed"
-    db.session.commit()
+def write_records(records: list[StageRecord], digests: dict[int, str] | None = None,
+                  driver: Driver | None = None) -> None:
+    """Upsert results (one row per card, stage and parameters), update card states and release
+    the driver's claims on these cards, in one transaction.
+
+    An upsert, not read-then-insert: a row another run wrote meanwhile (its claim lapsed and
+    was taken over, or it ran before claims existed) is overwritten, never a unique-key error.
+    """
+    if not records:
+        return
+    session = db.session()
+    with one_writer(session):
+        connection = session.connection()
+        insert = (postgresql.insert if connection.dialect.name == "postgresql" else sqlite.insert)(StageResult)
+        now = utcnow()
+        rows = [
+            {
+                "card_id": record.card_id, "stage": record.stage, "param_hash": record.param_hash,
+                "status": record.status, "outcome": record.outcome, "reason": record.reason,
+                "metrics": {**record.metrics, "inputs_digest": digests[record.card_id]} if digests else record.metrics,
+                "artifacts": record.artifacts,
+                "started_at": datetime.fromtimestamp(record.started_at, tz=timezone.utc) if record.started_at else None,
+                "seconds": record.seconds, "code_version": record.code_version, "created_at": now,
+            }
+            # One row per key and statement (PostgreSQL refuses to upsert a row twice in one
+            # command); the latest record of a card wins, as it would row by row. Key order is
+            # the lock order, so two writers of the same rows queue instead of deadlocking.
+            for _, record in sorted({(r.card_id, r.stage, r.param_hash): r for r in records}.items())
+        ]
+        updated = {column: getattr(insert.excluded, column)
+                   for column in ("status", "outcome", "reason", "metrics", "artifacts", "started_at", "seconds",
+                                  "code_version")}
+        connection.execute(insert.values(rows).on_conflict_do_update(
+            index_elements=["card_id", "stage", "param_hash"], set_=updated))
+        cards = {card.id: card for card in session.scalars(select(Card).where(Card.id.in_({r.card_id for r in records})))}
+        for record in records:
+            card = cards.get(record.card_id)
+            if card is not None and record.stage == "filter":
+                card.state = record.outcome if record.status == "done" and record.outcome else "failed"
+        if driver is not None:
+            for stage in {record.stage for record in records}:
+                connection.execute(driver.release_statement(stage, {r.card_id for r in records if r.stage == stage}))
+        session.commit()
 
 
 DOWNSTREAM_OF_CULL = ("judge", "crop", "rectify", "disparity", "grade", "review", "views")
@@ -494,13 +580,33 @@ def card_stage_statuses(card: Card, only_stage: str | None = None,
 @click.option("--executor", "executor_kind", type=click.Choice(["local", "dask"]), default="local",
               show_default=True, help="Where per-card work runs: a local process pool or a dask cluster.")
 @click.option("--scheduler", help="dask scheduler address (with --executor dask); default a local cluster.")
+@click.option("--wait/--no-wait", "wait_for_held", default=True, show_default=True,
+              help="When the only cards left are held by another run: wait for it to finish them (or for "
+                   "its claims to lapse, then take them over), or leave them and exit with status 3.")
+@click.option("--claim-ttl-s", type=click.FloatRange(min=1.0), default=DEFAULT_CLAIM_TTL_S, show_default=True,
+              envvar="KEYSTONE_CLAIM_TTL_S",
+              help="Seconds a claim on a card outlives this run's last heartbeat (it beats every quarter of "
+                   "that): how long a killed run keeps others off its cards. Env: KEYSTONE_CLAIM_TTL_S.")
+@click.option("--claim-batch", type=click.IntRange(1, 1000), default=DEFAULT_CLAIM_BATCH, show_default=True,
+              help="Cards claimed per database transaction.")
 @click.option("--json", "as_json", is_flag=True, help="Print the run report as one JSON document.")
 @with_appcontext
-def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | None, as_json: bool) -> None:
+def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | None, wait_for_held: bool,
+                claim_ttl_s: float, claim_batch: int, as_json: bool) -> None:
     """Run pipeline stages over the catalogue, skipping cards already done with the same parameters.
 
     Resumable: interrupt it at any time and run it again; only unfinished cards are processed.
-    Cards that failed are retried. Exits 1 if any card failed.
+    Cards that failed are retried.
+
+    Safe to run twice at once (on one machine or many against one database): each run claims
+    a card before computing it, so no card-stage is computed twice. A second run takes the
+    cards the first has not claimed; when only claimed cards are left it waits for them by
+    default (a killed run's claims lapse after --claim-ttl-s and are taken over), or with
+    --no-wait leaves them. The JSON report counts them per stage: held_by_other_run,
+    done_by_other_run, still_held, taken_over.
+
+    Exit status: 0 done; 1 if any card failed; 3 if --no-wait left cards another run holds
+    (and none failed).
     """
     from .console import data_dir, emit_json, ensure_database, progress_bar, say
 
@@ -515,28 +621,49 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
     ensure_database()
     specs = available_stages()
     reports = []
+    driver = Driver(db.engine, ttl_s=claim_ttl_s)
+    waiting_said: set[tuple[str, int]] = set()
+
+    def say_waiting(stage: str) -> Callable[[int, set[str]], None]:
+        def said(count: int, holders: set[str]) -> None:
+            if (stage, count) not in waiting_said:
+                waiting_said.add((stage, count))
+                say(f"{stage}: waiting for {count} card(s) held by another run ({', '.join(sorted(holders))})", True)
+        return said
+
     try:
-        with make_executor(executor_kind, workers, scheduler) as executor:
+        with make_executor(executor_kind, workers, scheduler) as executor, driver.running():
             for name in names:
                 with progress_bar(name, enabled=not as_json) as progress:
                     spec = specs[name]
                     report = run_stage(spec, data_dir=data_dir(), executor=executor,
-                                       on_start=progress.start, on_record=progress.advance)
+                                       on_start=progress.start, on_record=progress.advance, driver=driver,
+                                       wait_for_held=wait_for_held, claim_batch=claim_batch,
+                                       on_wait=say_waiting(name))
                 reports.append(report)
                 if not as_json:
                     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(report.outcomes.items())) or "-"
+                    elsewhere = (f"; done by another run {report.done_by_other_run}"
+                                 if report.held_by_other_run or report.done_by_other_run else "")
                     say(f"{name}: processed {report.processed} in {report.seconds:.1f} s "
-                        f"(already done {report.skipped_existing}; outcomes: {outcomes}; failed {report.failed})",
-                        as_json)
+                        f"(already done {report.skipped_existing}{elsewhere}; outcomes: {outcomes}; "
+                        f"failed {report.failed})", as_json)
                     for failure in report.failures:
                         say(f"  card {failure['card_id']}: {failure['reason']}", as_json)
+                if report.still_held:
+                    say(f"{name}: left {report.still_held} card(s) that another run holds "
+                        f"({', '.join(sorted(report.held_by))}); rerun when it is done, or without --no-wait "
+                        "to wait for it", True)
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from exc
     if as_json:
         emit_json({"stages": [report.as_json() for report in reports],
-                   "workers": workers, "executor": executor_kind})
+                   "workers": workers, "executor": executor_kind, "driver": driver.id,
+                   "claim_ttl_s": driver.ttl_s, "heartbeats": driver.heartbeats})
     if any(report.failed for report in reports):
         raise SystemExit(1)
+    if any(report.still_held for report in reports):
+        raise SystemExit(EXIT_HELD)
 
 
 CARDS_CHUNK = 1000  # cards read, described and written per step of `keystone cards`

@@ -33,7 +33,7 @@ def target_metadata() -> MetaData:
     import exports.models  # noqa: F401
     import review.models  # noqa: F401
 
-    from . import models  # noqa: F401
+    from . import claims, models  # noqa: F401
     from .db import db
 
     return db.metadata

@@ -9,7 +9,7 @@ RecursionError). :func:`load_json_body` refuses all of those before the view see
 - depth: at most :data:`MAX_DEPTH` nested arrays/objects, counted on the raw text before parsing;
 - numbers: finite floats only, integers within +-2**53 (exact in a float and in JavaScript);
   NaN, Infinity and -Infinity are refused;
-- text: no NUL characters (PostgreSQL cannot store or compare them).
+- text: no NUL characters and no lone surrogates (no database can store or compare them).
 
 Views call it instead of ``request.get_json``; it raises :class:`JSONBodyError`, an HTTP 400
 (415 for a body that is not JSON at all) that the app's error pages render as JSON for API
@@ -96,7 +96,13 @@ def parse_json(raw: bytes, *, max_depth: int = MAX_DEPTH) -> Any:
         raise JSONBodyError(f"Expected a JSON body; this one is malformed ({reason}).") from None
 
 
-def _refuse_nul(document: Any) -> None:
+def _refuse_unstorable_text(document: Any) -> None:
+    """JSONBodyError for a NUL character or a lone surrogate in any string (keys included).
+
+    Both are valid JSON escapes (``\\u0000``, ``\\ud800``) but no database stores them:
+    PostgreSQL refuses NUL with a DataError, and a lone surrogate cannot be encoded as UTF-8 for
+    SQLite or PostgreSQL (a UnicodeEncodeError).
+    """
     # Iterative: the depth is bounded already, but a walk without recursion needs no bound at all.
     pending = [document]
     while pending:
@@ -104,6 +110,12 @@ def _refuse_nul(document: Any) -> None:
         if isinstance(value, str):
             if "\x00" in value:
                 raise JSONBodyError("Text in the JSON body may not contain NUL characters (\\u0000).")
+            if not value.isascii():
+                try:
+                    value.encode("utf-8")
+                except UnicodeEncodeError:
+                    raise JSONBodyError("Text in the JSON body may not contain lone surrogates "
+                                        "(\\ud800-\\udfff without their pair).") from None
         elif isinstance(value, dict):
             pending.extend(value.keys())
             pending.extend(value.values())
@@ -123,7 +135,7 @@ def load_json_body(*, expect: type = dict, max_depth: int = MAX_DEPTH) -> Any:
     if limit is not None and len(raw) > limit:
         raise RequestEntityTooLarge(f"This request's body is {len(raw):,} bytes; the limit here is {limit:,} bytes.")
     body = parse_json(raw, max_depth=max_depth)
-    _refuse_nul(body)  # PostgreSQL refuses text containing NUL with a DataError
+    _refuse_unstorable_text(body)
     if not isinstance(body, expect):
         names = {dict: "a JSON object", list: "a JSON array"}
         raise JSONBodyError(f"Expected {names.get(expect, expect.__name__)} body, got {type(body).__name__}.")

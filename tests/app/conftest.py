@@ -49,8 +49,9 @@ class World:
     """A small served app with something behind every door (see :func:`hostile_world`)."""
 
     card_id: int  # filter-passed, graded and in the review queue
+    review_id: int
     review_version: int
-    crop_card_id: int  # in a crop batch of one answer per item
+    crop_card_id: int  # in a crop batch wanting 1,000 answers per item
     aggregate_id: int  # a disputed crowd aggregate on crop_card_id
     worker_token: str  # a crowd worker's signed API token
     csrf: str  # the logged-in admin's CSRF token
@@ -77,8 +78,9 @@ def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, c
     crop_card_id = make_card(image[:, 8:], state="review")  # 596 x 200 px
     with app.app_context():
         sync_reviews()
-        version = db.session.scalar(select(CardReview.version).where(CardReview.card_id == card_id))
-        batch = create_batch([crop_card_id], "crop", 1, 0.0)
+        review_id, version = db.session.execute(
+            select(CardReview.id, CardReview.version).where(CardReview.card_id == card_id)).one()
+        batch = create_batch([crop_card_id], "crop", 1000, 0.0)  # room for many workers' answers
         aggregate = Aggregate(batch_id=batch.id, card_id=crop_card_id, kind="crop", state="needs_curator", answers=2,
                               label={"left": [0, 0, 280, 200], "right": [300, 0, 590, 200]}, reasons="disputed")
         db.session.add(aggregate)
@@ -88,4 +90,4 @@ def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, c
     page = client.get(f"/crowd/invite/{link}?kind=crop").get_data(as_text=True)
     worker_token = re.search(r'data-worker-token="([^"]*)"', page).group(1)  # type: ignore[union-attr]
     login("admin")
-    return World(card_id, version, crop_card_id, aggregate_id, worker_token, csrf_token("/cards"))
+    return World(card_id, review_id, version, crop_card_id, aggregate_id, worker_token, csrf_token("/cards"))

@@ -6,7 +6,8 @@ OverflowError or a DataError) and recurses once per nesting level (``[`` * 100,0
 RecursionError). :func:`load_json_body` refuses all of those before the view sees the body:
 
 - size: the request's body limit (:func:`app.limits.request_body_limit`), 413 above it;
-- depth: at most :data:`MAX_DEPTH` nested arrays/objects, counted on the raw text before parsing;
+- depth: at most :data:`MAX_DEPTH` nested arrays/objects (checked on the parsed document; one
+  deeper than the C parser's recursion limit is refused as the RecursionError it raises);
 - numbers: finite floats only, integers within +-2**53 (exact in a float and in JavaScript);
   NaN, Infinity and -Infinity are refused;
 - text: no NUL characters and no lone surrogates (no database can store or compare them).
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from typing import Any
 
 from flask import request
@@ -31,8 +31,6 @@ from .limits import request_body_limit
 
 MAX_DEPTH = 32  # crowd answers nest 2 deep, review decisions 3
 MAX_SAFE_INTEGER = 2**53
-# A JSON string (with escapes) or any character that opens or closes a container.
-_STRING_OR_BRACKET = re.compile(rb'"(?:[^"\\]|\\.)*"|[\[\]{}]', re.DOTALL)
 
 
 class JSONBodyError(BadRequest):
@@ -41,19 +39,6 @@ class JSONBodyError(BadRequest):
 
 class NotJSONError(UnsupportedMediaType):
     description = "Expected a JSON body (Content-Type: application/json)."
-
-
-def nesting_depth(raw: bytes) -> int:
-    """The deepest nesting of arrays and objects in ``raw`` JSON text, brackets inside strings ignored."""
-    depth = deepest = 0
-    for match in _STRING_OR_BRACKET.finditer(raw):
-        token = match.group()
-        if token in (b"[", b"{"):
-            depth += 1
-            deepest = max(deepest, depth)
-        elif token in (b"]", b"}"):
-            depth -= 1
-    return deepest
 
 
 def _refuse_constant(name: str) -> Any:
@@ -78,15 +63,19 @@ def _bounded_int(text: str) -> int:
 
 def parse_json(raw: bytes, *, max_depth: int = MAX_DEPTH) -> Any:
     """``raw`` JSON text as Python values, or :class:`JSONBodyError` saying what is wrong."""
-    # Counting every bracket is cheap next to parsing; a body with few is shallow enough already.
-    depth = nesting_depth(raw) if raw.count(b"[") + raw.count(b"{") > max_depth else 0
-    if depth > max_depth:
-        raise JSONBodyError(f"Expected JSON nested at most {max_depth} levels deep, got {depth}.")
     try:
-        return json.loads(raw, parse_constant=_refuse_constant, parse_float=_bounded_float, parse_int=_bounded_int)
+        # UTF-8 only (RFC 8259 for JSON between systems); json.loads would also guess UTF-16/32.
+        text = raw.decode("utf-8")
+        document = json.loads(text, parse_constant=_refuse_constant, parse_float=_bounded_float,
+                              parse_int=_bounded_int)
     except JSONBodyError:
         raise
-    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+    except RecursionError:
+        # The C parser recurses once per level and stops cleanly at the interpreter's limit
+        # (about 1,000): far past max_depth, and long before a 64 KiB body of "[" ends.
+        raise JSONBodyError(f"Expected JSON nested at most {max_depth} levels deep, "
+                            "got one nested too deep to parse.") from None
+    except ValueError as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
         if isinstance(exc, json.JSONDecodeError):
             reason = f"{exc.msg} at character {exc.pos}"
         elif isinstance(exc, UnicodeDecodeError):
@@ -94,19 +83,28 @@ def parse_json(raw: bytes, *, max_depth: int = MAX_DEPTH) -> Any:
         else:
             reason = type(exc).__name__
         raise JSONBodyError(f"Expected a JSON body; this one is malformed ({reason}).") from None
+    # Fast paths for ordinary bodies: a NUL or a surrogate can only come from a \\u escape (raw
+    # control characters are invalid JSON, and UTF-8 cannot carry a surrogate), and a body with
+    # at most max_depth brackets cannot nest deeper.
+    check_text = "\\u" in text
+    check_depth = text.count("[") + text.count("{") > max_depth
+    if check_text or check_depth:
+        check_document(document, max_depth=max_depth if check_depth else None, check_text=check_text)
+    return document
 
 
-def _refuse_unstorable_text(document: Any) -> None:
-    """JSONBodyError for a NUL character or a lone surrogate in any string (keys included).
+def check_document(document: Any, *, max_depth: int | None = MAX_DEPTH, check_text: bool = True) -> None:
+    """JSONBodyError for nesting deeper than ``max_depth`` (None: any depth), or (``check_text``)
+    a NUL character or a lone surrogate in any string (keys included).
 
     Both are valid JSON escapes (``\\u0000``, ``\\ud800``) but no database stores them:
     PostgreSQL refuses NUL with a DataError, and a lone surrogate cannot be encoded as UTF-8 for
     SQLite or PostgreSQL (a UnicodeEncodeError).
     """
-    # Iterative: the depth is bounded already, but a walk without recursion needs no bound at all.
-    pending = [document]
+    visited = (dict, list, str) if check_text else (dict, list)
+    pending: list[tuple[Any, int]] = [(document, 0)]  # iterative: no recursion to bound
     while pending:
-        value = pending.pop()
+        value, depth = pending.pop()
         if isinstance(value, str):
             if "\x00" in value:
                 raise JSONBodyError("Text in the JSON body may not contain NUL characters (\\u0000).")
@@ -116,11 +114,11 @@ def _refuse_unstorable_text(document: Any) -> None:
                 except UnicodeEncodeError:
                     raise JSONBodyError("Text in the JSON body may not contain lone surrogates "
                                         "(\\ud800-\\udfff without their pair).") from None
-        elif isinstance(value, dict):
-            pending.extend(value.keys())
-            pending.extend(value.values())
-        elif isinstance(value, list):
-            pending.extend(value)
+        elif isinstance(value, (dict, list)):
+            if max_depth is not None and depth + 1 > max_depth:
+                raise JSONBodyError(f"Expected JSON nested at most {max_depth} levels deep, got deeper.")
+            children = [*value.keys(), *value.values()] if isinstance(value, dict) else value
+            pending.extend((child, depth + 1) for child in children if isinstance(child, visited))
 
 
 def load_json_body(*, expect: type = dict, max_depth: int = MAX_DEPTH) -> Any:
@@ -135,7 +133,6 @@ def load_json_body(*, expect: type = dict, max_depth: int = MAX_DEPTH) -> Any:
     if limit is not None and len(raw) > limit:
         raise RequestEntityTooLarge(f"This request's body is {len(raw):,} bytes; the limit here is {limit:,} bytes.")
     body = parse_json(raw, max_depth=max_depth)
-    _refuse_unstorable_text(body)
     if not isinstance(body, expect):
         names = {dict: "a JSON object", list: "a JSON array"}
         raise JSONBodyError(f"Expected {names.get(expect, expect.__name__)} body, got {type(body).__name__}.")

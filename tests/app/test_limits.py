@@ -297,7 +297,11 @@ def test_deeply_nested_json_is_400_everywhere(client, hostile_world):
     for path in ("next", "submit", "undo"):
         response = client.post(f"/crowd/api/{path}", headers=crowd, data=nested, content_type="application/json")
         assert response.status_code == 400
-        assert response.get_json()["error"]["message"] == "Expected JSON nested at most 32 levels deep, got 30000."
+        assert response.get_json()["error"]["message"] == (
+            "Expected JSON nested at most 32 levels deep, got one nested too deep to parse.")
+    shallow_but_too_deep = "[" * 33 + "]" * 33
+    response = client.post("/crowd/api/next", headers=crowd, data=shallow_but_too_deep, content_type="application/json")
+    assert response.get_json()["error"]["message"] == "Expected JSON nested at most 32 levels deep, got deeper."
     probe = "[" * 100000 + "]" * 100000  # the probe's body: over the API's limit
     assert client.post("/crowd/api/submit", headers=crowd, data=probe, content_type="application/json").status_code == 413
     staff = {"X-CSRFToken": hostile_world.csrf}

@@ -134,6 +134,6 @@ def load_json_body(*, expect: type = dict, max_depth: int = MAX_DEPTH) -> Any:
         raise RequestEntityTooLarge(f"This request's body is {len(raw):,} bytes; the limit here is {limit:,} bytes.")
     body = parse_json(raw, max_depth=max_depth)
     if not isinstance(body, expect):
-        names = {dict: "a JSON object", list: "a JSON array"}
+        names: dict[type, str] = {dict: "a JSON object", list: "a JSON array"}
         raise JSONBodyError(f"Expected {names.get(expect, expect.__name__)} body, got {type(body).__name__}.")
     return body

@@ -72,9 +72,9 @@ def test_the_loader_refuses_bodies_of_the_wrong_type_and_unstorable_text(app):
         (b'{"a": ["\\udbff"]}', "application/json", "may not contain lone surrogates"),
     ]
     for raw, content_type, message in cases:
-        with app.test_request_context("/crowd/api/next", method="POST", data=raw, content_type=content_type):
-            with pytest.raises(JSONBodyError, match=message):
-                load_json_body()
+        with (app.test_request_context("/crowd/api/next", method="POST", data=raw, content_type=content_type),
+              pytest.raises(JSONBodyError, match=message)):
+            load_json_body()
     with app.test_request_context("/crowd/api/next", method="POST", data=b"{}", content_type="text/plain"):
         with pytest.raises(NotJSONError) as caught:
             load_json_body()

@@ -450,3 +450,17 @@ def test_an_error_page_that_cannot_render_falls_back_to_a_bare_one(app, client, 
     html = response.get_data(as_text=True)
     assert "<h1>500 Internal Server Error</h1>" in html and "the database is gone" not in html
     assert any("error page could not be rendered" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.both_databases
+def test_a_curators_dispute_answer_with_absurd_coordinates_is_400(client, hostile_world):
+    url = f"/review/disputes/{hostile_world.aggregate_id}"
+    sane = {"left_x0": "0", "left_y0": "0", "left_x1": "280", "left_y1": "200",
+            "right_x0": "300", "right_y0": "0", "right_x1": "590", "right_y1": "200"}
+    for value, message in (("9" * 400, "finite number"), ("1e400", "finite number"), ("nan", "finite number"),
+                           ("-inf", "finite number"), ("1e300", "inside the 596x200 image"), ("²", "a number")):
+        response = client.post(url, data={**sane, "right_x1": value, "csrf_token": hostile_world.csrf})
+        assert response.status_code == 400, (value[:20], response.status_code)
+        assert message in response.get_data(as_text=True), value[:20]
+    resolved = client.post(url, data={**sane, "csrf_token": hostile_world.csrf})
+    assert resolved.status_code == 303

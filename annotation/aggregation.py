@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -363,9 +364,22 @@ class InvalidBoxError(ValueError):
 Box = tuple[float, float, float, float]
 
 
+def _short_repr(value: Any, limit: int = 120) -> str:
+    """``repr`` cut to ``limit`` characters; an integer past Python's 4,300-digit limit is described, not printed."""
+    try:
+        text = repr(value)
+    except ValueError:
+        return f"<a {type(value).__name__} too large to print>"
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
 def validate_box(box: Sequence[float], image_size: tuple[int, int] | None = None) -> Box:
     """Check one box ``(x0, y0, x1, y1)`` in pixels; ``image_size`` is ``(width, height)``."""
-    b = np.asarray(box, dtype=np.float64)
+    try:
+        b = np.asarray(box, dtype=np.float64)
+    except (OverflowError, TypeError, ValueError):
+        # A 400-digit integer overflows a float64, a string or a nested list is no coordinate.
+        raise InvalidBoxError(f"Expected four finite numbers (x0, y0, x1, y1), got {_short_repr(box)}") from None
     if b.shape != (4,):
         raise InvalidBoxError(f"Expected a box (x0, y0, x1, y1), got shape {b.shape}")
     if not np.isfinite(b).all():

@@ -106,10 +106,14 @@ class ProlificProvider:
 
 def mturk_submit_url(turk_submit_to: str) -> str:
     """``turkSubmitTo + /mturk/externalSubmit``, only for MTurk's own hosts (no open form target)."""
-    parts = urlsplit(turk_submit_to.strip())
+    refused = TaskError(f"Expected turkSubmitTo on {' or '.join(MTURK_SUBMIT_ORIGINS)}, got {turk_submit_to!r}")
+    try:
+        parts = urlsplit(turk_submit_to.strip())
+    except ValueError:  # no URL at all, e.g. "http://[::1" (an unclosed IPv6 host)
+        raise refused from None
     origin = f"{parts.scheme}://{parts.netloc}"
     if origin not in MTURK_SUBMIT_ORIGINS or parts.query or parts.fragment or parts.path not in ("", "/"):
-        raise TaskError(f"Expected turkSubmitTo on {' or '.join(MTURK_SUBMIT_ORIGINS)}, got {turk_submit_to!r}")
+        raise refused
     return origin + "/mturk/externalSubmit"
 
 

@@ -32,6 +32,7 @@ from werkzeug.wrappers import Response
 from app.auth import add_nav_link, role_required
 from app.db import db, read_only
 from app.extensions import csrf
+from app.json_body import load_json_body
 from app.security import frameable_by
 
 from .models import TASK_KINDS, Batch, Worker
@@ -118,12 +119,8 @@ def _api_entry() -> tuple[SignedWorker, dict[str, Any]]:
     """
     with read_only():
         caller = load_signed_worker(request.headers.get(TOKEN_HEADER))
-    if not request.is_json:
-        raise TaskError("Expected a JSON body (Content-Type: application/json)", 415)
-    body = request.get_json(silent=True)
-    if not isinstance(body, dict):
-        raise TaskError("Expected a JSON object body; this one is malformed")
-    return caller, body
+    # Bounded in size, depth and numbers: a 415 or 400 with the reason (app.json_body).
+    return caller, load_json_body()
 
 
 def _task_json(task: Any) -> dict[str, Any]:

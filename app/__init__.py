@@ -26,9 +26,11 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     if app.config["SQLALCHEMY_DATABASE_URI"].startswith("sqlite"):
         app.config.setdefault("SQLALCHEMY_ENGINE_OPTIONS", {"connect_args": {"timeout": 30}})
 
+    from . import limits
     from .db import db
     from .extensions import csrf, login_manager
 
+    limits.init_app(app)  # first: blueprints bind its id converter, CSRF reads bodies it limits
     db.init_app(app)
     csrf.init_app(app)
     login_manager.init_app(app)

@@ -23,13 +23,14 @@ from sqlalchemy.orm import selectinload
 from werkzeug.wrappers import Response
 
 from pipeline.errors import ImageReadError
-from pipeline.io import read_image, write_jpeg
+from pipeline.io import atomic_write, encode_jpeg, read_image
 
 # Stages whose status is a stage result the catalogue can filter on in SQL.
 FILTERABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
 
 from .auth import add_nav_link, role_required
 from .db import db, read_only
+from .limits import parse_positive_int
 from .models import CARD_STATES, Card, Collection, MetadataRecord, StageResult
 
 bp = Blueprint("catalog", __name__)
@@ -119,9 +120,10 @@ def parse_filters(args: Any) -> CardFilters:
         value = (args.get(name) or "").strip()
         if not value:
             return None
-        if not value.isdigit() or int(value) < 1:
-            abort(400, f"Expected {name} to be a positive whole number, got {value!r}.")
-        return int(value)
+        try:
+            return parse_positive_int(value, name)  # ids and pages within the database's range
+        except ValueError as exc:
+            abort(400, str(exc))
 
     stage, status = choice("stage", FILTERABLE_STAGES), choice("status", STAGE_FILTER_STATUSES)
     if status and not stage:
@@ -403,22 +405,33 @@ def _cache_headers(response: Response, etag: str) -> None:
     response.headers.pop("Expires", None)
 
 
-def _send_image(path: Path, mimetype: str, etag: str) -> Response:
+def _send_image(image: Path | bytes, mimetype: str, etag: str) -> Response:
+    """An image from a file or, when the preview cache could not be written, from memory."""
     # Display images are small (<= 1600 px previews, stage previews), so they are sent from
     # memory: no file handle outlives the request whatever the server or client does.
-    response = Response(path.read_bytes(), mimetype=mimetype)
+    response = Response(image if isinstance(image, bytes) else image.read_bytes(), mimetype=mimetype)
     response.set_etag(etag)
-    response.last_modified = path.stat().st_mtime
+    if isinstance(image, Path):
+        response.last_modified = image.stat().st_mtime
     response = response.make_conditional(request, accept_ranges=True)
     _cache_headers(response, etag)
     return response
 
 
-def ensure_previews(content_hash: str, stored_path: str) -> dict[str, Path]:
-    """Make the display JPEG (<= 1600 px) and thumbnail (<= 320 px) once; the original is decoded once."""
+_UNWRITABLE_PREVIEW_FOLDERS: set[str] = set()
+
+
+def ensure_previews(content_hash: str, stored_path: str) -> dict[str, Path | bytes]:
+    """Make the display JPEG (<= 1600 px) and thumbnail (<= 320 px) once; the original is decoded once.
+
+    Each is the cached file, or the JPEG itself when the cache cannot be written (a read-only
+    data folder, a full disk): the image is still shown, made again on each request until the
+    folder is writable (a warning in the log says why).
+    """
     folder = data_dir() / "previews"
-    targets = {"display": folder / f"{content_hash}.jpg", "thumb": folder / f"{content_hash}.thumb.jpg"}
-    missing = {variant: path for variant, path in targets.items() if not path.exists()}
+    targets: dict[str, Path | bytes] = {"display": folder / f"{content_hash}.jpg",
+                                        "thumb": folder / f"{content_hash}.thumb.jpg"}
+    missing = {variant: path for variant, path in targets.items() if isinstance(path, Path) and not path.exists()}
     if missing:
         original = inside_data_dir(stored_path)
         if not original.is_file():
@@ -428,7 +441,16 @@ def ensure_previews(content_hash: str, stored_path: str) -> dict[str, Path]:
         except ImageReadError as exc:
             abort(404, f"The original cannot be shown: {exc.reason()}")
         for variant, path in missing.items():
-            write_jpeg(path, image, max_side=DISPLAY_MAX_SIDE if variant == "display" else THUMB_MAX_SIDE, quality=88)
+            payload = encode_jpeg(image, max_side=DISPLAY_MAX_SIDE if variant == "display" else THUMB_MAX_SIDE, quality=88)
+            try:
+                with atomic_write(path) as handle:
+                    handle.write(payload)
+            except OSError as exc:
+                if str(folder) not in _UNWRITABLE_PREVIEW_FOLDERS:  # once per folder, not per image
+                    _UNWRITABLE_PREVIEW_FOLDERS.add(str(folder))
+                    current_app.logger.warning("Serving card previews without their cache: cannot write %s (%s)",
+                                               path, exc)
+                targets[variant] = payload
     return targets
 
 

@@ -6,6 +6,8 @@
 ``KEYSTONE_MAX_PIXELS``    decode cap per image (decompression-bomb guard); default 150 MP.
 ``KEYSTONE_INSTANCE_PATH`` where the instance folder lives; default Flask's.
 ``KEYSTONE_RELEASES_DIR``   where releases published from the web go; default ``<data dir>/releases``.
+``KEYSTONE_MAX_REQUEST_BYTES`` the largest request body any route accepts (413 above it); default 1 MiB.
+``KEYSTONE_API_MAX_BYTES``  the same for the crowd JSON API under ``/crowd/api/``; default 64 KiB.
 ``KEYSTONE_INPAINT_CHECKPOINT`` a ``keystone train-inpainting`` checkpoint the views stage fills
                           holes with; default none (OpenCV Telea fills them).
 ``KEYSTONE_SESSION_HOURS``  how long a login lasts, from the moment of logging in; default 8 (a
@@ -31,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.io import DEFAULT_MAX_PIXELS
+
+from .limits import DEFAULT_API_MAX_BYTES, DEFAULT_MAX_CONTENT_LENGTH
 
 
 def _persistent_secret(instance_path: Path) -> str:
@@ -98,6 +102,9 @@ def config_from_environment(instance_path: str) -> dict[str, Any]:
         # Flask's default is 31 days; the signed cookie is refused past this age, and the
         # login time kept in the session ends it this long after logging in (app.auth).
         "PERMANENT_SESSION_LIFETIME": timedelta(hours=_positive_number(env, "KEYSTONE_SESSION_HOURS", 8)),
+        # Flask's name for the body limit of every request (app/limits.py answers 413 above it).
+        "MAX_CONTENT_LENGTH": int(env.get("KEYSTONE_MAX_REQUEST_BYTES", DEFAULT_MAX_CONTENT_LENGTH)),
+        "KEYSTONE_API_MAX_BYTES": int(env.get("KEYSTONE_API_MAX_BYTES", DEFAULT_API_MAX_BYTES)),
         "SESSION_COOKIE_HTTPONLY": True,
         "SESSION_COOKIE_SAMESITE": "Lax",
         # Secure cookies need HTTPS; `keystone serve` on loopback is plain HTTP, so the

@@ -26,6 +26,7 @@ from urllib.parse import urlsplit
 
 from flask import Flask, Response, current_app, jsonify, render_template, request, url_for
 from flask_wtf.csrf import CSRFError
+from markupsafe import escape
 from werkzeug.exceptions import BadRequest, HTTPException, InternalServerError
 from werkzeug.middleware.proxy_fix import ProxyFix
 
@@ -106,15 +107,27 @@ def prefers_json() -> bool:
     return request.accept_mimetypes.best_match(["text/html", "application/json"]) == "application/json"
 
 
+def wants_json_error() -> bool:
+    """JSON for the JSON API (its clients send ``Accept: */*``), for JSON requests, and on request."""
+    return request.path.startswith("/crowd/api/") or request.is_json or prefers_json()
+
+
 def render_error(error: HTTPException) -> tuple[Any, int]:
     code = error.code or 500
     name = error.name
     # A 5xx shows Werkzeug's generic sentence, never the exception text or a traceback.
     description = InternalServerError.description if code >= 500 else (error.description or name)
-    if prefers_json():
+    if wants_json_error():
         response = jsonify({"error": {"code": code, "name": name, "message": description}})
     else:
-        response = Response(render_template("errors.html", code=code, name=name, description=description))
+        try:
+            page = render_template("errors.html", code=code, name=name, description=description)
+        except Exception:
+            # The page itself failed (its layout reads the logged-in person from a database that
+            # may be what is broken): log it and send a bare page rather than the server's own.
+            current_app.logger.exception("The %s error page could not be rendered", code)
+            page = f"<!doctype html><title>{code} {name}</title><h1>{code} {name}</h1><p>{escape(description)}</p>"
+        response = Response(page)
     # Keep the headers an error carries, such as Allow on a 405 and WWW-Authenticate on a 401.
     for header, value in error.get_headers():
         if header.lower() != "content-type":

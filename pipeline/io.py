@@ -6,6 +6,7 @@ Array convention everywhere in the pipeline: ``uint8``, shape ``(H, W)`` for gre
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tempfile
@@ -158,13 +159,21 @@ def write_png(path: str | os.PathLike[str], image: np.ndarray) -> None:
         Image.fromarray(np.ascontiguousarray(image)).save(handle, format="PNG", compress_level=3)
 
 
-def write_jpeg(path: str | os.PathLike[str], image: np.ndarray, max_side: int | None = None, quality: int = 90) -> None:
-    """Write a display JPEG atomically, downscaled (area filter) so its longer side <= ``max_side``."""
+def encode_jpeg(image: np.ndarray, max_side: int | None = None, quality: int = 90) -> bytes:
+    """A display JPEG in memory, downscaled (area filter) so its longer side <= ``max_side``."""
     picture = Image.fromarray(np.ascontiguousarray(image))
     if max_side is not None and max(picture.size) > max_side:
         picture.thumbnail((max_side, max_side), Image.Resampling.BOX)
+    buffer = io.BytesIO()
+    picture.save(buffer, format="JPEG", quality=quality)
+    return buffer.getvalue()
+
+
+def write_jpeg(path: str | os.PathLike[str], image: np.ndarray, max_side: int | None = None, quality: int = 90) -> None:
+    """Write :func:`encode_jpeg`'s JPEG atomically."""
+    payload = encode_jpeg(image, max_side, quality)
     with atomic_write(path) as handle:
-        picture.save(handle, format="JPEG", quality=quality)
+        handle.write(payload)
 
 
 def write_json(path: str | os.PathLike[str], document: object) -> None:

@@ -33,6 +33,8 @@ from werkzeug.wrappers import Response
 from annotation.models import Aggregate
 from app.auth import add_nav_link, role_required
 from app.db import db, read_only
+from app.json_body import load_json_body
+from app.limits import parse_positive_int
 from app.models import Collection
 
 from .models import GRADE_NAMES, GRADES, CardReview
@@ -79,19 +81,21 @@ def _curator() -> Any:
 
 def _filters(args: Any) -> QueueFilters:
     collection = (args.get("collection") or "").strip()
-    if collection and (not collection.isdigit() or int(collection) < 1):
-        raise ReviewError(f"Expected collection to be a positive whole number, got {collection!r}")
+    try:
+        collection_id = parse_positive_int(collection, "collection") if collection else None
+    except ValueError as exc:
+        raise ReviewError(str(exc)) from None
     return QueueFilters(grade=(args.get("grade") or "").strip() or None,
-                        collection_id=int(collection) if collection else None,
+                        collection_id=collection_id,
                         reason=(args.get("reason") or "").strip() or None,
                         decision=(args.get("decision") or "").strip() or "pending")
 
 
 def _page_number(args: Any, name: str = "page") -> int:
-    value = (args.get(name) or "1").strip()
-    if not value.isdigit() or int(value) < 1:
-        raise ReviewError(f"Expected {name} to be a positive whole number, got {value!r}")
-    return int(value)
+    try:
+        return parse_positive_int(args.get(name) or "1", name)
+    except ValueError as exc:
+        raise ReviewError(str(exc)) from None
 
 
 # ----------------------------------------------------------------------------- the queue
@@ -130,19 +134,23 @@ def _bulk_items(values: list[str]) -> list[tuple[int, int]]:
     items = []
     for value in values:
         review_id, _, version = value.partition(":")
-        if not (review_id.isdigit() and version.isdigit()):
-            raise ReviewError(f"Expected selected cards as review:version, got {value!r}")
-        items.append((int(review_id), int(version)))
+        try:
+            items.append((parse_positive_int(review_id, "review"), parse_positive_int(version, "version")))
+        except ValueError:
+            raise ReviewError(f"Expected selected cards as review:version, got {value[:80]!r}") from None
     return items
 
 
 @bp.route("/bulk", methods=["POST"])
 @role_required("curator")
 def bulk() -> Any:
-    body = request.get_json(silent=True) if request.is_json else None
-    source: Any = body if isinstance(body, dict) else request.form
-    if isinstance(body, dict):
-        values = [f"{item.get('review')}:{item.get('version')}" for item in body.get("items", []) if isinstance(item, dict)]
+    body = load_json_body() if request.is_json else None
+    source: Any = body if body is not None else request.form
+    if body is not None:
+        items = body.get("items", [])
+        if not isinstance(items, list):
+            raise ReviewError(f"Expected items as a list of {{review, version}}, got {type(items).__name__}")
+        values = [f"{item.get('review')}:{item.get('version')}" for item in items if isinstance(item, dict)]
     else:
         values = request.form.getlist("item")
     action = str(source.get("action") or "")
@@ -222,13 +230,14 @@ def _next_url(card_id: int, filters: QueueFilters) -> str:
 @bp.route("/cards/<int:card_id>/decide", methods=["POST"])
 @role_required("curator")
 def decide_card(card_id: int) -> Any:
-    body = request.get_json(silent=True) if request.is_json else None
-    if request.is_json and not isinstance(body, dict):
-        raise ReviewError("Expected a JSON object body")
+    body = load_json_body() if request.is_json else None
     source: Any = body if body is not None else request.form
     version = source.get("version")
-    if isinstance(version, str) and version.strip().isdigit():
-        version = int(version)
+    if isinstance(version, str):
+        try:
+            version = parse_positive_int(version, "version")
+        except ValueError:
+            pass  # refused just below, with the value shown
     if isinstance(version, bool) or not isinstance(version, int):
         raise ReviewError(f"Expected the version of the review you saw, got {version!r}")
     with read_only():

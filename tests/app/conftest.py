@@ -1,8 +1,10 @@
-"""The 3D viewer's tests share one card with real views (tests/ is not a package: fixtures)."""
+"""Fixtures of the app's tests (tests/ is not a package): a card with real views for the 3D
+viewer's tests, and a world with something behind every door for the hostile-input tests."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -40,3 +42,52 @@ def make_card_with_views(app, data_dir, make_card, add_stage_result) -> Callable
         return card_id, record
 
     return make
+
+
+@dataclass(frozen=True)
+class World:
+    """A small served app with something behind every door (see :func:`hostile_world`)."""
+
+    card_id: int  # filter-passed, graded and in the review queue
+    review_id: int
+    review_version: int
+    crop_card_id: int  # in a crop batch wanting 1,000 answers per item
+    aggregate_id: int  # a disputed crowd aggregate on crop_card_id
+    worker_token: str  # a crowd worker's signed API token
+    csrf: str  # the logged-in admin's CSRF token
+
+
+@pytest.fixture
+def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, card_image) -> World:  # type: ignore[no-untyped-def]
+    """An admin logged in on ``client``, a reviewable card, a crop batch, a worker and a dispute."""
+    import re
+
+    from sqlalchemy import select
+
+    from annotation.models import Aggregate
+    from annotation.providers import InviteProvider
+    from annotation.tasks import create_batch
+    from app.db import db
+    from review.models import CardReview
+    from review.tasks import sync_reviews
+
+    image = card_image()
+    card_id = make_card(image, state="pass")
+    add_stage_result(card_id, "filter")
+    add_stage_result(card_id, "grade", outcome="some", metrics={"uncertainty": 0.4, "reasons": ["fringes"]})
+    crop_card_id = make_card(image[:, 8:], state="review")  # 596 x 200 px
+    with app.app_context():
+        sync_reviews()
+        review_id, version = db.session.execute(
+            select(CardReview.id, CardReview.version).where(CardReview.card_id == card_id)).one()
+        batch = create_batch([crop_card_id], "crop", 1000, 0.0)  # room for many workers' answers
+        aggregate = Aggregate(batch_id=batch.id, card_id=crop_card_id, kind="crop", state="needs_curator", answers=2,
+                              label={"left": [0, 0, 280, 200], "right": [300, 0, 590, 200]}, reasons="disputed")
+        db.session.add(aggregate)
+        db.session.commit()
+        aggregate_id = aggregate.id
+        link = InviteProvider.invite("probe-worker").token
+    page = client.get(f"/crowd/invite/{link}?kind=crop").get_data(as_text=True)
+    worker_token = re.search(r'data-worker-token="([^"]*)"', page).group(1)  # type: ignore[union-attr]
+    login("admin")
+    return World(card_id, review_id, version, crop_card_id, aggregate_id, worker_token, csrf_token("/cards"))

@@ -159,10 +159,10 @@ def _state(app):  # type: ignore[no-untyped-def]
     [
         ('{"token": "x", "answer": ', 400, "malformed"),
         ("[1, 2]", 400, "JSON object body"),
-        ('{"left": [NaN, 0, 100, 100], "right": [400, 0, 500, 100]}', 400, "finite coordinates"),
+        ('{"left": [NaN, 0, 100, 100], "right": [400, 0, 500, 100]}', 400, "finite numbers in the JSON body, got NaN"),
         ('{"left": [-5, 0, 100, 100], "right": [400, 0, 500, 100]}', 400, "inside the 604x200 image"),
         ('{"left": [0, 0, 1e300, 100], "right": [400, 0, 500, 100]}', 400, "inside the 604x200 image"),
-        ('{"left": [0, 0, Infinity, 100], "right": [400, 0, 500, 100]}', 400, "finite coordinates"),
+        ('{"left": [0, 0, Infinity, 100], "right": [400, 0, 500, 100]}', 400, "finite numbers in the JSON body, got Infinity"),
         ('{"left": [100, 0, 10, 100], "right": [400, 0, 500, 100]}', 400, "x0 < x1"),
         ('{"left": [0, 0, 10, 10], "right": [400, 0, 500, 100]}', 400, "at least 16 x 16 pixels"),
         ('{"left": [0, 0, "a", 100], "right": [400, 0, 500, 100]}', 400, "four numbers"),

@@ -1,0 +1,113 @@
+"""Limits at the doors: request sizes, database ids in URLs and query strings.
+
+Every value a request carries is bounded before it reaches the database or numpy, so hostile
+input gets a 4xx that says what is allowed, never a 500:
+
+- Bodies: ``MAX_CONTENT_LENGTH`` (1 MiB: the app takes no uploads; its largest forms are the
+  release notes, 5,000 characters, and a review page's bulk selection) for every route, and
+  ``KEYSTONE_API_MAX_BYTES`` (64 KiB: a crowd answer is under 200 bytes) under ``/crowd/api/``.
+  A larger body is a 413 before anything reads it (when the client declares its length) or as
+  soon as it is read past the limit (chunked bodies).
+- Ids: every ``<int:...>`` in a route is :class:`DatabaseIdConverter`, registered in place of
+  Werkzeug's ``int`` before any blueprint, so ``/cards/9223372036854775808`` is a 404 like any
+  other missing card instead of an overflow in SQLite (64-bit) or PostgreSQL (``INTEGER`` is
+  32-bit, and SQLAlchemy casts bound parameters to the column's type). Query-string ids and page
+  numbers go through :func:`parse_positive_int`.
+- Text: no NUL characters in paths, query strings or forms (PostgreSQL cannot store them).
+"""
+
+from __future__ import annotations
+
+import builtins
+from typing import Any
+
+from flask import Flask, abort, current_app, request
+from werkzeug.routing import IntegerConverter, Map, ValidationError
+
+# The range both databases share: PostgreSQL INTEGER (and SERIAL ids) is 32-bit signed; SQLite
+# is 64-bit. Ids start at 1 in both.
+DATABASE_ID_MAX = 2**31 - 1
+DATABASE_ID_DIGITS = len(str(DATABASE_ID_MAX))
+
+DEFAULT_MAX_CONTENT_LENGTH = 1024 * 1024
+DEFAULT_API_MAX_BYTES = 64 * 1024
+API_PREFIX = "/crowd/api/"
+
+
+class DatabaseIdConverter(IntegerConverter):
+    """``<int:name>`` accepting only 1 .. 2**31 - 1; anything else does not match the route (404).
+
+    Its length is checked before ``int()``: Python refuses to convert strings of more than
+    4,300 digits (a ValueError Werkzeug would not catch) and a long one costs time for nothing.
+    Explicit ``min``/``max`` arguments may narrow the range, never widen it.
+    """
+
+    def __init__(self, map: Map, fixed_digits: int = 0, min: int | None = None, max: int | None = None,
+                 signed: bool = False) -> None:
+        if signed:
+            raise ValueError("Database ids are never negative: use <int:...> without signed=True")
+        super().__init__(map, fixed_digits=fixed_digits, min=builtins.max(1, min or 1),
+                         max=builtins.min(DATABASE_ID_MAX, max or DATABASE_ID_MAX))
+
+    def to_python(self, value: str) -> Any:
+        if len(value.lstrip("0")) > DATABASE_ID_DIGITS:
+            raise ValidationError()
+        return super().to_python(value)
+
+
+def parse_positive_int(value: str, name: str, *, maximum: int = DATABASE_ID_MAX) -> int:
+    """``value`` (a query-string or form field called ``name``) as a whole number in 1 .. ``maximum``.
+
+    Raises ValueError with a sentence for the user. ``str.isdigit`` alone is not enough: it is
+    true for "²", which ``int()`` refuses, so only ASCII digits are accepted.
+    """
+    text = value.strip()
+    if not (text.isascii() and text.isdigit()) or len(text.lstrip("0")) > len(str(maximum)) \
+            or not 1 <= int(text) <= maximum:
+        raise ValueError(f"Expected {name} to be a positive whole number (at most {maximum}), got {text[:40]!r}.")
+    return int(text)
+
+
+def request_body_limit() -> int | None:
+    """The byte limit for the current request's body: the API's where it applies, else the global one."""
+    limit = current_app.config.get("MAX_CONTENT_LENGTH")
+    if request.path.startswith(API_PREFIX):
+        api_limit = int(current_app.config.get("KEYSTONE_API_MAX_BYTES", DEFAULT_API_MAX_BYTES))
+        limit = api_limit if limit is None else min(limit, api_limit)
+    return limit
+
+
+def refuse_large_bodies() -> None:
+    """Before any view (and before CSRF checks read a form): refuse a declared length over the limit.
+
+    Setting ``request.max_content_length`` also makes Werkzeug stop reading a body that did not
+    declare its length (chunked) once it passes the limit.
+    """
+    limit = request_body_limit()
+    if limit is None:
+        return
+    request.max_content_length = limit
+    if request.content_length is not None and request.content_length > limit:
+        abort(413, f"This request's body is {request.content_length:,} bytes; "
+                   f"the limit here is {limit:,} bytes.")
+
+
+def refuse_nul_characters() -> None:
+    """400 for a NUL character in the path, the query string or a form field.
+
+    No field of this app may hold one, and PostgreSQL refuses any text containing one with a
+    DataError, so a single ``%00`` in a login name or a filter would otherwise be a 500 there.
+    (JSON bodies are checked by :func:`app.json_body.load_json_body`.)
+    """
+    fields = request.args.items(multi=True)
+    if request.mimetype in ("application/x-www-form-urlencoded", "multipart/form-data"):
+        fields = (*fields, *request.form.items(multi=True))
+    if "\x00" in request.path or any("\x00" in name or "\x00" in value for name, value in fields):
+        abort(400, "Text in a request may not contain NUL characters (%00).")
+
+
+def init_app(app: Flask) -> None:
+    """Call before any blueprint is registered (rules bind their converters when added)."""
+    app.url_map.converters["int"] = DatabaseIdConverter
+    # First in line, ahead of CSRFProtect's hook, which reads the form of every POST.
+    app.before_request_funcs.setdefault(None, [])[:0] = [refuse_large_bodies, refuse_nul_characters]

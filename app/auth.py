@@ -209,7 +209,10 @@ def safe_next(target: str | None) -> str | None:
     # Browsers treat a backslash like a slash, so "/\evil.com" would mean "//evil.com".
     if "\\" in target or any(ord(ch) < 32 for ch in target):
         return None
-    parts = urlsplit(target)
+    try:
+        parts = urlsplit(target)
+    except ValueError:  # "http://[::1" and the like: not a URL, so not a place to send anyone
+        return None
     if parts.scheme or parts.netloc or not target.startswith("/") or target.startswith("//"):
         return None
     return target

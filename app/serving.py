@@ -66,6 +66,7 @@ def one_context_per_request(app: WSGIApp) -> WSGIApp:
     def isolated(environ: dict[str, Any], start_response: Callable[..., Any]) -> Iterable[bytes]:
         return contextvars.Context().run(app, environ, start_response)  # type: ignore[no-any-return]
 
+    isolated.keystone_app = app  # type: ignore[attr-defined]  # the app's settings stay reachable
     return isolated
 
 
@@ -88,6 +89,14 @@ def serve(app: WSGIApp, host: str, port: int, threads: int | None = None, proces
         _serve_gunicorn(app, wsgi, host, port, threads, processes, on_ready)
 
 
+def max_body_bytes(app: WSGIApp) -> int | None:
+    """The largest request body the app accepts (Flask's ``MAX_CONTENT_LENGTH``), if it says."""
+    target = getattr(app, "keystone_app", app)
+    config = getattr(target, "config", None)
+    value = config.get("MAX_CONTENT_LENGTH") if config is not None else None
+    return int(value) if value else None
+
+
 def _serve_waitress(app: WSGIApp, host: str, port: int, threads: int, on_ready: Ready) -> None:
     import logging
 
@@ -96,7 +105,11 @@ def _serve_waitress(app: WSGIApp, host: str, port: int, threads: int, on_ready: 
     # waitress warns "Task queue depth is N" whenever requests queue for a thread; that is
     # what a busy server does, not a fault.
     logging.getLogger("waitress.queue").setLevel(logging.ERROR)
-    server = create_server(app, host=host, port=port, threads=threads, ident="keystone")
+    # waitress buffers a whole request body (1 GB by default) before the app can answer 413;
+    # cap it at the app's own limit so an oversized upload is cut off at the door.
+    limit = max_body_bytes(app)
+    options = {"max_request_body_size": limit} if limit else {}
+    server = create_server(app, host=host, port=port, threads=threads, ident="keystone", **options)
     on_ready(int(server.effective_port))  # type: ignore[union-attr]
     server.run()
 

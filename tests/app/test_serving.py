@@ -215,3 +215,34 @@ def test_default_server_gives_each_request_its_own_identity(tmp_path):
     finally:
         rest = _stop_server(server)
     assert "Traceback" not in rest, rest
+
+
+@pytest.mark.parametrize("options", [["--processes", "1"], ["--processes", "2"]], ids=["waitress", "gunicorn"])
+def test_an_oversized_body_is_refused_at_the_door(tmp_path, options):
+    """A body over the app's limit is a 413 under every server (waitress would otherwise buffer
+    up to 1 GB of it before the app could answer)."""
+    env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(tmp_path / "instance"), "KEYSTONE_MAX_REQUEST_BYTES": "65536"}
+    server, port = _start_server(env, *options)
+    try:
+        connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+        body = b"x" * (2 * 1024 * 1024)
+        try:
+            connection.request("POST", "/auth/login", body=body,
+                               headers={"Content-Type": "application/x-www-form-urlencoded"})
+            response = connection.getresponse()
+            status, text = response.status, response.read().decode(errors="replace")
+        except (BrokenPipeError, ConnectionResetError):
+            status, text = None, ""  # the server hung up mid-upload after refusing it: also a refusal
+        finally:
+            connection.close()
+        assert status in (413, None)
+        if options == ["--processes", "1"] and status == 413:
+            assert "exceeds max_body of 65536" in text  # waitress itself stopped reading
+        # and the server still answers the next request normally
+        check = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
+        check.request("GET", "/auth/login")
+        assert check.getresponse().status == 200
+        check.close()
+    finally:
+        rest = _stop_server(server)
+    assert "Traceback" not in rest, rest

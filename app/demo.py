@@ -92,7 +92,7 @@ def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     """The demo curator accepts the automatic grade of the cards the grader is surest of and
     leaves the rest (and any disputed crowd answer) in the review queue to try by hand."""
     from review.models import CardReview
-    from review.tasks import decide, sync_reviews
+    from review.tasks import decide, open_disputes, sync_reviews
 
     from .db import db
     from .models import Person
@@ -105,7 +105,9 @@ def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     already = db.session.scalar(select(CardReview.id).where(CardReview.decision != "pending").limit(1))
     accepted = []
     if already is None:
-        for review in pending[: max(1, len(pending) // 2)]:
+        # A card whose crowd judgement or crop is disputed cannot be accepted: it waits for you.
+        undisputed = [review for review in pending if not open_disputes(review.card_id)]
+        for review in undisputed[: max(1, len(pending) // 2)]:
             decide(review.id, "accept", expected_version=review.version, curator=curator,
                    note="demo: accepted by the demo script")
             accepted.append(review.card_id)

@@ -444,6 +444,14 @@ def decide(review_id: int, action: str, *, expected_version: int, curator: Perso
     if action == "accept" and review.auto_grade is None:
         db.session.rollback()
         raise ReviewError(f"Card {review.card_id} has no automatic grade to accept; choose a grade instead")
+    if action in ("accept", "change"):
+        disputes = open_disputes(review.card_id)
+        if disputes:
+            db.session.rollback()
+            what = " and ".join(f"its {'judgement' if row.kind == 'judge' else 'crop'} (batch {row.batch_id}, "
+                                f"dispute {row.id})" for row in disputes)
+            raise ReviewError(f"Card {review.card_id} cannot be accepted while the crowd disagrees on {what}: "
+                              "resolve it under Disputed crowd answers first", 409)
     before = review_snapshot(review)
     decision, final = {
         "accept": ("accepted", review.auto_grade),
@@ -533,6 +541,17 @@ def bulk_decide(review_ids_with_versions: Sequence[tuple[int, int]], action: str
 
 # ---------------------------------------------------------------------------------------------
 # Disputed crowd answers
+
+
+def open_disputes(card_id: int) -> list[Aggregate]:
+    """The card's crowd aggregates (judge, crop) whose latest word waits for a curator.
+
+    A card with one is not accepted: its orientation or crop, which the grade was computed
+    from, is still in question."""
+    latest: dict[str, Aggregate] = {}
+    for row in db.session.scalars(select(Aggregate).where(Aggregate.card_id == card_id).order_by(Aggregate.id)):
+        latest[row.kind] = row
+    return [row for kind, row in sorted(latest.items()) if row.state == "needs_curator"]
 
 
 def disputed_aggregates(limit: int = 50, offset: int = 0) -> tuple[list[Aggregate], int]:

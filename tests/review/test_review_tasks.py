@@ -440,3 +440,27 @@ def test_resolving_a_crop_checks_the_boxes_and_can_skip_gold(app, disputed, pers
         assert resolved.gold_id is None and resolved.label["left"] == [1.0, 2.0, 281.5, 190.0]
         assert db.session.scalar(select(func.count()).select_from(GoldAnswer)) == 0
         assert [e.entity for e in events(disputed["crop_card"])] == ["aggregate"]
+
+
+@pytest.mark.both_databases
+def test_accept_is_refused_while_the_cards_judgement_or_crop_is_disputed(app, disputed, person, add_stage_result):
+    from review.tasks import ReviewError, decide, resolve_aggregate, sync_reviews
+
+    carol = person("carol")
+    card = disputed["judge_card"]
+    add_stage_result(card, "grade", outcome="few", metrics={"uncertainty": 0.2, "reasons": ["clean"]})
+    with app.app_context():
+        sync_reviews([card])
+        review = review_of(card)
+        for action, grade in (("accept", None), ("change", "some")):
+            with pytest.raises(ReviewError, match=r"cannot be accepted while the crowd disagrees on its judgement "
+                                                  rf"\(batch \d+, dispute {disputed['judge']}\)") as refused:
+                decide(review.id, action, expected_version=review.version, curator=carol, grade=grade)
+            assert refused.value.status == 409
+        assert review_of(card).decision == "pending" and events(card, "review") == []
+        # rejecting or sending back stays possible: neither releases the card
+        resolve_aggregate(disputed["judge"], {"is_stereo": True, "upside_down": True, "inverted": False},
+                          curator=carol)
+        review = review_of(card)
+        decided = decide(review.id, "accept", expected_version=review.version, curator=carol)
+        assert (decided.decision, decided.grade) == ("accepted", "few")

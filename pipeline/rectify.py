@@ -274,6 +274,8 @@ class Rectification:
     reason: str
     seconds: float = 0.0
     rotation: float = 0.0  # deg, the larger in-plane rotation of the two views
+    method: str = "loop_zhang"
+    """``identity`` (already rectified), ``loop_zhang``, ``row_affine`` or ``row_projective``."""
     F: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)), repr=False)
     """The fundamental matrix used (views in output order: ``x_r^T F x_l = 0``, unit norm)."""
     inlier_points: tuple[np.ndarray, np.ndarray] = field(default=(np.zeros((0, 2)), np.zeros((0, 2))), repr=False)
@@ -291,7 +293,7 @@ class Rectification:
             "shear": float(self.shear), "kept_fraction": float(self.kept_fraction),
             "matches": int(self.matches), "inliers": int(self.inliers), "swapped": bool(self.swapped),
             "warp_needed": bool(self.warp_needed), "reason": self.reason, "seconds": round(float(self.seconds), 4),
-            "rotation": round(float(self.rotation), 3),
+            "rotation": round(float(self.rotation), 3), "method": self.method,
         }
 
 
@@ -770,7 +772,7 @@ def _rectify(
                 dy_median=float(np.median(dy0)), dy_p95=float(np.percentile(dy0, 95)),
                 midline_angle=90.0, aspect_change=1.0, shear=0.0, kept_fraction=1.0,
                 matches=n, inliers=int(fit0.sum()), swapped=swapped, warp_needed=bool(H_r[0, 2] != 0),
-                reason=reason,
+                reason=reason, method="identity",
                 seconds=time.perf_counter() - clock, F=F, inlier_points=(pts_l[fit0], pts_r[fit0]),
             )
 
@@ -780,26 +782,178 @@ def _rectify(
             f"a homography explains {n_h} matches vs {n_f} for F (>= {params.planar_ratio:.0%}): "
             "planar or far scene, the epipole is undetermined"
         )
-    e_l, e_r = epipoles(F)
-    for name, e, (w_, h_) in (("left", e_l, (wl, hl)), ("right", e_r, (wr, hr))):
-        if _epipole_near(e, w_, h_, params.epipole_margin):
-            # Near-planar content gives an F whose epipole lands anywhere; if the rows of the
-            # pair line up with the least warp, the pair was nearly rectified all along.
-            aligned = _row_aligned(il, ir, (wl, hl), (wr, hr), params, sift_scale, principal_point)
-            if aligned is None:
-                raise EpipoleInImageError(
-                    f"the {name} epipole lies within {params.epipole_margin} half-diagonals of the centre"
-                )
-            return replace(
-                aligned, matches=n, swapped=swapped, F=F, seconds=time.perf_counter() - clock,
-                reason=aligned.reason + f" (F put the {name} epipole inside the image)",
-            )
 
-    H_l, H_r = loop_zhang(F, wl, hl, wr, hr)
+    # Candidates: Loop-Zhang from F, and the row alignments (left view kept) fitted robustly to
+    # every match. All are scored on the same matches; the choice is made by measurement
+    # (see _choose), not by which one failed first.
+    refused: list[RectificationError] = []
+    proposals: list[tuple[str, np.ndarray, np.ndarray]] = []
+    e_l, e_r = epipoles(F)
+    near = [name for name, e, (w_, h_) in (("left", e_l, (wl, hl)), ("right", e_r, (wr, hr)))
+            if _epipole_near(e, w_, h_, params.epipole_margin)]
+    if near:
+        # Near-planar content gives an F whose epipole lands anywhere: Loop-Zhang is not tried.
+        refused.append(EpipoleInImageError(
+            f"the {near[0]} epipole lies within {params.epipole_margin} half-diagonals of the centre"
+        ))
+    else:
+        try:
+            H_l, H_r = loop_zhang(F, wl, hl, wr, hr)
+            proposals.append(("loop_zhang", H_l, H_r))
+        except (DistortionError, EpipoleInImageError, UnboundedWarpError) as exc:
+            refused.append(exc)
+    for model in ROW_MODELS:
+        H_r_row = _row_fit(pts_l, pts_r, model, (wr, hr), params, sift_scale)
+        if H_r_row is None:
+            refused.append(ResidualDyError(f"row_{model}: no robust fit of the rows"))
+        else:
+            proposals.append((f"row_{model}", np.eye(3), H_r_row))
+
+    gate = ALIGNED_GATE * sift_scale
+    dys = {}
+    for name, H_l, H_r in proposals:
+        dy, _ = _dy_stats(H_l, H_r, pts_l, pts_r)
+        dys[name] = np.where(np.isfinite(dy), np.abs(dy), np.inf)
+    n_good = max((int(np.sum(d <= gate)) for d in dys.values()), default=0)
+    done: list[Rectification] = []
+    for name, H_l, H_r in proposals:
+        try:
+            done.append(_finish(name, H_l, H_r, pts_l, pts_r, dys[name], n_good, (wl, hl), (wr, hr),
+                                params, sift_scale, principal_point))
+        except (DistortionError, UnboundedWarpError, ResidualDyError) as exc:
+            refused.append(exc)
+    if not done:
+        first = next((e for e in refused if not isinstance(e, ResidualDyError)), refused[0] if refused else None)
+        kind = type(first) if first is not None else ResidualDyError
+        raise kind("; ".join(str(e) for e in refused) or "no rectification candidate")
+    chosen = _choose(done, sift_scale)
+    others = "; ".join(
+        f"{r.method} |dy| p95 {r.dy_p95:.2f} px, distortion {_distortion(r):.1f} deg" for r in done if r is not chosen
+    )
+    reason = chosen.reason + (f" (chosen over {others})" if others else "")
+    if near:
+        reason += f" (F put the {near[0]} epipole inside the image)"
+    return replace(chosen, matches=n, inliers=n_f if chosen.method == "loop_zhang" else chosen.inliers,
+                   swapped=swapped, F=F, reason=reason, seconds=time.perf_counter() - clock)
+
+
+ROW_MODELS = ("affine", "projective")
+"""Row alignments of the right view, the left kept: ``affine`` ``y' = a x + b y + c``;
+``projective`` ``y' = (a x + b y + c) / (g x + h y + 1)`` (and ``x' = (x + t) / (g x + h y + 1)``)."""
+ALIGNED_GATE = 3.0
+"""px at the SIFT scale: a match further than this from its row after rectification is a gross
+or near-miss mismatch, not residual; the candidates are scored on the same number of matches."""
+SIMPLICITY = {"row_affine": 0, "row_projective": 1, "loop_zhang": 2}
+DY_TIE = 0.15
+"""px at the SIFT scale (or 10 % of the best, the larger): candidates whose |dy| p95 is within
+this of the best are equally good at aligning rows."""
+DISTORTION_TIE = 0.5  # deg: distortions this close are equal; the simpler model wins
+
+
+def _distortion(rect: Rectification) -> float:
+    """deg: ``|midline angle - 90| + |rotation|`` of the worse view (shear plus turn)."""
+    return abs(rect.midline_angle - 90.0) + abs(rect.rotation)
+
+
+def _choose(done: list[Rectification], sift_scale: float) -> Rectification:
+    """The rule: the smallest |dy| p95 wins, unless another candidate is within ``DY_TIE`` of it;
+    among those, the smallest distortion (``_distortion``), and among distortions within
+    ``DISTORTION_TIE`` deg, the simplest model (row affine < row projective < Loop-Zhang). A
+    nearly rectified pair thus keeps its left view as it is, and a keystoned pair gets Loop-Zhang."""
+    best = min(r.dy_p95 for r in done)
+    tie = max(DY_TIE * sift_scale, 0.1 * best)
+    level = [r for r in done if r.dy_p95 <= best + tie]
+    least = min(_distortion(r) for r in level)
+    level = [r for r in level if _distortion(r) <= least + DISTORTION_TIE]
+    return min(level, key=lambda r: (SIMPLICITY[r.method], _distortion(r)))
+
+
+def _row_fit(
+    pts_l: np.ndarray, pts_r: np.ndarray, model: str, right_size: tuple[int, int],
+    params: RectifyParams, sift_scale: float,
+) -> np.ndarray | None:
+    """Robust row alignment of the right view onto the left: ``H_r`` or None.
+
+    Outliers: the start keeps matches within 3 robust sigmas (1.4826 MAD, at least 3 px at the
+    SIFT scale) of the median row offset, so that a few gross matches (|dy| of hundreds of px)
+    cannot pull the fit; then least squares on the kept matches, the residuals' robust sigma,
+    keep within 3 sigmas (at least 1 px at the SIFT scale), refit, until the kept set is stable
+    (at most 10 rounds). The projective model starts from the affine fit's kept set and is linear
+    in ``(a, b, c, g, h)`` (``y_l (g x + h y + 1) = a x + b y + c``). None when fewer than
+    ``min_inliers`` remain, the fit is not finite, the row scale changes by more than
+    ``max_row_scale_change`` (a zoom) or the projective denominator is not positive over the view.
+    """
+    if len(pts_l) < params.min_inliers:
+        return None
+    yl, x, y = pts_l[:, 1], pts_r[:, 0], pts_r[:, 1]
+    offset = yl - y
+    med = float(np.median(offset))
+    keep = np.abs(offset - med) <= max(3.0 * 1.4826 * float(np.median(np.abs(offset - med))), 3.0 * sift_scale)
+    if model == "projective":
+        start = _row_fit(pts_l, pts_r, "affine", right_size, params, sift_scale)
+        if start is None:
+            return None
+        keep = np.abs(yl - (start[1, 0] * x + start[1, 1] * y + start[1, 2])) <= ALIGNED_GATE * sift_scale
+    coef = np.zeros(5)
+    for _ in range(10):
+        if int(keep.sum()) < params.min_inliers:
+            return None
+        xs, ys, yls = x[keep], y[keep], yl[keep]
+        if model == "affine":
+            design = np.column_stack([xs, ys, np.ones(len(xs))])
+        else:
+            design = np.column_stack([xs, ys, np.ones(len(xs)), -xs * yls, -ys * yls])
+        # Columns in px are badly scaled against the constant: solve in scaled units.
+        norms = np.linalg.norm(design, axis=0)
+        norms[norms == 0] = 1.0
+        sol, *_ = np.linalg.lstsq(design / norms, yls, rcond=None)
+        coef[: len(sol)] = sol / norms
+        if not np.all(np.isfinite(coef)):
+            return None
+        den = coef[3] * x + coef[4] * y + 1.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            resid = yl - (coef[0] * x + coef[1] * y + coef[2]) / den
+        resid = np.where(np.isfinite(resid), resid, np.inf)
+        sigma = 1.4826 * float(np.median(np.abs(resid[keep] - np.median(resid[keep]))))
+        new = np.abs(resid) <= max(3.0 * sigma, 1.0 * sift_scale)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    if int(keep.sum()) < params.min_inliers:
+        return None
+    a, b, c, g, h = coef
+    wr, hr = right_size
+    corners = np.array([[0, 0], [wr - 1, 0], [wr - 1, hr - 1], [0, hr - 1]], np.float64)
+    if model == "projective" and not np.all(g * corners[:, 0] + h * corners[:, 1] + 1.0 > 0.5):
+        return None
+    den_centre = g * (wr - 1) / 2.0 + h * (hr - 1) / 2.0 + 1.0
+    if abs(b / den_centre - 1.0) > params.max_row_scale_change:
+        return None  # a zoom between the views, not a nearly rectified pair
+    return np.array([[1.0, 0.0, 0.0], [a, b, c], [g, h, 1.0]])
+
+
+def _finish(
+    method: str, H_l: np.ndarray, H_r: np.ndarray, pts_l: np.ndarray, pts_r: np.ndarray, abs_dy: np.ndarray,
+    n_good: int, left_size: tuple[int, int], right_size: tuple[int, int], params: RectifyParams,
+    sift_scale: float, principal_point: tuple[float, float] | None,
+) -> Rectification:
+    """KeystoneDepth's translation, the output canvas, the distortion and residual gates for one
+    candidate. ``abs_dy``: |dy| of every match under the candidate (px); its score ``dy_p95`` is
+    the p95 over the ``n_good`` best-aligned matches (the most any candidate aligns within
+    ``ALIGNED_GATE``), so that candidates are compared on equal numbers of matches."""
+    (wl, hl), (wr, hr) = left_size, right_size
+    aligned = abs_dy <= ALIGNED_GATE * sift_scale
+    if int(aligned.sum()) < params.min_inliers or n_good < params.min_inliers:
+        raise ResidualDyError(f"{method}: only {int(aligned.sum())} matches on their rows")
+    il, ir = pts_l[aligned], pts_r[aligned]
     dy, disp = _dy_stats(H_l, H_r, il, ir)
     if not (np.all(np.isfinite(dy)) and np.all(np.isfinite(disp))):
-        raise UnboundedWarpError("an inlier maps to infinity")
+        raise UnboundedWarpError(f"{method}: an inlier maps to infinity")
     _check_not_mirrored(_apply(H_l, il)[:, 0], _apply(H_r, ir)[:, 0])
+    best = np.sort(abs_dy)[:n_good]
+    dy_med, dy_p95 = float(np.median(best)), float(np.percentile(best, 95))
+    if not np.isfinite(dy_p95):
+        raise UnboundedWarpError(f"{method}: a match maps to infinity")
 
     # KeystoneDepth: translate after rectification so that no inlier disparity is negative; the
     # smallest (row mismatches left out) becomes 0, i.e. the farthest inlier is put at infinity.
@@ -808,24 +962,30 @@ def _rectify(
     disp = disp - shift
     H_r = np.array([[1, 0, shift], [0, 1, 0], [0, 0, 1.0]]) @ H_r
 
-    # Output canvas: union of both warped views, bounded by max_canvas_scale x the input size.
-    quads = [_quad(H_l, wl, hl), _quad(H_r, wr, hr)]
-    if not all(np.all(np.isfinite(qd)) for qd in quads):
-        raise UnboundedWarpError("a corner of a view maps to infinity")
-    allq = np.vstack(quads)
-    lo, hi = allq.min(axis=0), allq.max(axis=0)
-    cap = params.max_canvas_scale * np.array([max(wl, wr), max(hl, hr)], np.float64)
-    span = np.minimum(hi - lo, cap)
-    lo = (lo + hi) / 2 - span / 2
-    size = (max(1, math.ceil(span[0])), max(1, math.ceil(span[1])))
-    if size[0] * size[1] > params.max_output_pixels:
-        raise UnboundedWarpError(f"output {size[0]}x{size[1]} exceeds {params.max_output_pixels:,} pixels")
-    move = np.array([[1, 0, -lo[0] - 0.5], [0, 1, -lo[1] - 0.5], [0, 0, 1.0]])
-    H_l, H_r = move @ H_l, move @ H_r
+    if method == "loop_zhang":
+        # Output canvas: union of both warped views, bounded by max_canvas_scale x the input size.
+        quads = [_quad(H_l, wl, hl), _quad(H_r, wr, hr)]
+        if not all(np.all(np.isfinite(qd)) for qd in quads):
+            raise UnboundedWarpError(f"{method}: a corner of a view maps to infinity")
+        allq = np.vstack(quads)
+        lo, hi = allq.min(axis=0), allq.max(axis=0)
+        cap = params.max_canvas_scale * np.array([max(wl, wr), max(hl, hr)], np.float64)
+        span = np.minimum(hi - lo, cap)
+        lo = (lo + hi) / 2 - span / 2
+        size = (max(1, math.ceil(span[0])), max(1, math.ceil(span[1])))
+        if size[0] * size[1] > params.max_output_pixels:
+            raise UnboundedWarpError(f"output {size[0]}x{size[1]} exceeds {params.max_output_pixels:,} pixels")
+        move = np.array([[1, 0, -lo[0] - 0.5], [0, 1, -lo[1] - 0.5], [0, 0, 1.0]])
+        H_l, H_r = move @ H_l, move @ H_r
+    else:
+        size = (max(wl, wr), max(hl, hr))  # the left view stays where it is
     canvas = np.array([[-0.5, -0.5], [size[0] - 0.5, -0.5], [size[0] - 0.5, size[1] - 0.5], [-0.5, size[1] - 0.5]], np.float32)
     kept = 1.0
     for H, (w_, h_) in ((H_l, (wl, hl)), (H_r, (wr, hr))):
-        qd = _quad(H, w_, h_).astype(np.float32)
+        qd = _quad(H, w_, h_)
+        if not np.all(np.isfinite(qd)):
+            raise UnboundedWarpError(f"{method}: a corner of a view maps to infinity")
+        qd = qd.astype(np.float32)
         area = abs(cv2.contourArea(qd))
         inter, _ = cv2.intersectConvexConvex(qd, canvas)
         kept = min(kept, float(inter) / area if area > 0 else 0.0)
@@ -834,81 +994,32 @@ def _rectify(
     worst = ml if abs(ml["midline_angle"] - 90) >= abs(mr["midline_angle"] - 90) else mr
     aspect = max(ml["aspect_change"], mr["aspect_change"])
     shear = max(ml["shear"], mr["shear"])
-    if abs(worst["midline_angle"] - 90) > params.max_midline_deviation:
-        raise DistortionError(f"midline angle {worst['midline_angle']:.1f} deg, limit 90 +- {params.max_midline_deviation}")
-    if aspect > params.max_aspect_change:
-        raise DistortionError(f"aspect change {aspect:.2f} > {params.max_aspect_change}")
     rotation = max(abs(ml["rotation"]), abs(mr["rotation"]))
+    if abs(worst["midline_angle"] - 90) > params.max_midline_deviation:
+        raise DistortionError(f"{method}: midline angle {worst['midline_angle']:.1f} deg, limit 90 +- {params.max_midline_deviation}")
+    if aspect > params.max_aspect_change:
+        raise DistortionError(f"{method}: aspect change {aspect:.2f} > {params.max_aspect_change}")
     if rotation > params.max_rotation:
-        # A nearly rectified pair leaves F's epipole direction poorly determined and Loop-Zhang
-        # turns the views with it; rows of such a pair are better aligned by the least warp that
-        # fits them (x kept, y' = a x + b y + c on the right view).
-        aligned = _row_aligned(il, ir, (wl, hl), (wr, hr), params, sift_scale, principal_point)
-        if aligned is None:
-            raise DistortionError(f"a view is rotated {rotation:.1f} deg, limit {params.max_rotation}")
-        return replace(
-            aligned, matches=n, swapped=swapped, F=F, seconds=time.perf_counter() - clock,
-            reason=aligned.reason + f" (Loop-Zhang would have rotated a view {rotation:.1f} deg)",
-        )
+        # Stereo cameras of the period were levelled: a view turned further is the symptom of a
+        # wrong F (a nearly rectified or near-planar pair leaves the epipole direction loose).
+        raise DistortionError(f"{method}: a view is rotated {rotation:.1f} deg, limit {params.max_rotation}")
     if kept < params.min_kept_fraction:
-        raise DistortionError(f"only {kept:.0%} of a view fits the bounded canvas (< {params.min_kept_fraction:.0%})")
-    abs_dy = np.abs(dy)
-    dy_med, dy_p95 = float(np.median(abs_dy)), float(np.percentile(abs_dy, 95))
+        raise DistortionError(f"{method}: only {kept:.0%} of a view fits the bounded canvas (< {params.min_kept_fraction:.0%})")
     if dy_p95 > params.max_dy_p95 * sift_scale:
-        raise ResidualDyError(f"inlier |dy| p95 {dy_p95:.2f} px > {params.max_dy_p95 * sift_scale:.2f} px")
+        raise ResidualDyError(f"{method}: |dy| p95 {dy_p95:.2f} px > {params.max_dy_p95 * sift_scale:.2f} px")
+    label = {
+        "loop_zhang": "rectified (Loop-Zhang)",
+        "row_affine": "row-aligned (nearly rectified pair)",
+        "row_projective": "row-aligned with a projective term (nearly rectified pair)",
+    }[method]
     return Rectification(
         H_l=H_l, H_r=H_r, size=size, K=_intrinsics(size, principal_point, H_l), R=np.eye(3),
         t=np.array([-1.0, 0.0, 0.0]), disparity_range=(float(disp[keep].min()), float(disp[keep].max())),
         dy_median=dy_med, dy_p95=dy_p95, midline_angle=float(worst["midline_angle"]), aspect_change=float(aspect),
-        rotation=float(rotation),
-        shear=float(shear), kept_fraction=float(kept), matches=n, inliers=n_f, swapped=swapped, warp_needed=True,
-        reason=f"rectified (Loop-Zhang): |dy| p95 {dy_p95:.2f} px, midline angle {worst['midline_angle']:.1f} deg",
-        seconds=time.perf_counter() - clock, F=F, inlier_points=(il, ir),
-    )
-
-
-def _row_aligned(
-    il: np.ndarray, ir: np.ndarray, left_size: tuple[int, int], right_size: tuple[int, int],
-    params: RectifyParams, sift_scale: float, principal_point: tuple[float, float] | None,
-) -> Rectification | None:
-    """Row alignment for a nearly rectified pair: ``H_l = I``, ``H_r = [[1, 0, t], [a, b, c], [0, 0, 1]]``.
-
-    ``a, b, c`` by least squares on the inliers (``y_l ~ a x_r + b y_r + c``); ``t`` makes the
-    smallest inlier disparity 0. Returns None when the fit leaves |dy| p95 above the limit or
-    distorts the right view beyond the limits (then the pair is not nearly rectified).
-    """
-    (wl, hl), (wr, hr) = left_size, right_size
-    if len(il) < params.min_inliers:
-        return None
-    design = np.column_stack([ir[:, 0], ir[:, 1], np.ones(len(ir))])
-    (a, b, c), *_ = np.linalg.lstsq(design, il[:, 1], rcond=None)
-    if abs(b - 1.0) > params.max_row_scale_change:
-        return None  # a zoom between the views, not a nearly rectified pair
-    H_r = np.array([[1.0, 0.0, 0.0], [a, b, c], [0.0, 0.0, 1.0]])
-    dy, disp = _dy_stats(np.eye(3), H_r, il, ir)
-    abs_dy = np.abs(dy)
-    dy_p95 = float(np.percentile(abs_dy, 95))
-    metrics = distortion_metrics(H_r, wr, hr)
-    if (
-        dy_p95 > params.max_dy_p95 * sift_scale
-        or abs(metrics["midline_angle"] - 90) > params.max_midline_deviation
-        or metrics["aspect_change"] > params.max_aspect_change
-        or abs(metrics["rotation"]) > params.max_rotation
-    ):
-        return None
-    keep = _disparity_keep(disp, max(wl, wr), params.disparity_fence)
-    shift = float(disp[keep].min())
-    H_r[0, 2] = shift
-    disp = disp - shift
-    size = (max(wl, wr), max(hl, hr))
-    return Rectification(
-        H_l=np.eye(3), H_r=H_r, size=size, K=_intrinsics(size, principal_point, np.eye(3)), R=np.eye(3),
-        t=np.array([-1.0, 0.0, 0.0]), disparity_range=(0.0, float(disp[keep].max())),
-        dy_median=float(np.median(abs_dy)), dy_p95=dy_p95, midline_angle=float(metrics["midline_angle"]),
-        aspect_change=float(metrics["aspect_change"]), rotation=abs(float(metrics["rotation"])),
-        shear=float(metrics["shear"]), kept_fraction=1.0, matches=len(il), inliers=len(il), swapped=False,
-        warp_needed=True, reason=f"row-aligned (nearly rectified pair): |dy| p95 {dy_p95:.2f} px",
-        inlier_points=(il, ir),
+        rotation=float(rotation), shear=float(shear), kept_fraction=float(kept), matches=len(pts_l),
+        inliers=int(aligned.sum()), swapped=False, warp_needed=True,
+        reason=f"{label}: |dy| p95 {dy_p95:.2f} px, midline angle {worst['midline_angle']:.1f} deg",
+        inlier_points=(il, ir), method=method,
     )
 
 

@@ -838,8 +838,9 @@ def _rectify(
 
 
 ROW_MODELS = ("affine", "projective")
-"""Row alignments of the right view, the left kept: ``affine`` ``y' = a x + b y + c``;
-``projective`` ``y' = (a x + b y + c) / (g x + h y + 1)`` (and ``x' = (x + t) / (g x + h y + 1)``)."""
+"""Row alignments of the right view, the left kept: ``affine`` ``y' = a x + b y + c`` with
+``x' = b x - a y + t`` (a similarity: no shear); ``projective`` the same numerators over
+``g x + h y + 1``."""
 ALIGNED_GATE = 3.0
 """px at the SIFT scale: a match further than this from its row after rectification is a gross
 or near-miss mismatch, not residual; the candidates are scored on the same number of matches."""
@@ -929,7 +930,9 @@ def _row_fit(
     den_centre = g * (wr - 1) / 2.0 + h * (hr - 1) / 2.0 + 1.0
     if abs(b / den_centre - 1.0) > params.max_row_scale_change:
         return None  # a zoom between the views, not a nearly rectified pair
-    return np.array([[1.0, 0.0, 0.0], [a, b, c], [g, h, 1.0]])
+    # x' = b x - a y: the right view is turned (and scaled) as a whole, as a camera rolled by
+    # asin(a) would be, rather than sheared; y' (the row fit) is unchanged by it.
+    return np.array([[b, -a, 0.0], [a, b, c], [g, h, 1.0]])
 
 
 def _finish(

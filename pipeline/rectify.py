@@ -95,6 +95,7 @@ __all__ = [
     "estimate_fundamental",
     "loop_zhang",
     "match_features",
+    "rectify_matches",
     "rectify_pair",
     "warp_pair",
 ]
@@ -722,25 +723,63 @@ def _rectify(
     left: np.ndarray, right: np.ndarray, params: RectifyParams, principal_point: tuple[float, float] | None, clock: float
 ) -> Rectification:
     pts_l, pts_r = match_features(left, right, params)
+    sift_scale = max(1.0, max(max(left.shape[:2]), max(right.shape[:2])) / params.max_side)
+    return _rectify_matches(
+        pts_l, pts_r, left.shape[:2][::-1], right.shape[:2][::-1], params, principal_point, clock, sift_scale
+    )
+
+
+def rectify_matches(
+    pts_l: np.ndarray,
+    pts_r: np.ndarray,
+    left_size: tuple[int, int],
+    right_size: tuple[int, int],
+    params: RectifyParams = RectifyParams(),
+    principal_point: tuple[float, float] | None = None,
+    match_scale: float = 1.0,
+) -> Rectification:
+    """:func:`rectify_pair` from given matches: ``pts_l``, ``pts_r`` ``(N, 2)`` px in views of
+    ``left_size`` / ``right_size`` ``(width, height)`` px. ``match_scale``: px per matching px
+    (>= 1; the thresholds in ``params`` are at the matching scale). Same decisions, same errors."""
+    pts_l, pts_r = (np.asarray(p, np.float64) for p in (pts_l, pts_r))
+    if pts_l.ndim != 2 or pts_l.shape[1:] != (2,) or pts_l.shape != pts_r.shape:
+        raise InvalidInputError(f"Expected two (N, 2) point arrays, got {pts_l.shape} and {pts_r.shape}")
+    if not (np.all(np.isfinite(pts_l)) and np.all(np.isfinite(pts_r))):
+        raise InvalidInputError("Expected finite match coordinates, got NaN or inf")
+    sizes = [tuple(int(v) for v in size) for size in (left_size, right_size)]
+    if any(len(size) != 2 or min(size) < MIN_SIDE for size in sizes):
+        raise InvalidInputError(f"Expected view sizes (width, height) of at least {MIN_SIDE} px, got {sizes}")
+    if not (math.isfinite(match_scale) and match_scale >= 1.0):
+        raise InvalidInputError(f"Expected match_scale >= 1, got {match_scale}")
+    try:
+        return _rectify_matches(pts_l, pts_r, sizes[0], sizes[1], params, principal_point, time.perf_counter(), match_scale)
+    except PipelineError:
+        raise
+    except (cv2.error, np.linalg.LinAlgError, ValueError, ZeroDivisionError, FloatingPointError) as exc:
+        raise RectificationError(f"numerical failure ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
+
+
+def _rectify_matches(
+    pts_l: np.ndarray, pts_r: np.ndarray, left_size: tuple[int, int], right_size: tuple[int, int],
+    params: RectifyParams, principal_point: tuple[float, float] | None, clock: float, sift_scale: float,
+) -> Rectification:
     n = len(pts_l)
     if n < params.min_matches:
         raise TooFewMatchesError(f"{n} matches < {params.min_matches}")
-    sift_scale = max(max(left.shape[:2]), max(right.shape[:2])) / params.max_side
-    sift_scale = max(1.0, sift_scale)
     F, mask = _fit_f(pts_l, pts_r, params, sift_scale)
     n_f = int(mask.sum())
     if n_f < params.min_inliers:
         raise TooFewMatchesError(f"{n_f} fundamental-matrix inliers < {params.min_inliers} (of {n} matches)")
 
-    views = [left, right]
+    sizes = [left_size, right_size]
     il, ir = pts_l[mask], pts_r[mask]
     swapped = False
     if params.detect_swapped and float(np.median(il[:, 0] - ir[:, 0])) < 0:
         swapped = True
-        views = [right, left]
+        sizes = [right_size, left_size]
         pts_l, pts_r, il, ir = pts_r, pts_l, ir, il
         F = F.T.copy()
-    (hl, wl), (hr, wr) = views[0].shape[:2], views[1].shape[:2]
+    (wl, hl), (wr, hr) = sizes[0], sizes[1]
 
     # Already rectified within tolerance?
     tol = params.skip_dy_tolerance * sift_scale

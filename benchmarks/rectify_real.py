@@ -113,7 +113,12 @@ def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0)) -> P
 
 
 def method_of(rect: Rectification) -> str:
-    return getattr(rect, "method", None) or ("identity" if not rect.warp_needed else "loop_zhang")
+    if getattr(rect, "method", None):
+        return rect.method
+    # Code from before Rectification.method (for before/after figures): read the reason.
+    if rect.reason.startswith("already rectified"):
+        return "identity"
+    return "row_affine" if rect.reason.startswith("row-aligned") else "loop_zhang"
 
 
 def fresh_dy(left: np.ndarray, right: np.ndarray) -> dict[str, Any]:

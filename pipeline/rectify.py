@@ -50,6 +50,14 @@ unit ~ half the larger side) so that numbers stay O(1).
 4. A common uniform scale keeps the left view's area and a common translation keeps the left
    view's centre, so an already rectified ``F ~ [[0,0,0],[0,0,-1],[0,1,0]]`` gives the identity.
 
+Robust choice (:func:`rectify_pair`): F by USAC MAGSAC++; besides Loop-Zhang, two row alignments
+of the right view (left view kept: ``y' = a x + b y + c`` with ``x' = b x - a y``, and the same
+over ``g x + h y + 1``) fitted to every match with a MAD-based start and iterated 3-sigma least
+squares, so a few gross matches cannot pull them. All candidates are measured (|dy| p95 on the
+same number of best-aligned matches, distortion) and the lowest ``|dy| p95 + 0.15 px per degree
+of shear and turn`` wins, the simpler model on a tie: on nearly rectified cards F's epipole
+direction is loose and Loop-Zhang turns both views by it.
+
 KeystoneDepth's changes (:func:`rectify_pair`): focal length from a 45 deg vertical field of
 view, ``f = H / (2 tan 22.5 deg) = 1.2071 H`` with ``H`` the output height (px); principal point at the centre of the full image
 where known, else the output centre; the right view is translated so that no inlier disparity is
@@ -693,13 +701,22 @@ def rectify_pair(
     3. already rectified: the matches fitting ``F0`` (|dy| <= 2 x tolerance) are at least
        ``skip_share`` of F's inliers and their |dy| p95 <= ``skip_dy_tolerance`` -> identity
        homographies, ``warp_needed=False`` (mirror images are refused first);
-    4. planar/far scene (homography explains F's inliers), epipole near an image, Loop-Zhang,
-       mirror / upside-down checks;
-    5. KeystoneDepth's translation: the right view is shifted along x so that the smallest inlier
-       disparity (along-row mismatches left out, see ``disparity_fence``) is 0: no inlier
-       disparity is negative and the farthest inlier sits at infinity;
-    6. output canvas (union of both warped views, at most ``max_canvas_scale`` x the input),
-       then the distortion and residual-|dy| gates.
+    4. candidates, each computed, none taken for being first: Loop-Zhang on F (not tried when a
+       homography explains F's inliers - planar or far scene - or an epipole lies near an
+       image), and two row alignments of the right view with the left kept (affine and
+       projective in y, fitted to every match with MAD-based outlier rejection, see
+       :func:`_row_fit`); mirror / upside-down checks;
+    5. per candidate, KeystoneDepth's translation: the right view is shifted along x so that the
+       smallest inlier disparity (along-row mismatches left out, see ``disparity_fence``) is 0:
+       no inlier disparity is negative and the farthest inlier sits at infinity; the output
+       canvas (Loop-Zhang: union of both warped views, at most ``max_canvas_scale`` x the input;
+       row alignments: the left view's frame); the distortion and residual-|dy| gates. |dy| p95
+       is measured on the same number of matches for every candidate (the most that any one
+       puts within ``ALIGNED_GATE`` px of their rows);
+    6. the choice (:func:`_choose`): lowest |dy| p95 + ``DISTORTION_COST`` px per degree of shear
+       and turn, the simpler model on a tie. A planar or far scene is rectified only by a row
+       alignment that turns no view more than ``PLANAR_MAX_TURN`` deg, else refused. With no
+       candidate left, the first refusal's type is raised with every candidate's reason.
 
     Thresholds in px (``skip_dy_tolerance``, ``max_dy_p95``, ``f_threshold``, ``h_threshold``)
     are at the SIFT scale: they grow with the factor by which views over ``max_side`` were
@@ -816,8 +833,12 @@ def _rectify_matches(
             )
 
     n_h = _homography_inliers(pts_l, pts_r, params, sift_scale)
+    planar = None
     if n_h >= params.planar_ratio * n_f:
-        raise PlanarSceneError(
+        # F is degenerate and its epipole arbitrary: Loop-Zhang is not tried. A far scene of a
+        # nearly rectified pair still has well-defined rows, so the row alignments may rectify it
+        # if they turn no view more than PLANAR_MAX_TURN; else the pair is refused.
+        planar = PlanarSceneError(
             f"a homography explains {n_h} matches vs {n_f} for F (>= {params.planar_ratio:.0%}): "
             "planar or far scene, the epipole is undetermined"
         )
@@ -830,7 +851,9 @@ def _rectify_matches(
     e_l, e_r = epipoles(F)
     near = [name for name, e, (w_, h_) in (("left", e_l, (wl, hl)), ("right", e_r, (wr, hr)))
             if _epipole_near(e, w_, h_, params.epipole_margin)]
-    if near:
+    if planar is not None:
+        refused.append(planar)
+    elif near:
         # Near-planar content gives an F whose epipole lands anywhere: Loop-Zhang is not tried.
         refused.append(EpipoleInImageError(
             f"the {near[0]} epipole lies within {params.epipole_margin} half-diagonals of the centre"
@@ -861,6 +884,10 @@ def _rectify_matches(
                                 params, sift_scale, principal_point))
         except (DistortionError, UnboundedWarpError, ResidualDyError) as exc:
             refused.append(exc)
+    if planar is not None:
+        done = [r for r in done if r.rotation <= PLANAR_MAX_TURN]
+        if not done:
+            raise planar
     if not done:
         first = next((e for e in refused if not isinstance(e, ResidualDyError)), refused[0] if refused else None)
         kind = type(first) if first is not None else ResidualDyError
@@ -870,7 +897,9 @@ def _rectify_matches(
         f"{r.method} |dy| p95 {r.dy_p95:.2f} px, distortion {_distortion(r):.1f} deg" for r in done if r is not chosen
     )
     reason = chosen.reason + (f" (chosen over {others})" if others else "")
-    if near:
+    if planar is not None:
+        reason += " (far or planar scene: F undetermined, rows aligned without it)"
+    elif near:
         reason += f" (F put the {near[0]} epipole inside the image)"
     return replace(chosen, matches=n, inliers=n_f if chosen.method == "loop_zhang" else chosen.inliers,
                    swapped=swapped, F=F, reason=reason, seconds=time.perf_counter() - clock)
@@ -884,10 +913,13 @@ ALIGNED_GATE = 3.0
 """px at the SIFT scale: a match further than this from its row after rectification is a gross
 or near-miss mismatch, not residual; the candidates are scored on the same number of matches."""
 SIMPLICITY = {"row_affine": 0, "row_projective": 1, "loop_zhang": 2}
-DY_TIE = 0.15
-"""px at the SIFT scale (or 10 % of the best, the larger): candidates whose |dy| p95 is within
-this of the best are equally good at aligning rows."""
-DISTORTION_TIE = 0.5  # deg: distortions this close are equal; the simpler model wins
+DISTORTION_COST = 0.15
+"""px (at the SIFT scale) of |dy| p95 that one degree of distortion (``_distortion``) must buy.
+Loop-Zhang turns both views of a nearly rectified pair by the loose direction of F's epipole
+(2-6 deg on real cards, changing with a crop of a few px) for a few tenths of a px of |dy|."""
+COST_TIE = 0.1  # px at the SIFT scale: costs this close are equal, and the simpler model wins
+PLANAR_MAX_TURN = 1.0
+"""deg: a far or planar scene (F degenerate) is row-aligned only if no view is turned further."""
 
 
 def _distortion(rect: Rectification) -> float:
@@ -895,17 +927,19 @@ def _distortion(rect: Rectification) -> float:
     return abs(rect.midline_angle - 90.0) + abs(rect.rotation)
 
 
+def _cost(rect: Rectification, sift_scale: float) -> float:
+    """px at the SIFT scale: ``dy_p95 / sift_scale + DISTORTION_COST x distortion``."""
+    return rect.dy_p95 / sift_scale + DISTORTION_COST * _distortion(rect)
+
+
 def _choose(done: list[Rectification], sift_scale: float) -> Rectification:
-    """The rule: the smallest |dy| p95 wins, unless another candidate is within ``DY_TIE`` of it;
-    among those, the smallest distortion (``_distortion``), and among distortions within
-    ``DISTORTION_TIE`` deg, the simplest model (row affine < row projective < Loop-Zhang). A
-    nearly rectified pair thus keeps its left view as it is, and a keystoned pair gets Loop-Zhang."""
-    best = min(r.dy_p95 for r in done)
-    tie = max(DY_TIE * sift_scale, 0.1 * best)
-    level = [r for r in done if r.dy_p95 <= best + tie]
-    least = min(_distortion(r) for r in level)
-    level = [r for r in level if _distortion(r) <= least + DISTORTION_TIE]
-    return min(level, key=lambda r: (SIMPLICITY[r.method], _distortion(r)))
+    """The rule: the lowest :func:`_cost` (measured |dy| p95 plus ``DISTORTION_COST`` px per deg
+    of shear and turn) wins; among candidates within ``COST_TIE`` px of it, the simplest model
+    (row affine < row projective < Loop-Zhang). A nearly rectified pair thus keeps its left view
+    as it is, and a keystoned pair, whose rows no row alignment can match, gets Loop-Zhang."""
+    best = min(_cost(r, sift_scale) for r in done)
+    level = [r for r in done if _cost(r, sift_scale) <= best + COST_TIE]
+    return min(level, key=lambda r: (SIMPLICITY[r.method], _cost(r, sift_scale)))
 
 
 def _row_fit(

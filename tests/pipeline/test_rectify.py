@@ -594,15 +594,23 @@ def test_epipole_at_infinity_and_far_and_planar_scenes_from_matches() -> None:
     rect = rectify_matches(pts_l, pts_r, SIZE, SIZE, RectifyParams(skip_dy_tolerance=1e-6, planar_ratio=1.0))
     _assert_sane(rect)
     assert rect.dy_p95 < 1e-6 and rect.rotation < 1e-6 and abs(rect.midline_angle - 90) < 1e-6
-    # A far scene (one disparity) turned by 1 deg, and a planar scene (a homography): degenerate F.
+    # A far scene (one disparity) turned by 2 deg, and a planar scene (a homography): degenerate F
+    # (a far scene turned by less than PLANAR_MAX_TURN would be row-aligned).
     far_l, far_r = _scene(300, rng, 0.0)
-    a = math.radians(1.0)
+    a = math.radians(2.0)
     turned = far_r @ np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]])
     with pytest.raises(PlanarSceneError):
         rectify_matches(far_l, turned, SIZE, SIZE)
     M = np.array([[1.0, 0.05, -20], [0.02, 0.95, 10], [1e-4, 5e-5, 1]])
     with pytest.raises(PlanarSceneError):
         rectify_matches(pts_l, _apply(M, pts_l), SIZE, SIZE)
+    # A far scene of a nearly rectified pair (turned 0.3 deg, 4 px lower): rows are well defined
+    # without F, so it is row-aligned, not refused.
+    a = math.radians(0.3)
+    nearly = far_r @ np.array([[math.cos(a), math.sin(a)], [-math.sin(a), math.cos(a)]]) + [0.0, 4.0]
+    rect = rectify_matches(far_l, nearly, SIZE, SIZE)
+    assert rect.method.startswith("row_") and "far or planar scene" in rect.reason
+    assert rect.dy_p95 < 0.01 and abs(rect.rotation - 0.3) < 0.01 and rect.disparity_range[1] < 0.01
 
 
 def test_near_degenerate_f_gives_finite_homographies_or_a_typed_error() -> None:

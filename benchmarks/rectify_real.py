@@ -13,8 +13,8 @@ Per pair:
 
 - ``method``: ``loop_zhang``, ``row_aligned`` or ``identity`` (already rectified), or the typed
   failure ``code``;
-- ``dy_p95`` / ``dy_median`` (px): |y_l - y_r| of **fresh** SIFT matches (ratio 0.7) found on the
-  two rectified views (not the matches rectification used). Matches with |dy| > ``ROW_GATE`` (3) px
+- ``dy_p95`` / ``dy_median`` (px): |y_l - y_r| of **fresh** SIFT matches (ratio 0.7, at most 1200 px
+  per view, mapped to full resolution) found on the two rectified views (not the matches rectification used). Matches with |dy| > ``ROW_GATE`` (3) px
   are mismatches, not residual, and are left out; ``fresh_kept`` is the share kept (a
   rectification that leaves many true matches off their rows loses them here). The same with a
   10 px gate: ``dy_p95_within10``, ``fresh_kept_within10``;
@@ -50,6 +50,7 @@ from pipeline.split import split_card
 ROW_GATE = 3.0  # px: fresh matches further from their row than this are mismatches (the headline figure)
 DY_GATE = 10.0  # px: the looser gate, reported beside it
 MAX_CROP = 16  # px off each edge
+MEASURE_PARAMS = RectifyParams(max_side=1200)  # the check's own SIFT, whatever rectification's working resolution
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
@@ -125,7 +126,7 @@ def fresh_dy(left: np.ndarray, right: np.ndarray) -> dict[str, Any]:
     """|dy| of fresh SIFT matches on a rectified pair (px). ``dy_p95``: over the matches within
     ``ROW_GATE`` px of their row (near-miss and gross mismatches out; ``fresh_kept`` says how many
     stay); ``dy_p95_within10``: the same with a ``DY_GATE`` (10 px) gate."""
-    pts_l, pts_r = match_features(left, right, RectifyParams())
+    pts_l, pts_r = match_features(left, right, MEASURE_PARAMS)
     out: dict[str, Any] = {"fresh_matches": int(len(pts_l))}
     dy = np.abs(pts_l[:, 1] - pts_r[:, 1])
     for key, gate in (("", ROW_GATE), ("_within10", DY_GATE)):
@@ -209,6 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="shared data folder (holds stereocards/)")
     parser.add_argument("--crops", type=int, default=3, help="random crops per pair besides the 16 px one")
     parser.add_argument("--only", default=None, help="only pairs whose name contains this")
+    parser.add_argument("--max-side", type=int, default=RectifyParams().max_side,
+                        help="working resolution: longer side (px) of the views SIFT matches on for rectification")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
     if not (args.data / "stereocards").is_dir():
@@ -218,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     for pair in real_pairs(args.data):
         if args.only and args.only not in pair.name:
             continue
-        row = measure(pair, n_crops=args.crops)
+        row = measure(pair, RectifyParams(max_side=args.max_side), n_crops=args.crops)
         rows.append(row)
         if not args.json:
             print(f"{row['pair']:<58} {row['method']:<11} dy_p95 {row.get('dy_p95')!s:>6} "
@@ -227,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"disp_move {row.get('crop_disparity_move')!s:>5} {row['seconds']:.2f}s "
                   f"{row.get('code', '')}", flush=True)
     if args.json:
-        print(json.dumps({"row_gate_px": ROW_GATE, "dy_gate_px": DY_GATE, "max_crop_px": MAX_CROP, "pairs": rows}, indent=1))
+        print(json.dumps({"max_side": args.max_side, "row_gate_px": ROW_GATE, "dy_gate_px": DY_GATE, "max_crop_px": MAX_CROP, "pairs": rows}, indent=1))
     return 0
 
 

@@ -361,7 +361,7 @@ def test_huge_card_and_matches_on_a_line(moto) -> None:
     left, right, _ = moto
     big_l = cv2.resize(left, (6000, 4048), interpolation=cv2.INTER_LINEAR)
     big_r = cv2.resize(right, (6000, 4048), interpolation=cv2.INTER_LINEAR)
-    rect = rectify_pair(big_l, big_r)  # SIFT at 1200 px; tolerances scale with it (5x here)
+    rect = rectify_pair(big_l, big_r)  # SIFT at 800 px; tolerances scale with it (7.5x here)
     _assert_sane(rect)
     assert not rect.warp_needed and rect.size == (6000, 4048)
     # Texture only in a 20-row band: every match lies near one line.

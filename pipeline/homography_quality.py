@@ -89,6 +89,17 @@ def row_to_column(H_row: np.ndarray) -> np.ndarray:
     return H.T.copy()
 
 
+PIPELINE_LEGACY_CONVENTION = "column vectors, x' ~ H x, pixels with the origin at the top-left pixel centre"
+
+
+def centre_to_corner(H: np.ndarray) -> np.ndarray:
+    """``H`` for pixel coordinates with the origin at the top-left pixel's *centre* (OpenCV's,
+    :mod:`pipeline.rectify`'s) rewritten for this module's origin at the top-left *corner*:
+    ``x_corner = x_centre + 0.5`` in both images, so ``H_corner = T(0.5) H T(-0.5)``."""
+    shift = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    return shift @ np.asarray(H, dtype=float) @ np.linalg.inv(shift)
+
+
 def apply_homography(
     H: np.ndarray, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -630,12 +641,25 @@ def _pair_from_json_obj(
         )
     if "H_l" in obj and "H_r" in obj:
         convention = obj.get("convention", "column")
+        pixel_origin = obj.get("pixel_origin", "corner")
+        if isinstance(convention, str) and convention.startswith(PIPELINE_LEGACY_CONVENTION):
+            # rectification.json as the rectify stage wrote it before it said "column": column
+            # vectors with the origin at the top-left pixel's centre.
+            convention, pixel_origin = "column", "centre"
         if convention not in ("column", "row"):
             raise HomographyReadError(path, f"unknown convention {convention!r}")
+        if pixel_origin not in ("corner", "centre"):
+            raise HomographyReadError(path, f"unknown pixel_origin {pixel_origin!r} (expected corner or centre)")
         Hl, Hr = _matrix(obj["H_l"], "H_l", path), _matrix(obj["H_r"], "H_r", path)
         if convention == "row":
             Hl, Hr = row_to_column(Hl), row_to_column(Hr)
+        if pixel_origin == "centre":
+            Hl, Hr = centre_to_corner(Hl), centre_to_corner(Hr)
         w, h = obj.get("width"), obj.get("height")
+        box = obj.get("right_box" if obj.get("swapped") else "left_box")
+        if w is None and h is None and isinstance(box, list) and len(box) == 4:
+            # The rectify stage's document: H_l maps the crop in this box (card px, x1/y1 exclusive).
+            w, h = box[2] - box[0], box[3] - box[1]
         for name, v in (("width", w), ("height", h)):
             if v is not None and (not isinstance(v, (int, float)) or not v > 0):
                 raise HomographyReadError(path, f"{name} must be a positive number")

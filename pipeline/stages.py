@@ -128,10 +128,15 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageRecord:
             artifacts[name] = str((work_dir / f"{name}.png").relative_to(task.data_dir))
             artifacts[f"{name}_preview"] = str((work_dir / f"{name}_preview.jpg").relative_to(task.data_dir))
         camera = work_dir / "rectification.json"
+        view = right if rect.swapped else left  # the crop H_l maps
         write_json(camera, {
-            "convention": "column vectors, x' ~ H x, pixels with the origin at the top-left pixel centre; "
-                          "H_l/H_r map the cropped left/right halves (boxes in card pixels) to the rectified views; "
-                          "disparity d = x_left - x_right >= 0",
+            # Read by `keystone check-homographies` (pipeline.homography_quality): "convention",
+            # "pixel_origin", "width" and "height" are its keys.
+            "convention": "column", "pixel_origin": "centre",
+            "convention_detail": "column vectors, x' ~ H x, pixels with the origin at the top-left pixel centre; "
+                                 "H_l/H_r map the cropped left/right halves (boxes in card pixels) to the rectified "
+                                 "views (H_l the right half's crop when swapped); disparity d = x_left - x_right >= 0",
+            "width": int(view.shape[1]), "height": int(view.shape[0]),
             "left_box": list(boxes[0]), "right_box": list(boxes[1]), **rect.metrics(),
             "implied_pose": implied_pose(rect.H_l, rect.H_r, rect.K),
         })

@@ -125,3 +125,71 @@ def test_folder_scan_skips_non_homography_json(tmp_path: Path):
         [str(tmp_path / "proj_components_r1_60.json"), "--json"],
     )
     assert named.exit_code == 1 and "error" in json.loads(named.output)["results"][0]
+
+
+def _stage_rectification(tmp_path: Path) -> Path:
+    """The rectify stage's own rectification.json for a card (Motorcycle, right photo keystoned)."""
+    import cv2
+    from skimage import data
+
+    from pipeline.io import write_png
+    from pipeline.records import CardTask
+    from pipeline.rectify import RectifyParams
+    from pipeline.stages import rectify_task
+
+    left, right, _ = data.stereo_motorcycle()
+    h, w = left.shape[:2]
+    keystone = np.array([[1.0, 0.0, 0.0], [0.01, 1.0, 6.0], [5e-5, 0.0, 1.0]])
+    right = cv2.warpPerspective(right, keystone, (w, h), borderMode=cv2.BORDER_REPLICATE)
+    card = np.full((h + 40, 2 * w + 60, 3), 200, np.uint8)
+    card[20:20 + h, 20:20 + w], card[20:20 + h, w + 40:2 * w + 40] = left, right
+    write_png(tmp_path / "card.png", card)
+    (tmp_path / "work").mkdir()
+    task = CardTask(card_id=1, content_hash="x", image_path=str(tmp_path / "card.png"), work_dir=str(tmp_path / "work"),
+                    data_dir=str(tmp_path), inputs={"left_box": [20, 20, 20 + w, 20 + h],
+                                                    "right_box": [w + 40, 20, 2 * w + 40, 20 + h]})
+    record = rectify_task(task, RectifyParams())
+    assert record.status == "done", record.reason
+    return tmp_path / record.artifacts["rectification"]
+
+
+def test_reads_the_rectify_stages_own_rectification_json(tmp_path: Path):
+    path = _stage_rectification(tmp_path)
+    document = json.loads(path.read_text())
+    result = CliRunner().invoke(check_homographies_command, [str(path), "--json"])
+    assert result.exit_code == 0, result.output
+    (item,) = json.loads(result.output)["results"]
+    assert "error" not in item and item["verdict"] in ("good", "border", "bad")
+    assert item["metrics"]["size_source"] == "file"
+    # The stage writes the size of the (aligned) crop H_l maps; a mild keystone is corrected with
+    # little distortion.
+    box = document["left_box"]
+    assert (document["width"], document["height"]) == (box[2] - box[0], box[3] - box[1])
+    assert 700 < document["width"] <= 741 and 460 < document["height"] <= 500
+    assert item["metrics"]["max_midline_dev_deg"] < 3
+    # Files written before the stage said "column" (the long convention sentence) still read,
+    # with the size taken from the box and the same metrics.
+    legacy = {k: v for k, v in document.items() if k not in ("width", "height", "pixel_origin", "convention_detail")}
+    legacy["convention"] = (
+        "column vectors, x' ~ H x, pixels with the origin at the top-left pixel centre; H_l/H_r map the cropped "
+        "left/right halves (boxes in card pixels) to the rectified views; disparity d = x_left - x_right >= 0"
+    )
+    old = tmp_path / "legacy.json"
+    old.write_text(json.dumps(legacy))
+    result = CliRunner().invoke(check_homographies_command, [str(old), "--json"])
+    assert result.exit_code == 0, result.output
+    (legacy_item,) = json.loads(result.output)["results"]
+    assert legacy_item["metrics"]["max_midline_dev_deg"] == pytest.approx(item["metrics"]["max_midline_dev_deg"])
+
+
+def test_pixel_centre_origin_is_converted_and_unknown_origin_refused(tmp_path: Path):
+    from pipeline import homography_quality as hq
+
+    scale = np.diag([2.0, 2.0, 1.0])  # about the centre of the top-left pixel
+    _write(tmp_path / "centre.json", scale, scale, width=100, height=50, pixel_origin="centre")
+    (pair,) = hq.read_homographies(tmp_path / "centre.json")
+    # x_corner' = 2 (x_corner - 0.5) + 0.5: the corner origin moves to -0.5.
+    np.testing.assert_allclose(hq.apply_homography(pair.H_l, np.array([[0.0, 0.0]]))[0], [[-0.5, -0.5]])
+    _write(tmp_path / "odd.json", scale, scale, pixel_origin="middle")
+    result = CliRunner().invoke(check_homographies_command, [str(tmp_path / "odd.json"), "--json"])
+    assert result.exit_code == 1 and "unknown pixel_origin" in result.output

@@ -124,11 +124,17 @@ def _read_lines(path: Path) -> list[str]:
             return list(handle)
 
 
+class _RecordError(Exception):
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
 def _parse_record(lines: list[str], start: int) -> tuple[list[str], int]:
     """Parse one record beginning at ``lines[start]``; returns its cells and how many lines it used.
 
-    Raises ``csv.Error`` for a quote that never closes, text after a closing quote, or a field over
-    ``csv.field_size_limit()``."""
+    Raises :class:`_RecordError` for a quote that never closes, text after a closing quote, or a
+    field over ``csv.field_size_limit()``."""
     used = 0
 
     def feed() -> Iterator[str]:
@@ -137,7 +143,18 @@ def _parse_record(lines: list[str], start: int) -> tuple[list[str], int]:
             used += 1
             yield line
 
-    cells = next(csv.reader(feed(), strict=True))
+    try:
+        cells = next(csv.reader(feed(), strict=True))
+    except csv.Error as exc:
+        text = str(exc)
+        if "field larger than field limit" in text:
+            raise _RecordError(f"a field is longer than {csv.field_size_limit():,} characters "
+                               "(the CSV field size limit)") from exc
+        if used > 1 or "unexpected end of data" in text:
+            # The parser left this line inside a quoted field: the quote opened here never closes
+            # where it should, and reading on would swallow the rows after it.
+            raise _RecordError("a quoted field opened on this line never closes (unterminated quote)") from exc
+        raise _RecordError(f"malformed CSV ({text}): a quote inside a field must be doubled") from exc
     return cells, used
 
 
@@ -148,7 +165,9 @@ def read_csv_records(path: Path) -> list[CsvRecord]:
     of the file; a field over the csv module's size limit) is reported by that line, and parsing
     starts again on the next line. A record spanning several lines is kept only when its field
     count is the first record's (the header's): a stray quote that merges good rows into one
-    record is undone the same way, line by line, instead of silently eating them.
+    record is undone the same way, line by line, instead of silently eating them. (A stray quote
+    whose merged record happens to have the header's field count cannot be told from a real
+    multi-line field: it stays one record.)
     """
     lines = _read_lines(path)
     records: list[CsvRecord] = []
@@ -158,8 +177,8 @@ def read_csv_records(path: Path) -> list[CsvRecord]:
         line_number = index + 1
         try:
             cells, used = _parse_record(lines, index)
-        except csv.Error as exc:
-            records.append(CsvRecord(line_number, None, _csv_reason(exc)))
+        except _RecordError as exc:
+            records.append(CsvRecord(line_number, None, exc.reason))
             index += 1
             continue
         if used > 1 and width is not None and len(cells) != width:
@@ -173,15 +192,6 @@ def read_csv_records(path: Path) -> list[CsvRecord]:
             width = len(cells) if width is None else width
         index += used
     return records
-
-
-def _csv_reason(exc: csv.Error) -> str:
-    text = str(exc)
-    if "field larger than field limit" in text:
-        return f"a field is longer than {csv.field_size_limit():,} characters (the CSV field size limit)"
-    if "unexpected end of data" in text:
-        return "a quoted field never closes (unterminated quote)"
-    return f"malformed CSV: {text}"
 
 
 def read_metadata(path: str | Path) -> MetadataFile:

@@ -1,0 +1,66 @@
+"""What killed commands leave behind, cleared when the next one starts.
+
+``keystone run`` removes the temporary files of atomic writes (views, stage artifacts, the
+ingest store) that a killed process never renamed, and the staging folders of killed exports in
+the web's releases folder; ``keystone export`` clears its own ``--out`` folder
+(:func:`exports.staging.remove_stale_partials`). A running command's files are never touched:
+temporary files only once unchanged for :data:`STALE_TEMP_SECONDS`, staging folders only when
+their export's lock is free.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.io import remove_stale_temp_files
+
+STALE_TEMP_SECONDS = 10 * 60  # a temporary file lives seconds; ten minutes untouched is a dead writer
+TEMP_FOLDERS = ("derived", "originals")  # under the data dir
+
+
+@dataclass
+class LeftoversReport:
+    temp_files: int = 0
+    staging_folders: int = 0
+    bytes: int = 0
+    paths: list[str] = field(default_factory=list)
+
+    def as_json(self) -> dict[str, Any]:
+        return {"temp_files": self.temp_files, "staging_folders": self.staging_folders, "bytes": self.bytes,
+                "paths": self.paths}
+
+
+def remove_leftovers(data_dir: Path, releases_dir: Path | None = None, *,
+                     stale_temp_seconds: float = STALE_TEMP_SECONDS) -> LeftoversReport:
+    """Remove stale temporary files under the data dir's artifact folders and dead exports'
+    staging folders in ``releases_dir`` (default ``<data dir>/releases``)."""
+    from exports.staging import remove_stale_partials
+
+    report = LeftoversReport()
+    for name in TEMP_FOLDERS:
+        for path, size in remove_stale_temp_files(data_dir / name, stale_temp_seconds):
+            report.temp_files += 1
+            report.bytes += size
+            report.paths.append(str(path))
+    for leftover in remove_stale_partials(releases_dir or data_dir / "releases"):
+        report.staging_folders += 1
+        report.bytes += leftover.bytes
+        report.paths.append(leftover.path)
+    return report
+
+
+def clear_leftovers(as_json: bool) -> LeftoversReport:
+    """:func:`remove_leftovers` for the app's data dir and releases folder, saying what went
+    (on stderr under ``--json``, so stdout stays one JSON document)."""
+    from flask import current_app
+
+    from .console import data_dir, say
+
+    configured = current_app.config.get("KEYSTONE_RELEASES_DIR")
+    report = remove_leftovers(data_dir(), Path(configured) if configured else None)
+    if report.paths:
+        say(f"removed {report.temp_files} temporary file(s) and {report.staging_folders} export staging folder(s) "
+            f"({report.bytes / 1e6:.1f} MB) left by interrupted commands", as_json)
+    return report

@@ -1,11 +1,13 @@
 """What killed commands leave behind, cleared when the next one starts.
 
-``keystone run`` removes the temporary files of atomic writes (views, stage artifacts, the
-ingest store) that a killed process never renamed, and the staging folders of killed exports in
-the web's releases folder; ``keystone export`` clears its own ``--out`` folder
-(:func:`exports.staging.remove_stale_partials`). A running command's files are never touched:
-temporary files only once unchanged for :data:`STALE_TEMP_SECONDS`, staging folders only when
-their export's lock is free.
+``keystone run`` removes, at its start, the temporary files a killed ingest left in the store
+and the staging folders of killed exports in the web's releases folder; each card's work folder
+(views, stage artifacts) is cleared of a killed run's ``.tmp`` files just before the card runs
+again (:func:`pipeline.runner.clear_stale_temp_files`: only cards in flight when a run died can
+hold them, and a walk of the whole ``derived`` tree costs tens of seconds at 500,000 files).
+``keystone export`` clears its own ``--out`` folder (:func:`exports.staging.remove_stale_partials`).
+A running command's files are never touched: temporary files only once unchanged for
+:data:`~pipeline.io.STALE_TEMP_SECONDS`, staging folders only when their export's lock is free.
 """
 
 from __future__ import annotations
@@ -14,10 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.io import remove_stale_temp_files
+from pipeline.io import STALE_TEMP_SECONDS, remove_stale_temp_files
 
-STALE_TEMP_SECONDS = 10 * 60  # a temporary file lives seconds; ten minutes untouched is a dead writer
-TEMP_FOLDERS = ("derived", "originals")  # under the data dir
+TEMP_FOLDERS = ("originals",)  # under the data dir; "derived" is cleared card by card by the runner
 
 
 @dataclass
@@ -34,8 +35,8 @@ class LeftoversReport:
 
 def remove_leftovers(data_dir: Path, releases_dir: Path | None = None, *,
                      stale_temp_seconds: float = STALE_TEMP_SECONDS) -> LeftoversReport:
-    """Remove stale temporary files under the data dir's artifact folders and dead exports'
-    staging folders in ``releases_dir`` (default ``<data dir>/releases``)."""
+    """Remove stale temporary files in the originals store and dead exports' staging folders in
+    ``releases_dir`` (default ``<data dir>/releases``)."""
     from exports.staging import remove_stale_partials
 
     report = LeftoversReport()

@@ -182,6 +182,7 @@ def write_npy(path: str | os.PathLike[str], array: np.ndarray) -> None:
 
 
 TEMP_SUFFIX = ".tmp"
+STALE_TEMP_SECONDS = 10 * 60  # a temporary file lives seconds; ten minutes untouched is a dead writer
 
 
 def remove_stale_temp_files(root: str | os.PathLike[str], older_than_s: float,

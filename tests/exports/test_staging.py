@@ -132,23 +132,37 @@ def test_export_clears_killed_exports_and_publishes_world_readable_under_any_uma
 
 
 @pytest.mark.parametrize("age_minutes, kept", [(11, False), (2, True)])
-def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, data_dir, age_minutes, kept) -> None:
-    """A writer killed inside atomic_write leaves its .tmp; the next ``keystone run`` removes it
-    once it is older than ten minutes, and leaves a fresh one (a concurrent writer's) alone."""
-    views = data_dir / "derived" / "ab" / ("ab" * 32) / "views" / "0123456789abcdef"
-    killed = subprocess.run(
-        [sys.executable, "-c",
-         "import os, signal, sys\nfrom pipeline.io import atomic_write\n"
-         "with atomic_write(sys.argv[1]) as handle:\n"
-         "    handle.write(b'w' * 50_000); handle.flush(); os.kill(os.getpid(), signal.SIGKILL)\n",
-         str(views / "preview.webp")], env={**os.environ, "PYTHONPATH": str(REPO)}, check=False)
-    assert killed.returncode == -signal.SIGKILL
-    (leftover,) = views.glob(".preview.webp.*.tmp")
-    then = time.time() - age_minutes * 60
-    os.utime(leftover, (then, then))
+def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, data_dir, make_card, age_minutes,
+                                                                 kept) -> None:
+    """A writer killed inside atomic_write leaves its .tmp: the next ``keystone run`` removes it
+    from the card's work folder before the card runs again (and a killed ingest's from the store)
+    once older than ten minutes, and leaves a fresh one (a concurrent writer's) alone."""
+    from app.runs import available_stages, card_work_dir
+    from pipeline.records import param_hash
+
+    card_id = make_card()
+    with app.app_context():
+        from app.db import db
+        from app.models import Card
+
+        card = db.session.get(Card, card_id)
+        work = card_work_dir(data_dir, card.content_hash, "filter", param_hash(available_stages()["filter"].params))
+    leftovers = []
+    for target in (work / "left.png", data_dir / "originals" / "ab" / ("ab" * 32 + ".png")):
+        killed = subprocess.run(
+            [sys.executable, "-c",
+             "import os, signal, sys\nfrom pipeline.io import atomic_write\n"
+             "with atomic_write(sys.argv[1]) as handle:\n"
+             "    handle.write(b'w' * 50_000); handle.flush(); os.kill(os.getpid(), signal.SIGKILL)\n",
+             str(target)], env={**os.environ, "PYTHONPATH": str(REPO)}, check=False)
+        assert killed.returncode == -signal.SIGKILL
+        (leftover,) = target.parent.glob(f".{target.name}.*.tmp")
+        then = time.time() - age_minutes * 60
+        os.utime(leftover, (then, then))
+        leftovers.append(leftover)
     result = runner.invoke(args=["run", "--stages", "filter", "--json"])
     assert result.exit_code == 0, result.output
-    assert leftover.exists() is kept
+    assert [path.exists() for path in leftovers] == [kept, kept]
     if not kept:
         assert "removed 1 temporary file(s) and 0 export staging folder(s) (0.1 MB)" in result.stderr
-    assert "stages" in json.loads(result.stdout)
+    assert json.loads(result.stdout)["stages"][0]["processed"] == 1  # and the card ran

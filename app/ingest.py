@@ -23,7 +23,7 @@ import click
 from flask import current_app
 from flask.cli import with_appcontext
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError, SQLAlchemyError
+from sqlalchemy.exc import SQLAlchemyError
 
 from pipeline.errors import ImageReadError
 from pipeline.io import IMAGE_SUFFIXES, probe_image
@@ -168,15 +168,12 @@ def _walk_folder(root: Path, report: IngestReport) -> list[Path]:
     return sorted(found)
 
 
-def store_original(source: Path, content_hash: str, data_dir: Path) -> tuple[Path, bool]:
-    """Copy ``source`` into the store atomically and make it read-only.
-
-    Returns the path relative to ``data_dir`` and whether this call created the file (False when
-    an interrupted run had stored the same bytes already)."""
+def store_original(source: Path, content_hash: str, data_dir: Path) -> Path:
+    """Copy ``source`` into the store atomically and make it read-only; returns the relative path."""
     relative = Path("originals") / content_hash[:2] / f"{content_hash}{source.suffix.lower()}"
     target = data_dir / relative
     if target.exists():  # left by an interrupted run, or shared by name: same bytes by construction
-        return relative, False
+        return relative
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".ingest-", suffix=".tmp")
     try:
@@ -191,7 +188,7 @@ def store_original(source: Path, content_hash: str, data_dir: Path) -> tuple[Pat
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return relative, True
+    return relative
 
 
 def database_reason(exc: SQLAlchemyError) -> str:
@@ -375,7 +372,7 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         return
     try:
         info = probe_image(path, max_pixels=max_pixels)
-        relative, created = store_original(path, content_hash, data_dir)
+        relative = store_original(path, content_hash, data_dir)
     except ImageReadError as exc:
         report.rejected.append({"path": str(path), "reason": str(exc)})
         return

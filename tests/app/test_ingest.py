@@ -427,7 +427,7 @@ def test_stray_quote_that_would_merge_rows_is_undone_line_by_line(app, runner, s
         "card_c.tif,Bridge,Kilburn\n"
         'card_d.jps,Quarry,Underwood"\n'
     )
-    result, report, reasons = _metadata_report(runner, scans, csv_path)
+    _, report, reasons = _metadata_report(runner, scans, csv_path)
     assert report["metadata"]["rows"] == 2 and set(reasons) == {"1"}
     assert "runs over 3 lines" in reasons["1"]
 
@@ -438,7 +438,7 @@ def test_oversize_field_rejects_its_row_alone(app, runner, scans, tmp_path):
     csv_path = tmp_path / "big.csv"
     huge = "x" * 200_000
     csv_path.write_text(f"file_name,title\ncard_b.png,Falls\ncard_c.tif,{huge}\ncard_d.jps,Quarry\n")
-    result, report, reasons = _metadata_report(runner, scans, csv_path)
+    _, report, reasons = _metadata_report(runner, scans, csv_path)
     assert report["metadata"] == {"rows": 2, "matched": 2, "unmatched": 0}
     assert set(reasons) == {"2"}
     assert f"longer than {csv.field_size_limit():,} characters" in reasons["2"]
@@ -485,6 +485,6 @@ def test_duplicated_column_is_an_error_for_that_column_and_the_rest_loads(app, r
 def test_duplicated_key_column_rejects_the_file_with_a_clear_reason(app, runner, scans, tmp_path):
     csv_path = tmp_path / "keys.csv"
     csv_path.write_text("file_name,title,file_name\ncard_b.png,Falls,card_c.tif\n")
-    result, report, reasons = _metadata_report(runner, scans, csv_path)
+    _, report, reasons = _metadata_report(runner, scans, csv_path)
     assert report["ingested"] == 4
     assert "key column 'file_name' appears 2 times (columns 1 and 3)" in reasons["file"]

@@ -33,6 +33,17 @@ sys.stdin.read()
 """
 
 
+# A writer killed inside atomic_write, after writing but before the rename.
+KILLED_WRITER = """
+import os, signal, sys
+from pipeline.io import atomic_write
+with atomic_write(sys.argv[1]) as handle:
+    handle.write(b"w" * 50_000)
+    handle.flush()
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
 def _exporter(out: Path, version: str, mode: str) -> tuple[subprocess.Popen[str], Path]:
     child = subprocess.Popen([sys.executable, "-c", EXPORTER, str(out), version, mode], stdin=subprocess.PIPE,
                              stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
@@ -150,11 +161,7 @@ def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, dat
     leftovers = []
     for target in (work / "left.png", data_dir / "originals" / "ab" / ("ab" * 32 + ".png")):
         killed = subprocess.run(
-            [sys.executable, "-c",
-             "import os, signal, sys\nfrom pipeline.io import atomic_write\n"
-             "with atomic_write(sys.argv[1]) as handle:\n"
-             "    handle.write(b'w' * 50_000); handle.flush(); os.kill(os.getpid(), signal.SIGKILL)\n",
-             str(target)], env={**os.environ, "PYTHONPATH": str(REPO)}, check=False)
+            [sys.executable, "-c", KILLED_WRITER, str(target)], env={**os.environ, "PYTHONPATH": str(REPO)}, check=False)
         assert killed.returncode == -signal.SIGKILL
         (leftover,) = target.parent.glob(f".{target.name}.*.tmp")
         then = time.time() - age_minutes * 60

@@ -339,7 +339,8 @@ print(json.dumps({"exit_code": result.exit_code, "stdout": result.stdout, "excep
 def test_unreadable_folders_and_files_are_rejected_items_for_an_unprivileged_user(scans):
     """Run as ``nobody`` (root reads through chmod 000): an unreadable subfolder, an unreadable
     file and an unreadable folder named on the command line are each a rejected item, the rest
-    is ingested, and the command exits 1 (click's own check used to end it with exit 2)."""
+    is ingested, and the command exits 1 (click's own check used to end it with exit 2); an
+    unreadable metadata CSV is one rejected item too."""
     import pwd
     import shutil
     import subprocess
@@ -363,13 +364,16 @@ def test_unreadable_folders_and_files_are_rejected_items_for_an_unprivileged_use
         locked_file.chmod(0)
         locked_folder = root / "locked-folder"
         locked_folder.mkdir(mode=0)
+        locked_csv = root / "locked.csv"
+        locked_csv.write_text("file_name,title\ncard_b.png,Falls\n")
+        locked_csv.chmod(0)
         (root / "instance").mkdir()
         env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(root / "instance"), "KEYSTONE_DATA_DIR": str(root / "data"),
                "KEYSTONE_DATABASE_URL": f"sqlite:///{root / 'instance' / 'keystone.sqlite3'}",
                "KEYSTONE_SECRET_KEY": "test-secret", "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
         done = subprocess.run(
             [sys.executable, "-c", UNPRIVILEGED_INGEST, str(root), str(account.pw_uid), str(account.pw_gid),
-             str(work), str(locked_file), str(locked_folder)],
+             str(work), str(locked_file), str(locked_folder), "--metadata", str(locked_csv)],
             env=env, capture_output=True, text=True, timeout=300, check=False,
         )
         assert done.returncode == 0, done.stderr[-3000:]
@@ -382,6 +386,7 @@ def test_unreadable_folders_and_files_are_rejected_items_for_an_unprivileged_use
             str(work / "locked box"): "cannot list folder: Permission denied; nothing under it was ingested",
             str(locked_file): "unreadable: Permission denied",
             str(locked_folder): "cannot list folder: Permission denied; nothing under it was ingested",
+            str(locked_csv): "cannot read metadata: Permission denied",
         }
     finally:
         for locked in root.rglob("locked*"):

@@ -12,6 +12,12 @@ Formats understood (detected from the file itself):
 
 Every column is kept, known or not; a few are also copied to canonical keys (``accession``,
 ``title``, ``date``, ...) so the rest of the tool can rely on them.
+
+Nothing is last-wins and one bad row never costs the file: a malformed record (unterminated
+quote, a field over the csv module's size limit) is rejected by itself and parsing goes on
+(:func:`read_csv_records`); rows that describe one accession number or file name differently are
+all rejected (:func:`_reject_duplicate_keys` says why); a column given twice is reported and
+not loaded (:func:`_unique_names`).
 """
 
 from __future__ import annotations

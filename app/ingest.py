@@ -23,7 +23,7 @@ import click
 from flask import current_app
 from flask.cli import with_appcontext
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import SQLAlchemyError
 
 from pipeline.errors import ImageReadError
 from pipeline.io import IMAGE_SUFFIXES, probe_image
@@ -62,25 +62,70 @@ def sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
+def _file_kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def sha256_regular_file(path: Path) -> str:
+    """The sha256 of ``path``, which must be a regular file.
+
+    Opened without blocking and checked on the open descriptor: reading a named pipe would wait
+    forever for a writer, and a device would never end. Raises :class:`ImageReadError` for a
+    broken link or anything but a regular file, ``OSError`` when it cannot be read."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        if path.is_symlink():
+            raise ImageReadError("broken symbolic link") from None
+        raise
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise ImageReadError(f"{_file_kind(mode)}, not an image file")
+        handle = os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+    digest = hashlib.sha256()
+    with handle:
+        for chunk in iter(lambda: handle.read(HASH_CHUNK), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _os_reason(exc: OSError) -> str:
+    return exc.strerror or str(exc)
+
+
 def discover_files(paths: Iterable[str | Path], report: IngestReport) -> Iterator[Path]:
     """Yield image files under ``paths`` (recursively, sorted), rejecting unusable paths.
 
     A file named explicitly with an unsupported extension is rejected; inside folders such
-    files (a README, a metadata CSV) are passed over silently.
+    files (a README, a metadata CSV) are passed over silently. A folder that cannot be listed
+    (no permission) is rejected with its reason, never skipped in silence; the rest goes on.
     """
     for raw in paths:
         path = Path(raw)
-        if not path.exists() and not path.is_symlink():
+        try:
+            mode: int | None = path.lstat().st_mode
+        except FileNotFoundError:
             report.rejected.append({"path": str(path), "reason": "no such file or folder"})
-        elif path.is_dir():
+            continue
+        except OSError as exc:  # e.g. a path inside a folder we may not enter
+            report.rejected.append({"path": str(path), "reason": f"cannot look at it: {_os_reason(exc)}"})
+            continue
+        if mode is not None and stat.S_ISLNK(mode):
             try:
-                children = sorted(p for p in path.rglob("*") if p.is_file() or p.is_symlink())
-            except OSError as exc:
-                report.rejected.append({"path": str(path), "reason": f"cannot list folder: {exc.strerror or exc}"})
-                continue
-            for child in children:
-                if child.suffix.lower() in IMAGE_SUFFIXES:
-                    yield child
+                mode = path.stat().st_mode  # a link named on the command line is followed
+            except OSError:
+                mode = None  # broken: the file check below says so
+        if mode is not None and stat.S_ISDIR(mode):
+            yield from _walk_folder(path, report)
         elif path.suffix.lower() not in IMAGE_SUFFIXES:
             report.rejected.append(
                 {"path": str(path), "reason": f"unsupported file type {path.suffix or '(none)'!r}; expected one of "
@@ -88,6 +133,39 @@ def discover_files(paths: Iterable[str | Path], report: IngestReport) -> Iterato
             )
         else:
             yield path
+
+
+def _walk_folder(root: Path, report: IngestReport) -> list[Path]:
+    """Image files under ``root``, sorted; folders that cannot be listed are rejected by name.
+
+    Links to folders are not followed inside a folder (a link back up would loop); each is
+    reported so nothing under it is skipped unseen."""
+    found: list[Path] = []
+    pending = [root]
+    while pending:
+        folder = pending.pop()
+        try:
+            with os.scandir(folder) as listing:
+                entries = list(listing)
+        except OSError as exc:
+            report.rejected.append({"path": str(folder),
+                                    "reason": f"cannot list folder: {_os_reason(exc)}; nothing under it was ingested"})
+            continue
+        for entry in entries:
+            child = Path(entry.path)
+            try:
+                is_folder = entry.is_dir(follow_symlinks=False)
+                linked_folder = not is_folder and entry.is_symlink() and entry.is_dir()
+            except OSError:
+                is_folder = linked_folder = False
+            if is_folder:
+                pending.append(child)
+            elif linked_folder:
+                report.rejected.append({"path": str(child), "reason": "a symbolic link to a folder: links are not "
+                                        "followed inside folders; name it on the command line to ingest it"})
+            elif child.suffix.lower() in IMAGE_SUFFIXES:
+                found.append(child)
+    return sorted(found)
 
 
 def store_original(source: Path, content_hash: str, data_dir: Path) -> Path:
@@ -111,6 +189,13 @@ def store_original(source: Path, content_hash: str, data_dir: Path) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return relative
+
+
+def database_reason(exc: SQLAlchemyError) -> str:
+    """The database's own words for a failed statement, without SQL, parameters or traceback."""
+    cause = getattr(exc, "orig", None) or exc
+    lines = str(cause).strip().splitlines()
+    return f"{type(cause).__name__}: {lines[0] if lines else 'no message'}"
 
 
 def get_or_create_collection(name: str) -> Collection:
@@ -182,10 +267,19 @@ def ingest(
     on_start: Callable[[int], None] | None = None,
     on_file: Callable[[Path], None] | None = None,
 ) -> IngestReport:
+    """Ingest files and folders (and a metadata CSV): every problem is a ``rejected`` entry with
+    its reason and the rest goes on; a database that refuses writes (a full disk) rejects each
+    file it touches, and no original stays in the store without its card."""
     report = IngestReport()
-    collection = get_or_create_collection(collection_name)
-    collection_id = collection.id
-    db.session.commit()
+    try:
+        collection = get_or_create_collection(collection_name)
+        collection_id = collection.id
+        db.session.commit()
+    except SQLAlchemyError as exc:
+        db.session.rollback()
+        report.rejected.append({"path": _database_label(), "reason": "cannot write the catalogue database "
+                                f"({database_reason(exc)}): nothing was ingested"})
+        return report
 
     metadata_ids: list[int] = []
     if metadata_csv is not None:
@@ -199,10 +293,19 @@ def ingest(
         if on_file is not None:
             on_file(path)
 
-    _link_metadata(collection_id)
-    db.session.commit()
+    try:
+        _link_metadata(collection_id)
+        db.session.commit()
+        records = (db.session.scalars(select(MetadataRecord).where(MetadataRecord.id.in_(metadata_ids))).all()
+                   if metadata_ids else [])
+    except SQLAlchemyError as exc:
+        db.session.rollback()
+        if metadata_csv is not None:
+            report.rejected.append({"path": str(metadata_csv), "reason": "metadata not attached to the new cards: "
+                                    f"the catalogue database refused the write ({database_reason(exc)}); "
+                                    "ingest the CSV again"})
+        return report
     if metadata_ids:
-        records = db.session.scalars(select(MetadataRecord).where(MetadataRecord.id.in_(metadata_ids))).all()
         report.metadata["matched"] = sum(1 for r in records if r.card_id is not None)
         unmatched = sorted((r for r in records if r.card_id is None), key=lambda r: r.row_number)
         report.metadata["unmatched"] = len(unmatched)
@@ -218,6 +321,10 @@ def ingest(
     return report
 
 
+def _database_label() -> str:
+    return db.engine.url.render_as_string(hide_password=True)
+
+
 def _ingest_metadata(collection_id: int, metadata_csv: Path, report: IngestReport) -> list[int]:
     try:
         parsed = read_metadata(metadata_csv)
@@ -225,29 +332,41 @@ def _ingest_metadata(collection_id: int, metadata_csv: Path, report: IngestRepor
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         report.rejected.append({"path": str(metadata_csv), "reason": f"cannot read metadata: {reason}"})
         return []
+    for problem in parsed.problems:
+        report.rejected.append({"path": str(metadata_csv), "reason": f"metadata: {problem}"})
     for number, reason in parsed.errors:
         report.rejected.append({"path": f"{metadata_csv}:{number}", "reason": f"malformed metadata row: {reason}"})
     report.metadata["rows"] = len(parsed.rows)
-    ids = _store_metadata_rows(collection_id, metadata_csv, parsed.rows)
-    db.session.commit()
+    try:
+        ids = _store_metadata_rows(collection_id, metadata_csv, parsed.rows)
+        db.session.commit()
+    except SQLAlchemyError as exc:
+        db.session.rollback()
+        report.rejected.append({"path": str(metadata_csv), "reason": f"metadata not recorded: the catalogue "
+                                f"database refused the write ({database_reason(exc)}); none of its "
+                                f"{len(parsed.rows)} rows was stored"})
+        report.metadata["rows"] = 0
+        return []
     return ids
 
 
 def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int, report: IngestReport) -> None:
     try:
-        if path.is_symlink() and not path.exists():
-            raise ImageReadError("broken symbolic link")
-        if not os.access(path, os.R_OK):
-            raise ImageReadError("permission denied")
-        content_hash = sha256_file(path)
+        content_hash = sha256_regular_file(path)
     except ImageReadError as exc:
         report.rejected.append({"path": str(path), "reason": str(exc)})
         return
     except OSError as exc:
-        report.rejected.append({"path": str(path), "reason": f"unreadable: {exc.strerror or exc}"})
+        report.rejected.append({"path": str(path), "reason": f"unreadable: {_os_reason(exc)}"})
         return
 
-    existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
+    try:
+        existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
+    except SQLAlchemyError as exc:
+        db.session.rollback()
+        report.rejected.append({"path": str(path), "reason": "not ingested: the catalogue database cannot be read "
+                                f"({database_reason(exc)})"})
+        return
     if existing is not None:
         report.duplicates.append(_duplicate_entry(path, existing))
         return
@@ -258,7 +377,7 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         report.rejected.append({"path": str(path), "reason": str(exc)})
         return
     except OSError as exc:
-        report.rejected.append({"path": str(path), "reason": f"cannot store: {exc.strerror or exc}"})
+        report.rejected.append({"path": str(path), "reason": f"cannot store: {_os_reason(exc)}"})
         return
 
     card = Card(
@@ -273,8 +392,8 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         byte_size=info.byte_size,
         source_metadata={},
     )
-    db.session.add(card)
     try:
+        db.session.add(card)
         db.session.flush()
         for record in db.session.scalars(
             select(MetadataRecord).where(
@@ -284,15 +403,38 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         ):
             _apply_metadata(card, record)
         db.session.commit()
-    except IntegrityError:
-        # Another ingest stored the same bytes between our check and our commit.
+    except SQLAlchemyError as exc:
         db.session.rollback()
-        existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
-        if existing is None:
-            raise
-        report.duplicates.append(_duplicate_entry(path, existing))
+        # Another ingest may have stored the same bytes between our check and our commit
+        # (IntegrityError): then its card owns the original. Otherwise (a full disk, a lost
+        # server) no card points at the file, so it goes: the store never keeps an orphan.
+        existing = _card_with_hash(content_hash)
+        if existing is not None:
+            report.duplicates.append(_duplicate_entry(path, existing))
+            return
+        removed = _discard_original(data_dir / relative)
+        report.rejected.append({"path": str(path), "reason": "not recorded: the catalogue database refused the "
+                                f"write ({database_reason(exc)}); "
+                                + ("the stored copy was removed" if removed else
+                                   f"the stored copy {relative} could not be removed")})
         return
     report.ingested.append({"id": card.id, "path": str(path), "content_hash": content_hash})
+
+
+def _card_with_hash(content_hash: str) -> Card | None:
+    try:
+        return db.session.scalar(select(Card).where(Card.content_hash == content_hash))
+    except SQLAlchemyError:
+        db.session.rollback()
+        return None
+
+
+def _discard_original(stored: Path) -> bool:
+    try:
+        stored.unlink(missing_ok=True)
+    except OSError:
+        return False
+    return True
 
 
 def _duplicate_entry(path: Path, existing: Card) -> dict[str, Any]:
@@ -304,8 +446,10 @@ def _duplicate_entry(path: Path, existing: Card) -> dict[str, Any]:
 
 
 @click.command("ingest")
-@click.argument("paths", nargs=-1, type=click.Path(path_type=Path))
-@click.option("--metadata", "metadata_csv", type=click.Path(path_type=Path),
+# readable=False: click would end the whole command (exit 2) on one unreadable path; ingest
+# rejects that path alone, with its reason, and goes on with the others.
+@click.argument("paths", nargs=-1, type=click.Path(path_type=Path, readable=False))
+@click.option("--metadata", "metadata_csv", type=click.Path(path_type=Path, readable=False),
               help="Museum metadata CSV (eMuseum export, tidy or transposed, or a plain CSV keyed by "
                    "file_name or accession).")
 @click.option("--collection", "collection_name", default=DEFAULT_COLLECTION, show_default=True,

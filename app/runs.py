@@ -609,6 +609,7 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
     (and none failed).
     """
     from .console import data_dir, emit_json, ensure_database, progress_bar, say
+    from .leftovers import clear_leftovers
 
     names = [name.strip() for name in stages.split(",") if name.strip()]
     unknown = [name for name in names if name not in RUNNABLE_STAGES]
@@ -619,6 +620,7 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
             param_hint="--stages",
         )
     ensure_database()
+    clear_leftovers(as_json)  # what killed runs and exports left behind
     specs = available_stages()
     reports = []
     driver = Driver(db.engine, ttl_s=claim_ttl_s)

@@ -62,6 +62,9 @@ def export_command(out_dir: Path, min_grade: str, formats: str, dry_run: bool, n
             f"{report.bytes / 1e6:.1f} MB in {report.seconds:.1f} s; {summary}", as_json)
     for entry in report.excluded:
         say(f"  not released: card {entry['card_id']}: {entry['reason']}", as_json)
+    for leftover in report.leftovers_removed:
+        say(f"  removed {leftover['path']} ({leftover['bytes'] / 1e6:.1f} MB), left by an interrupted export: "
+            f"{leftover['reason']}", as_json)
 
 
 @click.command("verify")

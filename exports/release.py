@@ -1,8 +1,9 @@
 """Publishing a release: plan (what goes in, what changed, which version), write, move into place.
 
-A release is written into ``<out>/.<version>.partial-XXXX`` and renamed to ``<out>/<version>``
-only when every file, the Croissant metadata and ``SHA256SUMS`` are complete; any error
-removes the partial folder and records nothing. The same inputs give byte-identical files:
+A release is written into ``<out>/.<version>.partial-XXXX`` (locked while this export runs, see
+:mod:`exports.staging`) and renamed to ``<out>/<version>``, world-readable, only when every file,
+the Croissant metadata and ``SHA256SUMS`` are complete; any error removes the partial folder and
+records nothing, and the folders of exports killed outright are removed by the next export. The same inputs give byte-identical files:
 the release's date is the newest review decision among its cards, not the clock.
 """
 
@@ -11,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -41,6 +41,7 @@ from .records import (
     next_version,
     parse_formats,
 )
+from .staging import ReleaseStaging, make_world_readable, remove_stale_partials
 from .writers import (
     CardPayload,
     FileLedger,
@@ -85,6 +86,7 @@ class ReleaseReport:
     release_id: int | None = None
     notes: str = ""
     views: dict[str, Any] | None = None  # with the views component: cards with views, and why the others have none
+    leftovers_removed: list[dict[str, Any]] = field(default_factory=list)  # staging folders of killed exports
     manifest: dict[str, dict[str, Any]] = field(default_factory=dict, repr=False)
 
     def as_json(self) -> dict[str, Any]:
@@ -94,7 +96,7 @@ class ReleaseReport:
             "excluded": self.excluded, "seconds": round(self.seconds, 3), "files": self.files, "bytes": self.bytes,
             "dry_run": self.dry_run, "manifest_sha256": self.manifest_sha256, "release_id": self.release_id,
             "cards_per_second": round(self.cards / self.seconds, 2) if self.seconds > 0 and not self.dry_run else None,
-            "views": self.views,
+            "views": self.views, "leftovers_removed": self.leftovers_removed,
         }
 
 
@@ -191,7 +193,9 @@ def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
             + (f"; {len(plan.excluded)} accepted card(s) excluded, e.g. card {plan.excluded[0]['card_id']}: "
                f"{plan.excluded[0]['reason']}" if plan.excluded else ""))
     out.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{plan.version}.partial-", dir=out))
+    leftovers = remove_stale_partials(out)  # of exports killed before they could clean up
+    holder = ReleaseStaging(out, plan.version)
+    staging = holder.path
     try:
         report = _write(staging, plan, fmt, data_dir, progress)
         target = out / report.version
@@ -218,6 +222,7 @@ def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
                      after={"version": report.version, "cards": report.cards, "formats": list(fmt),
                             "min_grade": min_grade, "manifest_sha256": report.manifest_sha256},
                      why=notes or f"release {report.version}")
+        make_world_readable(staging)
         os.replace(staging, target)
         try:
             db.session.commit()
@@ -228,7 +233,10 @@ def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
         db.session.rollback()
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    finally:
+        holder.close()
     report.path, report.release_id = str(target), release.id
+    report.leftovers_removed = [leftover.as_json() for leftover in leftovers]
     report.seconds = time.perf_counter() - clock
     return report
 

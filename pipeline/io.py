@@ -9,7 +9,9 @@ from __future__ import annotations
 import io
 import json
 import os
+import stat
 import tempfile
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -186,3 +188,34 @@ def write_npy(path: str | os.PathLike[str], array: np.ndarray) -> None:
     """Write a float map as ``.npy`` atomically (dtype and shape kept; loads with ``np.load``)."""
     with atomic_write(path) as handle:
         np.save(handle, array, allow_pickle=False)
+
+
+TEMP_SUFFIX = ".tmp"
+STALE_TEMP_SECONDS = 10 * 60  # a temporary file lives seconds; ten minutes untouched is a dead writer
+
+
+def remove_stale_temp_files(root: str | os.PathLike[str], older_than_s: float,
+                            now: float | None = None) -> list[tuple[Path, int]]:
+    """Remove the hidden ``.<name>.XXXX.tmp`` files :func:`atomic_write` (and ingest's store)
+    leave when their process is killed, if unchanged for ``older_than_s`` seconds; returns each
+    removed path with its size in bytes.
+
+    Age, not the writer's pid, decides: a temporary file is written in one go and renamed at
+    once (seconds), and a pid says nothing when dask workers on other hosts share the data dir.
+    Links are never followed."""
+    now = time.time() if now is None else now
+    removed: list[tuple[Path, int]] = []
+    for folder, _, filenames in os.walk(root):
+        for name in filenames:
+            if not (name.startswith(".") and name.endswith(TEMP_SUFFIX)):
+                continue
+            path = Path(folder) / name
+            try:
+                info = path.lstat()
+                if not stat.S_ISREG(info.st_mode) or now - info.st_mtime < older_than_s:
+                    continue
+                path.unlink()
+            except OSError:
+                continue  # gone meanwhile, or not ours to remove
+            removed.append((path, info.st_size))
+    return removed

@@ -244,3 +244,252 @@ def test_real_emuseum_exports(app, runner, shared_data, tmp_path):
 def test_ingest_needs_something_to_do(runner):
     result = runner.invoke(cli, ["ingest"])
     assert result.exit_code == 2 and "at least one PATH" in result.output
+
+
+# ---- a database that refuses writes, unreadable paths, files that are not files ----
+
+
+def _refuse_card_commits(monkeypatch):  # type: ignore[no-untyped-def]
+    """Make every commit after the collection's raise what SQLite says on a full disk."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    real_commit = db.session.commit
+    calls = {"n": 0}
+
+    def commit() -> None:
+        calls["n"] += 1
+        if calls["n"] > 1:  # the first commit creates the collection
+            raise OperationalError("INSERT INTO cards ...", {}, sqlite3.OperationalError("database or disk is full"))
+        real_commit()
+
+    monkeypatch.setattr(db.session, "commit", commit)
+
+
+def test_failed_database_write_removes_the_stored_original_and_says_why(app, runner, scans, monkeypatch):
+    _refuse_card_commits(monkeypatch)
+    result, report = invoke(runner, "ingest", str(scans), "--json")
+    assert result.exit_code == 1 and isinstance(result.exception, SystemExit)  # exit 1, not a traceback
+    assert report["ingested"] == 0 and len(report["rejected"]) == 4
+    for entry in report["rejected"]:
+        assert "database refused the write (OperationalError: database or disk is full)" in entry["reason"]
+        assert "the stored copy was removed" in entry["reason"]
+    data_dir = Path(app.config["KEYSTONE_DATA_DIR"])
+    assert [p for p in (data_dir / "originals").rglob("*") if p.is_file()] == []  # no orphan original
+    monkeypatch.undo()
+    with app.app_context():
+        assert db.session.scalar(select(func.count()).select_from(Card)) == 0
+    result, report = invoke(runner, "ingest", str(scans), "--json")  # space freed: the same command works
+    assert result.exit_code == 0 and report["ingested"] == 4
+
+
+def test_named_pipes_are_rejected_without_blocking(app, runner, scans, tmp_path):
+    os.mkfifo(scans / "box 1" / "pipe.jpg")
+    named = tmp_path / "named-pipe.png"
+    os.mkfifo(named)
+    result, report = invoke(runner, "ingest", str(scans), str(named), "--json")
+    assert result.exit_code == 1 and report["ingested"] == 4
+    reasons = {Path(r["path"]).name: r["reason"] for r in report["rejected"]}
+    assert reasons == {"pipe.jpg": "a named pipe (FIFO), not an image file",
+                       "named-pipe.png": "a named pipe (FIFO), not an image file"}
+
+
+def test_linked_folder_inside_a_folder_is_reported_not_skipped(app, runner, scans, tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    Image.fromarray(stereo_card(shift=12)).save(elsewhere / "linked.png")
+    (scans / "box 2").symlink_to(elsewhere, target_is_directory=True)
+    result, report = invoke(runner, "ingest", str(scans), "--json")
+    assert result.exit_code == 1 and report["ingested"] == 4
+    assert [Path(r["path"]).name for r in report["rejected"]] == ["box 2"]
+    assert "not followed inside folders" in report["rejected"][0]["reason"]
+    result, report = invoke(runner, "ingest", str(scans / "box 2"), "--json")  # named: followed
+    assert result.exit_code == 0 and report["ingested"] == 1
+
+
+UNPRIVILEGED_INGEST = r"""
+import json, os, shutil, sys
+from pathlib import Path
+
+from PIL import Image
+
+from app import create_app
+
+Image.init()  # the image plugins load lazily: load them while the interpreter's files are readable
+app = create_app()
+runner = app.test_cli_runner()
+from app.cli import cli
+
+root, uid, gid = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+warm = runner.invoke(cli, ["ingest", str(root / "warm-up.png"), "--json"])  # imports every module on the path
+assert warm.exit_code == 0, warm.output
+for folder in (root / "instance", root / "data"):
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for name in [dirpath, *(os.path.join(dirpath, f) for f in dirnames + filenames)]:
+            os.chown(name, uid, gid)
+os.setgroups([])
+os.setgid(gid)
+os.setuid(uid)
+result = runner.invoke(cli, ["ingest", *sys.argv[4:], "--json"])
+print(json.dumps({"exit_code": result.exit_code, "stdout": result.stdout, "exception": repr(result.exception)}))
+"""
+
+
+def test_unreadable_folders_and_files_are_rejected_items_for_an_unprivileged_user(scans):
+    """Run as ``nobody`` (root reads through chmod 000): an unreadable subfolder, an unreadable
+    file and an unreadable folder named on the command line are each a rejected item, the rest
+    is ingested, and the command exits 1 (click's own check used to end it with exit 2); an
+    unreadable metadata CSV is one rejected item too."""
+    import pwd
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+
+    if os.geteuid() != 0:
+        pytest.skip("needs root to switch to an unprivileged user")
+    account = pwd.getpwnam("nobody")
+    root = Path(tempfile.mkdtemp(prefix="keystone-unreadable-"))
+    try:
+        root.chmod(0o755)
+        work = root / "scans"
+        shutil.copytree(scans, work)
+        Image.fromarray(stereo_card(shift=15)).save(root / "warm-up.png")
+        (work / "locked box").mkdir()
+        Image.fromarray(stereo_card(shift=18)).save(work / "locked box" / "hidden.png")
+        (work / "locked box").chmod(0)
+        locked_file = root / "locked.png"
+        Image.fromarray(stereo_card(shift=21)).save(locked_file)
+        locked_file.chmod(0)
+        locked_folder = root / "locked-folder"
+        locked_folder.mkdir(mode=0)
+        locked_csv = root / "locked.csv"
+        locked_csv.write_text("file_name,title\ncard_b.png,Falls\n")
+        locked_csv.chmod(0)
+        (root / "instance").mkdir()
+        env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(root / "instance"), "KEYSTONE_DATA_DIR": str(root / "data"),
+               "KEYSTONE_DATABASE_URL": f"sqlite:///{root / 'instance' / 'keystone.sqlite3'}",
+               "KEYSTONE_SECRET_KEY": "test-secret", "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+        done = subprocess.run(
+            [sys.executable, "-c", UNPRIVILEGED_INGEST, str(root), str(account.pw_uid), str(account.pw_gid),
+             str(work), str(locked_file), str(locked_folder), "--metadata", str(locked_csv)],
+            env=env, capture_output=True, text=True, timeout=300, check=False,
+        )
+        assert done.returncode == 0, done.stderr[-3000:]
+        outcome = json.loads(done.stdout.strip().splitlines()[-1])
+        assert outcome["exit_code"] == 1, outcome
+        report = json.loads(outcome["stdout"])
+        assert report["ingested"] == 4
+        reasons = {r["path"]: r["reason"] for r in report["rejected"]}
+        assert reasons == {
+            str(work / "locked box"): "cannot list folder: Permission denied; nothing under it was ingested",
+            str(locked_file): "unreadable: Permission denied",
+            str(locked_folder): "cannot list folder: Permission denied; nothing under it was ingested",
+            str(locked_csv): "cannot read metadata: Permission denied",
+        }
+    finally:
+        for locked in root.rglob("locked*"):
+            locked.chmod(0o700)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+# ---- metadata CSVs: one bad row or column costs only itself ----
+
+
+def _metadata_report(runner, scans, csv_path):  # type: ignore[no-untyped-def]
+    result, report = invoke(runner, "ingest", str(scans), "--metadata", str(csv_path), "--json")
+    reasons = {r["path"].rsplit(":", 1)[-1] if r["path"] != str(csv_path) else "file": r["reason"]
+               for r in report["rejected"]}
+    return result, report, reasons
+
+
+def test_unterminated_quote_rejects_its_row_alone(app, runner, scans, tmp_path):
+    csv_path = tmp_path / "quote.csv"
+    csv_path.write_text(
+        "file_name,title,photographer\n"
+        "card_b.png,Falls,Kilburn\n"
+        'card_c.tif,"Bridge at night,Kilburn\n'  # the quote never closes: it used to eat the file
+        'card_d.jps,"Quoted, fine",Underwood\n'
+        "1996.0009.17827.jpg,End of the Trail,Keystone\n"
+    )
+    result, report, reasons = _metadata_report(runner, scans, csv_path)
+    assert result.exit_code == 1
+    assert report["metadata"] == {"rows": 3, "matched": 3, "unmatched": 0}
+    assert set(reasons) == {"2"}
+    assert "line 3" in reasons["2"] and "unterminated quote" in reasons["2"]
+    with app.app_context():
+        titles = dict(db.session.execute(select(Card.source_name, Card.source_metadata["title"].as_string())).all())
+    assert titles == {"card_b.png": "Falls", "card_c.tif": None, "card_d.jps": "Quoted, fine",
+                      "1996.0009.17827.jpg": "End of the Trail"}
+
+
+def test_stray_quote_that_would_merge_rows_is_undone_line_by_line(app, runner, scans, tmp_path):
+    csv_path = tmp_path / "stray.csv"
+    csv_path.write_text(
+        "file_name,title,photographer\n"
+        'card_b.png,"Falls,Kilburn\n'  # opens a quote that the stray one two lines down closes
+        "card_c.tif,Bridge,Kilburn\n"
+        'card_d.jps,Quarry,Underwood"\n'
+    )
+    _, report, reasons = _metadata_report(runner, scans, csv_path)
+    assert report["metadata"]["rows"] == 2 and set(reasons) == {"1"}
+    assert "runs over 3 lines" in reasons["1"]
+
+
+def test_oversize_field_rejects_its_row_alone(app, runner, scans, tmp_path):
+    import csv
+
+    csv_path = tmp_path / "big.csv"
+    huge = "x" * 200_000
+    csv_path.write_text(f"file_name,title\ncard_b.png,Falls\ncard_c.tif,{huge}\ncard_d.jps,Quarry\n")
+    _, report, reasons = _metadata_report(runner, scans, csv_path)
+    assert report["metadata"] == {"rows": 2, "matched": 2, "unmatched": 0}
+    assert set(reasons) == {"2"}
+    assert f"longer than {csv.field_size_limit():,} characters" in reasons["2"]
+
+
+def test_conflicting_rows_for_one_key_are_all_rejected_and_repeats_load_once(app, runner, scans, tmp_path):
+    csv_path = tmp_path / "dupes.csv"
+    csv_path.write_text(
+        "file_name,accession,title\n"
+        "card_b.png,,Falls\n"
+        "card_b.png,,Falls at dawn\n"  # conflicts with row 1: neither loads
+        "card_d.jps,,Quarry\n"
+        "card_d.jps,,Quarry\n"  # repeats row 3 exactly: row 3 loads
+        ",1996.0009.17827,End of the Trail\n"
+        "CARD_C.TIF,1996.0009.17827,Other\n"  # shares row 5's accession with other values
+    )
+    result, report, reasons = _metadata_report(runner, scans, csv_path)
+    assert result.exit_code == 1
+    assert report["metadata"]["rows"] == 1
+    assert set(reasons) == {"1", "2", "4", "5", "6"}
+    assert "rows 1, 2 all describe file card_b.png with different values" in reasons["1"]
+    assert reasons["2"] == reasons["1"]
+    assert "repeats row 3" in reasons["4"] and "the first is loaded" in reasons["4"]
+    assert "rows 5, 6 all describe accession 1996.0009.17827" in reasons["5"]
+    with app.app_context():
+        cards = {c.source_name: c for c in db.session.scalars(select(Card))}
+        assert cards["card_d.jps"].source_metadata["title"] == "Quarry"
+        assert "title" not in cards["card_b.png"].source_metadata
+        assert cards["1996.0009.17827.jpg"].accession is None
+
+
+def test_duplicated_column_is_an_error_for_that_column_and_the_rest_loads(app, runner, scans, tmp_path):
+    csv_path = tmp_path / "columns.csv"
+    csv_path.write_text("file_name,Title,photographer,title \ncard_b.png,Falls,Kilburn,Cascade\n")
+    result, report, reasons = _metadata_report(runner, scans, csv_path)
+    assert result.exit_code == 1 and report["metadata"]["matched"] == 1
+    assert reasons == {"file": "metadata: column 'Title / title' appears 2 times (columns 2 and 4): none of its "
+                               "values is loaded; rename or remove the copies and ingest the file again"}
+    with app.app_context():
+        card = db.session.scalar(select(Card).where(Card.source_name == "card_b.png"))
+        assert card.source_metadata == {"file_name": "card_b.png", "photographer": "Kilburn", "creator": "Kilburn"}
+
+
+def test_duplicated_key_column_rejects_the_file_with_a_clear_reason(app, runner, scans, tmp_path):
+    csv_path = tmp_path / "keys.csv"
+    csv_path.write_text("file_name,title,file_name\ncard_b.png,Falls,card_c.tif\n")
+    _, report, reasons = _metadata_report(runner, scans, csv_path)
+    assert report["ingested"] == 4
+    assert "key column 'file_name' appears 2 times (columns 1 and 3)" in reasons["file"]

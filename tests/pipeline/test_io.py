@@ -72,3 +72,33 @@ def test_writers_are_atomic_and_round_trip(tmp_path: Path):
     assert read_image(tmp_path / "y.jpg").shape == (20, 30, 3)
     assert list(tmp_path.rglob("*.tmp")) == []
     assert to_grey(image).shape == (40, 60)
+
+
+def test_stale_temporary_files_are_removed_and_nothing_else(tmp_path: Path):
+    import os
+    import time
+
+    from pipeline.io import remove_stale_temp_files
+
+    now = time.time()
+    work = tmp_path / "derived" / "ab" / "views"
+    work.mkdir(parents=True)
+    stale = work / ".v0.png.k2j3.tmp"
+    fresh = work / ".v1.png.x9y8.tmp"
+    visible = work / "notes.tmp"  # not one of ours: atomic_write's names start with a dot
+    finished = work / "v0.png"
+    for path in (stale, fresh, visible, finished):
+        path.write_bytes(b"x" * 1000)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / ".outside.tmp").write_bytes(b"y")
+    (work / "link").symlink_to(elsewhere, target_is_directory=True)
+    for path in (stale, visible, finished, elsewhere / ".outside.tmp"):
+        os.utime(path, (now - 3600, now - 3600))
+    os.utime(fresh, (now - 60, now - 60))
+
+    removed = remove_stale_temp_files(tmp_path / "derived", older_than_s=600, now=now)
+    assert removed == [(stale, 1000)]
+    assert not stale.exists() and fresh.exists() and visible.exists() and finished.exists()
+    assert (elsewhere / ".outside.tmp").exists()  # links are not followed
+    assert remove_stale_temp_files(tmp_path / "missing", older_than_s=600) == []

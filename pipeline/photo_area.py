@@ -125,6 +125,11 @@ class PhotoAreaParams:
     cells: at most 64 a side)."""
     clean_line: float = 0.01
     """A line (row or column) with at most this non-photo fraction is clean (edge refinement)."""
+    corner: float = 0.08
+    """Near each corner of a box (this fraction of its width or height from the corner) a side's
+    outer line must hold no non-photo pixel: arch corners, rounded windows."""
+    arch_inset: float = 0.05
+    """Under an arched top (bottom) the box starts this fraction of its height lower (ends higher)."""
     inset: float = 0.012
     """Each box is inset by this fraction of the card width: a photo's edge is blurred."""
     min_area: float = 0.2
@@ -514,7 +519,13 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
     found = _largest_rectangle(good)
     if found is None:
         return None
-    r0, c0, r1, c1 = _prefer_full_width(good, found, params.full_width_preference)
+    # The arch may be at the top or (a turned card) at the bottom: both are tried.
+    rows = good.shape[0]
+    from_top = _prefer_full_width(good, found, params.full_width_preference)
+    turned = _prefer_full_width(good[::-1], (rows - found[2], found[1], rows - found[0], found[3]),
+                                params.full_width_preference)
+    from_bottom = (rows - turned[2], turned[1], rows - turned[0], turned[3])
+    r0, c0, r1, c1 = max((from_top, from_bottom), key=lambda r: (r[3] - r[1], (r[2] - r[0]) * (r[3] - r[1])))
     y0, bx0, y1, bx1 = _refine(bad, (r0 * cell, c0 * cell, r1 * cell, c1 * cell), params.clean_line, 2 * cell + 2)
     cuts: list[str] = []
     sides = {"top", "bottom", "left", "right"}
@@ -546,8 +557,12 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
     if y0 >= 2:
         band = ~bad[max(0, y0 - max(2, height // 12)) : y0, bx0:bx1]
         third = max(1, (bx1 - bx0) // 6)
+        corner = max(1, round(params.corner * (bx1 - bx0)))
         middle, sides = band[:, third:-third].mean(), np.concatenate((band[:, :third], band[:, -third:]), axis=1).mean()
-        if middle > 0.5 and sides < middle - 0.25:
+        corners = np.concatenate((band[:, :corner], band[:, -corner:]), axis=1).mean()
+        # Either the photo narrows above the box across its outer sixths, or only its very
+        # corners are mount (a tall arch that meets the sides close to the box's corners).
+        if (middle > 0.5 and sides < middle - 0.25) or (middle > 0.9 and corners < middle - 0.1):
             notes.append("arched or rounded top")
     for name, strip in (("above", above), ("below", below)):
         if strip.shape[0] == 0:
@@ -560,6 +575,77 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
     return _HalfArea(
         box=(x0 + bx0, y0, x0 + bx1, y1), area_fraction=(bx1 - bx0) * (y1 - y0) / float(height * width),
         photos=photos, notes=notes,
+    )
+
+
+def _clear_corners(bad: np.ndarray, box: Box, corner: float) -> Box:
+    """Move the sides of ``box`` (``(x0, y0, x1, y1)``, ``bad``'s px) in until no non-photo
+    pixel lies on a side's outer line within ``corner`` of the box's size from either end.
+    Under an arch (or a rounded window) the largest rectangle's corners reach into the mount
+    while its sides' middles are clean: the edge refinement's 1 % allowance hides a corner."""
+    x0, y0, x1, y1 = box
+    limit_x, limit_y = max(1, round(0.15 * (x1 - x0))), max(1, round(0.15 * (y1 - y0)))
+    start = box
+    for _ in range(max(limit_x, limit_y)):
+        mx, my = max(2, round(corner * (x1 - x0))), max(2, round(corner * (y1 - y0)))
+        moved = False
+        if y0 - start[1] < limit_y and (bad[y0, x0 : x0 + mx].any() or bad[y0, x1 - mx : x1].any()):
+            y0, moved = y0 + 1, True
+        if start[3] - y1 < limit_y and (bad[y1 - 1, x0 : x0 + mx].any() or bad[y1 - 1, x1 - mx : x1].any()):
+            y1, moved = y1 - 1, True
+        if x0 - start[0] < limit_x and (bad[y0 : y0 + my, x0].any() or bad[y1 - my : y1, x0].any()):
+            x0, moved = x0 + 1, True
+        if start[2] - x1 < limit_x and (bad[y0 : y0 + my, x1 - 1].any() or bad[y1 - my : y1, x1 - 1].any()):
+            x1, moved = x1 - 1, True
+        if not moved or x1 - x0 < 4 or y1 - y0 < 4:
+            break
+    return x0, y0, x1, y1
+
+
+def _turned(mask: _Mask) -> _Mask:
+    """``mask`` turned by 180 degrees (a view: no copy)."""
+    return _Mask(
+        scale_x=mask.scale_x, scale_y=mask.scale_y, grey=mask.grey[::-1, ::-1], non_photo=mask.non_photo[::-1, ::-1],
+        foreign=mask.foreign[::-1, ::-1], line_columns=mask.line_columns[::-1], plain=mask.plain[::-1, ::-1],
+        mount=mask.mount[::-1, ::-1], dark=mask.dark[::-1, ::-1], white=mask.white[::-1, ::-1], mount_rgb=mask.mount_rgb,
+    )
+
+
+def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfArea | None:
+    """The photo area of working columns ``[x0, x1)``, found on the card as it is and turned by
+    180 degrees, intersected. The search is not symmetric (the cell grid starts at the top left,
+    an arch is looked for at the top, ties between equal rectangles go to the first found), so
+    its mistakes differ between the two; what both agree is photo is kept. The result is then the
+    same for a card and its turned copy."""
+    upright = _half_area(mask, x0, x1, params)
+    height, width = mask.non_photo.shape
+    flipped = _half_area(turned, width - x1, width - x0, params)
+    if upright is None or flipped is None:
+        return None
+    fx0, fy0, fx1, fy1 = flipped.box
+    box = (max(upright.box[0], width - fx1), max(upright.box[1], height - fy1),
+           min(upright.box[2], width - fx0), min(upright.box[3], height - fy0))
+    box = _clear_corners(mask.non_photo, box, params.corner)
+    # Under an arch the box's corner meets the curve inside the photo's sides, where the curve
+    # is nearly vertical: the arch meets the sides lower. An extra inset covers that.
+    arch_drop = round(params.arch_inset * (box[3] - box[1]))
+    if any("arched" in note for note in upright.notes):
+        box = (box[0], box[1] + arch_drop, box[2], box[3])
+    if any("arched" in note for note in flipped.notes):
+        box = (box[0], box[1], box[2], box[3] - arch_drop)
+    if box[2] - box[0] < 2 or box[3] - box[1] < 2:
+        return None
+    turned_notes = {"top": "bottom", "bottom": "top", "left": "right", "right": "left", "above": "below", "below": "above"}
+    notes = list(upright.notes)
+    for note in flipped.notes:
+        words = [turned_notes.get(word, word) for word in note.split(" ")]
+        if "arched" in note:
+            words = [*words[:-1], "bottom"]
+        if " ".join(words) not in notes:
+            notes.append(" ".join(words))
+    return _HalfArea(
+        box=box, area_fraction=(box[2] - box[0]) * (box[3] - box[1]) / float(height * (x1 - x0)),
+        photos=max(upright.photos, flipped.photos), notes=notes,
     )
 
 
@@ -590,6 +676,7 @@ def find_photo_areas(card: np.ndarray, params: PhotoAreaParams = PhotoAreaParams
         return _fallback(split, "no stereo pair or gutter found: the card was cut at its middle", [], params)
 
     mask = _measure(card, params)
+    turned = _turned(mask)
     gutter = int(np.clip(round(split.gutter_x / mask.scale_x), 1, mask.non_photo.shape[1] - 1))
     evidence: list[str] = []
     if mask.mount_rgb is not None:
@@ -604,7 +691,8 @@ def find_photo_areas(card: np.ndarray, params: PhotoAreaParams = PhotoAreaParams
     if mask.mount_rgb is not None and text.mean() > 0.005:
         evidence.append("printed text on the mount")
 
-    halves = [_half_area(mask, 0, gutter, params), _half_area(mask, gutter, mask.non_photo.shape[1], params)]
+    halves = [_half_area_both_ways(mask, turned, 0, gutter, params),
+              _half_area_both_ways(mask, turned, gutter, mask.non_photo.shape[1], params)]
     if halves[0] is None or halves[1] is None:
         return _fallback(split, "no photo found in a half (blank or plain card)", evidence, params)
     for name, half in zip(("left", "right"), halves):

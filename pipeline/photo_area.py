@@ -103,6 +103,9 @@ class PhotoAreaParams:
     """A straight edge is cut at only if at least this fraction of the strip outside it is
     non-photo or plain (spread below ``plain_spread``): a caption band, a title, a film edge."""
     plain_spread: float = 5.0
+    ruled_edge: float = 0.9
+    """Fraction of a box's row (column) changing the same way for a straight edge that is cut at
+    whatever lies beyond it (film edges, frames, separators; scenes rarely rule a whole side)."""
     edge_band: float = 0.15
     """Straight edges are looked for within this fraction of the box's height (width) of each side."""
     edge_passes: int = 1
@@ -467,9 +470,12 @@ def _cut_straight_edges(
         outside_start = per_line[edge_line] / np.maximum(edge_line, 1)  # strip [0, edge)
         outside_end = (per_line[n] - per_line[edge_line + 1]) / np.maximum(n - edge_line - 1, 1)  # strip (edge, n)
         straight = change >= params.straight_edge
-        start_hits = np.flatnonzero((straight & (outside_start >= params.foreign_strip))[: reach - k])
+        # A line that changes the same way along nearly the whole side (a film edge, a frame's
+        # inner edge, a separator) is cut at whatever lies beyond it.
+        ruled = change >= params.ruled_edge
+        start_hits = np.flatnonzero((ruled | (straight & (outside_start >= params.foreign_strip)))[: reach - k])
         first_end = max(0, n - reach - k)
-        end_hits = np.flatnonzero((straight & (outside_end >= params.foreign_strip))[first_end:]) + first_end
+        end_hits = np.flatnonzero((ruled | (straight & (outside_end >= params.foreign_strip)))[first_end:]) + first_end
         lo, hi = 0, n
         first, last = ("top", "bottom") if axis == "rows" else ("left", "right")
         if start_hits.size and first in sides:

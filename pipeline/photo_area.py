@@ -427,7 +427,7 @@ def _prefer_full_width(
         left -= 1
     while right < lower.size and lower[right]:
         right += 1
-    if (left, right) == (c0, c1):
+    if right - left < 1.05 * (c1 - c0) + 1:  # a cell or two wider is no arch
         return best
     full = good[:r1, left:right].all(axis=1)
     top = middle
@@ -472,10 +472,14 @@ def _cut_straight_edges(
         straight = change >= params.straight_edge
         # A line that changes the same way along nearly the whole side (a film edge, a frame's
         # inner edge, a separator) is cut at whatever lies beyond it.
+        # Not the photo's own (blurred) edge where the box already sits on it: such a line has a
+        # strip beyond it at least ``2 k`` lines wide.
         ruled = change >= params.ruled_edge
-        start_hits = np.flatnonzero((ruled | (straight & (outside_start >= params.foreign_strip)))[: reach - k])
+        index = np.arange(change.size)
+        ruled_start, ruled_end = ruled & (index >= 2 * k), ruled & (index + 4 * k <= n - 1)
+        start_hits = np.flatnonzero((ruled_start | (straight & (outside_start >= params.foreign_strip)))[: reach - k])
         first_end = max(0, n - reach - k)
-        end_hits = np.flatnonzero((ruled | (straight & (outside_end >= params.foreign_strip)))[first_end:]) + first_end
+        end_hits = np.flatnonzero((ruled_end | (straight & (outside_end >= params.foreign_strip)))[first_end:]) + first_end
         lo, hi = 0, n
         first, last = ("top", "bottom") if axis == "rows" else ("left", "right")
         if start_hits.size and first in sides:
@@ -531,7 +535,8 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
     turned = _prefer_full_width(good[::-1], (rows - found[2], found[1], rows - found[0], found[3]),
                                 params.full_width_preference)
     from_bottom = (rows - turned[2], turned[1], rows - turned[0], turned[3])
-    r0, c0, r1, c1 = max((from_top, from_bottom), key=lambda r: (r[3] - r[1], (r[2] - r[0]) * (r[3] - r[1])))
+    wider = [r for r in (from_top, from_bottom) if r != found]
+    r0, c0, r1, c1 = max(wider, key=lambda r: (r[2] - r[0]) * (r[3] - r[1])) if wider else found
     y0, bx0, y1, bx1 = _refine(bad, (r0 * cell, c0 * cell, r1 * cell, c1 * cell), params.clean_line, 2 * cell + 2)
     cuts: list[str] = []
     sides = {"top", "bottom", "left", "right"}
@@ -629,16 +634,18 @@ def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: P
     if upright is None or flipped is None:
         return None
     fx0, fy0, fx1, fy1 = flipped.box
-    box = (max(upright.box[0], width - fx1), max(upright.box[1], height - fy1),
-           min(upright.box[2], width - fx0), min(upright.box[3], height - fy0))
-    box = _clear_corners(mask.non_photo, box, params.corner)
+    back = (width - fx1, height - fy1, width - fx0, height - fy0)
+    box = (max(upright.box[0], back[0]), max(upright.box[1], back[1]),
+           min(upright.box[2], back[2]), min(upright.box[3], back[3]))
     # Under an arch the box's corner meets the curve inside the photo's sides, where the curve
-    # is nearly vertical: the arch meets the sides lower. An extra inset covers that.
+    # is nearly vertical: the arch meets the sides lower. An extra inset covers that (before the
+    # corners are checked: the drop usually clears them, which keeps the sides).
     arch_drop = round(params.arch_inset * (box[3] - box[1]))
     if any("arched" in note for note in upright.notes):
         box = (box[0], box[1] + arch_drop, box[2], box[3])
     if any("arched" in note for note in flipped.notes):
         box = (box[0], box[1], box[2], box[3] - arch_drop)
+    box = _clear_corners(mask.non_photo, box, params.corner)
     if box[2] - box[0] < 2 or box[3] - box[1] < 2:
         return None
     turned_notes = {"top": "bottom", "bottom": "top", "left": "right", "right": "left", "above": "below", "below": "above"}

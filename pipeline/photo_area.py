@@ -103,6 +103,12 @@ class PhotoAreaParams:
     """A straight edge is cut at only if at least this fraction of the strip outside it is
     non-photo or plain (spread below ``plain_spread``): a caption band, a title, a film edge."""
     plain_spread: float = 5.0
+    band_depth: float = 0.05
+    band_spread: float = 8.0
+    band_contrast: float = 1.5
+    """A uniform band along a box's side (a frame, a gutter strip) is cut off: at most
+    ``band_depth`` of the box's size of lines, typically within ``band_spread`` (mean CIE76) of
+    their own median colour, followed by lines ``band_contrast`` times less uniform."""
     ruled_edge: float = 0.9
     """Fraction of a box's row (column) changing the same way for a straight edge that is cut at
     whatever lies beyond it (film edges, frames, separators; scenes rarely rule a whole side)."""
@@ -203,6 +209,7 @@ class _Mask:
     dark: np.ndarray  # bool: smooth and dark
     white: np.ndarray  # bool: smooth and white
     mount_rgb: tuple[int, int, int] | None  # mount colour, None when there is no mount
+    lab: np.ndarray  # (h, w, 3) float32 CIE Lab
 
 
 def _working_copy(card: np.ndarray, width: int) -> np.ndarray:
@@ -342,7 +349,7 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     return _Mask(
         scale_x=card.shape[1] / small.shape[1], scale_y=card.shape[0] / small.shape[0], grey=grey,
         non_photo=non_photo.astype(bool), line_columns=line_columns, plain=mount | dark | white, foreign=non_photo.astype(bool) | (spread < params.plain_spread), mount=mount & raw.astype(bool), dark=dark & raw.astype(bool),
-        white=white & raw.astype(bool), mount_rgb=mount_rgb,
+        white=white & raw.astype(bool), mount_rgb=mount_rgb, lab=lab,
     )
 
 
@@ -503,6 +510,53 @@ def _cut_straight_edges(
     return y0, x0, y1, x1, cuts
 
 
+def _cut_uniform_bands(
+    lab: np.ndarray, box: tuple[int, int, int, int], params: PhotoAreaParams,
+) -> tuple[int, int, int, int, list[str]]:
+    """Cut ``box`` (``(y0, x0, y1, x1)``, ``lab``'s px) inside a uniform band along a side.
+
+    A window mount's frame (gold foil), a gutter strip, a photo's printed margin: lines parallel
+    to the side, each of nearly one colour along its length (mean CIE76 distance to its median
+    below ``band_spread``, as a median over the band), from the box's side inwards, then lines
+    of a photo's texture (their spread ``band_contrast`` times the band's). Its edge is soft at the working scale (a few px
+    of blur), which a straight-edge test misses. A sky is uniform along the top lines too but
+    then goes on uniform, or turns to texture gradually; at worst ``band_depth`` of the box is
+    lost. The middle 80 % of each line is used (a frame's rounded corners)."""
+    y0, x0, y1, x1 = box
+    cuts = []
+    for side in ("top", "bottom", "left", "right"):
+        region = lab[y0:y1, x0:x1]
+        lines = {"top": region, "bottom": region[::-1], "left": region.transpose(1, 0, 2),
+                 "right": region.transpose(1, 0, 2)[::-1]}[side]
+        n, length = lines.shape[:2]
+        depth = max(2, round(params.band_depth * n))
+        if n < 4 * (depth + 4) or length < 10:
+            continue
+        middle = lines[: depth + 4, length // 10 : length - length // 10]
+        spread = np.linalg.norm(middle - np.median(middle, axis=1, keepdims=True), axis=2).mean(axis=1)
+        # The band is the first run of lines [0, band) whose typical spread is low and after which
+        # the spread jumps (the band's outer line may be blurred with the mount beyond it).
+        band = 0
+        for j in range(1, depth + 1):
+            typical = float(np.median(spread[:j]))
+            if typical < params.band_spread and spread[j : j + 3].mean() >= params.band_contrast * typical:
+                band = j
+                break
+        if not band:
+            continue
+        cut = band + 2  # past the band and the blur of its edge
+        cuts.append(side)
+        if side == "top":
+            y0 += cut
+        elif side == "bottom":
+            y1 -= cut
+        elif side == "left":
+            x0 += cut
+        else:
+            x1 -= cut
+    return y0, x0, y1, x1, cuts
+
+
 @dataclass
 class _HalfArea:
     box: tuple[int, int, int, int]  # (x0, y0, x1, y1) working px, card-absolute
@@ -550,6 +604,9 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
         sides = set(found_cuts)
         if not sides:
             break
+
+    y0, bx0, y1, bx1, banded = _cut_uniform_bands(mask.lab[:, x0:x1], (y0, bx0, y1, bx1), params)
+    cuts += [side for side in banded if side not in cuts]
 
     # Two photos in one half (a three-photo card, a wrong split): two large separate regions,
     # or a plain strip running down the whole card through the box (a gutter the flood could
@@ -619,6 +676,7 @@ def _turned(mask: _Mask) -> _Mask:
         scale_x=mask.scale_x, scale_y=mask.scale_y, grey=mask.grey[::-1, ::-1], non_photo=mask.non_photo[::-1, ::-1],
         foreign=mask.foreign[::-1, ::-1], line_columns=mask.line_columns[::-1], plain=mask.plain[::-1, ::-1],
         mount=mask.mount[::-1, ::-1], dark=mask.dark[::-1, ::-1], white=mask.white[::-1, ::-1], mount_rgb=mask.mount_rgb,
+        lab=mask.lab[::-1, ::-1],
     )
 
 

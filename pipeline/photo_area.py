@@ -104,7 +104,7 @@ class PhotoAreaParams:
     non-photo or plain (spread below ``plain_spread``): a caption band, a title, a film edge."""
     plain_spread: float = 5.0
     band_depth: float = 0.05
-    band_spread: float = 8.0
+    band_spread: float = 9.0
     band_contrast: float = 1.5
     """A uniform band along a box's side (a frame, a gutter strip) is cut off: at most
     ``band_depth`` of the box's size of lines, typically within ``band_spread`` (mean CIE76) of
@@ -139,6 +139,12 @@ class PhotoAreaParams:
     outer line must hold no non-photo pixel: arch corners, rounded windows."""
     arch_inset: float = 0.05
     """Under an arched top (bottom) the box starts this fraction of its height lower (ends higher)."""
+    text_clearance: float = 0.005
+    """Boxes keep this fraction of the card's width away from printed text on the mount beside them."""
+    ink_contrast: float = 40.0
+    """Grey levels: a stroke this much darker (lighter) than its surroundings is ink."""
+    text_background: float = 0.45
+    """Ink is text when at least this fraction of its word's surroundings is plain or non-photo."""
     inset: float = 0.012
     """Each box is inset by this fraction of the card width: a photo's edge is blurred."""
     min_area: float = 0.2
@@ -670,6 +676,57 @@ def _clear_corners(bad: np.ndarray, box: Box, corner: float) -> Box:
     return x0, y0, x1, y1
 
 
+def _clear_of_text(mask: _Mask, box: Box, x0: int, x1: int, params: PhotoAreaParams) -> Box:
+    """Keep ``box`` (``(x0, y0, x1, y1)``, working px) ``text_clearance`` of the card's width
+    away from printed text beside or across its sides (a collection stamp by the photo can run
+    onto the photo's plain margin, which the mount's flood does not reach).
+
+    Ink: strokes much darker or lighter than their surroundings (morphological black-hat and
+    top-hat over a stroke-sized window), letters merged into words by a closing of the same
+    size. Text: a word no taller or wider than a few letters whose surroundings are mostly plain
+    or non-photo (mount, a printed margin), not a photo's texture. A word that reaches outside
+    a side, overlapping the box's span along it, pushes that side past it. Only columns
+    ``[x0, x1)`` (the half) are looked at."""
+    if params.text_clearance <= 0:
+        return box
+    height, width = mask.grey.shape
+    clearance = max(1, round(params.text_clearance * width))
+    bx0, by0, bx1, by1 = box
+    lo_y, hi_y = max(0, by0 - 4 * clearance), min(height, by1 + 4 * clearance)
+    lo_x, hi_x = max(x0, bx0 - 4 * clearance), min(x1, bx1 + 4 * clearance)
+    grey = mask.grey[lo_y:hi_y, lo_x:hi_x]
+    size = max(3, round(0.015 * width)) | 1
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    ink = (cv2.morphologyEx(grey, cv2.MORPH_BLACKHAT, kernel) > params.ink_contrast) | (
+        cv2.morphologyEx(grey, cv2.MORPH_TOPHAT, kernel) > params.ink_contrast)
+    words = cv2.morphologyEx(ink.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((size, size), np.uint8))
+    count, _, stats, _ = cv2.connectedComponentsWithStats(words, connectivity=8)
+    plain = mask.foreign[lo_y:hi_y, lo_x:hi_x]
+    h, w = grey.shape
+    for i in range(1, count):
+        cx, cy, cw, ch, _area = (int(v) for v in stats[i])
+        if min(cw, ch) > 4 * size:  # a word (or a stamp of a few lines) is thin across its lines
+            continue
+        ring = (slice(max(0, cy - 2), min(h, cy + ch + 2)), slice(max(0, cx - 2), min(w, cx + cw + 2)))
+        background = ~ink[ring]
+        if background.sum() == 0 or plain[ring][background].mean() < params.text_background:
+            continue
+        gx0, gy0, gx1, gy1 = cx + lo_x, cy + lo_y, cx + cw + lo_x, cy + ch + lo_y
+        if gy1 > by0 and gy0 < by1:  # beside the left or right side
+            if gx0 < bx0 < gx1 + clearance and gx1 < (bx0 + bx1) // 2:
+                bx0 = max(bx0, gx1 + clearance)
+            if gx0 - clearance < bx1 < gx1 and gx0 > (bx0 + bx1) // 2:
+                bx1 = min(bx1, gx0 - clearance)
+        if gx1 > bx0 and gx0 < bx1:  # above or below
+            if gy0 < by0 < gy1 + clearance and gy1 < (by0 + by1) // 2:
+                by0 = max(by0, gy1 + clearance)
+            if gy0 - clearance < by1 < gy1 and gy0 > (by0 + by1) // 2:
+                by1 = min(by1, gy0 - clearance)
+    if bx1 - bx0 < 0.8 * (box[2] - box[0]) or by1 - by0 < 0.8 * (box[3] - box[1]):
+        return box  # text all round a box is a mistaken reading, not a reason to cut the photo down
+    return bx0, by0, bx1, by1
+
+
 def _turned(mask: _Mask) -> _Mask:
     """``mask`` turned by 180 degrees (a view: no copy)."""
     return _Mask(
@@ -704,6 +761,7 @@ def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: P
     if any("arched" in note for note in flipped.notes):
         box = (box[0], box[1], box[2], box[3] - arch_drop)
     box = _clear_corners(mask.non_photo, box, params.corner)
+    box = _clear_of_text(mask, box, x0, x1, params)
     if box[2] - box[0] < 2 or box[3] - box[1] < 2:
         return None
     turned_notes = {"top": "bottom", "bottom": "top", "left": "right", "right": "left", "above": "below", "below": "above"}

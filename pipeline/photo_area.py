@@ -145,7 +145,7 @@ class PhotoAreaParams:
     """Grey levels: a stroke this much darker (lighter) than its surroundings is ink."""
     text_background: float = 0.45
     """Ink is text when at least this fraction of its word's surroundings is plain or non-photo."""
-    inset: float = 0.012
+    inset: float = 0.014
     """Each box is inset by this fraction of the card width: a photo's edge is blurred."""
     min_area: float = 0.2
     """A box smaller than this fraction of its half is not believed (fallback)."""

@@ -115,9 +115,9 @@ def test_mounted_card_boxes_lie_inside_each_photo(views, layout):
     assert areas.fallback_reason is None and areas.confidence > 0.5
     for box, photo in zip((areas.left_box, areas.right_box), photos):
         assert inside(box, photo), (box, photo)  # off the mount, the titles and the arch corners
-        # and not much smaller than the photo (inset ~1 % a side; under a tall arch the box
+        # and not much smaller than the photo (inset 1.4 % a side; under a tall arch the box
         # starts a further 5 % of its height lower, and both turned searches must agree)
-        assert iou(box, photo) > (0.7 if layout.get("arch") == 60 else 0.77)
+        assert iou(box, photo) > (0.7 if layout.get("arch") == 60 else 0.74)
     assert areas.left_box[1] == areas.right_box[1] and areas.left_box[3] == areas.right_box[3]
 
 
@@ -291,9 +291,8 @@ def test_truth_covers_every_mounted_card_and_raw_scan(shared_data: Path):
 
 
 def test_real_cards_against_hand_drawn_boxes(load_card: Callable[[str], np.ndarray]):
-    """Measured (python -m benchmarks.photo_area): mean IoU 0.785, 20 of 22 boxes strictly inside
-    the hand-drawn photo (15 of 22 before the safety rules). Known misses: the collection stamp
-    by demo4's left photo (+11 px), the right side of demo2's right photo in its gold frame (+7 px)."""
+    """Measured (python -m benchmarks.photo_area): mean IoU 0.761, all 22 boxes strictly inside
+    the hand-drawn photo (15 of 22 before the safety rules, at mean IoU 0.814)."""
     ious, insides = [], []
     for name, left_truth, right_truth in _truth():
         card = load_card(name)
@@ -304,18 +303,19 @@ def test_real_cards_against_hand_drawn_boxes(load_card: Callable[[str], np.ndarr
             ious.append(iou(box, truth))
             insides.append(inside(box, truth))
             assert ious[-1] > 0.4, (name, box, truth)
-            assert inside(box, (truth[0] - 12, truth[1] - 12, truth[2] + 12, truth[3] + 12)), (name, box, truth)
-    assert np.mean(ious) > 0.77
-    assert np.mean(insides) >= 0.9
+            assert inside(box, truth), (name, box, truth)
+    assert np.mean(ious) > 0.75
 
 
 @pytest.mark.parametrize(
     "variant, min_iou, min_inside",
-    [("rotated_180", 0.76, 0.85), ("negative", 0.7, 0.7), ("scaled_50", 0.74, 0.85), ("scaled_200", 0.73, 0.85)],
+    [("rotated_180", 0.745, 1.0), ("negative", 0.69, 0.75), ("scaled_50", 0.73, 1.0), ("scaled_200", 0.72, 1.0)],
 )
 def test_real_cards_turned_inverted_and_rescaled(shared_data: Path, variant, min_iou, min_inside):
     """The same cards turned by 180 degrees, as negatives and at 50 % / 200 % (benchmark variants,
-    truth mapped alike): boxes stay inside within 2 px (measured: 0.86, 0.77, 0.95, 0.95)."""
+    truth mapped alike): boxes inside within 2 px (measured: 1.0, 0.77, 1.0, 1.0; mean IoU 0.756,
+    0.704, 0.741, 0.733). Negatives are the weak case: a mount's colour is sought among lit
+    pixels, and a negative's ground or sky can take the mount's colour and flood."""
     from benchmarks.photo_area import VARIANTS
     from pipeline.io import read_image
 

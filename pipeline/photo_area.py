@@ -31,12 +31,28 @@ Method, on a copy downscaled (area filter) to ``working_width`` ("working px"):
    area (the box then starts where the arch meets the sides). The edges are refined in working
    px (out while the next line is clean, in while the border line is not), then the box is cut
    at *straight edges* near its sides: lines where most pixels change the same way, with a
-   foreign strip (non-photo or plain) outside them - a caption band, a film edge, a wedge.
-4. **Consistency.** Both boxes get the rows the two share (the intersection lies inside both
+   foreign strip (non-photo or plain) outside them - a caption band, a film edge, a wedge - or
+   with whatever lies beyond when the line rules nearly the whole side (``ruled_edge``: a film
+   edge next to the other frame's picture, a caption band's top). A *uniform band* along a side
+   (lines each of nearly one colour, then a photo's texture: a window mount's gold frame, a
+   gutter strip) is cut off too.
+4. **Safety.** The search runs on the card as it is and turned by 180 degrees (it is not
+   symmetric: cell grid, tie-breaks, the arch rule) and keeps what both agree is photo. Under
+   an arch (the photo narrows above the box, or only the box's very corners are mount) the box
+   starts ``arch_inset`` of its height lower: the arch meets the photo's sides lower than the
+   box's corners show. No non-photo pixel may lie on a side's outer line near a corner
+   (``corner``). Printed text beside or across a side (ink words on plain or non-photo ground,
+   such as a collection stamp running onto the photo's margin) pushes that side past it.
+5. **Consistency.** Both boxes get the rows the two share (the intersection lies inside both
    photo areas; a pair's photos are mounted level), keep their own widths (the crop stage
    aligns by SIFT and cuts both to their intersection anyway), are inset by ``inset`` (fraction
-   of the card width: a photo's edge is blurred) and are mapped back to card pixels, rounding
-   inwards.
+   of the card width: a photo's edge is blurred, and the rules above are evidence, not proof)
+   and are mapped back to card pixels, rounding inwards.
+
+Measured (``python -m benchmarks.photo_area --variants``; 11 real cards, all seen while tuning):
+every box strictly inside the hand-drawn photo on the cards as scanned, turned 180 degrees and
+at 200 %, 21 of 22 at 50 % (22 within 2 px), 17 of 22 as negatives; mean IoU 0.76; about
+0.05 s CPU per card.
 
 What was found is said in words in :attr:`PhotoAreas.evidence`. When nothing trustworthy is
 found (a blank card, no border at all, two photos in one half, halves sharing too few rows, no
@@ -612,7 +628,6 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
             break
 
     y0, bx0, y1, bx1, banded = _cut_uniform_bands(mask.lab[:, x0:x1], (y0, bx0, y1, bx1), params)
-    cuts += [side for side in banded if side not in cuts]
 
     # Two photos in one half (a three-photo card, a wrong split): two large separate regions,
     # or a plain strip running down the whole card through the box (a gutter the flood could
@@ -625,6 +640,7 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
         photos = max(photos, 2)
 
     notes = [f"straight edge inside the {side} border (caption band, film edge or wedge)" for side in cuts]
+    notes += [f"uniform band inside the {side} border (a frame or a strip)" for side in banded]
     above, below = bad[:y0, bx0:bx1], bad[y1:, bx0:bx1]
     # An arched top: above the box the photo region narrows (photo cells in the middle columns,
     # mount at the sides).

@@ -11,6 +11,11 @@ Every card here was looked at while the rules and parameters were chosen (masks 
 all eleven were inspected), so these figures are tuning figures; cards nobody has seen are the
 real test. ``seconds`` is wall time, ``cpu_seconds`` the process's CPU time (less sensitive to
 other work on the machine).
+
+Measured (2026-11-24, after the safety rules of ``pipeline.photo_area`` step 4): strictly inside
+22/22 as scanned, 22/22 turned, 17/22 as negatives, 21/22 at 50 % (22/22 within 2 px), 22/22 at
+200 %; mean IoU 0.761 / 0.756 / 0.704 / 0.741 / 0.733; median CPU 0.035-0.058 s per card.
+Before them: 15, 13, 12, 14 and 13 of 22 inside at mean IoU 0.814 / 0.802 / 0.748 / 0.771 / 0.782.
 """
 
 from __future__ import annotations

@@ -18,6 +18,7 @@ from pipeline.split import split_card
 Box = tuple[int, int, int, int]
 MOUNT = (214, 196, 150)
 INK = np.array([70, 55, 40], np.float32)
+GOLD = (176, 146, 70)
 TRUTH = Path(__file__).parent / "data" / "photo_area_truth.csv"
 
 
@@ -114,8 +115,30 @@ def test_mounted_card_boxes_lie_inside_each_photo(views, layout):
     assert areas.fallback_reason is None and areas.confidence > 0.5
     for box, photo in zip((areas.left_box, areas.right_box), photos):
         assert inside(box, photo), (box, photo)  # off the mount, the titles and the arch corners
-        assert iou(box, photo) > 0.8  # and not much smaller than the photo (inset ~1 % a side)
+        # and not much smaller than the photo (inset 1.4 % a side; under a tall arch the box
+        # starts a further 5 % of its height lower, and both turned searches must agree)
+        assert iou(box, photo) > (0.7 if layout.get("arch") == 60 else 0.74)
     assert areas.left_box[1] == areas.right_box[1] and areas.left_box[3] == areas.right_box[3]
+
+
+@pytest.mark.parametrize("band", [6, 10, 14])
+@pytest.mark.parametrize("mount", [MOUNT, (40, 36, 32)], ids=["buff", "black"])
+def test_framed_window_boxes_stay_off_the_frame(views, band, mount):
+    """A window mount's gold frame (``band`` px wide) over each photo's border: the boxes lie
+    inside the frame (a frame is neither mount colour nor photo), as on demo2's real card."""
+    card, photos = mounted_card(views, arch=0, titles=False)
+    card[np.all(np.abs(card.astype(int) - MOUNT) < 30, axis=2)] = mount
+    inner = []
+    for x0, y0, x1, y1 in photos:
+        window = card[y0:y1, x0:x1]
+        window[:band], window[-band:], window[:, :band], window[:, -band:] = GOLD, GOLD, GOLD, GOLD
+        inner.append((x0 + band, y0 + band, x1 - band, y1 - band))
+    areas = find_photo_areas(card)
+    check_boxes(areas, card)
+    assert areas.fallback_reason is None
+    for box, picture in zip((areas.left_box, areas.right_box), inner):
+        assert inside(box, picture), (box, picture)
+        assert iou(box, picture) > 0.65
 
 
 def test_evidence_names_what_was_found(views):
@@ -175,7 +198,7 @@ def test_raw_scan_film_edges_are_cut_off(views):
     assert "dark plain strips (film edges, black mount or scan background)" in areas.evidence
     for box, photo in zip((areas.left_box, areas.right_box), photos):
         # Conservative: dark plain picture next to a black film edge goes with the edge.
-        assert inside(box, photo) and iou(box, photo) > 0.7
+        assert inside(box, photo) and iou(box, photo) > 0.65
 
 
 # ------------------------------------------------------------------------- degenerate inputs
@@ -268,9 +291,8 @@ def test_truth_covers_every_mounted_card_and_raw_scan(shared_data: Path):
 
 
 def test_real_cards_against_hand_drawn_boxes(load_card: Callable[[str], np.ndarray]):
-    """Measured (python -m benchmarks.photo_area): mean IoU 0.81, 15 of 22 boxes inside the
-    hand-drawn photo. Known misses: a caption band printed in the picture (Pima), the gold frame
-    of a window mount (demo2), a collection stamp over the photo (demo4), an arch corner (demo5)."""
+    """Measured (python -m benchmarks.photo_area): mean IoU 0.761, all 22 boxes strictly inside
+    the hand-drawn photo (15 of 22 before the safety rules, at mean IoU 0.814)."""
     ious, insides = [], []
     for name, left_truth, right_truth in _truth():
         card = load_card(name)
@@ -281,5 +303,36 @@ def test_real_cards_against_hand_drawn_boxes(load_card: Callable[[str], np.ndarr
             ious.append(iou(box, truth))
             insides.append(inside(box, truth))
             assert ious[-1] > 0.4, (name, box, truth)
-    assert np.mean(ious) > 0.78
-    assert np.mean(insides) >= 0.6
+            assert inside(box, truth), (name, box, truth)
+    assert np.mean(ious) > 0.75
+
+
+@pytest.mark.parametrize(
+    "variant, min_iou, min_inside",
+    [("rotated_180", 0.745, 1.0), ("negative", 0.69, 0.75), ("scaled_50", 0.73, 1.0), ("scaled_200", 0.72, 1.0)],
+)
+def test_real_cards_turned_inverted_and_rescaled(shared_data: Path, variant, min_iou, min_inside):
+    """The same cards turned by 180 degrees, as negatives and at 50 % / 200 % (benchmark variants,
+    truth mapped alike): boxes inside within 2 px (measured: 1.0, 0.77, 1.0, 1.0; mean IoU 0.756,
+    0.704, 0.741, 0.733). Negatives are the weak case: a mount's colour is sought among lit
+    pixels, and a negative's ground or sky can take the mount's colour and flood."""
+    from benchmarks.photo_area import VARIANTS
+    from pipeline.io import read_image
+
+    ious, insides = [], []
+    for name, left_truth, right_truth in _truth():
+        card, lt, rt = VARIANTS[variant](read_image(shared_data / "stereocards" / name), left_truth, right_truth)
+        areas = find_photo_areas(card)
+        check_boxes(areas, card)
+        for box, truth in ((areas.left_box, lt), (areas.right_box, rt)):
+            ious.append(iou(box, truth))
+            insides.append(inside(box, (truth[0] - 2, truth[1] - 2, truth[2] + 2, truth[3] + 2)))
+    assert np.mean(ious) > min_iou
+    assert np.mean(insides) >= min_inside
+
+
+@pytest.mark.parametrize("name", ["jps/Daibutsu.jps", "jps/sports.jps"])
+def test_real_all_photo_pairs_keep_the_split_box(load_card: Callable[[str], np.ndarray], name):
+    areas = find_photo_areas(load_card(f"cropped_pairs/{name}"))
+    assert areas.fallback_reason == "no border found: the photos fill their halves"
+    assert (areas.left_box, areas.right_box) == (areas.split.left_box, areas.split.right_box)

@@ -164,6 +164,30 @@ def evaluate(rows: list[dict], weights: dict[str, float], auto_probability: floa
             else:
                 any_doubt = True
         doubtful += any_doubt
+    # Whole cards decided automatically (every flag confident), and whether all three are right;
+    # "acceptance" counts the four variants of the acceptance test (original, turned, negative,
+    # halves swapped) only.
+    auto = {"decided": 0, "right": 0, "wrong": 0}
+    acceptance = {"variants": 0, "decided_and_right": 0, "wrong": 0, "originals": 0, "originals_to_people": 0}
+    for r in rows:
+        truth = tuple(r["truth"][f] for f in FLAGS)
+        single = sum(truth) <= 1
+        acceptance["variants"] += single
+        acceptance["originals"] += not any(truth)
+        if r["undecidable"] is not None:
+            acceptance["originals_to_people"] += not any(truth)
+            continue
+        p = flag_probabilities(r["values"], weights)
+        if all(p[f] >= auto_probability or p[f] <= 1 - auto_probability for f in FLAGS):
+            right = all((p[f] >= 0.5) == r["truth"][f] for f in FLAGS)
+            auto["decided"] += 1
+            auto["right" if right else "wrong"] += 1
+            acceptance["decided_and_right"] += single and right
+            acceptance["wrong"] += single and not right
+        else:
+            acceptance["originals_to_people"] += not any(truth)
+    out["decided_automatically"] = auto
+    out["acceptance_variants"] = acceptance
     ties = [r for r in rows if r["undecidable"] is None and r["tie_decided"]]
     out["upside_down_equals_swapped"] = {"decided": len(ties), "right": sum(r["tie_right"] for r in ties)}
     # cards people settle with one answer (is it upside down?): tie and inverted both confident

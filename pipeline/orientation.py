@@ -89,6 +89,7 @@ from scipy.stats import spearmanr
 
 from .disparity import DisparityParams, estimate_disparity
 from .errors import InvalidInputError, PipelineError
+from .photo_area import PhotoAreaParams, find_photo_areas
 
 Box = tuple[int, int, int, int]
 
@@ -103,6 +104,8 @@ CUE_FLAGS: dict[str, tuple[str, ...]] = {
     "detail_bottom": ("upside_down",),
     "warm_tone": ("inverted",),
     "dark_detail": ("inverted",),
+    "smooth_bright": ("inverted",),
+    "arched_top": ("upside_down",),
 }
 
 
@@ -142,10 +145,18 @@ class OrientationParams:
     w_detail_bottom: float = 3.0
     w_warm_tone: float = 5.5
     w_dark_detail: float = 0.7
+    w_smooth_bright: float = 1.0
+    w_arched_top: float = 1.0
+    arch_working_width: int = 480
+    """px: working width of :func:`pipeline.photo_area.find_photo_areas` for the arched-top cue
+    (0 turns the cue off)."""
 
     def __post_init__(self) -> None:
         if self.working_width < 4 * MIN_PHOTO_SIDE:
             raise InvalidInputError(f"Expected working_width >= {4 * MIN_PHOTO_SIDE} px, got {self.working_width}")
+        if self.arch_working_width != 0 and self.arch_working_width < 4 * MIN_PHOTO_SIDE:
+            raise InvalidInputError(
+                f"Expected arch_working_width 0 (off) or >= {4 * MIN_PHOTO_SIDE} px, got {self.arch_working_width}")
         if not 0.5 < self.auto_probability < 1.0:
             raise InvalidInputError(f"Expected 0.5 < auto_probability < 1, got {self.auto_probability}")
         for name in self.weights():
@@ -474,16 +485,59 @@ def _fine_detail(grey: np.ndarray) -> tuple[float, float]:
 
 
 def _warm_tone(card: np.ndarray, lb: Box, rb: Box) -> float:
-    """``(mean R - mean B) / 255`` over the photos and the mount between and beside them
-    (exactly negated by inverting the card); 0 on a greyscale scan."""
+    """Sign consistency of the chroma ``R - B`` over the photos and the mount between and
+    beside them: ``(n_warm - n_cold) / (n_warm + n_cold + 0.02 n)``, counting pixels whose
+    ``R - B`` is above +4 (warm) or below -4 (cold) grey levels. Albumen and gelatin prints and
+    buff mounts are warm nearly everywhere, their negative cold nearly everywhere (the value is
+    exactly negated by inverting the card); a neutral scan has few coloured pixels and a value
+    near 0; a greyscale scan gives 0. (Measured: the mean ``(R - B) / 255`` it replaces was
+    right on every colour scan too, but as small as 0.02 on a neutral one, so never confident.)"""
     if card.ndim == 2:
         return 0.0
     x0, x1 = min(lb[0], rb[0]), max(lb[2], rb[2])
     region = card[:, x0:x1]
     scale = min(1.0, 300.0 / region.shape[1])
-    small = cv2.resize(region, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    means = small.reshape(-1, 3).mean(axis=0)
-    return float((means[0] - means[2]) / 255.0)
+    small = cv2.resize(region, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA).astype(np.int16)
+    chroma = small[..., 0] - small[..., 2]
+    warm, cold = float((chroma > 4).mean()), float((chroma < -4).mean())
+    return (warm - cold) / (warm + cold + 0.02)
+
+
+def _smooth_bright(left: np.ndarray, right: np.ndarray) -> float:
+    """Mean grey of the smoothest 15 % of both photos (9 x 9 mean gradient after a 1.5 px blur)
+    minus their median grey, in units of their standard deviation: the plain parts of a positive
+    (sky, paper, walls, water) are light, in a negative dark. Exactly negated by inverting."""
+    both = np.concatenate([left, right], axis=1).astype(np.float32)
+    spread = float(both.std())
+    if spread < 1e-3:
+        return 0.0
+    blur = cv2.GaussianBlur(both, (0, 0), 1.5)
+    grad = np.abs(cv2.Sobel(blur, cv2.CV_32F, 1, 0, ksize=3)) + np.abs(cv2.Sobel(blur, cv2.CV_32F, 0, 1, ksize=3))
+    grad = cv2.blur(grad, (9, 9))
+    smooth = both[grad <= np.percentile(grad, 15)]
+    return float((smooth.mean() - np.median(both)) / spread) if smooth.size else 0.0
+
+
+def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str]]:
+    """Arched (rounded) photo tops found by :func:`pipeline.photo_area.find_photo_areas` on the
+    card as scanned minus those found on the card turned 180 deg, over 2 (so in -1..1): mounts
+    arch the photos' tops, never their bottoms. 0 when neither view shows one or the photo areas
+    are not found; the notes say what was found."""
+    if width == 0:
+        return 0.0, ["arched-top cue off"]
+    params = PhotoAreaParams(working_width=width)
+    counts = []
+    notes: list[str] = []
+    for label, view in (("as scanned", card), ("turned", np.ascontiguousarray(card[::-1, ::-1]))):
+        try:
+            areas = find_photo_areas(view, params)
+        except PipelineError as exc:  # a card photo_area cannot read: no arch evidence
+            return 0.0, [f"photo areas not found ({exc.code})"]
+        arches = sum("arched" in e for e in areas.evidence)
+        counts.append(arches)
+        if arches:
+            notes.append(f"{arches} arched top(s) {label}")
+    return float(np.clip(counts[0] - counts[1], -2, 2)) / 2.0, notes
 
 
 def _dark_detail(left: np.ndarray, right: np.ndarray) -> float:
@@ -522,7 +576,8 @@ def same_turn_and_swap_probability(values: dict[str, float], weights: dict[str, 
 
 def _meaning(name: str, value: float) -> str:
     if value == 0.0:
-        return "greyscale scan: no colour evidence" if name == "warm_tone" else "no measurable evidence"
+        return {"warm_tone": "greyscale scan: no colour evidence",
+                "arched_top": "no arched photo tops found"}.get(name, "no measurable evidence")
     even = value > 0
     return {
         "occlusion_side": ("occluded bands end at near objects as in a correct pair: eyes not swapped"
@@ -535,6 +590,10 @@ def _meaning(name: str, value: float) -> str:
                           else "more texture in the top third: turned"),
         "warm_tone": "warm (sepia/buff) tones: a positive" if even else "cold (blue) tones: a negative",
         "dark_detail": "fine detail mostly dark: a positive" if even else "fine detail mostly bright: a negative",
+        "smooth_bright": ("plain areas (sky, paper, walls) lighter than the rest: a positive" if even
+                          else "plain areas darker than the rest: a negative"),
+        "arched_top": ("the photos' arched tops are at the top: upright" if even
+                       else "the photos' arched tops are at the bottom: turned"),
     }[name]
 
 
@@ -591,7 +650,9 @@ def estimate_orientation(
         "detail_bottom": _detail_bottom(left, right),
         "warm_tone": _warm_tone(card, lb, rb),
         "dark_detail": _dark_detail(left, right),
+        "smooth_bright": _smooth_bright(left, right),
     }
+    values["arched_top"], details["arches"] = _arched_top(card, params.arch_working_width)
     weights = params.weights()
     cues = tuple(Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c],
                      meaning=_meaning(c, float(values[c]))) for c in CUE_FLAGS)

@@ -106,7 +106,6 @@ CUE_FLAGS: dict[str, tuple[str, ...]] = {
     "dark_detail": ("inverted",),
     "smooth_bright": ("inverted",),
     "arched_top": ("upside_down",),
-    "caption_below": ("upside_down",),
 }
 
 
@@ -137,30 +136,29 @@ class OrientationParams:
     """Grey levels: photos whose mean absolute difference is below this are the same image."""
     third_photo_ncc: float = 0.6
     """NCC above which a strip of the card beside the boxes counts as a third copy of the photo."""
-    # Fitted on the tune half of the shared cards (benchmarks/orientation.py; L2 0.01, the
+    # Fitted on the tune half of the shared cards (benchmarks/orientation.py; L2 0.03, the
     # strongest within one standard error of the best leave-one-card-out log-loss within the tune
     # cards). sky_top fits to 0: dark foliage or walls fill the top and light ground the bottom of
     # three of the seven tune cards; dark_detail fits to 0 once warm_tone and smooth_bright are
     # there. Both are measured and shown anyway.
-    w_occlusion_side: float = 4.78
-    w_ground_plane: float = 4.27
+    w_occlusion_side: float = 2.7
+    w_ground_plane: float = 3.11
     w_sky_top: float = 0.0
-    w_detail_bottom: float = 1.75
-    w_warm_tone: float = 1.14
+    w_detail_bottom: float = 1.85
+    w_warm_tone: float = 1.1
     w_dark_detail: float = 0.0
-    w_smooth_bright: float = 4.02
-    w_arched_top: float = 1.99
-    w_caption_below: float = 2.58
-    layout_working_width: int = 480
-    """px: working width of :func:`pipeline.photo_area.find_photo_areas` for the mount-layout
-    cues (arched tops, title strips; 0 turns them off)."""
+    w_smooth_bright: float = 2.8
+    w_arched_top: float = 2.32
+    arch_working_width: int = 480
+    """px: working width of :func:`pipeline.photo_area.find_photo_areas` for the arched-top cue
+    (0 turns it off)."""
 
     def __post_init__(self) -> None:
         if self.working_width < 4 * MIN_PHOTO_SIDE:
             raise InvalidInputError(f"Expected working_width >= {4 * MIN_PHOTO_SIDE} px, got {self.working_width}")
-        if self.layout_working_width != 0 and self.layout_working_width < 4 * MIN_PHOTO_SIDE:
-            raise InvalidInputError(f"Expected layout_working_width 0 (off) or >= {4 * MIN_PHOTO_SIDE} px, "
-                                    f"got {self.layout_working_width}")
+        if self.arch_working_width != 0 and self.arch_working_width < 4 * MIN_PHOTO_SIDE:
+            raise InvalidInputError(f"Expected arch_working_width 0 (off) or >= {4 * MIN_PHOTO_SIDE} px, "
+                                    f"got {self.arch_working_width}")
         if not 0.5 < self.auto_probability < 1.0:
             raise InvalidInputError(f"Expected 0.5 < auto_probability < 1, got {self.auto_probability}")
         for name in self.weights():
@@ -526,40 +524,26 @@ def _smooth_bright(left: np.ndarray, right: np.ndarray) -> float:
     return float((smooth.mean() - np.median(both)) / spread) if smooth.size else 0.0
 
 
-def _mount_layout(card: np.ndarray, width: int) -> tuple[float, float, list[str]]:
-    """``(arched_top, caption_below, notes)`` from :func:`pipeline.photo_area.find_photo_areas`
-    run on the card as scanned and on the card turned 180 deg (each in -1..1; 0 when nothing is
-    found or the photo areas cannot be read; the notes say what was found).
-
-    ``arched_top``: arched (rounded) photo tops found as scanned minus those found turned, over
-    2: mounts arch the photos' tops, never their bottoms. ``caption_below``: on a card with a
-    mount colour, dark bands (a title strip) below the photos minus those above, as scanned and
-    (mirrored) turned, over 4: titles are printed on a dark strip at the photo's foot."""
+def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str]]:
+    """Arched (rounded) photo tops found by :func:`pipeline.photo_area.find_photo_areas` on the
+    card as scanned minus those found on the card turned 180 deg, over 2 (so in -1..1): mounts
+    arch the photos' tops, never their bottoms. 0 when neither view shows one or the photo areas
+    cannot be read; the notes say what was found."""
     if width == 0:
-        return 0.0, 0.0, ["mount-layout cues off"]
+        return 0.0, ["arched-top cue off"]
     params = PhotoAreaParams(working_width=width)
     arches: list[int] = []
-    bands: list[int] = []
-    mounted = False
     notes: list[str] = []
     for label, view in (("as scanned", card), ("turned", np.ascontiguousarray(card[::-1, ::-1]))):
         try:
             areas = find_photo_areas(view, params)
-        except PipelineError as exc:  # a card photo_area cannot read: no layout evidence
-            return 0.0, 0.0, [f"photo areas not found ({exc.code})"]
+        except PipelineError as exc:  # a card photo_area cannot read: no arch evidence
+            return 0.0, [f"photo areas not found ({exc.code})"]
         arch = sum("arched" in e for e in areas.evidence)
-        below = sum("dark band below" in e for e in areas.evidence)
-        above = sum("dark band above" in e for e in areas.evidence)
         arches.append(arch)
-        bands.append(below - above)
-        mounted = mounted or any(e.startswith("mount of colour") for e in areas.evidence)
         if arch:
             notes.append(f"{arch} arched top(s) {label}")
-        if below or above:
-            notes.append(f"dark bands {label}: {below} below, {above} above the photos")
-    arched = float(np.clip(arches[0] - arches[1], -2, 2)) / 2.0
-    caption = float(np.clip(bands[0] - bands[1], -4, 4)) / 4.0 if mounted else 0.0
-    return arched, caption, notes
+    return float(np.clip(arches[0] - arches[1], -2, 2)) / 2.0, notes
 
 
 def _dark_detail(left: np.ndarray, right: np.ndarray) -> float:
@@ -602,8 +586,7 @@ def same_turn_and_swap_probability(values: dict[str, float], weights: dict[str, 
 def _meaning(name: str, value: float) -> str:
     if value == 0.0:
         return {"warm_tone": "greyscale scan: no colour evidence",
-                "arched_top": "no arched photo tops found",
-                "caption_below": "no title strip found on a mount"}.get(name, "no measurable evidence")
+                "arched_top": "no arched photo tops found"}.get(name, "no measurable evidence")
     even = value > 0
     return {
         "occlusion_side": ("occluded bands end at near objects as in a correct pair: eyes not swapped"
@@ -620,8 +603,6 @@ def _meaning(name: str, value: float) -> str:
                           else "plain areas darker than the rest: a negative"),
         "arched_top": ("the photos' arched tops are at the top: upright" if even
                        else "the photos' arched tops are at the bottom: turned"),
-        "caption_below": ("dark title strips below the photos: upright" if even
-                          else "dark title strips above the photos: turned"),
     }[name]
 
 
@@ -680,13 +661,13 @@ def estimate_orientation(
         "dark_detail": _dark_detail(left, right),
         "smooth_bright": _smooth_bright(left, right),
     }
-    # The mount layout is read on the card as a positive (a title strip is dark only there): a
-    # card the tone cues call a negative is inverted first. Where that call is wrong the
-    # inverted flag itself is doubtful, so no card is decided on the strength of it.
+    # The arches are looked for on the card as a positive (measured: two more of the tune
+    # variants show them than on the scan as it came): a card the tone cues call a negative is
+    # inverted first. Where that call is wrong, the inverted flag is wrong or doubtful anyway.
     weights = params.weights()
-    tone = sum(weights[c] * values[c] for c in CUE_FLAGS if CUE_FLAGS[c] == ("inverted",) and c in values)
-    values["arched_top"], values["caption_below"], details["mount_layout"] = _mount_layout(
-        255 - card if tone < 0 else card, params.layout_working_width)
+    tone = sum(weights[c] * values[c] for c in values if CUE_FLAGS[c] == ("inverted",))
+    values["arched_top"], details["arches"] = _arched_top(255 - card if tone < 0 else card,
+                                                          params.arch_working_width)
     cues = tuple(Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c],
                      meaning=_meaning(c, float(values[c]))) for c in CUE_FLAGS)
     probabilities = flag_probabilities(values, weights)

@@ -7,9 +7,11 @@ and turned into its eight variants (upside_down x inverted x swapped, made by
 :func:`pipeline.orientation.orient_variant`). Each variant is split again, as the pipeline
 would, and its cues measured. The cue weights are fitted (multinomial log-likelihood over the
 eight hypotheses, L2-regularised, the L2 strength chosen by leave-one-card-out within the tune
-cards) on the TUNE cards only and the accuracy is reported on the
-HELD-OUT cards: per flag, the share right among decided flags, how many cards would go to
-people, and seconds per card. The defaults in :class:`OrientationParams` are this fit, rounded;
+cards with the one-standard-error rule) on the TUNE cards only and the accuracy is reported on
+the HELD-OUT cards: per flag, the share right among decided flags; whole variants decided
+automatically (the most probable flag combination at ``auto_probability``) and how many of those
+are wrong; the same for the acceptance test's four variants per card (original, turned,
+negative, halves swapped) with the originals sent to people; seconds per card. The defaults in :class:`OrientationParams` are this fit, rounded;
 ``held_out`` evaluates them, ``held_out_with_refitted_weights`` a fresh fit (should match).
 
     python -m benchmarks.orientation [--json] [--data DIR] [--rows]

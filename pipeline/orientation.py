@@ -157,17 +157,20 @@ class OrientationParams:
     """NCC above which a strip of the card beside the boxes counts as a third copy of the photo."""
     # Fitted on the tune half of the shared cards (benchmarks/orientation.py; L2 0.03, the
     # strongest within one standard error of the best leave-one-card-out log-loss within the tune
-    # cards). sky_top fits to 0: dark foliage or walls fill the top and light ground the bottom of
-    # three of the seven tune cards; dark_detail fits to 0 once warm_tone and smooth_bright are
-    # there. Both are measured and shown anyway.
-    w_occlusion_side: float = 2.6
-    w_ground_plane: float = 3.01
-    w_sky_top: float = 0.0
-    w_detail_bottom: float = 1.78
-    w_warm_tone: float = 1.09
+    # cards), the single-photo cues capped at what 100 KeystoneDepth photos support
+    # (benchmarks.orientation.single_view_caps: the tune cards alone weighed smooth_bright and
+    # detail_bottom five times heavier, which would decide about one greyscale Keystone-Mast card
+    # in ten wrongly a negative). sky_top fits to about 0: dark foliage or walls fill the top and
+    # light ground the bottom of three of the seven tune cards; dark_detail is wrong on most of
+    # the 100 photos (cap 0). Both are measured and shown anyway.
+    w_occlusion_side: float = 2.62
+    w_ground_plane: float = 2.95
+    w_sky_top: float = 0.04
+    w_detail_bottom: float = 0.39
+    w_warm_tone: float = 2.23
     w_dark_detail: float = 0.0
-    w_smooth_bright: float = 2.68
-    w_arched_top: float = 2.23
+    w_smooth_bright: float = 0.55
+    w_arched_top: float = 2.33
     arch_working_width: int = 480
     """px: working width of :func:`pipeline.photo_area.find_photo_areas` for the arched-top cue
     (0 turns it off)."""
@@ -511,12 +514,14 @@ def _fine_detail(grey: np.ndarray) -> tuple[float, float]:
 
 def _warm_tone(card: np.ndarray, lb: Box, rb: Box) -> float:
     """Sign consistency of the chroma ``R - B`` over the photos and the mount between and
-    beside them: ``(n_warm - n_cold) / (n_warm + n_cold + 0.02 n)``, counting pixels whose
-    ``R - B`` is above +4 (warm) or below -4 (cold) grey levels. Albumen and gelatin prints and
-    buff mounts are warm nearly everywhere, their negative cold nearly everywhere (the value is
-    exactly negated by inverting the card); a neutral scan has few coloured pixels and a value
-    near 0; a greyscale scan gives 0. (Measured: the mean ``(R - B) / 255`` it replaces was
-    right on every colour scan too, but as small as 0.02 on a neutral one, so never confident.)"""
+    beside them, ``(n_warm - n_cold) / (n_warm + n_cold + 0.02 n)`` (pixels whose ``R - B`` is
+    above +4 or below -4 grey levels), times ``min(1, |median R - B| / 16)``. Albumen and gelatin
+    prints and buff mounts are warm nearly everywhere, their negative cold nearly everywhere
+    (the value is exactly negated by inverting the card); a greyscale scan gives 0. The
+    magnitude factor keeps a faint cast out: a neutral or cold-toned print scanned with a slight
+    blue cast (a few grey levels) is no negative. (Measured: the mean ``(R - B) / 255`` this
+    replaces had the right sign on every colour scan too but was as small as 0.02 on a
+    lightly toned one, so never confident.)"""
     if card.ndim == 2:
         return 0.0
     x0, x1 = min(lb[0], rb[0]), max(lb[2], rb[2])
@@ -525,7 +530,8 @@ def _warm_tone(card: np.ndarray, lb: Box, rb: Box) -> float:
     small = cv2.resize(region, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA).astype(np.int16)
     chroma = small[..., 0] - small[..., 2]
     warm, cold = float((chroma > 4).mean()), float((chroma < -4).mean())
-    return (warm - cold) / (warm + cold + 0.02)
+    strength = min(1.0, abs(float(np.median(chroma))) / 16.0)
+    return (warm - cold) / (warm + cold + 0.02) * strength
 
 
 def _smooth_bright(left: np.ndarray, right: np.ndarray) -> float:

@@ -98,14 +98,21 @@ def motorcycle_card():
 
 
 @pytest.mark.parametrize("flags", ALL_FLAGS, ids=lambda f: "".join("UIS"[k] if v else "-" for k, v in enumerate(f)))
-def test_rendered_scene_every_variant_is_decided_right(scene_card, flags):
+def test_rendered_scene_no_variant_is_decided_wrong_and_one_answer_settles_it(scene_card, flags):
+    """Every variant of the rendered scene: no flag is decided wrong, the negative and the
+    turn/swap tie are decided, and the answer to "is it upside down?" gives the whole truth. (The
+    scene's only upside-down cue of its own is its texture at the bottom, weighted as little as
+    100 real Keystone-Mast photos support, so the turn alone is no longer decided.)"""
     card, lb, rb = scene_card
     variant, vl, vr = orient_variant(card, lb, rb, *flags)
     estimate = estimate_orientation(variant, vl, vr)
     assert estimate.undecidable is None
-    assert estimate.decided, {f.name: round(f.probability, 3) for f in estimate.flags}
-    assert estimate.orientation() == {**dict(zip(FLAGS, flags)), "decided_by": "auto",
-                                      "confidence": pytest.approx(estimate.confidence, abs=1e-4)}
+    for flag, truth in zip(estimate.flags, flags):
+        assert flag.value in (None, truth), (flag.name, flag.probability)
+    assert estimate.inverted.decided and estimate.tie_decided
+    assert estimate.with_upside_down(flags[0]) == dict(zip(FLAGS, flags))
+    if estimate.decided:
+        assert estimate.orientation()["decided_by"] == "auto"
     values = {c.name: c.value for c in estimate.cues}
     # each cue says what it should: upside_down xor swapped, upside_down, inverted
     assert (values["ground_plane"] > 0) == (flags[0] == flags[2])
@@ -177,19 +184,22 @@ def cue(estimate: OrientationEstimate, name: str) -> float:
     return next(c.value for c in estimate.cues if c.name == name)
 
 
-def test_a_faintly_warm_scan_is_still_a_confident_positive(scene_card):
-    """The tone cue counts warm against cold pixels, so a scan with only a faint warm cast
-    (R - B = 8 grey levels: a mean-chroma cue reads 0.03 there) is as clearly a positive as a
-    sepia one, and its negative as clearly a negative."""
+def test_warm_tone_is_confident_on_sepia_and_ignores_a_faint_cold_cast(scene_card):
+    """The tone cue counts warm against cold pixels, scaled by how strongly toned the scan is:
+    a sepia card is a confident positive and its negative a confident negative; a neutral print
+    scanned with a faint blue cast (R - B = -6 grey levels, as scanners give) is no negative."""
     card, lb, rb = scene_card
-    grey = cv2.cvtColor(card, cv2.COLOR_RGB2GRAY).astype(np.int16)
-    faint = np.clip(np.stack([grey + 4, grey, grey - 4], axis=2), 0, 255).astype(np.uint8)
     for flags in [(False, False, False), (False, True, False), (True, True, True)]:
-        variant, vl, vr = orient_variant(faint, lb, rb, *flags)
+        variant, vl, vr = orient_variant(card, lb, rb, *flags)
         estimate = estimate_orientation(variant, vl, vr)
         warm = cue(estimate, "warm_tone")
         assert (warm > 0.9) if not flags[1] else (warm < -0.9), (flags, warm)
         assert estimate.inverted.decided and estimate.inverted.value == flags[1]
+    grey = cv2.cvtColor(card, cv2.COLOR_RGB2GRAY).astype(np.int16)
+    cold = np.clip(np.stack([grey - 3, grey, grey + 3], axis=2), 0, 255).astype(np.uint8)
+    estimate = estimate_orientation(cold, lb, rb)
+    assert -0.5 < cue(estimate, "warm_tone") < 0
+    assert estimate.inverted.value in (None, False)
 
 
 def test_plain_areas_are_light_in_a_positive(scene_card):

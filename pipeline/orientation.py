@@ -63,26 +63,30 @@ both (:meth:`OrientationEstimate.with_upside_down`). Weights were fitted on half
 real cards and checked on the other half (``python -m benchmarks.orientation --json``).
 
 Measured (``python -m benchmarks.orientation --json``; 15 shared real cards x 8 variants, weights
-fitted on the 7 tune cards, reported on the 8 held-out ones: demo2, demo4, sample-stereo,
-c7980740, 09997, Daibutsu, sports, depthy_7995). Held out: 8 of 64 variants decided
-automatically, all right (before the tone and arch cues: 0 of 64); flags decided right
-upside_down 18/18, inverted 56/56, swapped 12/12, no flag decided wrong; of the acceptance test's
-four variants per card (original, turned, negative, halves swapped) 5 of 32 decided and right,
-6 of 8 originals still go to people. Tune: 23/56 decided, all right. Over all 120 variants
-``warm_tone`` has the right sign on all 104 colour ones, ``smooth_bright`` on 112 (the other 8:
-a studio portrait, |value| < 0.07), ``arched_top`` on all 36 where it fired;
-``upside_down`` and ``swapped`` remain the weak flags: their scene cues (occlusion side, bottom
-texture, sky) are right on only about 60-80 % of variants, so most cards still need a person's
-one answer (51 of 64 held-out variants have the turn/swap tie and the negative both confident).
-CPU about 0.17 s per card (two photo-area passes included; at most 0.29 s). Tried and left out:
-a dark title strip below the photos (photo-area's dark bands; right on every tune variant, wrong
-and confident on the held-out sample-stereo card), the sky as the smooth bright band at the top,
-smoothness and median-gradient variants of the bottom texture, the text on the mount above vs
-below the photos, the occlusion side read from both views' maps the other way round. The printed
-frame (stereo window) was measured earlier and left out: on the tune cards its disparity minus
-the scene's median ranged from -16 to +15 px. The ground plane is a prior about scenes: a
-close-up with no ground in view (a demo card cropped to the top of the Motorcycle, true rho
--0.31) turns it over, confidently.
+fitted on the 7 tune cards - demo1, demo3, demo5, pima, ostrich, 09995, 8618s - with the
+single-photo cues capped by 100 KeystoneDepth photos, reported on the 8 held-out ones: demo2,
+demo4, sample-stereo, c7980740, 09997, Daibutsu, sports, depthy_7995). Held out: 4 of 64 variants
+decided automatically, all right (before the tone and arch cues: 0 of 64); flags decided right
+upside_down 16/16, inverted 56/56, swapped 9/9, no flag decided wrong; of the acceptance test's
+four variants per card (original, turned, negative, halves swapped) 2 of 32 decided and right,
+7 of 8 originals still go to people; ``P(upside_down == swapped)`` confident and right on 51/64,
+and 43/64 need only the one answer. Tune: 15/56 decided, all right. Over all 120 variants the
+cues' signs were right: warm_tone 104/104 colour ones, smooth_bright 112/120 (the 8 others a
+studio portrait, |value| < 0.07), arched_top 36/36 where it fired, ground_plane 120/120,
+detail_bottom 96/120, sky_top 94/120, occlusion_side 74/120. On the 100 KeystoneDepth photos
+(upright positives) only sky_top 69, smooth_bright 63 and detail_bottom 50 of 100 were right:
+``upside_down`` and ``swapped`` stay the weak flags, most cards still need a person's one answer.
+CPU about 0.17 s per card (two photo-area passes included: 0.09 s for a 460 px card, 0.28 s for
+the 2242 px depthy pair; one variant took 0.33 s). Tried and left out: a dark title strip below the
+photos (photo-area's dark bands: right on every tune variant, wrong and confident on the
+held-out sample-stereo card), the sky as the smooth bright band at the top, smoothness and
+median-gradient variants of the bottom texture, the printed text on the mount above vs below the
+photos, the occlusion side read from both views' maps the other way round, the tune-only
+weights for the single-photo cues (8/64 held out decided, but five times what 100 KeystoneDepth
+photos support). The printed frame (stereo window) was measured earlier and left out: on the
+tune cards its disparity minus the scene's median ranged from -16 to +15 px. The ground plane is
+a prior about scenes: a close-up with no ground in view (a demo card cropped to the top of the
+Motorcycle, true rho -0.31) turns it over, confidently.
 
 Degenerate inputs never get a silent guess: bad arrays, boxes and tiny photos raise
 :class:`OrientationInputError` (a numerical failure inside OpenCV raises

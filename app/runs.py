@@ -22,7 +22,7 @@ from typing import Any
 
 import click
 from flask.cli import with_appcontext
-from sqlalchemy import exists, select
+from sqlalchemy import exists, func, select
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import selectinload
 
@@ -297,10 +297,31 @@ def inputs_digest(inputs: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def pending_cards(spec: StageSpec, phash: str) -> tuple[list[tuple[Card, dict[str, Any]]], int]:
+PLAN_CHUNK = 1000  # cards read and planned per step: memory stays flat at any catalogue size
+
+
+@dataclass(frozen=True)
+class PlannedCard:
+    """A card a stage still has to compute, with what the run needs to send it out: its inputs
+    and the fingerprint of the result row it may replace (``None`` when there is none)."""
+
+    card_id: int
+    content_hash: str
+    stored_path: str
+    inputs: dict[str, Any]
+    fingerprint: Any
+
+
+def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple[list[PlannedCard], int]:
     """Cards that still need ``spec`` with these parameters (with their inputs), and how many
     are already finished. A finished card runs again when its inputs changed (say the crowd's
-    boxes arrived after the automatic split was used)."""
+    boxes arrived after the automatic split was used).
+
+    A stage without inputs is planned in SQL (cards with no finished result for this parameter
+    hash); a stage with inputs reads the eligible cards in keyset chunks of ``chunk`` by id,
+    computes each card's inputs and lets the chunk's rows go, so planning never holds the whole
+    catalogue in memory.
+    """
     eligible = Card.state.in_(spec.eligible_states)
     if spec.requires is not None:
         eligible = eligible & exists().where(
@@ -308,25 +329,35 @@ def pending_cards(spec: StageSpec, phash: str) -> tuple[list[tuple[Card, dict[st
             StageResult.stage == spec.requires,
             StageResult.status.in_(("done", "skipped")),
         )
-    cards = list(db.session.scalars(
-        select(Card).where(eligible).order_by(Card.id).options(selectinload(Card.stage_results))
-    ))
-    approved = approved_annotations([card.id for card in cards]) if spec.inputs is not None else {}
-    todo, already = [], 0
-    for card in cards:
-        inputs = spec.inputs(card, approved.get(card.id, {})) if spec.inputs is not None else {}
-        if spec.ready is not None and not spec.ready(card, inputs):
-            continue
-        finished = next(
-            (r for r in card.stage_results
-             if r.stage == spec.name and r.param_hash == phash and r.status in ("done", "skipped")),
-            None,
-        )
-        if finished is not None and (spec.inputs is None or finished.metrics.get("inputs_digest") == inputs_digest(inputs)):
-            already += 1
-        else:
-            todo.append((card, inputs))
-    return todo, already
+    already = 0
+    if spec.inputs is None:
+        finished = exists().where(StageResult.card_id == Card.id, StageResult.stage == spec.name,
+                                  StageResult.param_hash == phash, StageResult.status.in_(("done", "skipped")))
+        already = db.session.scalar(select(func.count()).select_from(Card).where(eligible, finished)) or 0
+        eligible = eligible & ~finished
+    todo: list[PlannedCard] = []
+    after = 0
+    while True:
+        cards = list(db.session.scalars(
+            select(Card).where(eligible, Card.id > after).order_by(Card.id).limit(chunk)
+            .options(selectinload(Card.stage_results))
+        ))
+        if not cards:
+            return todo, already
+        approved = approved_annotations([card.id for card in cards]) if spec.inputs is not None else {}
+        for card in cards:
+            inputs = spec.inputs(card, approved.get(card.id, {})) if spec.inputs is not None else {}
+            if spec.ready is not None and not spec.ready(card, inputs):
+                continue
+            own = next((r for r in card.stage_results if r.stage == spec.name and r.param_hash == phash), None)
+            if (own is not None and own.status in ("done", "skipped")
+                    and (spec.inputs is None or own.metrics.get("inputs_digest") == inputs_digest(inputs))):
+                already += 1
+                continue
+            todo.append(PlannedCard(card.id, card.content_hash, card.stored_path, inputs,
+                                    None if own is None else result_fingerprint(own.status, own.started_at)))
+        after = cards[-1].id
+        db.session.expunge_all()  # this chunk is planned: let its cards and results go
 
 
 def run_stage(
@@ -356,21 +387,19 @@ def run_stage(
     phash = param_hash(spec.params)
     report = StageReport(stage=spec.name, param_hash=phash)
     cards, report.skipped_existing = pending_cards(spec, phash)
-    seen = {}
-    for card, _ in cards:
-        row = next((r for r in card.stage_results if r.stage == spec.name and r.param_hash == phash), None)
-        seen[card.id] = None if row is None else result_fingerprint(row.status, row.started_at)
+    seen = {card.card_id: card.fingerprint for card in cards}
     tasks = {
-        card.id: CardTask(
-            card_id=card.id,
+        card.card_id: CardTask(
+            card_id=card.card_id,
             content_hash=card.content_hash,
             image_path=str(data_dir / card.stored_path),
             work_dir=str(card_work_dir(data_dir, card.content_hash, spec.name, phash)),
             data_dir=str(data_dir),
-            inputs=inputs,
+            inputs=card.inputs,
         )
-        for card, inputs in cards
+        for card in cards
     }
+    del cards
     digests = {task.card_id: inputs_digest(task.inputs) for task in tasks.values() if spec.inputs is not None}
     db.session.commit()  # release the read transaction while workers compute
     if on_start is not None:

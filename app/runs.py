@@ -335,6 +335,17 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
                                   StageResult.param_hash == phash, StageResult.status.in_(("done", "skipped")))
         already = db.session.scalar(select(func.count()).select_from(Card).where(eligible, finished)) or 0
         eligible = eligible & ~finished
+        if spec.ready is None:
+            # Nothing to compute per card: the plan is one query over plain columns, with the
+            # row a result would replace (a failed one) joined in.
+            own = StageResult.__table__.alias("own")
+            rows = db.session.execute(
+                select(Card.id, Card.content_hash, Card.stored_path, own.c.status, own.c.started_at)
+                .outerjoin(own, (own.c.card_id == Card.id) & (own.c.stage == spec.name) & (own.c.param_hash == phash))
+                .where(eligible).order_by(Card.id))
+            return [PlannedCard(card_id, content_hash, stored_path, {},
+                                None if status is None else result_fingerprint(status, started_at))
+                    for card_id, content_hash, stored_path, status, started_at in rows], already
     todo: list[PlannedCard] = []
     after = 0
     while True:

@@ -20,8 +20,9 @@ from typing import Any
 RELEASABLE_GRADES: tuple[str, ...] = ("few", "some")
 VIEWS_FOLDER = "views"
 RELEASED_DECISIONS: tuple[str, ...] = ("accepted", "changed")
-# ``views`` (the five GD images per card, issue 8) is an optional component: never a default.
-FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset", "views")
+# ``views`` (the five GD images per card, issue 8) and ``stereo`` (anaglyph, wiggles, side-by-side,
+# JPS, MPO per card) are optional components: never a default.
+FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset", "views", "stereo")
 DEFAULT_FORMATS: tuple[str, ...] = ("keystonedepth", "parquet")
 # The views stage's artifacts a released card's views are made of (pipeline.view_stage).
 VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")

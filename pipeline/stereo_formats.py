@@ -192,3 +192,60 @@ def split_side_by_side(image: np.ndarray, order: str) -> tuple[np.ndarray, np.nd
         raise StereoFormatError(f"Expected a side-by-side image at least 2 px wide, got width {image.shape[1]}")
     first, second = image[:, :half], image[:, image.shape[1] - half:]
     return (first, second) if order == "parallel" else (second, first)
+
+
+# ---- eye order check ------------------------------------------------------------------------
+
+EYE_ORDER_STRIPS = 8
+EYE_ORDER_MIN_SLOPE = 0.004  # |shift change| per image width, top to bottom, below which the check abstains
+
+
+@dataclass(frozen=True)
+class EyeOrderEvidence:
+    """Which eye order the halves of a side-by-side image suggest, and why.
+
+    ``shifts``: horizontal shift (px, at the analysed width) of the second half against the first,
+    per horizontal strip from top to bottom; ``slope``: the fitted change of that shift from the
+    top strip to the bottom one, as a fraction of one half's width. Scenes are nearer at the bottom
+    (ground) than at the top (sky, far buildings), so with the left view first the right half's
+    content moves further left (more negative) towards the bottom: a negative slope suggests
+    ``parallel``, a positive one ``cross``. A heuristic (a ceiling, a tilted card, a flat scene can
+    fool it): it informs a person, it never reorders a card by itself."""
+
+    suggests: str  # "parallel", "cross" or "unknown"
+    slope: float
+    shifts: tuple[float, ...]
+    width: int
+
+    def as_json(self) -> dict[str, object]:
+        return {"suggests": self.suggests, "slope": round(self.slope, 5),
+                "shifts_px": [round(s, 2) for s in self.shifts], "analysed_width": self.width}
+
+
+def eye_order_evidence(first: np.ndarray, second: np.ndarray, analysed_width: int = 512) -> EyeOrderEvidence:
+    """Strip-wise phase correlation between the two halves of a side-by-side image (as stored:
+    ``first`` = left half). See :class:`EyeOrderEvidence`."""
+    import cv2
+
+    first, second = as_rgb(first), as_rgb(second)
+    height = min(first.shape[0], second.shape[0])
+    width = min(first.shape[1], second.shape[1])
+    if height < 4 * EYE_ORDER_STRIPS or width < 32:
+        raise StereoFormatError(f"Expected halves of at least 32 x {4 * EYE_ORDER_STRIPS} px, got {width} x {height}")
+    scale = min(1.0, analysed_width / width)
+    size = (max(32, round(width * scale)), max(4 * EYE_ORDER_STRIPS, round(height * scale)))
+    grey = [cv2.resize(cv2.cvtColor(np.ascontiguousarray(view[:height, :width]), cv2.COLOR_RGB2GRAY), size,
+                       interpolation=cv2.INTER_AREA).astype(np.float64) for view in (first, second)]
+    window_rows = size[1] // EYE_ORDER_STRIPS
+    margin = size[0] // 10  # mount edges and arch corners sit at the sides
+    shifts: list[float] = []
+    for strip in range(EYE_ORDER_STRIPS):
+        rows = slice(strip * window_rows, (strip + 1) * window_rows)
+        a, b = (image[rows, margin:size[0] - margin] for image in grey)
+        window = cv2.createHanningWindow((a.shape[1], a.shape[0]), cv2.CV_64F)
+        (dx, _dy), _response = cv2.phaseCorrelate(a, b, window)
+        shifts.append(float(dx))
+    centres = (np.arange(EYE_ORDER_STRIPS) + 0.5) / EYE_ORDER_STRIPS
+    slope = float(np.polyfit(centres, np.asarray(shifts), 1)[0]) / size[0]
+    suggests = "unknown" if abs(slope) < EYE_ORDER_MIN_SLOPE else ("parallel" if slope < 0 else "cross")
+    return EyeOrderEvidence(suggests=suggests, slope=slope, shifts=tuple(shifts), width=size[0])

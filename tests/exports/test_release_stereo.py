@@ -14,9 +14,18 @@ STEREO_NAMES = ("anaglyph.jpg", "wiggle.gif", "wiggle.webp", "sbs_full.jpg", "sb
 def test_a_release_with_the_stereo_format_verifies(app, runner, tmp_path, processed_cards, review_card) -> None:
     from exports.verify import verify_release
 
+    from app.db import db
+    from app.models import Card
+
     ids = processed_cards(2)
     review_card(ids[0], "few")
     review_card(ids[1], "some")
+    with app.app_context():  # as app.stereo_ingest records an MPO's card
+        db.session.get(Card, ids[0]).stereo_source = {
+            "kind": "mpo", "frames": 2, "eye_order": "parallel",
+            "originals": [{"role": "mpo", "source_name": "camera.mpo", "source_path": "/home/someone/camera.mpo",
+                           "sha256": "ab" * 32, "stored_path": "originals/ab/x.mpo", "bytes": 1234}]}
+        db.session.commit()
     result = runner.invoke(args=["export", "--out", str(tmp_path / "out"), "--format", "keystonedepth,stereo", "--json"])
     assert result.exit_code == 0, result.output
     report = json.loads(result.output)
@@ -41,6 +50,10 @@ def test_a_release_with_the_stereo_format_verifies(app, runner, tmp_path, proces
         with Image.open(root / "processed/rectified/rectified_LR" / f"{key}L.png") as left:
             with Image.open(root / "stereo" / key / "cross.jps") as jps:
                 assert jps.size == (2 * left.width, left.height)
+    records = [json.loads(line) for line in (root / "cards.jsonl").read_text().splitlines()]
+    assert records[0]["stereo_source"] == {"kind": "mpo", "frames": 2, "eye_order": "parallel", "originals": [
+        {"role": "mpo", "source_name": "camera.mpo", "sha256": "ab" * 32, "bytes": 1234}]}
+    assert "stereo_source" not in records[1]
     assert "stereo" in {record["@id"] for record in croissant["recordSet"]}
     assert "stereo/stereo.jsonl" in described and "`stereo/<id>/`" in (root / "README.md").read_text()
     assert "### Stereo files (2 of 2 cards)" in (root / "CHANGELOG.md").read_text()

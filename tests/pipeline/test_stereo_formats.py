@@ -170,3 +170,25 @@ def test_encoded_files_keep_eye_order_sizes_and_the_cards_facts(motorcycle) -> N
                 assert wiggle.getexif().get(0x010E).endswith("accession 1996.0009.17827")
     with Image.open(io.BytesIO(files["anaglyph"])) as anaglyph:
         assert anaglyph.size == (width, height)
+
+
+def test_eye_order_check_flips_with_the_halves(motorcycle) -> None:
+    from pipeline.stereo_formats import eye_order_evidence
+
+    left, right, _ = motorcycle
+    parallel, crossed = eye_order_evidence(left, right), eye_order_evidence(right, left)
+    assert parallel.suggests == "parallel" and crossed.suggests == "cross"
+    assert parallel.slope == pytest.approx(-crossed.slope, rel=0.2)
+    assert len(parallel.shifts) == 8
+
+
+def test_eye_order_check_on_the_real_jps_files_says_they_are_stored_parallel(shared_data) -> None:
+    """PROVENANCE.md: the three JPS files hold the left eye's view on the left, against the JPS convention."""
+    from pipeline.io import read_image
+    from pipeline.stereo_formats import eye_order_evidence, split_side_by_side
+
+    for name in ("8618s.jps", "Daibutsu.jps", "sports.jps"):
+        image = read_image(shared_data / "stereocards/cropped_pairs/jps" / name)
+        as_parallel = eye_order_evidence(*split_side_by_side(image, "parallel"))
+        as_cross = eye_order_evidence(*split_side_by_side(image, "cross"))
+        assert as_parallel.suggests == "parallel" and as_cross.suggests == "cross", (name, as_parallel.slope)

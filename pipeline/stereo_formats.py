@@ -36,6 +36,7 @@ DUBOIS_RIGHT = np.array([[-0.011, -0.032, -0.007],
                          [0.377, 0.761, 0.009],
                          [-0.026, -0.093, 1.234]], np.float64)
 
+ENCODE_LEVELS = 65536  # entries of the linear -> sRGB table used by the anaglyph
 WIGGLE_STEPS = 7  # views from left to right inclusive (odd, so t = 0.5 is one of them)
 
 
@@ -91,9 +92,17 @@ def dubois_anaglyph(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     left, right = as_rgb(left), as_rgb(right)
     if left.shape != right.shape:
         raise StereoFormatError(f"Expected views of one size, got {left.shape[:2]} and {right.shape[:2]}")
-    lut = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)  # decode through a table: 256 pows, not H*W*3
-    projected = lut[left] @ DUBOIS_LEFT.T.astype(np.float32) + lut[right] @ DUBOIS_RIGHT.T.astype(np.float32)
-    return np.round(linear_to_srgb(projected) * 255.0).astype(np.uint8)
+    # Both transfer functions go through tables (256 and 65,536 entries): a power per pixel and
+    # channel took 0.8 s on a 1800 x 1900 pair; the encode table's step is far below one grey level.
+    import cv2
+
+    decode = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)
+    # cv2.transform applies a 3 x 3 matrix per pixel (out = M @ px), several times faster than numpy's matmul.
+    projected = (cv2.transform(decode[left], DUBOIS_LEFT.astype(np.float32))
+                 + cv2.transform(decode[right], DUBOIS_RIGHT.astype(np.float32)))
+    encode = np.round(linear_to_srgb(np.arange(ENCODE_LEVELS) / (ENCODE_LEVELS - 1)) * 255.0).astype(np.uint8)
+    index = np.clip(projected, 0.0, 1.0) * np.float32(ENCODE_LEVELS - 1) + np.float32(0.5)
+    return encode[index.astype(np.int32)]
 
 
 # ---- wiggle ---------------------------------------------------------------------------------

@@ -74,7 +74,8 @@ def test_pairs_are_matched_by_name_in_every_documented_pattern(tmp_path) -> None
 
 
 @pytest.mark.both_databases
-def test_an_mpo_becomes_one_card_with_its_original_kept_as_it_came(app, runner, tmp_path, data_dir) -> None:
+def test_an_mpo_becomes_one_card_with_its_original_kept_as_it_came(app, runner, client, login, tmp_path,
+                                                                    data_dir) -> None:
     left, right = _motorcycle_views()
     mpo = _save_mpo(tmp_path / "camera.mpo", left, right)
     result = runner.invoke(args=["ingest", str(mpo), "--json"])
@@ -95,6 +96,10 @@ def test_an_mpo_becomes_one_card_with_its_original_kept_as_it_came(app, runner, 
     assert card.stored_path.startswith("derived/stereo_inputs/") and card.content_hash == _sha(data_dir / card.stored_path)
     assert (card.width, card.height) == (2 * left.shape[1], left.shape[0])
     assert np.array_equal(stored, np.concatenate(frames, axis=1))
+    # The card page names the original and its hash.
+    login("curator")
+    page = client.get(f"/cards/{card.id}").get_data(as_text=True)
+    assert "MPO (frames 1 and 2: left, right)" in page and original["sha256"] in page and "camera.mpo" in page
     # Ingesting it again is a duplicate, not a second card.
     again = json.loads(runner.invoke(args=["ingest", str(mpo), "--json"]).output)
     assert again["ingested"] == 0 and again["duplicates"] == 1
@@ -161,8 +166,8 @@ def test_bad_pairs_get_a_reason_each_while_the_rest_goes_on(app, runner, tmp_pat
     assert card.stereo_source["matched_by"] == "file names (good_<eye>.png)"
 
 
-def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(app, runner, tmp_path, data_dir,
-                                                                              shared_data) -> None:
+def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(app, runner, client, login, tmp_path,
+                                                                              data_dir, shared_data) -> None:
     """An MPO made from a real Keystone-Mast scan's halves, the depthy 7995 left/right pair (two
     files that used to be two culled cards) and a real JPS (stored parallel: the check says so)."""
     from pipeline.io import read_image
@@ -187,6 +192,9 @@ def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(ap
     # The JPS is stored parallel whatever its convention says; the check notices.
     check = cards["8618s.jps"].stereo_source["eye_order_check"]
     assert check["suggests"] == "cross" and check["agrees"] is False  # the card image was swapped by the default
+    login("curator")
+    page = client.get(f"/cards/{cards['8618s.jps'].id}").get_data(as_text=True)
+    assert "<strong>disagrees</strong>: the halves look cross-eyed as stored" in page
 
     run = runner.invoke(args=["run", "--stages", "filter,rectify,disparity,grade", "--json"])
     assert run.exit_code in (0, 1), run.output

@@ -207,3 +207,22 @@ def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(ap
     # Every stage of the pair recorded an outcome (rectification may refuse it with a typed reason).
     for stage in ("rectify", "disparity", "grade"):
         assert listed["7995l-image.jpg"][stage]["status"] in ("done", "failed", "skipped"), stage
+
+
+def test_a_pairs_csv_alone_is_enough_and_a_bad_csv_is_one_rejection(app, runner, tmp_path) -> None:
+    left, right = _motorcycle_views()
+    Image.fromarray(left).save(tmp_path / "first view.png")
+    Image.fromarray(right).save(tmp_path / "second view.png")
+    pairs = tmp_path / "pairs.csv"
+    pairs.write_text("Left,Right\nfirst view.png,second view.png\n")
+    result = runner.invoke(args=["ingest", "--pairs", str(pairs), "--json"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    assert report["ingested"] == 1 and report["cards"][0]["stereo"]["kind"] == "pair"
+    [card] = _cards(app)
+    assert card.stereo_source["matched_by"] == "pairs CSV row 2" and card.source_name == "first view.png"
+    no_header = tmp_path / "no-header.csv"
+    no_header.write_text("a.png,b.png\n")
+    bad = json.loads(runner.invoke(args=["ingest", "--pairs", str(no_header), "--json"]).output)
+    assert bad["rejected"] == [{"path": str(no_header), "reason": "cannot read the pairs CSV: expected a header with "
+                                "'left' and 'right' columns, got ['a.png', 'b.png']"}]

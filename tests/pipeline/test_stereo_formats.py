@@ -192,3 +192,15 @@ def test_eye_order_check_on_the_real_jps_files_says_they_are_stored_parallel(sha
         as_parallel = eye_order_evidence(*split_side_by_side(image, "parallel"))
         as_cross = eye_order_evidence(*split_side_by_side(image, "cross"))
         assert as_parallel.suggests == "parallel" and as_cross.suggests == "cross", (name, as_parallel.slope)
+
+
+def test_stereo_files_are_byte_reproducible(motorcycle) -> None:
+    """A release must be byte-identical when written again from the same inputs."""
+    from exports.stereo import CardCaption, encode_stereo
+
+    left, right, disparity = motorcycle
+    caption = CardCaption.of({"title": "Motorcycle"}, None, "scan.png")
+    first = encode_stereo(left, right, disparity, caption)
+    second = encode_stereo(left.copy(), right.copy(), disparity.copy(), caption)
+    assert {name: len(data) for name, data in first.items()} == {name: len(data) for name, data in second.items()}
+    assert first == second

@@ -198,7 +198,8 @@ def ingest(
     files = list(discover_files(paths, report))
     # ---- stereo hook: MPOs, left/right pairs and JPS / side-by-side eye order (app.stereo_ingest)
     # become cards there; the other files go on to the one-file-per-card ingest below.
-    from .stereo_ingest import StereoOptions as _StereoOptions, ingest_stereo_inputs
+    from .stereo_ingest import StereoOptions as _StereoOptions
+    from .stereo_ingest import ingest_stereo_inputs
 
     files = ingest_stereo_inputs(files, stereo or _StereoOptions(), collection_id, data_dir, max_pixels, report)
     # ---- end of the stereo hook
@@ -339,7 +340,6 @@ def ingest_command(paths: tuple[Path, ...], metadata_csv: Path | None, collectio
     stopped. Exits 1 when any file or metadata row was rejected (each is listed with a reason).
     """
     from .console import data_dir, emit_json, ensure_database, progress_bar, say
-
     from .stereo_ingest import StereoOptions as _StereoOptions
 
     if not paths and metadata_csv is None and pairs_csv is None:

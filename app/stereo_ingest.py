@@ -27,6 +27,7 @@ unreadable file) is rejected with a reason and the rest of the batch goes on.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import re
 from dataclasses import dataclass, field
@@ -295,8 +296,6 @@ def _add_card(collection_id: int, *, image: np.ndarray | None, stored: dict[str,
 
     if image is not None:
         payload = _encode_png(image)
-        import hashlib
-
         content_hash = hashlib.sha256(payload).hexdigest()
         existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
         if existing is not None:
@@ -340,10 +339,7 @@ def _ingest_pair(left_path: Path, right_path: Path, how: str, collection_id: int
         left, right = read_image(left_path, max_pixels), read_image(right_path, max_pixels)
         image = pair_side_by_side(left, right)
         originals = [_original_entry("left", left_path, data_dir), _original_entry("right", right_path, data_dir)]
-    except ImageReadError as exc:
-        report.rejected.append({"path": label, "reason": f"pair not ingested: {exc}"})
-        return
-    except ValueError as exc:
+    except (ImageReadError, ValueError) as exc:  # unreadable view, or views too different to be one pair
         report.rejected.append({"path": label, "reason": f"pair not ingested: {exc}"})
         return
     except OSError as exc:

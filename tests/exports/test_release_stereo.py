@@ -12,10 +12,9 @@ STEREO_NAMES = ("anaglyph.jpg", "wiggle.gif", "wiggle.webp", "sbs_full.jpg", "sb
 
 
 def test_a_release_with_the_stereo_format_verifies(app, runner, tmp_path, processed_cards, review_card) -> None:
-    from exports.verify import verify_release
-
     from app.db import db
     from app.models import Card
+    from exports.verify import verify_release
 
     ids = processed_cards(2)
     review_card(ids[0], "few")
@@ -47,9 +46,9 @@ def test_a_release_with_the_stereo_format_verifies(app, runner, tmp_path, proces
             assert (root / relative).is_file() and relative in sums and relative in described
         with Image.open(root / "stereo" / key / "pair.mpo") as mpo:
             assert mpo.n_frames == 2
-        with Image.open(root / "processed/rectified/rectified_LR" / f"{key}L.png") as left:
-            with Image.open(root / "stereo" / key / "cross.jps") as jps:
-                assert jps.size == (2 * left.width, left.height)
+        with Image.open(root / "processed/rectified/rectified_LR" / f"{key}L.png") as left, \
+                Image.open(root / "stereo" / key / "cross.jps") as jps:
+            assert jps.size == (2 * left.width, left.height)
     records = [json.loads(line) for line in (root / "cards.jsonl").read_text().splitlines()]
     assert records[0]["stereo_source"] == {"kind": "mpo", "frames": 2, "eye_order": "parallel", "originals": [
         {"role": "mpo", "source_name": "camera.mpo", "sha256": "ab" * 32, "bytes": 1234}]}

@@ -34,7 +34,7 @@ STEREO_FORMATS: dict[str, tuple[str, str, str]] = {
     "sbs_full": ("sbs_full.jpg", "image/jpeg", "full side-by-side, parallel (left view on the left)"),
     "sbs_half": ("sbs_half.jpg", "image/jpeg", "half side-by-side, parallel, each view squeezed to half width"),
     "jps": ("cross.jps", "image/x-jps", "JPS, cross-eyed (right view on the left half), as the format defines"),
-    "mpo": ("pair.mpo", "image/mpo", "MPO (CIPA DC-007) with the left view first, the right second, for 3D displays"),
+    "mpo": ("pair.mpo", "image/mpo", "MPO (CIPA DC-007, type disparity) with the left view first, for 3D displays"),
 }
 JPEG_QUALITY = 92
 WIGGLE_MAX_SIDE = 800  # px: GIF frames at full size of a 3000 px scan made ~10 MB files
@@ -159,7 +159,40 @@ def encode_mpo(left: np.ndarray, right: np.ndarray, caption: CardCaption) -> byt
     buffer = io.BytesIO()
     Image.fromarray(as_rgb(left)).save(buffer, format="MPO", save_all=True, append_images=[Image.fromarray(as_rgb(right))],
                                        quality=JPEG_QUALITY, exif=caption.exif(), xmp=caption.xmp())
-    return buffer.getvalue()
+    return mark_disparity_pair(buffer.getvalue())
+
+
+# CIPA DC-007 MP entry attributes: bit 29 = representative image, low 24 bits = MP type;
+# 0x020002 = "multi-frame image, disparity" (a stereo pair), what stereo cameras write and 3D
+# displays look for. Pillow writes "baseline primary" and "undefined" instead.
+MP_DISPARITY = 0x020002
+MP_REPRESENTATIVE = 1 << 29
+
+
+def mark_disparity_pair(data: bytes) -> bytes:
+    """Set the MP index entries of a two-frame MPO written by Pillow to "disparity" (the first
+    frame representative). Raises ``ValueError`` if the file has no MP index of two entries."""
+    import struct
+
+    start = data.find(b"MPF\0")
+    if start < 0 or data[start + 4:start + 8] not in (b"II*\0", b"MM\0*"):
+        raise ValueError("no MP index (APP2 'MPF') in the MPO")
+    tiff = start + 4
+    order = "<" if data[tiff:tiff + 2] == b"II" else ">"
+    ifd = tiff + struct.unpack_from(order + "L", data, tiff + 4)[0]
+    (count,) = struct.unpack_from(order + "H", data, ifd)
+    patched = bytearray(data)
+    for number in range(count):
+        tag, _kind, length, value = struct.unpack_from(order + "HHLL", data, ifd + 2 + 12 * number)
+        if tag != 0xB002:
+            continue
+        if length != 32:
+            raise ValueError(f"expected an MP index of 2 entries (32 bytes), got {length} bytes")
+        for entry in range(2):
+            attribute = MP_DISPARITY | (MP_REPRESENTATIVE if entry == 0 else 0)
+            struct.pack_into(order + "L", patched, tiff + value + 16 * entry, attribute)
+        return bytes(patched)
+    raise ValueError("the MPO's MP index has no entry list (tag 0xB002)")
 
 
 @dataclass

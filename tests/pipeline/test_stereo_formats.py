@@ -132,6 +132,9 @@ def test_encoded_files_keep_eye_order_sizes_and_the_cards_facts(motorcycle) -> N
     # MPO: two frames, left first, both the views' size.
     with Image.open(io.BytesIO(files["mpo"])) as mpo:
         assert mpo.format == "MPO" and mpo.n_frames == 2
+        entries = mpo.mpinfo[0xB002]  # CIPA DC-007 MP index: a stereo pair, the left frame representative
+        assert [e["Attribute"]["MPType"] for e in entries] == ["Multi-Frame Image: (Disparity)"] * 2
+        assert [e["Attribute"]["RepresentativeImageFlag"] for e in entries] == [True, False]
         first = np.asarray(mpo.convert("RGB"))
         description = mpo.getexif().get(0x010E)
         xmp = mpo.info.get("xmp", b"")

@@ -26,6 +26,8 @@ def test_card_page_offers_every_stereo_format_and_each_downloads(client, login, 
     page = client.get(f"/cards/{rectified_card}").get_data(as_text=True)
     assert "Stereo downloads" in page
     urls = [url.replace("&amp;", "&") for url in re.findall(r'href="(/cards/\d+/stereo/[^"]+)"', page)]
+    shown = [url.split("/stereo/")[1].split("?")[0] for url in re.findall(r'<img src="(/cards/\d+/stereo/[^"]+)"', page)]
+    assert shown == ["anaglyph", "wiggle_webp"]  # previews on the page, beside the download links
     assert [url.split("/stereo/")[1].split("?")[0] for url in urls] == list(FORMATS)
     sizes = {}
     for url in urls:

@@ -81,10 +81,12 @@ class StereoPlan:
 def eye_markers(path: Path) -> list[tuple[str, str, bool]]:
     """``(pair key, eye, explicit)`` for every place in the file's stem that names an eye.
 
-    Explicit markers are whole tokens between separators (``_L``, ``-right``, `` left``); a bare
-    letter glued to the stem counts after a digit (``7995l-image``) or as a capital after a
-    lower-case letter or digit (``cardL``). The key is the name with the marker replaced, so the
-    two views of a pair share it."""
+    Markers are whole tokens between separators (``_L``, ``-right``, `` left``) or a bare letter
+    glued to the stem after a digit (``7995l-image``) or as a capital after a lower-case letter
+    or digit (``cardL``). The key is the name with the marker replaced, so the two views of a
+    pair share it. ``explicit`` is true only for a whole-token marker that ends the stem
+    (``scan_L``, ``scan-left``): only such a file, when its twin is missing, is refused as half a
+    pair; a lone ``R`` inside a title ("Views of the R. River") stays an ordinary scan."""
     stem = path.stem
     parts = _SEPARATORS.split(stem)  # tokens at even indexes, separators at odd ones
     found: list[tuple[str, str, bool]] = []
@@ -94,7 +96,7 @@ def eye_markers(path: Path) -> list[tuple[str, str, bool]]:
         eye = _EXPLICIT_EYES.get(token.lower())
         if eye is not None and len(parts) > 1:
             key = "".join(parts[:index] + ["*"] + parts[index + 1:]).lower()
-            found.append((f"{key}{suffix}", eye, True))
+            found.append((f"{key}{suffix}", eye, index == len(parts) - 1))
             continue
         bare = re.fullmatch(r"(.*\d)([lLrR])", token) or re.fullmatch(r"(.*[a-z0-9])([LR])", token)
         if bare is not None:

@@ -52,13 +52,14 @@ def test_pairs_are_matched_by_name_in_every_documented_pattern(tmp_path) -> None
 
     names = ["7995l-image.jpg", "7995r-image.jpg", "card_L.png", "card_r.png", "cardL.jpg", "cardR.jpg",
              "Niagara-left.tif", "Niagara-Right.tif", "scan 12 left.jpg", "scan 12 right.jpg",
-             "Hall.jpg", "Parlor.jpg", "lonely_L.jpg", "plain.jpg", "photo.jps", "camera.mpo"]
+             "Hall.jpg", "Parlor.jpg", "lonely_L.jpg", "Views of the R. River.jpg", "plain.jpg", "photo.jps",
+             "camera.mpo"]
     files = [tmp_path / name for name in names]
     plan = plan_stereo(files, StereoOptions())
     pairs = {(left.name, right.name) for left, right, _how in plan.pairs}
     assert pairs == {("7995l-image.jpg", "7995r-image.jpg"), ("card_L.png", "card_r.png"), ("cardL.jpg", "cardR.jpg"),
                      ("Niagara-left.tif", "Niagara-Right.tif"), ("scan 12 left.jpg", "scan 12 right.jpg")}
-    assert [p.name for p in plan.singles] == ["Hall.jpg", "Parlor.jpg", "plain.jpg"]
+    assert [p.name for p in plan.singles] == ["Hall.jpg", "Parlor.jpg", "Views of the R. River.jpg", "plain.jpg"]
     assert [p.name for p in plan.mpos] == ["camera.mpo"]
     assert [(p.name, order) for p, order, _why in plan.side_by_side] == [("photo.jps", "cross")]
     assert len(plan.rejected) == 1 and plan.rejected[0]["path"].endswith("lonely_L.jpg")

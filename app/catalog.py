@@ -236,6 +236,7 @@ def card_page(card_id: int) -> Any:
         return render_template(
             "catalog/card.html", card=card, filter_result=filter_result, rectify_result=rectify_result,
             disparity_result=disparity_result, grade_result=latest.get("grade"), views_result=latest.get("views"),
+            stereo_downloads=stereo_downloads(card, rectify_result, disparity_result),
             filter_view=FilterView.of(card, filter_result) if filter_result is not None else None,
             statuses=card_stage_statuses(card), history=list(reversed(card.stage_results)), records=records,
         )
@@ -501,3 +502,95 @@ def artifact_image(card_id: int, stage: str, name: str) -> Response:
     if not path.is_file():
         abort(404, f"Artifact {name!r} is recorded but its file is missing; rerun the {stage} stage.")
     return _send_image(path, mimetype, etag)
+
+
+# ----------------------------------------------------------------------------- stereo downloads
+
+
+def _stereo_inputs(rectify: StageResult | None, disparity: StageResult | None) -> tuple[str, str, str] | None:
+    """The rectified views and the left disparity (paths under the data dir), or None when the
+    card has no finished rectified pair with a disparity."""
+    if rectify is None or rectify.status not in ("done", "skipped") or disparity is None or disparity.status != "done":
+        return None
+    paths = ((rectify.artifacts or {}).get("left"), (rectify.artifacts or {}).get("right"),
+             (disparity.artifacts or {}).get("disparity_left"))
+    if not all(isinstance(path, str) and path for path in paths):
+        return None
+    return paths  # type: ignore[return-value]
+
+
+def _stereo_etag(card: Card, inputs: tuple[str, str, str], rectify: StageResult, disparity: StageResult) -> str:
+    from exports.stereo import CardCaption
+
+    caption = CardCaption.of(card.source_metadata or {}, card.accession, card.source_name)
+    detail = "\0".join([*inputs, rectify.param_hash, rectify.code_version, disparity.param_hash,
+                        disparity.code_version, repr(caption), STEREO_DOWNLOAD_VERSION])
+    return f"{card.content_hash[:16]}-stereo-{hashlib.sha256(detail.encode()).hexdigest()[:16]}"
+
+
+STEREO_DOWNLOAD_VERSION = "1"  # bump when the way the stereo files are made changes
+
+
+def stereo_downloads(card: Card, rectify: StageResult | None, disparity: StageResult | None) -> list[dict[str, str]]:
+    """Links to the card's stereo files (anaglyph, wiggles, side-by-side, JPS, MPO), or none
+    when it has no rectified pair with a disparity yet."""
+    from exports.stereo import STEREO_FORMATS
+
+    inputs = _stereo_inputs(rectify, disparity)
+    if inputs is None or rectify is None or disparity is None:
+        return []
+    version = _version(_stereo_etag(card, inputs, rectify, disparity))
+    return [{"name": name, "file": file_name, "what": what,
+             "url": url_for("catalog.stereo_download", card_id=card.id, fmt=name, v=version)}
+            for name, (file_name, _mime, what) in STEREO_FORMATS.items()]
+
+
+@bp.route("/cards/<int:card_id>/stereo/<fmt>")
+@role_required(*STAFF_ROLES)
+def stereo_download(card_id: int, fmt: str) -> Response:
+    """One stereo file of a card, made from its latest rectified pair and disparity on first
+    request and cached under ``DATA_DIR/stereo_downloads`` by the inputs' fingerprint."""
+    import numpy as np
+
+    from exports.stereo import STEREO_FORMATS, CardCaption, encode_stereo
+    from pipeline.stereo_formats import StereoFormatError
+
+    if fmt not in STEREO_FORMATS:
+        abort(404, f"There is no stereo format {fmt!r}; formats: {', '.join(STEREO_FORMATS)}.")
+    file_name, mimetype, _what = STEREO_FORMATS[fmt]
+    with read_only():
+        card = get_card_or_404(card_id)
+        latest = card.latest_results()
+        rectify, disparity = latest.get("rectify"), latest.get("disparity")
+        inputs = _stereo_inputs(rectify, disparity)
+        if inputs is None or rectify is None or disparity is None:
+            abort(404, f"Card {card_id} has no rectified pair with a disparity yet: run the rectify and disparity stages.")
+        etag = _stereo_etag(card, inputs, rectify, disparity)
+        caption = CardCaption.of(card.source_metadata or {}, card.accession, card.source_name)
+        download_name = f"card-{card.id:05d}-{file_name}"
+    cached = _not_modified(etag)
+    if cached is None:
+        target = data_dir() / "stereo_downloads" / f"{etag}-{file_name}"
+        if target.is_file():
+            payload = target.read_bytes()
+        else:
+            left_path, right_path, disparity_path = (inside_data_dir(path) for path in inputs)
+            if not (left_path.is_file() and right_path.is_file() and disparity_path.is_file()):
+                abort(404, "The rectified pair or its disparity is recorded but missing on disk; rerun those stages.")
+            try:
+                max_pixels = int(current_app.config["KEYSTONE_MAX_PIXELS"])
+                left, right = read_image(left_path, max_pixels), read_image(right_path, max_pixels)
+                disparity_map = np.load(disparity_path, allow_pickle=False)
+                payload = encode_stereo(left, right, disparity_map, caption, only=(fmt,))[fmt]
+            except (ImageReadError, StereoFormatError, OSError, ValueError) as exc:
+                abort(404, f"The {fmt} file of card {card_id} cannot be made: {exc}")
+            try:
+                with atomic_write(target) as handle:
+                    handle.write(payload)
+            except OSError as exc:  # a read-only data folder still serves the file, made per request
+                current_app.logger.warning("Serving a stereo file without its cache: cannot write %s (%s)", target, exc)
+        response = _send_image(payload, mimetype, etag)
+    else:
+        response = cached
+    response.headers["Content-Disposition"] = f'attachment; filename="{download_name}"'
+    return response

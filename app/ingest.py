@@ -17,7 +17,7 @@ import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 from flask import current_app
@@ -31,6 +31,9 @@ from pipeline.io import IMAGE_SUFFIXES, probe_image
 from .db import db
 from .metadata import MetadataFormatError, MetadataRow, card_keys, read_metadata, row_keys
 from .models import Card, Collection, MetadataRecord
+
+if TYPE_CHECKING:
+    from .stereo_ingest import StereoOptions
 
 DEFAULT_COLLECTION = "default"
 HASH_CHUNK = 1 << 20
@@ -266,6 +269,7 @@ def ingest(
     max_pixels: int,
     on_start: Callable[[int], None] | None = None,
     on_file: Callable[[Path], None] | None = None,
+    stereo: StereoOptions | None = None,
 ) -> IngestReport:
     """Ingest files and folders (and a metadata CSV): every problem is a ``rejected`` entry with
     its reason and the rest goes on; a database that refuses writes (a full disk) rejects each
@@ -286,6 +290,13 @@ def ingest(
         metadata_ids = _ingest_metadata(collection_id, metadata_csv, report)
 
     files = list(discover_files(paths, report))
+    # ---- stereo hook: MPOs, left/right pairs and JPS / side-by-side eye order (app.stereo_ingest)
+    # become cards there; the other files go on to the one-file-per-card ingest below.
+    from .stereo_ingest import StereoOptions as _StereoOptions
+    from .stereo_ingest import ingest_stereo_inputs
+
+    files = ingest_stereo_inputs(files, stereo or _StereoOptions(), collection_id, data_dir, max_pixels, report)
+    # ---- end of the stereo hook
     if on_start is not None:
         on_start(len(files))
     for path in files:
@@ -454,24 +465,36 @@ def _duplicate_entry(path: Path, existing: Card) -> dict[str, Any]:
                    "file_name or accession).")
 @click.option("--collection", "collection_name", default=DEFAULT_COLLECTION, show_default=True,
               help="Collection the cards belong to (created if new).")
+@click.option("--pairs", "pairs_csv", type=click.Path(path_type=Path),
+              help="CSV with 'left' and 'right' columns: each row's two files become one card.")
+@click.option("--sbs-order", type=click.Choice(["cross", "parallel"]),
+              help="Eye order of side-by-side files: cross (right view on the left) or parallel. "
+                   "JPS files default to cross; giving it treats every plain file as side by side.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as one JSON document.")
 @with_appcontext
-def ingest_command(paths: tuple[Path, ...], metadata_csv: Path | None, collection_name: str, as_json: bool) -> None:
-    """Copy scans (files or folders, recursively: jpg, png, tif, jps) into the catalogue.
+def ingest_command(paths: tuple[Path, ...], metadata_csv: Path | None, collection_name: str,
+                   pairs_csv: Path | None, sbs_order: str | None, as_json: bool) -> None:
+    """Copy scans (files or folders, recursively: jpg, png, tif, jps, mpo) into the catalogue.
+
+    An MPO's two frames, and a left/right pair (named <stem>_L/_R, <stem>L/R, -left/-right, or
+    listed in --pairs), each become one card; JPS files are read as cross-eyed unless
+    --sbs-order says otherwise. Originals are stored as they came.
 
     Duplicates by content are a no-op; rerunning an interrupted ingest carries on where it
     stopped. Exits 1 when any file or metadata row was rejected (each is listed with a reason).
     """
     from .console import data_dir, emit_json, ensure_database, progress_bar, say
+    from .stereo_ingest import StereoOptions as _StereoOptions
 
-    if not paths and metadata_csv is None:
-        raise click.UsageError("give at least one PATH or --metadata CSV")
+    if not paths and metadata_csv is None and pairs_csv is None:
+        raise click.UsageError("give at least one PATH, --pairs CSV or --metadata CSV")
     ensure_database()
     with progress_bar("ingest", enabled=not as_json) as progress:
         report = ingest(
             paths, data_dir=data_dir(), collection_name=collection_name, metadata_csv=metadata_csv,
             max_pixels=int(current_app.config["KEYSTONE_MAX_PIXELS"]),
             on_start=progress.start, on_file=progress.advance,
+            stereo=_StereoOptions(pairs_csv=pairs_csv, sbs_order=sbs_order),
         )
     if as_json:
         emit_json(report.as_json())

@@ -70,6 +70,10 @@ class Card(db.Model):
     image_format: Mapped[str] = mapped_column(String(20))
     byte_size: Mapped[int] = mapped_column(BigInteger)
     source_metadata: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)
+    # Set when the card image was made from stereo inputs (an MPO, a left/right pair) or is a
+    # side-by-side file with a declared eye order: its originals, hashes, eye order and the check
+    # of that order (app.stereo_ingest). NULL for an ordinary scan.
+    stereo_source: Mapped[dict[str, Any] | None] = mapped_column(JSONType, nullable=True)
     state: Mapped[str] = mapped_column(String(20), default="ingested", index=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)

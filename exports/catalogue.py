@@ -174,4 +174,5 @@ def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]
         rectified_left=path(rectify, "left"), rectified_right=path(rectify, "right"),
         disparity_left=path(disparity, "disparity_left"), disparity_right=path(disparity, "disparity_right"),
         depth_512=path(disparity, "depth_512"), stages=stages, crowd=crowd, views=views, views_note=views_note,
+        stereo_source=card.stereo_source,
     )

@@ -56,7 +56,7 @@ ENCODINGS = {
     ".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".tif": "image/tiff", ".tiff": "image/tiff",
     ".exr": "image/x-exr", ".json": "application/json", ".jsonl": "application/jsonlines",
     ".parquet": "application/x-parquet", ".tar": "application/x-tar", ".md": "text/markdown",
-    ".webp": "image/webp",
+    ".webp": "image/webp", ".gif": "image/gif", ".mpo": "image/mpo", ".jps": "image/x-jps",
 }
 
 # (field name, schema.org / Croissant type, description) of the ``cards`` record set.
@@ -84,6 +84,22 @@ VIEW_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("focal_px", "sc:Float", "Focal length of the reference view v0 in pixels."),
     ("quad_radius", "sc:Float", "Distance of the corner cameras v1..v4 from the quad's centre, baseline units."),
     ("preview", "sc:Text", "Path of the animated parallax preview (WebP)."),
+)
+
+
+# (field name, type, description) of the ``stereo`` record set (``stereo/stereo.jsonl``).
+STEREO_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("key", "sc:Text", "The card's key (as in cards): its stereo files are in stereo/<key>/."),
+    ("card_id", "sc:Integer", "The card's id in the catalogue."),
+    ("width", "sc:Integer", "Width of one rectified view in pixels."),
+    ("height", "sc:Integer", "Height of one rectified view in pixels."),
+    ("anaglyph", "sc:Text", "Path of the red-cyan anaglyph (JPEG, Dubois least squares)."),
+    ("wiggle_gif", "sc:Text", "Path of the animated wiggle (GIF), in-between views synthesised from the disparity."),
+    ("wiggle_webp", "sc:Text", "Path of the animated wiggle (WebP)."),
+    ("sbs_full", "sc:Text", "Path of the full side-by-side image, parallel (left view on the left)."),
+    ("sbs_half", "sc:Text", "Path of the half side-by-side image, parallel, each view at half width."),
+    ("jps", "sc:Text", "Path of the JPS file, cross-eyed (right view on the left)."),
+    ("mpo", "sc:Text", "Path of the MPO file, left view first."),
 )
 
 
@@ -126,7 +142,8 @@ def write_croissant(handle: IO[bytes], files: dict[str, tuple[str, int]], **docu
 
 def croissant_document(*, version: str, date: str, files: dict[str, tuple[str, int]], card_count: int,
                        grade_counts: dict[str, int], crowd: dict[str, Any], notes: str,
-                       name: str = "keystone-stereographs", views_count: int | None = None) -> dict[str, Any]:
+                       name: str = "keystone-stereographs", views_count: int | None = None,
+                       stereo_count: int | None = None) -> dict[str, Any]:
     """The Croissant JSON-LD document (``files``: relative path -> (sha256, bytes));
     ``views_count`` (cards with views) is given when the release has the views component."""
     distribution = [file_object(path, sha, size) for path, (sha, size) in sorted(files.items())]
@@ -152,6 +169,19 @@ def croissant_document(*, version: str, date: str, files: dict[str, tuple[str, i
                  "dataType": kind,
                  "source": {"fileObject": {"@id": _file_id("views/views.jsonl")}, "extract": {"column": field}}}
                 for field, kind, description in VIEW_FIELDS
+            ],
+        })
+    if stereo_count is not None:
+        record_sets.append({
+            "@type": "cr:RecordSet", "@id": "stereo", "name": "stereo",
+            "description": (f"Viewing files of the rectified pair (anaglyph, wiggles, side-by-side, JPS, MPO) for "
+                            f"{stereo_count} of {card_count} cards; one record per card with them."),
+            "key": {"@id": "stereo/key"},
+            "field": [
+                {"@type": "cr:Field", "@id": f"stereo/{field}", "name": field, "description": description,
+                 "dataType": kind,
+                 "source": {"fileObject": {"@id": _file_id("stereo/stereo.jsonl")}, "extract": {"column": field}}}
+                for field, kind, description in STEREO_FIELDS
             ],
         })
     answers = crowd.get("answers_per_card")

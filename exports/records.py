@@ -20,8 +20,9 @@ from typing import Any
 RELEASABLE_GRADES: tuple[str, ...] = ("few", "some")
 VIEWS_FOLDER = "views"
 RELEASED_DECISIONS: tuple[str, ...] = ("accepted", "changed")
-# ``views`` (the five GD images per card, issue 8) is an optional component: never a default.
-FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset", "views")
+# ``views`` (the five GD images per card, issue 8) and ``stereo`` (anaglyph, wiggles, side-by-side,
+# JPS, MPO per card) are optional components: never a default.
+FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset", "views", "stereo")
 DEFAULT_FORMATS: tuple[str, ...] = ("keystonedepth", "parquet")
 # The views stage's artifacts a released card's views are made of (pipeline.view_stage).
 VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")
@@ -105,6 +106,9 @@ class ReleaseCard:
     # none; ``views_note`` is None when the release has no views component, else "done" or why not.
     views: dict[str, Path] = field(default_factory=dict)
     views_note: str | None = None
+    # How the card image was made from stereo inputs (an MPO, a left/right pair, a JPS): the
+    # originals with their sha256, the eye order and its check; None for an ordinary scan.
+    stereo_source: dict[str, Any] | None = None
 
     @property
     def key(self) -> str:
@@ -149,6 +153,7 @@ class ReleaseCard:
             "rectification": {k: self.rectification.get(k) for k in RECTIFICATION_KEYS if k in self.rectification},
             "pipeline": self.stages, "crowd": self.crowd, "digest": self.manifest_entry()["digest"],
             **({} if self.views_note is None else {"views": self.views_record()}),
+            **({} if self.stereo_source is None else {"stereo_source": released_stereo_source(self.stereo_source)}),
         }
 
     def views_record(self) -> dict[str, Any]:
@@ -156,6 +161,13 @@ class ReleaseCard:
         if self.views:
             return {"folder": f"{VIEWS_FOLDER}/{self.key}", "why_not": None}
         return {"folder": None, "why_not": self.views_note}
+
+
+def released_stereo_source(source: dict[str, Any]) -> dict[str, Any]:
+    """A card's stereo source as released: no path of the ingesting machine, only names and hashes."""
+    originals = [{k: original.get(k) for k in ("role", "source_name", "sha256", "bytes")}
+                 for original in source.get("originals") or []]
+    return {**{k: v for k, v in source.items() if k != "originals"}, "originals": originals}
 
 
 RECTIFICATION_KEYS: tuple[str, ...] = (

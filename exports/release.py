@@ -42,6 +42,7 @@ from .records import (
     parse_formats,
 )
 from .staging import ReleaseStaging, make_world_readable, remove_stale_partials
+from .stereo import StereoWriter
 from .writers import (
     CardPayload,
     FileLedger,
@@ -87,6 +88,7 @@ class ReleaseReport:
     notes: str = ""
     views: dict[str, Any] | None = None  # with the views component: cards with views, and why the others have none
     leftovers_removed: list[dict[str, Any]] = field(default_factory=list)  # staging folders of killed exports
+    stereo: dict[str, Any] | None = None  # with the stereo component: cards, cost per format per card, failures
     manifest: dict[str, dict[str, Any]] = field(default_factory=dict, repr=False)
 
     def as_json(self) -> dict[str, Any]:
@@ -96,7 +98,7 @@ class ReleaseReport:
             "excluded": self.excluded, "seconds": round(self.seconds, 3), "files": self.files, "bytes": self.bytes,
             "dry_run": self.dry_run, "manifest_sha256": self.manifest_sha256, "release_id": self.release_id,
             "cards_per_second": round(self.cards / self.seconds, 2) if self.seconds > 0 and not self.dry_run else None,
-            "views": self.views, "leftovers_removed": self.leftovers_removed,
+            "views": self.views, "leftovers_removed": self.leftovers_removed, "stereo": self.stereo,
         }
 
 
@@ -257,6 +259,9 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     views_writer = ViewsWriter(ledger, scratch) if "views" in fmt else None
     if views_writer is not None:
         writers.append(views_writer)
+    stereo_writer = StereoWriter(ledger) if "stereo" in fmt else None
+    if stereo_writer is not None:
+        writers.append(stereo_writer)
     if progress is not None:
         progress.start(plan.cards)
     manifest: dict[str, dict[str, Any]] = {}
@@ -296,14 +301,16 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     if views_writer is not None:
         views = {"cards_with_views": views_writer.with_views, "cards_without_views": sum(views_writer.without.values()),
                  "without": dict(sorted(views_writer.without.items()))}
-    ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, views).encode())
+    stereo = stereo_writer.summary() if stereo_writer is not None else None
+    ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, views, stereo).encode())
     ledger.write_bytes("README.md", dataset_card(version, plan.date, len(manifest), grades, fmt, plan.notes,
-                                                 changes, plan.min_grade, views).encode())
+                                                 changes, plan.min_grade, views, stereo).encode())
     crowd = {"answers_per_card": crowd_answers / crowd_cards if crowd_cards else None, "cards_with_crowd": crowd_cards}
     with open(root / "croissant.json", "wb") as handle:
         write_croissant(handle, ledger.files, version=version, date=plan.date, card_count=len(manifest),
                         grade_counts=grades, crowd=crowd, notes=plan.notes,
-                        views_count=views["cards_with_views"] if views is not None else None)
+                        views_count=views["cards_with_views"] if views is not None else None,
+                        stereo_count=stereo["cards"] if stereo is not None else None)
     ledger.record_file("croissant.json")
     sums_hash = hashlib.sha256()
     sums_bytes = 0
@@ -317,7 +324,7 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
         version=version, path=None, cards=len(manifest), formats=list(fmt), min_grade=plan.min_grade, date=plan.date,
         changes=changes.as_json(), grades=grades, excluded=excluded, seconds=time.perf_counter() - clock,
         files=len(ledger.files) + 1, bytes=ledger.total_bytes + sums_bytes,
-        manifest_sha256=sums_hash.hexdigest(), notes=plan.notes, manifest=manifest, views=views,
+        manifest_sha256=sums_hash.hexdigest(), notes=plan.notes, manifest=manifest, views=views, stereo=stereo,
     )
 
 
@@ -327,7 +334,7 @@ def _previous_for(plan: ReleaseReport) -> _Previous:
 
 
 def changelog(version: str, date: str, changes: Changes, excluded: list[dict[str, Any]],
-              views: dict[str, Any] | None = None) -> str:
+              views: dict[str, Any] | None = None, stereo: dict[str, Any] | None = None) -> str:
     """CHANGELOG.md: cards added, removed and changed against the previous release, and why;
     with the views component, how many cards have views and why the others have none."""
     day = date[:10]
@@ -349,6 +356,11 @@ def changelog(version: str, date: str, changes: Changes, excluded: list[dict[str
         lines += ["", f"### Views ({views['cards_with_views']} of {total} cards)", ""]
         lines.append(f"- {views['cards_with_views']} card(s) with the five GD images, cameras and preview under `views/`")
         lines += [f"- {count} card(s) without views: {reason}" for reason, count in views["without"].items()]
+    if stereo is not None:
+        total = stereo["cards"] + stereo["cards_without"]
+        lines += ["", f"### Stereo files ({stereo['cards']} of {total} cards)", ""]
+        lines.append(f"- {stereo['cards']} card(s) with an anaglyph, two wiggles, side-by-side, JPS and MPO under `stereo/`")
+        lines += [f"- {count} card(s) without: {reason}" for reason, count in stereo["without"].items()]
     if excluded:
         lines += ["", f"### Accepted but not released ({len(excluded)})", ""]
         lines += [f"- card {key_of(e['card_id'])}: {e['reason']}" for e in excluded]
@@ -362,7 +374,8 @@ def key_of(card_id: int) -> str:
 
 
 def dataset_card(version: str, date: str, cards: int, grades: dict[str, int], fmt: tuple[str, ...], notes: str,
-                 changes: Changes, min_grade: str, views: dict[str, Any] | None = None) -> str:
+                 changes: Changes, min_grade: str, views: dict[str, Any] | None = None,
+                 stereo: dict[str, Any] | None = None) -> str:
     """README.md in the Hugging Face dataset-card layout (YAML header, then the template's sections)."""
     size = "n<1K" if cards < 1000 else "1K<n<10K" if cards < 10_000 else "10K<n<100K"
     header = ["---", "pretty_name: Keystone stereographs", "license: other",
@@ -402,6 +415,16 @@ def dataset_card(version: str, date: str, cards: int, grades: dict[str, int], fm
             "finite and > 0 at every pixel (EXR as KeystoneDepth's maps); `views.json`, the five cameras (OpenGL "
             "convention, `x_cam = R x_world + t`, world = v0's camera, focal length in px, principal point at the "
             "image centre); `preview.webp`, an animated parallax preview. `views/views.jsonl` lists them.")
+    if stereo is not None:
+        layout.append(
+            f"- `stereo/<id>/`: viewing files of the rectified pair for {stereo['cards']} cards: `anaglyph.jpg` "
+            "(red-cyan, Dubois least-squares matrices, red filter on the left eye), `wiggle.gif` and `wiggle.webp` "
+            "(a looping sweep from the left view to the right one and back, in-between views synthesised by warping "
+            "the left view by a fraction of the disparity), `sbs_full.jpg` and `sbs_half.jpg` (parallel side-by-side: "
+            "left view on the left; half = each view squeezed to half width, for 3D TVs and headsets), `cross.jps` "
+            "(JPS: cross-eyed, right view on the left) and `pair.mpo` (multi-picture JPEG, left view first, for 3D "
+            "displays and cameras). Each carries the card's title, date, accession and licence (EXIF and XMP; "
+            "the GIF's comment). `stereo/stereo.jsonl` lists them.")
     layout += ["- `cards.jsonl`: one JSON record per card (museum metadata and URL, boxes, transforms, grade, review "
                "decision, pipeline versions and parameter hashes).",
                "- `croissant.json` (Croissant 1.1 with Responsible-AI fields), `SHA256SUMS`, `CHANGELOG.md`.",

@@ -32,7 +32,8 @@ DEFAULT_MAX_PIXELS = 150_000_000
 # configurable cap from the header before any pixel is decoded, so Pillow's is switched off.
 Image.MAX_IMAGE_PIXELS = None
 
-IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".jps"})
+# .mpo: multi-picture JPEG from stereo cameras (app.stereo_ingest makes a card of its two frames).
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff", ".jps", ".mpo"})
 
 
 @dataclass(frozen=True)

@@ -72,9 +72,13 @@ def test_ingest_folder_recursively_into_content_addressed_store(app, runner, sca
         cards = db.session.scalars(select(Card).order_by(Card.source_name)).all()
         assert [c.source_name for c in cards] == ["1996.0009.17827.jpg", "card_b.png", "card_c.tif", "card_d.jps"]
         for card in cards:
-            stored = data_dir / card.stored_path
-            assert stored.name.startswith(card.content_hash)
-            assert card.stored_path.startswith(f"originals/{card.content_hash[:2]}/")
+            # A JPS is cross-eyed by default: its card image is derived (halves swapped, see
+            # app.stereo_ingest) and its original is kept, as it came, in stereo_source.
+            original = card.stereo_source["originals"][0] if card.stereo_source else None
+            content_hash = original["sha256"] if original else card.content_hash
+            stored = data_dir / (original["stored_path"] if original else card.stored_path)
+            assert stored.name.startswith(content_hash)
+            assert str(stored.relative_to(data_dir)).startswith(f"originals/{content_hash[:2]}/")
             assert stored.read_bytes() == Path(card.source_path).read_bytes()
             assert not stored.stat().st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)
             assert (card.width, card.height) == (604, 200)
@@ -109,11 +113,12 @@ def test_interrupted_ingest_resumes(app, runner, scans, monkeypatch):
     result, _ = invoke(runner, "ingest", str(scans), "--json")
     assert result.exit_code != 0
     with app.app_context():
-        assert db.session.scalar(select(func.count()).select_from(Card)) == 2
+        # The JPS went through the stereo hook before the ordinary files: it and two of those are in.
+        assert db.session.scalar(select(func.count()).select_from(Card)) == 3
     monkeypatch.setattr(ingest_module, "_ingest_one", real_ingest_one)
     result, report = invoke(runner, "ingest", str(scans), "--json")
     assert result.exit_code == 0
-    assert report["ingested"] == 2 and report["duplicates"] == 2
+    assert report["ingested"] == 1 and report["duplicates"] == 3
     with app.app_context():
         assert db.session.scalar(select(func.count()).select_from(Card)) == 4
     leftovers = [p for p in Path(app.config["KEYSTONE_DATA_DIR"]).rglob("*.tmp")]

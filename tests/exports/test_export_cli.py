@@ -52,7 +52,7 @@ def test_export_without_accepted_cards_exits_1_with_a_clear_error(runner, tmp_pa
 
 def test_export_refuses_an_unknown_format(runner, tmp_path) -> None:
     result = runner.invoke(args=["export", "--out", str(tmp_path / "out"), "--format", "zip"])
-    assert result.exit_code == 2 and "Expected formats from keystonedepth, parquet, webdataset, views, got zip" in result.output
+    assert result.exit_code == 2 and "Expected formats from keystonedepth, parquet, webdataset, views, stereo, got zip" in result.output
 
 
 def test_bench_export_small(runner) -> None:

@@ -1,0 +1,30 @@
+"""card stereo source: how a card's image was made from stereo inputs (MPO, left/right pair, JPS)
+
+A card made from an MPO or a left/right pair, or a side-by-side file with a declared eye order,
+records its originals (names, hashes, stored paths), the eye order and the automatic check of
+it (see app.stereo_ingest). NULL for an ordinary scan.
+
+Revision ID: 0008
+Revises: 0007
+Create Date: 2026-11-24
+"""
+
+import sqlalchemy as sa
+from alembic import op
+from sqlalchemy.dialects import postgresql
+
+revision = '0008'
+down_revision = '0007'
+branch_labels = None
+depends_on = None
+
+
+def upgrade() -> None:
+    with op.batch_alter_table('cards') as batch:
+        batch.add_column(sa.Column('stereo_source', sa.JSON().with_variant(postgresql.JSONB(astext_type=sa.Text()),
+                                                                           'postgresql'), nullable=True))
+
+
+def downgrade() -> None:
+    with op.batch_alter_table('cards') as batch:
+        batch.drop_column('stereo_source')

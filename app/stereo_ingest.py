@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 from sqlalchemy import select
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import SQLAlchemyError
 
 from pipeline.errors import ImageReadError
 
@@ -294,7 +294,7 @@ def _add_card(collection_id: int, *, image: np.ndarray | None, stored: dict[str,
               source_name: str, source_path: str, stereo: dict[str, Any], report: Any, report_path: str) -> None:
     """Store the card image (derived PNG from ``image``, or an original ``stored`` as it is) and
     add the card; a duplicate by content is reported as one, like any ingest."""
-    from .ingest import _duplicate_entry
+    from .ingest import _card_with_hash, _discard_original, _duplicate_entry, database_reason
 
     if image is not None:
         payload = _encode_png(image)
@@ -319,12 +319,23 @@ def _add_card(collection_id: int, *, image: np.ndarray | None, stored: dict[str,
     db.session.add(card)
     try:
         db.session.commit()
-    except IntegrityError:
+    except SQLAlchemyError as exc:
+        # As app.ingest: a race on the same bytes (IntegrityError) makes this a duplicate; a
+        # database that refuses the write (a full disk) rejects the card and its stored image goes.
         db.session.rollback()
-        existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
-        if existing is None:
-            raise
-        report.duplicates.append(_duplicate_entry(Path(report_path), existing))
+        existing = _card_with_hash(content_hash)
+        if existing is not None:
+            report.duplicates.append(_duplicate_entry(Path(report_path), existing))
+            return
+        # The card image and the originals stored for it: no card points at them now (an
+        # original that is some card's own image stays).
+        stored_here = {str(relative)} | {entry["stored_path"] for entry in stereo.get("originals", [])
+                                         if _card_with_hash(entry["sha256"]) is None}
+        removed = all([_discard_original(data_dir / path) for path in sorted(stored_here)])
+        report.rejected.append({"path": report_path, "reason": "not recorded: the catalogue database refused the "
+                                f"write ({database_reason(exc)}); "
+                                + ("the stored copy was removed" if removed else
+                                   f"the stored copy {relative} could not be removed")})
         return
     entry: dict[str, Any] = {"id": card.id, "path": report_path, "content_hash": content_hash,
                              "stereo": {"kind": stereo["kind"], "eye_order": stereo.get("eye_order"),

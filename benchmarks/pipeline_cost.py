@@ -78,8 +78,9 @@ def _peak_rss_mb() -> float:
 
 
 def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
-                       echo: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
-    """Ingest ``cards`` into a throwaway instance and run ``stages`` inline; per-card CPU seconds."""
+                       echo: Callable[[str], None] = lambda _m: None, sbs_order: str | None = None) -> dict[str, Any]:
+    """Ingest ``cards`` into a throwaway instance and run ``stages`` inline; per-card CPU seconds.
+    ``sbs_order`` is ``keystone ingest --sbs-order`` (None: JPS files are read cross-eyed)."""
     from dataclasses import replace
 
     from sqlalchemy import select
@@ -90,6 +91,7 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
     from app.models import Card
     from app.runs import available_stages, run_stage
     from app.schema import upgrade
+    from app.stereo_ingest import StereoOptions
 
     root = Path(tempfile.mkdtemp(prefix="keystone-bench-pipeline-"))
     data_dir = root / "data"
@@ -99,7 +101,7 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
     with app.app_context():
         upgrade(db.engine)
         report = ingest(cards, data_dir=data_dir, collection_name="bench-pipeline",
-                        max_pixels=app.config["KEYSTONE_MAX_PIXELS"])
+                        max_pixels=app.config["KEYSTONE_MAX_PIXELS"], stereo=StereoOptions(sbs_order=sbs_order))
         rejected = [item for item in report.rejected]
         specs = available_stages()
         for name in stages:
@@ -151,9 +153,12 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
 @click.option("--stages", default=",".join(ALL_STAGES), show_default=True,
               help="Stages to run, in flow order.")
 @click.option("--limit", type=click.IntRange(1), help="Only the first N cards.")
+@click.option("--sbs-order", type=click.Choice(["cross", "parallel"]), default="parallel", show_default=True,
+              help="Eye order of side-by-side files, as keystone ingest --sbs-order: the shared JPS files are "
+                   "stored parallel (../shared/data/PROVENANCE.md, and the ingest's own eye-order check).")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
 def bench_pipeline_command(shared_data: Path | None, synthetic: bool, stages: str, limit: int | None,
-                           as_json: bool) -> None:
+                           sbs_order: str, as_json: bool) -> None:
     """CPU seconds per card for each stage (one core, inline) and peak memory on real cards."""
     names = tuple(name.strip() for name in stages.split(",") if name.strip())
     unknown = [name for name in names if name not in ALL_STAGES]
@@ -167,7 +172,7 @@ def bench_pipeline_command(shared_data: Path | None, synthetic: bool, stages: st
     if not cards:
         cards = synthetic_cards(Path(tempfile.mkdtemp(prefix="keystone-bench-cards-")))
     cards = cards[:limit] if limit else cards
-    document = benchmark_pipeline(cards, names, echo=lambda m: click.echo(m, err=True))
+    document = benchmark_pipeline(cards, names, echo=lambda m: click.echo(m, err=True), sbs_order=sbs_order)
     if as_json:
         click.echo(json.dumps(document, indent=2))
         return

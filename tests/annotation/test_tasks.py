@@ -168,7 +168,7 @@ def test_a_lapsed_hold_is_released_once_and_renewed_not_duplicated(app, bare_car
     from annotation import tasks
 
     with app.app_context():
-        batch = tasks.create_batch(bare_cards(1), "judge", n=1, gold_rate=0.0)
+        tasks.create_batch(bare_cards(1), "judge", n=1, gold_rate=0.0)
         first, second = (tasks.get_or_create_worker("invite", name).id for name in ("first", "second"))
         now = utcnow()
         (task,), _ = tasks.next_tasks(first, hold=1, now=now)

@@ -20,11 +20,11 @@ depends_on = None
 
 
 def upgrade() -> None:
-    with op.batch_alter_table('cards') as batch:
-        batch.add_column(sa.Column('stereo_source', sa.JSON().with_variant(postgresql.JSONB(astext_type=sa.Text()),
-                                                                           'postgresql'), nullable=True))
+    # Plain ALTER TABLE, never batch mode's table copy: with foreign keys on, dropping the old
+    # copy of cards would cascade-delete every row that references a card.
+    op.add_column('cards', sa.Column('stereo_source', sa.JSON().with_variant(postgresql.JSONB(astext_type=sa.Text()),
+                                                                             'postgresql'), nullable=True))
 
 
 def downgrade() -> None:
-    with op.batch_alter_table('cards') as batch:
-        batch.drop_column('stereo_source')
+    op.drop_column('cards', 'stereo_source')  # plain ALTER TABLE DROP COLUMN (SQLite >= 3.35)

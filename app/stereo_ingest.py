@@ -246,24 +246,18 @@ def _store_derived(payload: bytes, content_hash: str, data_dir: Path) -> Path:
     """Store the derived card image read-only under ``derived/stereo_inputs/`` (atomic)."""
     import os
     import stat
-    import tempfile
+
+    from pipeline.io import atomic_write
 
     relative = Path("derived") / "stereo_inputs" / content_hash[:2] / f"{content_hash}.png"
     target = data_dir / relative
     if target.exists():
         return relative
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".ingest-", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(payload)
-            out.flush()
-            os.fsync(out.fileno())
-        os.chmod(tmp, stat.S_IRUSR | stat.S_IRGRP | stat.S_IROTH)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(target) as out:
+        out.write(payload)
+        out.flush()
+        os.fsync(out.fileno())
+        os.fchmod(out.fileno(), stat.S_IRUSR | stat.S_IRGRP | stat.S_IROTH)
     return relative
 
 

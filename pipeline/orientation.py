@@ -65,19 +65,19 @@ real cards and checked on the other half (``python -m benchmarks.orientation --j
 Measured (``python -m benchmarks.orientation --json``; 15 shared real cards x 8 variants, weights
 fitted on the 7 tune cards - demo1, demo3, demo5, pima, ostrich, 09995, 8618s - with the
 single-photo cues capped by 100 KeystoneDepth photos, reported on the 8 held-out ones: demo2,
-demo4, sample-stereo, c7980740, 09997, Daibutsu, sports, depthy_7995). Held out: 4 of 64 variants
+demo4, sample-stereo, c7980740, 09997, Daibutsu, sports, depthy_7995). Held out: 5 of 64 variants
 decided automatically, all right (before the tone and arch cues: 0 of 64); flags decided right
-upside_down 16/16, inverted 56/56, swapped 9/9, no flag decided wrong; of the acceptance test's
+upside_down 16/16, inverted 56/56, swapped 10/10, no flag decided wrong; of the acceptance test's
 four variants per card (original, turned, negative, halves swapped) 2 of 32 decided and right,
 7 of 8 originals still go to people; ``P(upside_down == swapped)`` confident and right on 51/64,
-and 43/64 need only the one answer. Tune: 15/56 decided, all right. Over all 120 variants the
+and 43/64 need only the one answer. Tune: 20/56 decided, all right. Over all 120 variants the
 cues' signs were right: warm_tone 104/104 colour ones, smooth_bright 112/120 (the 8 others a
 studio portrait, |value| < 0.07), arched_top 36/36 where it fired, ground_plane 120/120,
 detail_bottom 96/120, sky_top 94/120, occlusion_side 74/120. On the 100 KeystoneDepth photos
 (upright positives) only sky_top 69, smooth_bright 63 and detail_bottom 50 of 100 were right:
 ``upside_down`` and ``swapped`` stay the weak flags, most cards still need a person's one answer.
-CPU about 0.17 s per card (two photo-area passes included: 0.09 s for a 460 px card, 0.28 s for
-the 2242 px depthy pair; one variant took 0.33 s). Tried and left out: a dark title strip below the
+CPU about 0.15 s per card (one photo-area pass included, which reports arches at the top and at
+the bottom). Tried and left out: a dark title strip below the
 photos (photo-area's dark bands: right on every tune variant, wrong and confident on the
 held-out sample-stereo card), the sky as the smooth bright band at the top, smoothness and
 median-gradient variants of the bottom texture, the printed text on the mount above vs below the
@@ -554,27 +554,23 @@ def _smooth_bright(left: np.ndarray, right: np.ndarray) -> float:
 
 
 def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str]]:
-    """Arched (rounded) photo tops found by :func:`pipeline.photo_area.find_photo_areas` on the
-    card as scanned minus those found on the card turned 180 deg, over 2 (so in -1..1): mounts
-    arch the photos' tops, never their bottoms. 0 when neither view shows one or the photo areas
-    cannot be read; the notes say what was found."""
+    """Arched (rounded) photo tops minus arched photo bottoms that
+    :func:`pipeline.photo_area.find_photo_areas` reports on the card as scanned, over 2 (so in
+    -1..1): mounts arch the photos' tops, never their feet. photo_area searches every card both
+    ways up and says on which side an arch is, so one pass tells both. 0 when it shows none or
+    the photo areas cannot be read; the notes say what was found."""
     if width == 0:
         return 0.0, ["arched-top cue off"]
-    params = PhotoAreaParams(working_width=width)
-    arches: list[int] = []
-    notes: list[str] = []
-    for label, view in (("as scanned", card), ("turned", np.ascontiguousarray(card[::-1, ::-1]))):
-        try:
-            areas = find_photo_areas(view, params)
-        except PipelineError as exc:  # a card photo_area cannot read: no arch evidence
-            return 0.0, [f"photo areas not found ({exc.code})"]
-        except cv2.error as exc:  # a numerical corner case inside photo_area: no arch evidence, said
-            return 0.0, [f"photo areas failed (OpenCV: {str(exc).strip()[:80]})"]
-        arch = sum("arched" in e for e in areas.evidence)
-        arches.append(arch)
-        if arch:
-            notes.append(f"{arch} arched top(s) {label}")
-    return float(np.clip(arches[0] - arches[1], -2, 2)) / 2.0, notes
+    try:
+        areas = find_photo_areas(card, PhotoAreaParams(working_width=width))
+    except PipelineError as exc:  # a card photo_area cannot read: no arch evidence
+        return 0.0, [f"photo areas not found ({exc.code})"]
+    except cv2.error as exc:  # a numerical corner case inside photo_area: no arch evidence, said
+        return 0.0, [f"photo areas failed (OpenCV: {str(exc).strip()[:80]})"]
+    tops = sum("arched" in e and e.rstrip().endswith("top") for e in areas.evidence)
+    bottoms = sum("arched" in e and e.rstrip().endswith("bottom") for e in areas.evidence)
+    notes = [f"{count} arched {side}(s) as scanned" for count, side in ((tops, "top"), (bottoms, "bottom")) if count]
+    return float(np.clip(tops - bottoms, -2, 2)) / 2.0, notes
 
 
 def _dark_detail(left: np.ndarray, right: np.ndarray) -> float:

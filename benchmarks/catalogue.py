@@ -28,11 +28,12 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import click
 from flask.cli import with_appcontext
+
+from benchmarks.export import peak_rss_mb
 
 COLLECTIONS = 4
 CHUNK = 5000
@@ -135,16 +136,6 @@ def drop_catalogue() -> None:
     db.session.execute(delete(Card).where(Card.collection_id.in_(bench)))
     db.session.execute(delete(Collection).where(Collection.name.like("bench-catalogue-%")))
     db.session.commit()
-
-
-def peak_rss_mb() -> float:
-    """This process's own peak resident memory (VmHWM) in MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def _median_seconds(operation: Callable[[], Any], repeats: int) -> float:

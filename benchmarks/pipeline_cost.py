@@ -26,6 +26,8 @@ from typing import Any
 import click
 import numpy as np
 
+from benchmarks.export import peak_rss_mb
+
 DEFAULT_STAGES = ("filter", "rectify", "disparity", "grade")
 ALL_STAGES = (*DEFAULT_STAGES, "views")
 CARD_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".jps"}
@@ -66,15 +68,6 @@ def _timed(task: Callable[[Any], Any], seconds: dict[int, float], card_task: Any
         return task(card_task)
     finally:
         seconds[card_task.card_id] = time.process_time() - clock
-
-
-def _peak_rss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
@@ -143,7 +136,7 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
     import shutil
 
     shutil.rmtree(root, ignore_errors=True)
-    return {"results": rows, "summary": summary, "rejected": rejected, "peak_rss_mb": round(_peak_rss_mb(), 1)}
+    return {"results": rows, "summary": summary, "rejected": rejected, "peak_rss_mb": round(peak_rss_mb(), 1)}
 
 
 @click.command("pipeline")

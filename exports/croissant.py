@@ -140,6 +140,20 @@ def write_croissant(handle: IO[bytes], files: dict[str, tuple[str, int]], **docu
     handle.write(after.encode())
 
 
+def _jsonl_record_set(name: str, fields: Any, description: str) -> dict[str, Any]:
+    """A RecordSet read from the release's ``<name>/<name>.jsonl`` index, one field per column."""
+    return {
+        "@type": "cr:RecordSet", "@id": name, "name": name, "description": description,
+        "key": {"@id": f"{name}/key"},
+        "field": [
+            {"@type": "cr:Field", "@id": f"{name}/{field}", "name": field, "description": field_description,
+             "dataType": kind,
+             "source": {"fileObject": {"@id": _file_id(f"{name}/{name}.jsonl")}, "extract": {"column": field}}}
+            for field, kind, field_description in fields
+        ],
+    }
+
+
 def croissant_document(*, version: str, date: str, files: dict[str, tuple[str, int]], card_count: int,
                        grade_counts: dict[str, int], crowd: dict[str, Any], notes: str,
                        name: str = "keystone-stereographs", views_count: int | None = None,
@@ -159,31 +173,15 @@ def croissant_document(*, version: str, date: str, files: dict[str, tuple[str, i
         "field": fields,
     }]
     if views_count is not None:
-        record_sets.append({
-            "@type": "cr:RecordSet", "@id": "views", "name": "views",
-            "description": (f"The five GD images per card (reference view v0 and quad corners v1..v4, KeystoneDepth "
-                            f"section 5) for {views_count} of {card_count} cards; one record per card with views."),
-            "key": {"@id": "views/key"},
-            "field": [
-                {"@type": "cr:Field", "@id": f"views/{field}", "name": field, "description": description,
-                 "dataType": kind,
-                 "source": {"fileObject": {"@id": _file_id("views/views.jsonl")}, "extract": {"column": field}}}
-                for field, kind, description in VIEW_FIELDS
-            ],
-        })
+        record_sets.append(_jsonl_record_set(
+            "views", VIEW_FIELDS,
+            f"The five GD images per card (reference view v0 and quad corners v1..v4, KeystoneDepth "
+            f"section 5) for {views_count} of {card_count} cards; one record per card with views."))
     if stereo_count is not None:
-        record_sets.append({
-            "@type": "cr:RecordSet", "@id": "stereo", "name": "stereo",
-            "description": (f"Viewing files of the rectified pair (anaglyph, wiggles, side-by-side, JPS, MPO) for "
-                            f"{stereo_count} of {card_count} cards; one record per card with them."),
-            "key": {"@id": "stereo/key"},
-            "field": [
-                {"@type": "cr:Field", "@id": f"stereo/{field}", "name": field, "description": description,
-                 "dataType": kind,
-                 "source": {"fileObject": {"@id": _file_id("stereo/stereo.jsonl")}, "extract": {"column": field}}}
-                for field, kind, description in STEREO_FIELDS
-            ],
-        })
+        record_sets.append(_jsonl_record_set(
+            "stereo", STEREO_FIELDS,
+            f"Viewing files of the rectified pair (anaglyph, wiggles, side-by-side, JPS, MPO) for "
+            f"{stereo_count} of {card_count} cards; one record per card with them."))
     answers = crowd.get("answers_per_card")
     return {
         "@context": CONTEXT,

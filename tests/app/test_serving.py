@@ -29,6 +29,32 @@ def _group_pids(leader: int) -> set[int]:
     return pids
 
 
+def _start_server(env: dict[str, str], *options: str) -> tuple[subprocess.Popen[str], int, str]:
+    """`keystone serve --port 0 OPTIONS`: the process, the port it listens on and its "serving on" line."""
+    server = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", "0", *options], env=env,
+                              stderr=subprocess.PIPE, text=True, start_new_session=True)
+    assert server.stderr is not None
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        line = server.stderr.readline()
+        assert line, f"the server stopped before listening (exit {server.poll()})"
+        if match := SERVING.search(line):
+            return server, int(match.group(1)), line
+    raise AssertionError("no 'serving on' line within 60 s")
+
+
+def _stop_server(server: subprocess.Popen[str]) -> str:
+    server.send_signal(signal.SIGTERM)
+    try:
+        _, rest = server.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        os.killpg(server.pid, signal.SIGKILL)
+        server.communicate()
+        raise
+    return rest
+
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="counts the server's processes in Linux /proc")
 @pytest.mark.parametrize("options", [["--processes", "1"], ["--processes", "2", "--threads", "2"], []],
                          ids=["waitress", "gunicorn-gthread", "default"])
@@ -38,18 +64,8 @@ def test_serve_answers_from_the_requested_processes_and_stops_cleanly(tmp_path, 
     processes = int(options[1]) if options else default_processes()
     threads = int(options[3]) if len(options) > 2 else default_threads(processes)
     env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(tmp_path / "instance")}
-    server = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", "0", *options], env=env,
-                              stderr=subprocess.PIPE, text=True, start_new_session=True)
+    server, port, line = _start_server(env, *options)
     try:
-        assert server.stderr is not None
-        port = None
-        deadline = time.monotonic() + 60
-        while port is None and time.monotonic() < deadline:
-            line = server.stderr.readline()
-            assert line, f"the server stopped before listening (exit {server.poll()})"
-            if match := SERVING.search(line):
-                port = int(match.group(1))
-        assert port, "no 'serving on' line within 60 s"
         assert describe(processes, threads) in line
         statuses = []
         for _ in range(12):  # separate connections, so the kernel spreads them over the workers
@@ -68,13 +84,7 @@ def test_serve_answers_from_the_requested_processes_and_stops_cleanly(tmp_path, 
             time.sleep(0.05)
         assert len(_group_pids(server.pid)) == expected
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            _, rest = server.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            os.killpg(server.pid, signal.SIGKILL)
-            server.communicate()
-            raise
+        rest = _stop_server(server)
     assert "Traceback" not in rest, rest
     time.sleep(0.2)
     assert _group_pids(server.pid) == set(), "a worker outlived the server"
@@ -83,30 +93,6 @@ def test_serve_answers_from_the_requested_processes_and_stops_cleanly(tmp_path, 
 # -- One identity per request under the real default server -----------------------------------
 
 CSRF_FIELD = re.compile(r'name="csrf_token"[^>]*value="([^"]+)"')
-
-
-def _start_server(env: dict[str, str], *options: str) -> tuple[subprocess.Popen[str], int]:
-    server = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", "0", *options], env=env,
-                              stderr=subprocess.PIPE, text=True, start_new_session=True)
-    assert server.stderr is not None
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        line = server.stderr.readline()
-        assert line, f"the server stopped before listening (exit {server.poll()})"
-        if match := SERVING.search(line):
-            return server, int(match.group(1))
-    raise AssertionError("no 'serving on' line within 60 s")
-
-
-def _stop_server(server: subprocess.Popen[str]) -> str:
-    server.send_signal(signal.SIGTERM)
-    try:
-        _, rest = server.communicate(timeout=30)
-    except subprocess.TimeoutExpired:
-        os.killpg(server.pid, signal.SIGKILL)
-        server.communicate()
-        raise
-    return rest
 
 
 def _socket_inodes(server_port: int, client_port: int) -> set[str]:
@@ -185,7 +171,7 @@ def test_default_server_gives_each_request_its_own_identity(tmp_path):
     subprocess.run([sys.executable, "-m", "app", "users", "add", "boss", "--role", "admin", "--password", password],
                    env=env, check=True, capture_output=True)
     options = [] if default_processes() >= 2 else ["--processes", "2"]
-    server, port = _start_server(env, *options)
+    server, port, _ = _start_server(env, *options)
     try:
         expected = max(2, default_processes())
         deadline = time.monotonic() + 20
@@ -222,7 +208,7 @@ def test_an_oversized_body_is_refused_at_the_door(tmp_path, options):
     """A body over the app's limit is a 413 under every server (waitress would otherwise buffer
     up to 1 GB of it before the app could answer)."""
     env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(tmp_path / "instance"), "KEYSTONE_MAX_REQUEST_BYTES": "65536"}
-    server, port = _start_server(env, *options)
+    server, port, _ = _start_server(env, *options)
     try:
         connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
         body = b"x" * (2 * 1024 * 1024)

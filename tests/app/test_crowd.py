@@ -344,6 +344,7 @@ def test_batches_page_shows_progress(app, client, cards, login):
     login("curator")
     html = client.get("/crowd/batches").get_data(as_text=True)
     assert "1 of 6 answers" in html and "1 reserved" in html and "invite:worker-one" in html
+    assert "(3 items × 2, 0 gold)" in html and "built-in method" not in html
 
 
 # ---------------------------------------------------------------------------------------------

@@ -30,7 +30,9 @@ from pipeline.filter import FilterParams
 from pipeline.records import STAGES, CardTask, StageRecord, param_hash
 from pipeline.runner import RestartingProcessPool, run_tasks
 from pipeline.rectify import RectifyParams
-from pipeline.stages import DisparityStageParams, disparity_task, filter_task, rectify_task
+from pipeline.stages.disparity import DisparityStageParams, disparity_task
+from pipeline.stages.filter import filter_task
+from pipeline.stages.rectify import rectify_task
 
 from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
 from .db import db, one_writer, utcnow
@@ -167,8 +169,9 @@ def _has_inputs(card: Card, inputs: dict[str, Any]) -> bool:
 def available_stages() -> dict[str, StageSpec]:
     """Every stage in flow order. Needs an app context: the grade thresholds come from the
     newest fitted grade model in the database (or the defaults)."""
-    from pipeline.grading import grade_task
-    from pipeline.view_stage import ViewsStageParams, views_task
+    from pipeline.stages.grade import grade_task
+    from pipeline.stages.views import views_task
+    from pipeline.view_synthesis import ViewsStageParams
     from review.grading import active_grade_params
 
     filter_params, rectify_params, disparity_params = FilterParams(), RectifyParams(), DisparityStageParams()

@@ -1,6 +1,6 @@
 """The view-synthesis viewer: a card's five GD images as textured meshes in WebGL (issue 8, part 6).
 
-The page reads the card's latest ``views`` stage result (:mod:`pipeline.view_stage`): its scene
+The page reads the card's latest ``views`` stage result (:mod:`pipeline.view_synthesis`): its scene
 document (``views.json``: the five cameras) goes into the page, and ``app/static/viewer.js`` fetches
 the grey images (PNG) and depths (float32 ``.npy``) through :func:`view_file`, builds one grid mesh
 per GD image, and blends them by the virtual camera's distance to each of v0..v4.

@@ -2,7 +2,7 @@
 
 Run: ``python -m benchmarks.rectify_real [--json] [--data DIR] [--crops N] [--only NAME]``.
 
-Pairs, prepared the way the pipeline prepares them (the rectify stage in :mod:`pipeline.stages`):
+Pairs, prepared the way the pipeline prepares them (the rectify stage in :mod:`pipeline.stages.rectify`):
 every image under ``full_cards/``, ``keystone_mast_raw_scans/`` and ``cropped_pairs/jps/`` is a
 card: :func:`pipeline.split.split_card` finds the two photo boxes, :func:`pipeline.crop_align.align_crops`
 aligns them (on failure the boxes go on as split, as in the stage), and :func:`pipeline.rectify.rectify_pair`

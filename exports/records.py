@@ -24,7 +24,7 @@ RELEASED_DECISIONS: tuple[str, ...] = ("accepted", "changed")
 # JPS, MPO per card) are optional components: never a default.
 FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset", "views", "stereo")
 DEFAULT_FORMATS: tuple[str, ...] = ("keystonedepth", "parquet")
-# The views stage's artifacts a released card's views are made of (pipeline.view_stage).
+# The views stage's artifacts a released card's views are made of (pipeline.stages.views).
 VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")
 VIEW_ARTIFACTS: tuple[str, ...] = (*VIEW_NAMES, *(f"{name}_depth" for name in VIEW_NAMES), "scene", "preview")
 FIRST_VERSION = "1.0.0"

@@ -17,7 +17,7 @@ Three steps, all pure:
   candidate thresholds at the measurements' quantiles, maximising macro-F1) and reports the
   agreement on labels the thresholds were not fitted on (k-fold cross-validation).
 
-:func:`grade_task` is the per-card stage task the runner calls.
+:func:`pipeline.stages.grade.grade_task` is the per-card stage task the runner calls.
 
 Conventions as in :mod:`pipeline.disparity`: a left pixel ``(x, y)`` is seen in the right view at
 ``x_right = x_left - d_left``; a right pixel at ``x_left = x_right + d_right``. Views are uint8
@@ -28,21 +28,16 @@ warp's black fill, outside the photograph.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
-from pathlib import Path
 from typing import Any, Literal
 
 import cv2
 import numpy as np
 
-from . import CODE_VERSION
 from .disparity import ImageTooSmallError
 from .errors import InvalidInputError, PipelineError
-from .io import read_image, to_grey
-from .records import CardTask, StageRecord, param_hash
-from .stages import _failed, failure_reason
+from .io import to_grey
 
 __all__ = [
     "GRADES",
@@ -56,7 +51,6 @@ __all__ = [
     "agreement",
     "fit_thresholds",
     "grade",
-    "grade_task",
     "measure_card",
     "paper_distribution",
 ]
@@ -940,58 +934,3 @@ def fit_thresholds(
         training=agreement(truth, _predict(values, fitted)),
         labels=n, folds=folds, seed=seed, changed=_changes(base, fitted),
     )
-
-
-# ---------------------------------------------------------------------------------- stage task
-
-
-_TASK_INPUTS = ("left", "right", "disparity_left", "disparity_right", "confidence")
-
-
-def _load_map(path: Path) -> np.ndarray:
-    try:
-        return np.load(path, allow_pickle=False)
-    except FileNotFoundError as exc:
-        raise PipelineError(f"no such file: {path}") from exc
-    except (OSError, ValueError) as exc:
-        raise PipelineError(f"cannot read {path.name}: {exc}") from exc
-
-
-def grade_task(task: CardTask, params: GradeParams) -> StageRecord:
-    """Grade one card from its rectified views, disparity maps and earlier stages' metrics.
-
-    ``task.inputs``: ``left``, ``right`` (rectified views), ``disparity_left``,
-    ``disparity_right``, ``confidence`` (``.npy``), all paths relative to ``task.data_dir``, and
-    ``metrics`` = ``{"filter": {...}, "rectify": {...}, "disparity": {...}}``. The record's
-    ``outcome`` is the grade, ``reason`` the reasons joined by "; " (the deciding one first),
-    ``metrics`` the measurements plus ``reasons``, ``notes``, ``uncertainty``, ``deciding``,
-    ``levels`` and ``thresholds_hash``. Any error gives a ``failed`` record with a typed reason.
-    """
-    started, clock = time.time(), time.perf_counter()
-    phash = param_hash(params)
-    try:
-        missing = [name for name in _TASK_INPUTS if not task.inputs.get(name)]
-        if missing:
-            raise PipelineError(f"missing inputs {', '.join(missing)}: run rectify and disparity first")
-        data_dir = Path(task.data_dir)
-        left = read_image(data_dir / task.inputs["left"])
-        right = read_image(data_dir / task.inputs["right"])
-        maps = {name: _load_map(data_dir / task.inputs[name]) for name in ("disparity_left", "disparity_right", "confidence")}
-        if left.ndim != right.ndim:  # one stored grey, the other RGB: compare them as grey
-            left, right = to_grey(left), to_grey(right)
-        measurements = measure_card(left, right, maps["disparity_left"], maps["disparity_right"], maps["confidence"],
-                                    task.inputs.get("metrics") or {})
-        result = grade(measurements, params.thresholds)
-        metrics = {
-            **measurements.as_dict(),
-            "reasons": list(result.reasons), "notes": list(result.notes), "uncertainty": result.uncertainty,
-            "deciding": list(result.deciding), "levels": dict(result.levels),
-            "thresholds_hash": param_hash(params.thresholds),
-        }
-        return StageRecord(
-            card_id=task.card_id, stage="grade", param_hash=phash, status="done", outcome=result.grade,
-            reason="; ".join(result.reasons), metrics=metrics, started_at=started,
-            seconds=time.perf_counter() - clock, code_version=CODE_VERSION,
-        )
-    except Exception as exc:  # one bad card never stops a batch: record why, go on
-        return _failed(task, "grade", phash, failure_reason(exc), started, clock)

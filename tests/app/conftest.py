@@ -20,7 +20,8 @@ def make_card_with_views(app, data_dir, make_card, add_stage_result) -> Callable
 
     from pipeline.io import write_npy, write_png
     from pipeline.records import CardTask
-    from pipeline.view_stage import ViewsStageParams, views_task
+    from pipeline.stages.views import views_task
+    from pipeline.view_synthesis import ViewsStageParams
 
     def make(width: int = 160, grade: str = "few") -> tuple[int, Any]:
         left, _, disp = data.stereo_motorcycle()

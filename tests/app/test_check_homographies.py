@@ -135,7 +135,7 @@ def _stage_rectification(tmp_path: Path) -> Path:
     from pipeline.io import write_png
     from pipeline.records import CardTask
     from pipeline.rectify import RectifyParams
-    from pipeline.stages import rectify_task
+    from pipeline.stages.rectify import rectify_task
 
     left, right, _ = data.stereo_motorcycle()
     h, w = left.shape[:2]

@@ -93,7 +93,7 @@ def test_rerun_skips_finished_cards_and_changed_parameters_rerun(app, runner, ca
         params = FilterParams(review_fraction=0.9)
         import functools
 
-        from pipeline.stages import filter_task
+        from pipeline.stages.filter import filter_task
 
         stages["filter"] = runs.StageSpec("filter", params, functools.partial(filter_task, params=params), spec.eligible_states)
         return stages

@@ -1,6 +1,6 @@
 """The optional ``views`` release component: the five GD images per card (issue 8 part 7).
 
-The views are made by the real views stage (:func:`pipeline.view_stage.views_task`) on the
+The views are made by the real views stage (:func:`pipeline.stages.views.views_task`) on the
 real rectified Motorcycle pairs that ``keystone run`` produced, at a reduced size to stay fast.
 """
 
@@ -28,7 +28,8 @@ def make_views(app, data_dir, add_stage_result):  # type: ignore[no-untyped-def]
         from app.models import Card
         from app.runs import card_work_dir
         from pipeline.records import CardTask, param_hash
-        from pipeline.view_stage import ViewsStageParams, views_task
+        from pipeline.stages.views import views_task
+        from pipeline.view_synthesis import ViewsStageParams
 
         settings = ViewsStageParams(**{**VIEWS_PARAMS, **params})
         with app.app_context():

@@ -26,12 +26,12 @@ from pipeline.grading import (
     Threshold,
     fit_thresholds,
     grade,
-    grade_task,
     measure_card,
     paper_distribution,
 )
 from pipeline.io import write_npy, write_png
 from pipeline.records import CardTask, param_hash
+from pipeline.stages.grade import grade_task
 
 # Metrics of a clean card as the filter and rectify stages record them.
 CLEAN_STAGES = {

@@ -21,7 +21,7 @@ from pipeline.orientation import (
     orient_variant,
 )
 from pipeline.split import split_card
-from pipeline.stages import orient_card
+from pipeline.stages.rectify import orient_card
 
 MOUNT = (214, 201, 170)
 ALL_FLAGS = list(itertools.product((False, True), repeat=3))
@@ -144,7 +144,7 @@ def test_motorcycle_occlusion_side_reads_the_eyes_and_no_flag_is_decided_wrong(m
 
 
 def test_orient_variant_is_undone_by_the_judge_fixes(scene_card):
-    """orient_variant builds the scan that pipeline.stages.orient_card (turn, then invert) and a
+    """orient_variant builds the scan that pipeline.stages.rectify.orient_card (turn, then invert) and a
     swap of the photos turn back into the card."""
     card, lb, rb = scene_card
     for u, i, s in ALL_FLAGS:

@@ -73,7 +73,7 @@ def test_stage_tasks_survive_the_trip_to_a_worker_process():
     import pickle
 
     from pipeline.filter import FilterParams
-    from pipeline.stages import filter_task
+    from pipeline.stages.filter import filter_task
 
     task = functools.partial(filter_task, params=FilterParams(ratio=0.6))
     restored = pickle.loads(pickle.dumps(task))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.stages import orient_card
+from pipeline.stages.rectify import orient_card
 
 
 def test_upright_card_skips_the_orientation_step_and_says_why():

@@ -14,7 +14,8 @@ from PIL import Image
 
 from pipeline.io import write_npy, write_png
 from pipeline.records import CardTask
-from pipeline.view_stage import VIEW_NAMES, ViewsStageParams, fit_zoom, views_task
+from pipeline.stages.views import views_task
+from pipeline.view_synthesis import VIEW_NAMES, ViewsStageParams, fit_zoom
 from pipeline.views import corner_cameras, make_gd_image, reference_camera, reproject
 
 WIDTH = 240

@@ -1,0 +1,108 @@
+"""The rectify stage task: apply the decided orientation, align the crops, rectify the pair."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..crop_align import align_crops
+from ..errors import PipelineError
+from ..io import read_image, write_jpeg, write_json, write_png
+from ..records import CardTask
+from ..rectify import RectifyParams, implied_pose, rectify_pair, warp_pair
+from ..split import CardSplit, crop_halves
+from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
+
+__all__ = ["orient_card", "rectify_task"]
+
+
+def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
+    """Apply the judged corrections to a derived copy of the card (the original never changes).
+
+    ``inputs["upside_down"]`` rotates the card 180 deg, ``inputs["inverted"]`` inverts its
+    intensities (255 - v). A card judged upright and not inverted, or not judged at all, skips
+    the step, and the returned record says so. Boxes stay in the scanned card's pixels; the
+    caller turns them with the card.
+    """
+    applied = []
+    if inputs.get("upside_down"):
+        card = np.ascontiguousarray(card[::-1, ::-1])
+        applied.append("rotated 180 deg")
+    if inputs.get("inverted"):
+        card = 255 - card
+        applied.append("intensities inverted")
+    if applied:
+        return card, {"status": "done", "applied": applied, "source": inputs.get("orientation_source", "judgement")}
+    judged = "judged upright and not inverted" if "upside_down" in inputs else "no judgement asks for a correction"
+    return card, {"status": "skipped", "applied": [], "reason": f"not needed: {judged}"}
+
+
+@stage_task("rectify")
+def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
+    """Rectify the card's two halves (Loop-Zhang with the paper's changes).
+
+    ``task.inputs`` must hold the filter's ``left_box`` and ``right_box`` (card pixels). A pair
+    already rectified within tolerance is recorded ``skipped`` with the reason, and its halves
+    are stored unwarped so the disparity stage reads one place either way.
+    """
+    card, orientation = orient_card(read_image(task.image_path), task.inputs)
+    boxes = task.inputs.get("left_box"), task.inputs.get("right_box")
+    if boxes[0] is None or boxes[1] is None:
+        raise PipelineError("no split boxes from the filter stage; run the filter first")
+    if task.inputs.get("upside_down"):
+        # Boxes are drawn on the card as scanned; turned 180 deg, the right photo's box
+        # becomes the left one.
+        height, width = card.shape[:2]
+        turn = lambda b: [width - b[2], height - b[3], width - b[0], height - b[1]]  # noqa: E731
+        boxes = turn(boxes[1]), turn(boxes[0])
+    boxes_before = boxes
+    # The paper aligns the two crops by SIFT matches and cuts both to their intersection;
+    # when that cannot be done the boxes go on as given and rectification decides.
+    try:
+        alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]))
+        boxes = alignment.left_box, alignment.right_box
+        crop_record = {"status": "done", **alignment.metrics()}
+    except PipelineError as exc:
+        crop_record = {"status": "failed", "reason": exc.reason(), "left_box": list(boxes[0]),
+                       "right_box": list(boxes[1])}
+    split = CardSplit(left_box=tuple(boxes[0]), right_box=tuple(boxes[1]), gutter_x=0, method="recorded",
+                      confidence=1.0)
+    left, right = (np.ascontiguousarray(half) for half in crop_halves(card, split))
+    # The paper puts the principal point at the centre of the full image where known: the
+    # whole left photo as split from the card, in the aligned crop's pixels.
+    full = boxes_before[0]
+    principal_point = ((full[0] + full[2] - 1) / 2 - boxes[0][0], (full[1] + full[3] - 1) / 2 - boxes[0][1])
+    rect = rectify_pair(left, right, params, principal_point=principal_point)
+    left_rect, right_rect = warp_pair(left, right, rect)
+    work_dir = Path(task.work_dir)
+    artifacts = {}
+    for name, view in (("left", left_rect), ("right", right_rect)):
+        write_png(work_dir / f"{name}.png", view)
+        write_jpeg(work_dir / f"{name}_preview.jpg", view, max_side=PREVIEW_MAX_SIDE)
+        artifacts[name] = str((work_dir / f"{name}.png").relative_to(task.data_dir))
+        artifacts[f"{name}_preview"] = str((work_dir / f"{name}_preview.jpg").relative_to(task.data_dir))
+    camera = work_dir / "rectification.json"
+    view = right if rect.swapped else left  # the crop H_l maps
+    write_json(camera, {
+        # Read by `keystone check-homographies` (pipeline.homography_quality): "convention",
+        # "pixel_origin", "width" and "height" are its keys.
+        "convention": "column", "pixel_origin": "centre",
+        "convention_detail": "column vectors, x' ~ H x, pixels with the origin at the top-left pixel centre; "
+                             "H_l/H_r map the cropped left/right halves (boxes in card pixels) to the rectified "
+                             "views (H_l the right half's crop when swapped); disparity d = x_left - x_right >= 0",
+        "width": int(view.shape[1]), "height": int(view.shape[0]),
+        "left_box": list(boxes[0]), "right_box": list(boxes[1]), **rect.metrics(),
+        "implied_pose": implied_pose(rect.H_l, rect.H_r, rect.K),
+    })
+    artifacts["rectification"] = str(camera.relative_to(task.data_dir))
+    status = "done" if rect.warp_needed else "skipped"
+    reason = rect.reason if rect.warp_needed else f"not needed: {rect.reason}"
+    if rect.swapped:
+        reason = (reason + "; " if reason else "") + "eyes were swapped on the card: halves exchanged"
+    metrics = {k: v for k, v in rect.metrics().items() if k not in ("reason",)}
+    metrics["implied_pose"] = implied_pose(rect.H_l, rect.H_r, rect.K)
+    metrics["orientation"] = orientation
+    metrics["crop_alignment"] = crop_record
+    metrics["box_source"] = task.inputs.get("box_source", "filter split")
+    return StageOutput(status=status, reason=reason, metrics=metrics, artifacts=artifacts)

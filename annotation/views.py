@@ -35,6 +35,7 @@ from app.extensions import csrf
 from app.json_body import load_json_body
 from app.security import frameable_by
 
+from . import run_hooks
 from .models import TASK_KINDS, Batch, Worker
 from .providers import (
     MTURK_SUBMIT_ORIGINS,
@@ -59,6 +60,7 @@ from .tasks import (
 
 bp = Blueprint("crowd", __name__, url_prefix="/crowd", template_folder="templates", static_folder="static")
 bp.record_once(lambda state: add_nav_link(state.app, "Crowd", "crowd.batches", "curator", order=40))
+bp.record_once(lambda state: run_hooks.register(state.app))
 
 TOKEN_HEADER = "X-Crowd-Token"
 

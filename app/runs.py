@@ -28,8 +28,8 @@ from sqlalchemy.orm import selectinload
 
 from pipeline.filter import FilterParams
 from pipeline.records import STAGES, CardTask, StageRecord, param_hash
-from pipeline.runner import RestartingProcessPool, run_tasks
 from pipeline.rectify import RectifyParams
+from pipeline.runner import RestartingProcessPool, run_tasks
 from pipeline.stages.disparity import DisparityStageParams, disparity_task
 from pipeline.stages.filter import filter_task
 from pipeline.stages.rectify import rectify_task
@@ -37,6 +37,7 @@ from pipeline.stages.rectify import rectify_task
 from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
 from .db import db, one_writer, utcnow
 from .models import CARD_STATES, Card, StageResult
+from .stage_hooks import after_write, approved_decisions, people_work, stage_params
 
 WRITE_BATCH = 50
 WRITE_INTERVAL_S = 2.0
@@ -70,19 +71,6 @@ def filter_boxes(card: Card) -> dict[str, Any]:
         return {}
     return {"left_box": result.metrics.get("left_box"), "right_box": result.metrics.get("right_box"),
             "box_source": f"filter split ({result.param_hash})"}
-
-
-def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
-    """The latest approved crowd aggregate per card and task kind: ``{card: {"judge": .., "crop": ..}}``."""
-    from annotation.models import Aggregate
-
-    approved: dict[int, dict[str, Any]] = {}
-    rows = db.session.scalars(
-        select(Aggregate).where(Aggregate.card_id.in_(card_ids), Aggregate.state == "approved").order_by(Aggregate.id)
-    )
-    for row in rows:
-        approved.setdefault(row.card_id, {})[row.kind] = row
-    return approved
 
 
 def rectify_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
@@ -169,13 +157,13 @@ def _has_inputs(card: Card, inputs: dict[str, Any]) -> bool:
 def available_stages() -> dict[str, StageSpec]:
     """Every stage in flow order. Needs an app context: the grade thresholds come from the
     newest fitted grade model in the database (or the defaults)."""
+    from pipeline.grading import GradeParams
     from pipeline.stages.grade import grade_task
     from pipeline.stages.views import views_task
     from pipeline.view_synthesis import ViewsStageParams
-    from review.grading import active_grade_params
 
     filter_params, rectify_params, disparity_params = FilterParams(), RectifyParams(), DisparityStageParams()
-    grade_params, _ = active_grade_params()
+    grade_params = stage_params("grade", GradeParams)
     from flask import current_app
 
     views_params = ViewsStageParams(checkpoint=current_app.config.get("KEYSTONE_INPAINT_CHECKPOINT"))
@@ -358,7 +346,7 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
         ))
         if not cards:
             return todo, already
-        approved = approved_annotations([card.id for card in cards]) if spec.inputs is not None else {}
+        approved = approved_decisions([card.id for card in cards]) if spec.inputs is not None else {}
         for card in cards:
             inputs = spec.inputs(card, approved.get(card.id, {})) if spec.inputs is not None else {}
             if spec.ready is not None and not spec.ready(card, inputs):
@@ -462,11 +450,9 @@ def run_stage(
         time.sleep(poll_s)
         compute(sorted(held))
     report.still_held = len(held)
-    if spec.name == "grade" and computed:
-        # New automatic grades reach the curators' queue at once (decided cards keep theirs).
-        from review.tasks import sync_reviews
-
-        sync_reviews(computed)
+    if computed:
+        # What must follow a write (review: new automatic grades reach the curators' queue).
+        after_write(spec.name, computed)
     report.seconds = time.perf_counter() - clock
     return report
 
@@ -529,22 +515,6 @@ def write_records(records: list[StageRecord], digests: dict[int, str] | None = N
 
 DOWNSTREAM_OF_CULL = ("judge", "crop", "rectify", "disparity", "grade", "review", "views")
 DOWNSTREAM_OF_RECTIFY = ("disparity", "grade", "views")
-
-
-def people_work(card_ids: list[int]) -> dict[int, dict[str, Any]]:
-    """The crowd's latest aggregate per task kind and the curator review, per card:
-    ``{card: {"judge": Aggregate, "crop": Aggregate, "review": CardReview}}`` (keys present when any)."""
-    from annotation.models import Aggregate
-    from review.models import CardReview
-
-    work: dict[int, dict[str, Any]] = {}
-    for chunk in range(0, len(card_ids), 500):  # stay under SQLite's bound-parameter limit
-        ids = card_ids[chunk:chunk + 500]
-        for row in db.session.scalars(select(Aggregate).where(Aggregate.card_id.in_(ids)).order_by(Aggregate.id)):
-            work.setdefault(row.card_id, {})[row.kind] = row
-        for review in db.session.scalars(select(CardReview).where(CardReview.card_id.in_(ids))):
-            work.setdefault(review.card_id, {})["review"] = review
-    return work
 
 
 def _status(status: str, reason: str | None = None, outcome: str | None = None,

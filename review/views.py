@@ -37,6 +37,7 @@ from app.json_body import load_json_body
 from app.limits import parse_positive_int
 from app.models import Collection
 
+from . import run_hooks
 from .models import GRADE_NAMES, GRADES, CardReview
 from .tasks import (
     ACTIONS,
@@ -61,6 +62,7 @@ from .tasks import (
 bp = Blueprint("review", __name__, url_prefix="/review", template_folder="templates", static_folder="static",
                static_url_path="/review-static")
 bp.record_once(lambda state: add_nav_link(state.app, "Review", "review.queue", "curator", order=30))
+bp.record_once(lambda state: run_hooks.register(state.app))
 
 ANAGLYPH_VERSION = "1"  # part of the anaglyph's ETag: bump when the way it is made changes
 DISPUTES_SHOWN = 50

@@ -1,0 +1,43 @@
+"""What a pipeline run needs from the crowd, registered with the app (see :mod:`app.stage_hooks`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from flask import Flask
+from sqlalchemy import select
+
+from app.db import db
+from app.stage_hooks import stage_hooks
+
+from .models import Aggregate
+
+CHUNK = 500  # card ids per query: under SQLite's bound-parameter limit
+
+
+def _aggregates(card_ids: list[int], approved_only: bool) -> dict[int, dict[str, Any]]:
+    """The latest aggregate per card and task kind: ``{card: {"judge": Aggregate, "crop": Aggregate}}``."""
+    found: dict[int, dict[str, Any]] = {}
+    for start in range(0, len(card_ids), CHUNK):
+        query = select(Aggregate).where(Aggregate.card_id.in_(card_ids[start:start + CHUNK]))
+        if approved_only:
+            query = query.where(Aggregate.state == "approved")
+        for row in db.session.scalars(query.order_by(Aggregate.id)):
+            found.setdefault(row.card_id, {})[row.kind] = row
+    return found
+
+
+def approved_aggregates(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """Approved crowd judgements and crops: they feed rectification's inputs."""
+    return _aggregates(card_ids, approved_only=True)
+
+
+def latest_aggregates(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """The crowd's latest aggregate per kind in any state: the judge and crop stages' status."""
+    return _aggregates(card_ids, approved_only=False)
+
+
+def register(app: Flask) -> None:
+    hooks = stage_hooks(app)
+    hooks.decisions.append(approved_aggregates)
+    hooks.people_work.append(latest_aggregates)

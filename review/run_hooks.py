@@ -1,0 +1,46 @@
+"""What a pipeline run needs from curator review, registered with the app (see :mod:`app.stage_hooks`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from flask import Flask
+from sqlalchemy import select
+
+from app.db import db
+from app.stage_hooks import stage_hooks
+
+from .models import CardReview
+
+CHUNK = 500  # card ids per query: under SQLite's bound-parameter limit
+
+
+def card_reviews(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """The curator review per card: ``{card: {"review": CardReview}}``."""
+    found: dict[int, dict[str, Any]] = {}
+    for start in range(0, len(card_ids), CHUNK):
+        rows = db.session.scalars(select(CardReview).where(CardReview.card_id.in_(card_ids[start:start + CHUNK])))
+        for review in rows:
+            found.setdefault(review.card_id, {})["review"] = review
+    return found
+
+
+def _grade_params() -> Any:
+    from .grading import active_grade_params
+
+    params, _ = active_grade_params()
+    return params
+
+
+def _sync_new_grades(card_ids: list[int]) -> None:
+    # New automatic grades reach the curators' queue at once (decided cards keep theirs).
+    from .tasks import sync_reviews
+
+    sync_reviews(card_ids)
+
+
+def register(app: Flask) -> None:
+    hooks = stage_hooks(app)
+    hooks.people_work.append(card_reviews)
+    hooks.stage_params["grade"] = _grade_params
+    hooks.after_write.setdefault("grade", []).append(_sync_new_grades)

@@ -288,7 +288,8 @@ def inputs_digest(inputs: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-PLAN_CHUNK = 1000  # cards read and planned per step: memory stays flat at any catalogue size
+PLAN_CHUNK = 500  # cards read and planned per step (and ids per IN list, under SQLite's bound-parameter
+# limit): memory stays flat at any catalogue size
 
 
 @dataclass(frozen=True)
@@ -309,7 +310,7 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
     boxes arrived after the automatic split was used).
 
     A stage without inputs is planned in SQL (cards with no finished result for this parameter
-    hash); a stage with inputs reads the eligible cards in keyset chunks of ``chunk`` by id,
+    hash); a stage with inputs reads the eligible card ids in one query, then the cards in chunks of ``chunk`` by id,
     computes each card's inputs and lets the chunk's rows go, so planning never holds the whole
     catalogue in memory.
     """
@@ -338,14 +339,16 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
                                 None if status is None else result_fingerprint(status, started_at))
                     for card_id, content_hash, stored_path, status, started_at in rows], already
     todo: list[PlannedCard] = []
-    after = 0
-    while True:
+    # The eligible ids in one query (a few MB at 250,000 cards), then the cards chunk by chunk
+    # by id. Paging the eligible query itself (``id > after LIMIT chunk``) let PostgreSQL
+    # re-evaluate the ``requires`` semi-join over every stage result for every chunk, which
+    # grew with the square of the catalogue.
+    eligible_ids = list(db.session.scalars(select(Card.id).where(eligible).order_by(Card.id)))
+    for start in range(0, len(eligible_ids), chunk):
         cards = list(db.session.scalars(
-            select(Card).where(eligible, Card.id > after).order_by(Card.id).limit(chunk)
+            select(Card).where(Card.id.in_(eligible_ids[start:start + chunk])).order_by(Card.id)
             .options(selectinload(Card.stage_results))
         ))
-        if not cards:
-            return todo, already
         approved = approved_decisions([card.id for card in cards]) if spec.inputs is not None else {}
         for card in cards:
             inputs = spec.inputs(card, approved.get(card.id, {})) if spec.inputs is not None else {}
@@ -358,8 +361,8 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
                 continue
             todo.append(PlannedCard(card.id, card.content_hash, card.stored_path, inputs,
                                     None if own is None else result_fingerprint(own.status, own.started_at)))
-        after = cards[-1].id
         db.session.expunge_all()  # this chunk is planned: let its cards and results go
+    return todo, already
 
 
 def run_stage(

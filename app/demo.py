@@ -148,7 +148,7 @@ def release_demo(folder: Path, echo=click.echo) -> dict:  # type: ignore[no-unty
 
 def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     """Make the cards, ingest them, run the stages, add demo people; returns a summary."""
-    from pipeline.synthetic_cards import make_demo_cards, write_demo_cards
+    from simulation.cards import make_demo_cards, write_demo_cards
 
     from .db import db
     from .ingest import ingest

@@ -40,6 +40,8 @@ from typing import Any
 
 import numpy as np
 
+from .cross_validation import stratified_folds
+
 VERDICTS = ("good", "border", "bad")
 _ORDER = {name: rank for rank, name in enumerate(VERDICTS)}
 
@@ -463,19 +465,6 @@ def fit_verdict(
     )
 
 
-def _stratified_folds(
-    y: np.ndarray, k: int, rng: np.random.Generator
-) -> list[np.ndarray]:
-    folds: list[list[int]] = [[] for _ in range(k)]
-    offset = 0
-    for cls in np.unique(y):
-        idx = rng.permutation(np.flatnonzero(y == cls))
-        for n, i in enumerate(idx):
-            folds[(n + offset) % k].append(int(i))
-        offset += len(idx)
-    return [np.array(sorted(f)) for f in folds]
-
-
 def cross_validate(
     metrics_rows: Sequence[Mapping[str, Any]],
     labels: Sequence[str],
@@ -496,7 +485,7 @@ def cross_validate(
     accs = []
     for _ in range(repeats):
         correct = 0
-        for test in _stratified_folds(y, k, rng):
+        for test in stratified_folds(y, k, rng):
             train = np.setdiff1d(np.arange(len(y)), test)
             model = fit_verdict(
                 [rows[i] for i in train], [labs[i] for i in train], features, scales

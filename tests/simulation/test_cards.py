@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from pipeline.io import read_image
-from pipeline.synthetic_cards import (
+from simulation.cards import (
     KINDS,
     METADATA_COLUMNS,
     SUBJECT_SEPARATOR,
@@ -126,7 +126,7 @@ def test_sources_load_offline():
         "import socket\n"
         "def refuse(*a, **k): raise OSError('network used')\n"
         "socket.socket.connect = refuse; socket.socket.connect_ex = refuse; socket.getaddrinfo = refuse\n"
-        "from pipeline.synthetic_cards import make_demo_cards\n"
+        "from simulation.cards import make_demo_cards\n"
         "cards = make_demo_cards(seed=0, n_stereo=1)\n"
         "print(len(cards))\n"
     )

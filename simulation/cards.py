@@ -38,7 +38,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .io import write_jpeg
+from pipeline.io import write_jpeg
 
 KINDS = ("stereo", "mono", "back", "upside_down", "inverted")
 METADATA_COLUMNS = ("file_name", "accession", "title", "date", "creator", "publisher", "place", "subjects")

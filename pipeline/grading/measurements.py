@@ -1,0 +1,348 @@
+"""What the grade is computed from: :func:`measure_card` turns a rectified pair, its disparity maps
+and the earlier stages' metrics into :class:`GradeMeasurements` (units in its docstring).
+
+Conventions as in :mod:`pipeline.disparity`: a left pixel ``(x, y)`` is seen in the right view at
+``x_right = x_left - d_left``; a right pixel at ``x_left = x_right + d_right``. Views are uint8
+``(H, W)`` grey or ``(H, W, 3)`` RGB; pixels that are 0 in every channel of a view are the
+warp's black fill, outside the photograph. Every measurement is taken in the rectified view's
+own pixels (the disparity maps must have the views' shape).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..disparity import ImageTooSmallError
+from ..errors import InvalidInputError
+from ..io import to_grey
+
+__all__ = ["MEASUREMENT_NAMES", "GradeMeasurements", "finite_or_none", "measure_card"]
+
+MIN_SIDE = 16  # px: as the disparity stage; smaller views have nothing to measure
+WORK_SIDE = 512  # px: texture and row alignment are measured at this longer side (see measure_card)
+TEXTURE_GRADIENT = 3.0  # grey levels / px at WORK_SIDE: a pixel at least this steep counts as textured
+CONSISTENCY_PX = 1.0  # left-right check tolerance (px), as the disparity stage's default
+
+
+@dataclass(frozen=True)
+class GradeMeasurements:
+    """What the grade is computed from. ``None`` = not measured (``notes`` says why).
+
+    From the filter stage:
+
+    * ``good_match_fraction``: SIFT ratio-test matches / keypoints between the halves (0..1).
+
+    From the rectify stage (the worse of the two views where it measures both):
+
+    * ``dy_p95_px``: px, 95th percentile of inlier ``|y_l - y_r|`` after rectification.
+    * ``shear_deg``: deg, ``90 - midline_angle``: how far the images of the midlines are from
+      perpendicular (0 = no shear).
+    * ``aspect_change``: ratio >= 1, change of the midline length ratio (1 = none).
+    * ``rotation_deg``: deg, ``|in-plane rotation|`` of a view.
+    * ``kept_fraction``: smallest share (0..1) of a view's warped area inside the output.
+    * ``swapped``: the eyes were swapped on the card (the halves were exchanged).
+
+    Measured here from the rectified views and the disparity maps:
+
+    * ``row_misalignment_px``: px at full resolution, largest ``|v|`` at the four corners of a
+      robust plane ``v = c0 + c1 x + c2 y`` fitted to the vertical component of DIS optical flow
+      from the left to the right view over textured pixels (at ``WORK_SIDE``): what a viewer sees
+      as vertical parallax, whatever the rectification reported.
+    * ``coverage``: share (0..1) of the left view's photograph (non-black pixels) with a finite
+      left disparity (NaN, inf and ``|d|`` above the view width count as none).
+    * ``lr_consistency``: share (0..1) of covered left pixels whose match ``x - d_L`` lies inside
+      the right view with ``|d_L(x) - d_R(x - d_L(x))| <= 1 px`` (``d_R`` at the nearest pixel).
+    * ``confident_fraction``: share (0..1) of the photograph with confidence >= 0.5.
+    * ``disparity_range_px``: px, p95 - p5 of the finite left disparities on the photograph;
+      ``disparity_range_rel`` is the same over the view width (0.05 = 5 % of the width).
+    * ``texture_gradient``: grey levels per px, median Sobel gradient magnitude of the grey left
+      view at ``WORK_SIDE``; ``textured_fraction``: share (0..1) of the photograph at least
+      ``TEXTURE_GRADIENT`` steep there.
+    * ``photometric_error``: grey levels (0..255), mean ``|L(x, y) - R(x - d_L, y)|`` over covered
+      pixels whose match falls on the right photograph, after removing the median brightness
+      difference between the views. ``photometric_error_rel``: the same after normalising each
+      view to zero mean and unit mean absolute deviation over those pixels, divided by sqrt(2):
+      0 = the warped right view reproduces the left, about 1 = as different as two unrelated
+      images (for roughly Gaussian intensities); gain and offset between the prints cancel.
+    """
+
+    good_match_fraction: float | None = None
+    dy_p95_px: float | None = None
+    shear_deg: float | None = None
+    aspect_change: float | None = None
+    rotation_deg: float | None = None
+    kept_fraction: float | None = None
+    swapped: bool | None = None
+    row_misalignment_px: float | None = None
+    coverage: float | None = None
+    lr_consistency: float | None = None
+    confident_fraction: float | None = None
+    disparity_range_px: float | None = None
+    disparity_range_rel: float | None = None
+    texture_gradient: float | None = None
+    textured_fraction: float | None = None
+    photometric_error: float | None = None
+    photometric_error_rel: float | None = None
+    notes: tuple[tuple[str, str], ...] = ()  # (measurement, why it is missing)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-safe ``{name: float | bool | None}`` (no NaN; notes are not included)."""
+        out: dict[str, Any] = {}
+        for name in MEASUREMENT_NAMES:
+            value = getattr(self, name)
+            if isinstance(value, (bool, np.bool_)):
+                out[name] = bool(value)
+            elif value is None or not math.isfinite(float(value)):
+                out[name] = None
+            else:
+                out[name] = round(float(value), 6)
+        return out
+
+    def note_for(self, name: str) -> str | None:
+        return dict(self.notes).get(name)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> GradeMeasurements:
+        """Read :meth:`as_dict` output (or a grade record's metrics: other keys are ignored).
+        Non-numeric or non-finite values become ``None``."""
+        if isinstance(values, GradeMeasurements):
+            return values
+        if not isinstance(values, Mapping):
+            raise InvalidInputError(f"Expected a mapping of grade measurements, got {type(values).__name__}")
+        kwargs: dict[str, Any] = {}
+        for name in MEASUREMENT_NAMES:
+            value = values.get(name)
+            if name == "swapped":
+                kwargs[name] = None if value is None else bool(value)
+            else:
+                kwargs[name] = finite_or_none(value)
+        return cls(**kwargs)
+
+
+MEASUREMENT_NAMES: tuple[str, ...] = tuple(f.name for f in fields(GradeMeasurements) if f.name != "notes")
+
+
+def finite_or_none(value: Any) -> float | None:
+    if value is None or isinstance(value, (str, bytes, list, dict, tuple)):
+        return None
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        return None
+    return number if math.isfinite(number) else None
+
+
+def _check_view(image: Any, name: str) -> np.ndarray:
+    array = np.asarray(image)
+    if array.ndim == 3 and array.shape[2] == 1:
+        array = array[..., 0]
+    if array.ndim not in (2, 3) or (array.ndim == 3 and array.shape[2] != 3):
+        raise InvalidInputError(f"{name}: expected (H, W) or (H, W, 3), got shape {array.shape}")
+    if array.dtype != np.uint8:
+        raise InvalidInputError(f"{name}: expected uint8 pixels, got {array.dtype}")
+    if min(array.shape[:2]) < MIN_SIDE:
+        raise ImageTooSmallError(f"{name}: {array.shape[1]}x{array.shape[0]} is below {MIN_SIDE} px on a side")
+    return array
+
+
+def _check_map(values: Any, name: str, shape: tuple[int, int]) -> np.ndarray:
+    array = np.asarray(values)
+    if array.shape != shape:
+        raise InvalidInputError(f"{name}: expected shape {shape} (the views'), got {array.shape}")
+    if array.dtype.kind not in "fiu":
+        raise InvalidInputError(f"{name}: expected a numeric map, got {array.dtype}")
+    return array.astype(np.float32, copy=False)
+
+
+def _photograph(view: np.ndarray) -> np.ndarray:
+    """``(H, W)`` bool: pixels of the photograph (not the warp's black fill)."""
+    return view.reshape(*view.shape[:2], -1).max(axis=2) > 0
+
+
+def _rectify_values(rectify: Mapping[str, Any], notes: dict[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    out["dy_p95_px"] = finite_or_none(rectify.get("dy_p95"))
+    angle = finite_or_none(rectify.get("midline_angle"))
+    out["shear_deg"] = None if angle is None else abs(90.0 - angle)
+    out["aspect_change"] = finite_or_none(rectify.get("aspect_change"))
+    rotation = finite_or_none(rectify.get("rotation"))
+    out["rotation_deg"] = None if rotation is None else abs(rotation)
+    out["kept_fraction"] = finite_or_none(rectify.get("kept_fraction"))
+    swapped = rectify.get("swapped")
+    out["swapped"] = None if swapped is None else bool(swapped)
+    why = "no rectify metrics" if not rectify else "not in the rectify metrics"
+    for name, value in out.items():
+        if value is None:
+            notes[name] = why
+    return out
+
+
+def _row_misalignment(grey_l: np.ndarray, grey_r: np.ndarray, inside: np.ndarray) -> float | None:
+    """px at full resolution (see :class:`GradeMeasurements`); None without textured pixels."""
+    h, w = grey_l.shape
+    scale = min(1.0, WORK_SIDE / max(h, w))
+    size = (max(MIN_SIDE, round(w * scale)), max(MIN_SIDE, round(h * scale)))
+    small_l = cv2.resize(grey_l, size, interpolation=cv2.INTER_AREA) if scale < 1 else grey_l
+    small_r = cv2.resize(grey_r, size, interpolation=cv2.INTER_AREA) if scale < 1 else grey_r
+    mask = cv2.resize(inside.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    mask = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(small_l, small_r, None)
+    magnitude = _gradient(small_l)
+    keep = mask & (magnitude >= TEXTURE_GRADIENT) & np.isfinite(flow[..., 1])
+    if keep.sum() < 50:
+        return None
+    ys, xs = np.nonzero(keep)
+    step = max(1, xs.size // 20000)  # 20k points pin three coefficients; more only costs time
+    xs, ys = xs[::step].astype(np.float64), ys[::step].astype(np.float64)
+    v = flow[ys.astype(int), xs.astype(int), 1].astype(np.float64)
+    A = np.stack([np.ones_like(xs), xs, ys], axis=1)
+    inliers = np.ones(v.size, bool)
+    coeffs = np.zeros(3)
+    # Trimmed least squares: occlusions and mismatches give large vertical flow at a few pixels.
+    for _ in range(4):
+        coeffs, *_ = np.linalg.lstsq(A[inliers], v[inliers], rcond=None)
+        residual = np.abs(A @ coeffs - v)
+        inliers = residual <= max(float(np.percentile(residual, 70)), 1e-6)
+    sw, sh = size
+    corners = np.array([[1, 0, 0], [1, sw - 1, 0], [1, 0, sh - 1], [1, sw - 1, sh - 1]], np.float64) @ coeffs
+    return float(np.abs(corners).max() / (sw / w))
+
+
+def _gradient(grey: np.ndarray) -> np.ndarray:
+    """Sobel gradient magnitude in grey levels per px (the 3x3 kernels sum to 8 x the slope)."""
+    g = grey.astype(np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    return np.hypot(gx, gy)
+
+
+def _texture(grey_l: np.ndarray, inside: np.ndarray) -> tuple[float | None, float | None]:
+    h, w = grey_l.shape
+    scale = min(1.0, WORK_SIDE / max(h, w))
+    size = (max(MIN_SIDE, round(w * scale)), max(MIN_SIDE, round(h * scale)))
+    small = cv2.resize(grey_l, size, interpolation=cv2.INTER_AREA) if scale < 1 else grey_l
+    mask = cv2.resize(inside.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    # The black fill's edge is steep but is not the photograph's texture.
+    mask = cv2.erode(mask, np.ones((5, 5), np.uint8)) > 0
+    if not mask.any():
+        return None, None
+    magnitude = _gradient(small)[mask]
+    return float(np.median(magnitude)), float((magnitude >= TEXTURE_GRADIENT).mean())
+
+
+def measure_card(
+    left: np.ndarray,
+    right: np.ndarray,
+    disp_left: np.ndarray,
+    disp_right: np.ndarray | None,
+    confidence: np.ndarray | None,
+    metrics_by_stage: Mapping[str, Mapping[str, Any]] | None = None,
+) -> GradeMeasurements:
+    """Measure a rectified pair and its disparity for grading (units in :class:`GradeMeasurements`).
+
+    ``left``, ``right``: uint8 rectified views, ``(H, W)`` or ``(H, W, 3)`` RGB, the same shape,
+    at least 16 px a side. ``disp_left``, ``disp_right``, ``confidence``: ``(H, W)`` float maps in
+    the views' pixels (NaN / inf = no disparity there); ``disp_right`` and ``confidence`` may be
+    ``None`` (their measurements are then missing, with a note). ``metrics_by_stage``:
+    ``{"filter": {...}, "rectify": {...}, "disparity": {...}}``, the stages' record metrics; a
+    missing stage leaves its measurements missing, with a note.
+
+    Raises :class:`InvalidInputError` on mismatched shapes, wrong dtypes or shapes, and
+    :class:`ImageTooSmallError` for views under 16 px a side. Identical views are a valid
+    measurement (zero disparity range); an all-NaN map gives coverage 0 and no range.
+    """
+    left = _check_view(left, "left")
+    right = _check_view(right, "right")
+    if left.shape[:2] != right.shape[:2]:
+        raise InvalidInputError(f"left {left.shape[:2]} and right {right.shape[:2]} differ in size")
+    shape = left.shape[:2]
+    d_left = _check_map(disp_left, "disp_left", shape)
+    d_right = None if disp_right is None else _check_map(disp_right, "disp_right", shape)
+    conf = None if confidence is None else _check_map(confidence, "confidence", shape)
+    stages = metrics_by_stage or {}
+    notes: dict[str, str] = {}
+    values: dict[str, Any] = {}
+
+    filter_metrics = stages.get("filter") or {}
+    values["good_match_fraction"] = finite_or_none(filter_metrics.get("good_match_fraction"))
+    if values["good_match_fraction"] is None:
+        notes["good_match_fraction"] = "no filter metrics" if not filter_metrics else "not in the filter metrics"
+    values.update(_rectify_values(stages.get("rectify") or {}, notes))
+
+    grey_l, grey_r = to_grey(np.ascontiguousarray(left)), to_grey(np.ascontiguousarray(right))
+    inside_l, inside_r = _photograph(left), _photograph(right)
+    if not inside_l.any():  # an all-black view: no fill to tell apart, measure everything
+        inside_l = np.ones(shape, bool)
+        inside_r = np.ones(shape, bool)
+    h, w = shape
+
+    values["row_misalignment_px"] = _row_misalignment(grey_l, grey_r, inside_l)
+    if values["row_misalignment_px"] is None:
+        notes["row_misalignment_px"] = "too few textured pixels to follow rows"
+    values["texture_gradient"], values["textured_fraction"] = _texture(grey_l, inside_l)
+    if values["texture_gradient"] is None:
+        notes["texture_gradient"] = notes["textured_fraction"] = "the photograph is too small after erosion"
+
+    # A disparity beyond the view's width cannot be a match: counted as not covered, like NaN.
+    finite = np.isfinite(d_left) & (np.abs(np.nan_to_num(d_left, nan=0.0, posinf=0.0, neginf=0.0)) <= w)
+    covered = finite & inside_l
+    values["coverage"] = float(covered.sum() / inside_l.sum())
+
+    xs = np.arange(w, dtype=np.float32)[None, :] - np.where(finite, d_left, 0.0)
+    target = np.rint(xs).astype(np.int64)
+    on_right = covered & (target >= 0) & (target < w)
+    rows = np.broadcast_to(np.arange(h)[:, None], shape)
+    target_c = np.clip(target, 0, w - 1)
+    on_right &= inside_r[rows, target_c]
+
+    if d_right is None:
+        values["lr_consistency"] = None
+        notes["lr_consistency"] = "no right disparity map"
+    elif not on_right.any():
+        values["lr_consistency"] = None
+        notes["lr_consistency"] = "no covered pixel matches inside the right view"
+    else:
+        other = d_right[rows, target_c]
+        agree = on_right & np.isfinite(other) & (np.abs(d_left - np.where(np.isfinite(other), other, 0)) <= CONSISTENCY_PX)
+        values["lr_consistency"] = float(agree.sum() / on_right.sum())
+
+    if conf is None:
+        values["confident_fraction"] = None
+        notes["confident_fraction"] = "no confidence map"
+    else:
+        trusted = np.nan_to_num(conf, nan=0.0, posinf=0.0, neginf=0.0) >= 0.5
+        values["confident_fraction"] = float(trusted[inside_l].mean())
+
+    if covered.any():
+        p5, p95 = np.percentile(d_left[covered], [5, 95])
+        values["disparity_range_px"] = float(p95 - p5)
+        values["disparity_range_rel"] = float((p95 - p5) / w)
+    else:
+        values["disparity_range_px"] = values["disparity_range_rel"] = None
+        notes["disparity_range_px"] = notes["disparity_range_rel"] = "no finite disparity on the photograph"
+
+    values["photometric_error"], values["photometric_error_rel"] = None, None
+    if on_right.sum() < 16:
+        notes["photometric_error"] = notes["photometric_error_rel"] = "too few covered pixels match inside the right view"
+    else:
+        grid_y, grid_x = np.mgrid[0:h, 0:w].astype(np.float32)
+        map_x = np.where(finite, grid_x - d_left, -1.0).astype(np.float32)
+        warped = cv2.remap(grey_r, map_x, grid_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        a = grey_l[on_right].astype(np.float64)
+        b = warped[on_right].astype(np.float64)
+        difference = a - b
+        values["photometric_error"] = float(np.mean(np.abs(difference - np.median(difference))))
+        spread_a, spread_b = np.mean(np.abs(a - a.mean())), np.mean(np.abs(b - b.mean()))
+        if min(spread_a, spread_b) < 0.5:  # a flat view: a normalised difference means nothing
+            notes["photometric_error_rel"] = "a view has no contrast where the disparity matches"
+        else:
+            values["photometric_error_rel"] = float(
+                np.mean(np.abs((a - a.mean()) / spread_a - (b - b.mean()) / spread_b)) / math.sqrt(2.0))
+
+    return GradeMeasurements(**values, notes=tuple(sorted(notes.items())))

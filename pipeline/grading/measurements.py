@@ -21,8 +21,9 @@ import numpy as np
 from ..disparity import ImageTooSmallError
 from ..errors import InvalidInputError
 from ..io import to_grey
+from . import scene_checks
 
-__all__ = ["MEASUREMENT_NAMES", "GradeMeasurements", "finite_or_none", "measure_card"]
+__all__ = ["MEASUREMENT_NAMES", "TEXT_FIELDS", "GradeMeasurements", "finite_or_none", "measure_card"]
 
 MIN_SIDE = 16  # px: as the disparity stage; smaller views have nothing to measure
 WORK_SIDE = 512  # px: texture and row alignment are measured at this longer side (see measure_card)
@@ -70,6 +71,20 @@ class GradeMeasurements:
       view to zero mean and unit mean absolute deviation over those pixels, divided by sqrt(2):
       0 = the warped right view reproduces the left, about 1 = as different as two unrelated
       images (for roughly Gaussian intensities); gain and offset between the prints cancel.
+
+    What the depth map says about the scene and what the crop holds
+    (:mod:`pipeline.grading.scene_checks`, definitions there):
+
+    * ``depth_order``: dimensionless, -1..1: (median d of the lowest third of rows - median d
+      of the highest third) / (p95 - p5 of d); positive = the bottom is nearer, as on most scenes.
+    * ``streak_fraction``: share (0..1) of the photograph on row streaks of the disparity.
+    * ``sky_near_fraction``: share (0..1) of the upper half that is textureless yet reads nearer
+      than the median textured pixel.
+    * ``reflection_symmetry``: 0..1, the mirror symmetry (intensity and disparity) of the lower
+      part about the horizon row ``reflection_row_px`` (px in the rectified view).
+    * ``border_line``: share (0..1) of the crop's ``border_side`` border that a straight steep edge
+      with a plain strip outside it runs along (card edge, mount); ``border_strokes``: share
+      (0..1) of the most inked border strip that is ink-like strokes beyond the interior's.
     """
 
     good_match_fraction: float | None = None
@@ -89,6 +104,14 @@ class GradeMeasurements:
     textured_fraction: float | None = None
     photometric_error: float | None = None
     photometric_error_rel: float | None = None
+    depth_order: float | None = None
+    streak_fraction: float | None = None
+    sky_near_fraction: float | None = None
+    reflection_symmetry: float | None = None
+    reflection_row_px: float | None = None
+    border_line: float | None = None
+    border_strokes: float | None = None
+    border_side: str | None = None
     notes: tuple[tuple[str, str], ...] = ()  # (measurement, why it is missing)
 
     def as_dict(self) -> dict[str, Any]:
@@ -98,6 +121,8 @@ class GradeMeasurements:
             value = getattr(self, name)
             if isinstance(value, (bool, np.bool_)):
                 out[name] = bool(value)
+            elif name in TEXT_FIELDS:
+                out[name] = None if value is None else str(value)
             elif value is None or not math.isfinite(float(value)):
                 out[name] = None
             else:
@@ -120,12 +145,15 @@ class GradeMeasurements:
             value = values.get(name)
             if name == "swapped":
                 kwargs[name] = None if value is None else bool(value)
+            elif name in TEXT_FIELDS:
+                kwargs[name] = value if isinstance(value, str) else None
             else:
                 kwargs[name] = finite_or_none(value)
         return cls(**kwargs)
 
 
 MEASUREMENT_NAMES: tuple[str, ...] = tuple(f.name for f in fields(GradeMeasurements) if f.name != "notes")
+TEXT_FIELDS = frozenset({"border_side"})
 
 
 def finite_or_none(value: Any) -> float | None:
@@ -151,13 +179,24 @@ def _check_view(image: Any, name: str) -> np.ndarray:
     return array
 
 
-def _check_map(values: Any, name: str, shape: tuple[int, int]) -> np.ndarray:
+def _check_map(values: Any, name: str, shape: tuple[int, int], disparity: bool = True) -> np.ndarray:
+    """A map in the views' pixels. A map computed at a smaller working size (same aspect within
+    3 %) is brought to the views' size by nearest-neighbour resampling; a disparity map's values
+    are in its own pixels, so they are scaled by the width ratio to become view px."""
     array = np.asarray(values)
-    if array.shape != shape:
-        raise InvalidInputError(f"{name}: expected shape {shape} (the views'), got {array.shape}")
+    if array.ndim != 2:
+        raise InvalidInputError(f"{name}: expected an (H, W) map, got shape {array.shape}")
     if array.dtype.kind not in "fiu":
         raise InvalidInputError(f"{name}: expected a numeric map, got {array.dtype}")
-    return array.astype(np.float32, copy=False)
+    array = array.astype(np.float32, copy=False)
+    if array.shape == shape:
+        return array
+    (h, w), (mh, mw) = shape, array.shape
+    if min(mh, mw) < 2 or abs((mw / mh) / (w / h) - 1.0) > 0.03:
+        raise InvalidInputError(f"{name}: expected shape {shape} (the views') or the same aspect at another size, "
+                                f"got {array.shape}")
+    resized = cv2.resize(array, (w, h), interpolation=cv2.INTER_NEAREST)
+    return resized * np.float32(w / mw) if disparity else resized
 
 
 def _photograph(view: np.ndarray) -> np.ndarray:
@@ -248,7 +287,9 @@ def measure_card(
 
     ``left``, ``right``: uint8 rectified views, ``(H, W)`` or ``(H, W, 3)`` RGB, the same shape,
     at least 16 px a side. ``disp_left``, ``disp_right``, ``confidence``: ``(H, W)`` float maps in
-    the views' pixels (NaN / inf = no disparity there); ``disp_right`` and ``confidence`` may be
+    the views' pixels (NaN / inf = no disparity there; maps computed at a smaller working size of
+    the same aspect are resampled to the views' pixels and their disparities scaled to view px);
+    ``disp_right`` and ``confidence`` may be
     ``None`` (their measurements are then missing, with a note). ``metrics_by_stage``:
     ``{"filter": {...}, "rectify": {...}, "disparity": {...}}``, the stages' record metrics; a
     missing stage leaves its measurements missing, with a note.
@@ -264,7 +305,7 @@ def measure_card(
     shape = left.shape[:2]
     d_left = _check_map(disp_left, "disp_left", shape)
     d_right = None if disp_right is None else _check_map(disp_right, "disp_right", shape)
-    conf = None if confidence is None else _check_map(confidence, "confidence", shape)
+    conf = None if confidence is None else _check_map(confidence, "confidence", shape, disparity=False)
     stages = metrics_by_stage or {}
     notes: dict[str, str] = {}
     values: dict[str, Any] = {}
@@ -345,4 +386,33 @@ def measure_card(
             values["photometric_error_rel"] = float(
                 np.mean(np.abs((a - a.mean()) / spread_a - (b - b.mean()) / spread_b)) / math.sqrt(2.0))
 
+    values.update(_scene_values(grey_l, d_left, covered, inside_l, notes))
     return GradeMeasurements(**values, notes=tuple(sorted(notes.items())))
+
+
+def _scene_values(grey: np.ndarray, d_left: np.ndarray, covered: np.ndarray, inside: np.ndarray,
+                  notes: dict[str, str]) -> dict[str, Any]:
+    """The scene checks (:mod:`.scene_checks`) on the left view and its covered disparities."""
+    disp = np.where(covered, d_left, np.nan).astype(np.float32)
+    out: dict[str, Any] = {}
+    out["depth_order"] = scene_checks.depth_order(disp, covered)
+    if out["depth_order"] is None:
+        notes["depth_order"] = "under 1 px of disparity range or too few disparities to order"
+    out["streak_fraction"] = scene_checks.streak_fraction(disp, covered)
+    if out["streak_fraction"] is None:
+        notes["streak_fraction"] = "too few disparities to look for streaks"
+    out["sky_near_fraction"] = scene_checks.sky_near_fraction(grey, disp, inside)
+    if out["sky_near_fraction"] is None:
+        notes["sky_near_fraction"] = "too few textured pixels with a disparity to compare with"
+    reflection = scene_checks.reflection_symmetry(grey, disp, covered)
+    out["reflection_symmetry"] = None if reflection is None else reflection.symmetry
+    out["reflection_row_px"] = None if reflection is None else float(reflection.row_px)
+    if reflection is None:
+        notes["reflection_symmetry"] = "the view is too small or has no disparity"
+    border = scene_checks.border_intrusion(grey, inside)
+    out["border_line"] = None if border is None else border.line
+    out["border_strokes"] = None if border is None else border.strokes
+    out["border_side"] = None if border is None else border.side
+    if border is None:
+        notes["border_line"] = notes["border_strokes"] = "the photograph is too small to have a border strip"
+    return out

@@ -57,12 +57,14 @@ class Threshold:
 
 @dataclass(frozen=True)
 class _Rule:
-    """How a measurement reads in words, and how its distance to a threshold is scaled."""
+    """How a measurement reads in words, and how its distance to a threshold is scaled
+    (``span``: for the ``linear`` scale, the difference that counts as far as a factor of 4)."""
 
     direction: Direction
-    scale: Literal["ratio", "complement", "excess", "flag"]
+    scale: Literal["ratio", "complement", "excess", "flag", "linear"]
     words: str  # format with {v} (the value formatted by ``unit``)
     unit: Literal["px", "deg", "ratio", "percent", "percent1", "number", "flag"]
+    span: float = 0.0
 
 
 RULES: dict[str, _Rule] = {
@@ -80,6 +82,12 @@ RULES: dict[str, _Rule] = {
     "disparity_range_rel": _Rule("below", "ratio", "disparity spans only {range_px} ({v} of the width): little depth to see", "percent1"),
     "textured_fraction": _Rule("below", "ratio", "low texture: only {v} of the view is textured", "percent"),
     "photometric_error_rel": _Rule("above", "ratio", "the right view warped by the disparity misses the left by {grey} on average, {v} of the difference between unrelated images", "number"),
+    "depth_order": _Rule("below", "linear", "the depth ordering reads {v}: the top of the picture comes out nearer than the bottom (upside down, eyes swapped, or a near blob high up)", "number", span=0.5),
+    "streak_fraction": _Rule("above", "ratio", "{v} of the disparity is row streaks (runs along rows that break against the rows above and below)", "percent"),
+    "sky_near_fraction": _Rule("above", "ratio", "{v} of the upper half is textureless (sky, blank print) yet reads nearer than the textured scene", "percent"),
+    "reflection_symmetry": _Rule("above", "linear", "the picture mirrors itself about row {horizon} in intensity and depth (symmetry {v}): a reflection read as a second scene", "number", span=0.3),
+    "border_line": _Rule("above", "ratio", "a straight edge with a plain strip outside it runs along {v} of the {side} border: card edge or mount inside the crop", "percent"),
+    "border_strokes": _Rule("above", "ratio", "{v} of a border strip is ink-like strokes: mount text or a caption inside the crop", "percent1"),
 }
 
 
@@ -101,7 +109,8 @@ def _format(value: float, unit: str, beside: float | None = None) -> str:
 def _context(m: GradeMeasurements) -> dict[str, str]:
     """Companion figures some reasons quote beside their own value."""
     show = lambda value, text: "?" if value is None else text.format(value)
-    return {"range_px": show(m.disparity_range_px, "{:.1f} px"), "grey": show(m.photometric_error, "{:.1f} grey levels")}
+    return {"range_px": show(m.disparity_range_px, "{:.1f} px"), "grey": show(m.photometric_error, "{:.1f} grey levels"),
+            "horizon": show(m.reflection_row_px, "{:.0f}"), "side": m.border_side or "crop's"}
 
 
 def _threshold_text(threshold: float, unit: str) -> str:
@@ -153,6 +162,19 @@ class GradeThresholds:
     * ``textured_fraction``: share of the view steeper than 3 grey levels / px at 512 px. Real
       photographs measure 36-87 % (Middlebury and antique pairs); under 15 % matching is
       unreliable (some), under 4 % the view is nearly blank (failure).
+    * ``depth_order``: Motorcycle reads +0.65 (ground truth and the default backend alike),
+      the same map upside down or reversed -0.66: under -0.1 the top reads nearer than the
+      bottom (some), under -0.35 the depth is most likely reversed (failure: the curators' "Flip").
+    * ``streak_fraction``: clean disparity on Motorcycle 0 %; a map with a 3-row streak every 12
+      rows 38 % (24 % on a plane): over 5 % streaks show (some), over 20 % they are much of the map (failure: the
+      careful person's "about 70 % of the map is streaks" card).
+    * ``sky_near_fraction``: Motorcycle 0-4 %; a flat sky at the 90th percentile of disparity
+      over 30 % of the height 55 %: over 8 % a false near blob shows (some), over 30 % (failure).
+    * ``reflection_symmetry``: photographs without reflections 0.28-0.35, a mirrored lower half
+      0.90: over 0.6 is a reflection read as depth (some; never failure alone).
+    * ``border_line``: Motorcycle 0.12, a 40 px plain mount strip on top 0.79: over 0.6 the crop
+      keeps card or mount (some). ``border_strokes``: 0 without text, 3 % with a caption line
+      in the top strip: over 2 % mount text is inside the crop (some).
     * ``photometric_error_rel``: Middlebury pairs 0.06-0.10, antique pairs (different prints,
       residual misalignment) 0.31-0.44, Motorcycle with the right view 6 px down 0.50,
       unrelated images 0.93: above 0.5 the disparity does not explain the pair (some), above
@@ -173,6 +195,12 @@ class GradeThresholds:
     disparity_range_rel: Threshold = Threshold("below", 0.005, 0.0015)
     textured_fraction: Threshold = Threshold("below", 0.15, 0.04)
     photometric_error_rel: Threshold = Threshold("above", 0.5, 0.75)
+    depth_order: Threshold = Threshold("below", -0.1, -0.35)
+    streak_fraction: Threshold = Threshold("above", 0.05, 0.2)
+    sky_near_fraction: Threshold = Threshold("above", 0.08, 0.3)
+    reflection_symmetry: Threshold = Threshold("above", 0.6, None)
+    border_line: Threshold = Threshold("above", 0.6, None)
+    border_strokes: Threshold = Threshold("above", 0.02, None)
 
     def __post_init__(self) -> None:
         for name, spec in RULES.items():
@@ -235,9 +263,21 @@ class GradeParams:
 @dataclass(frozen=True)
 class GradeResult:
     """``grade`` few / some / failure; ``reasons`` in words, the deciding ones first, then the
-    lesser ones, then notes on what was not measured; ``deciding``: the measurements at the
-    grade's level (empty for few); ``uncertainty`` in [0, 1] (see :func:`grade`); ``levels``:
-    each measured rule's level (0 few, 1 some, 2 failure)."""
+    lesser ones, then the nearest threshold, then notes on what was not measured; ``deciding``:
+    the measurements at the grade's level (empty for few); ``uncertainty`` in [0, 1] (see
+    :func:`grade`) and ``uncertainty_reason``, the sentence that explains it; ``levels``: each
+    measured rule's level (0 few, 1 some, 2 failure).
+
+    ``nearest``: the measurement nearest a threshold whose crossing would change the grade
+    (``None`` when no measured threshold can): ``{"measurement", "value", "threshold", "margin",
+    "level", "distance", "changes_grade", "grade_if_crossed"}``, where ``level`` is the threshold's (``some`` or
+    ``failure``), ``margin`` = value - threshold in the measurement's own unit, and ``distance``
+    the scaled distance the uncertainty comes from. When no threshold can change the grade
+    (a failure decided by two measurements), ``nearest`` is the nearest threshold of all with
+    ``changes_grade`` false. ``checks``: one row per graded measurement for a table
+    ``{"measurement", "value", "unit", "direction", "some", "failure", "level", "margin",
+    "distance"}`` (``level`` few / some / failure; ``margin`` and ``distance`` to the nearer of
+    its thresholds; a missing value has ``value`` ``None`` and a ``note``)."""
 
     grade: Grade
     reasons: list[str]
@@ -245,6 +285,9 @@ class GradeResult:
     deciding: list[str]
     levels: dict[str, int]
     notes: list[str]
+    nearest: dict[str, Any] | None = None
+    checks: list[dict[str, Any]] = field(default_factory=list)
+    uncertainty_reason: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -255,6 +298,8 @@ def _distance(name: str, value: float, threshold: float) -> float:
     scale = RULES[name].scale
     if scale == "flag":
         return math.inf  # a flag is set or not: never "near" its threshold
+    if scale == "linear":  # signed values: a difference of ``span`` is as far as a factor of 4
+        return abs(value - threshold) / RULES[name].span * UNCERTAINTY_SPAN
     if scale == "complement":  # fractions near 1: compare what is missing (5 % vs 20 % missing)
         value, threshold = 1.0 - value, 1.0 - threshold
     elif scale == "excess":  # ratios >= 1: compare the excess over 1
@@ -263,31 +308,68 @@ def _distance(name: str, value: float, threshold: float) -> float:
     return abs(math.log(max(value, tiny) / max(threshold, tiny)))
 
 
-def grade(measurements: GradeMeasurements | Mapping[str, Any], thresholds: GradeThresholds = GradeThresholds()) -> GradeResult:
+def _threshold_entry(name: str, value: float, limit: float, level_name: str, grade_now: int,
+                     grade_across: int) -> dict[str, Any]:
+    distance = _distance(name, value, limit)
+    return {"measurement": name, "value": round(value, 6), "threshold": limit, "margin": round(value - limit, 6),
+            "level": level_name, "distance": None if not math.isfinite(distance) else round(distance, 4),
+            "changes_grade": grade_across != grade_now, "grade_if_crossed": GRADES[grade_across]}
+
+
+def _far(entry: dict[str, Any]) -> float:
+    """An entry's distance, a flag's (never near) as infinity."""
+    return math.inf if entry["distance"] is None else float(entry["distance"])
+
+
+def _nearest_text(entry: dict[str, Any]) -> str:
+    """"coverage 83 % is 3 points from its some threshold (< 80 %)"."""
+    name = entry["measurement"]
+    rule = RULES[name]
+    value, limit = entry["value"], entry["threshold"]
+    op = ">" if rule.direction == "above" else "<"
+    if rule.unit in ("percent", "percent1"):
+        gap = f"{abs(value - limit) * 100:.{2 if rule.unit == 'percent1' else 0}f} points"
+    elif rule.unit in ("px", "deg"):
+        gap = f"{abs(value - limit):.2f} {rule.unit}"
+    else:
+        gap = f"{abs(value - limit):.3g}"
+    return (f"{name} {_format(value, rule.unit, limit)} is {gap} from its {entry['level']} threshold "
+            f"({op} {_threshold_text(limit, rule.unit)})")
+
+
+def grade(measurements: GradeMeasurements | Mapping[str, Any], thresholds: GradeThresholds | None = None) -> GradeResult:
     """Grade a card: the worst level any measured rule reaches (few < some < failure).
 
     A rule whose measurement is missing is skipped, with a note. ``uncertainty`` is
-    ``max(0, 1 - d / ln 4)`` where ``d`` is the smallest log-ratio distance
-    ``|ln(value / threshold)|`` between a measurement and a threshold *that matters*: one whose
-    crossing, every other measurement staying put, would change the grade (for a few card every
-    first threshold; for a failure decided by two measurements none). Fractions near 1 (coverage,
-    consistency, confidence, kept area) compare what is missing, ``1 - value``; the aspect
-    change compares its excess over 1; flags are never near. 1 = a measurement sits on such a
-    threshold, 0 = every one is at least a factor of 4 away.
+    ``max(0, 1 - d / ln 4)`` where ``d`` is the distance between a measurement and the nearest
+    threshold *that matters*: one whose crossing, every other measurement staying put, would
+    change the grade (for a few card every first threshold; for a failure decided by two
+    measurements none). ``d`` is the log-ratio ``|ln(value / threshold)|`` for most measurements;
+    fractions near 1 (coverage, consistency, confidence, kept area) compare what is missing,
+    ``1 - value``; the aspect change compares its excess over 1; signed measurements (depth
+    order, reflection symmetry) use ``|value - threshold| / span * ln 4``; flags are never near.
+    1 = a measurement sits on such a threshold, 0 = every one is at least a factor of 4 away.
+    The result names that threshold (``nearest``) and says so in ``uncertainty_reason``.
     """
+    thresholds = thresholds if thresholds is not None else GradeThresholds()
     m = GradeMeasurements.from_dict(measurements) if not isinstance(measurements, GradeMeasurements) else measurements
     levels: dict[str, int] = {}
     values: dict[str, float] = {}
     notes: list[str] = []
-    for name in RULES:
+    checks: list[dict[str, Any]] = []
+    for name, rule in RULES.items():
         raw = getattr(m, name)
+        threshold = getattr(thresholds, name)
         if raw is None:
             why = m.note_for(name) or "not measured"
             notes.append(f"note: {name} not graded ({why})")
+            checks.append({"measurement": name, "value": None, "unit": rule.unit,
+                           "direction": threshold.direction, "some": threshold.some, "failure": threshold.failure,
+                           "level": None, "margin": None, "distance": None, "note": why})
             continue
         value = float(raw)
         values[name] = value
-        levels[name] = getattr(thresholds, name).level(value)
+        levels[name] = threshold.level(value)
     worst = max(levels.values(), default=0)
     deciding = [name for name, level in levels.items() if level == worst] if worst > 0 else []
 
@@ -303,14 +385,14 @@ def grade(measurements: GradeMeasurements | Mapping[str, Any], thresholds: Grade
                 op = ">" if rule.direction == "above" else "<"
                 text += f" ({op} {_threshold_text(limit, rule.unit)})"
             reasons.append(f"{GRADES[level]}: {text}")
-    if worst == 0:
-        reasons.append(f"few: every measurement within thresholds ({len(levels)} of {len(RULES)} measured)")
 
-    nearest = math.inf
+    mattering: dict[str, Any] | None = None
+    any_nearest: dict[str, Any] | None = None
     for name, level in levels.items():
         threshold = getattr(thresholds, name)
         others = max((lv for other, lv in levels.items() if other != name), default=0)
-        for limit in (threshold.some, threshold.failure):
+        own_nearest: dict[str, Any] | None = None
+        for limit, level_name in ((threshold.some, "some"), (threshold.failure, "failure")):
             if limit is None:
                 continue
             # The measurement's level just across this threshold from where it is now, and
@@ -321,8 +403,38 @@ def grade(measurements: GradeMeasurements | Mapping[str, Any], thresholds: Grade
                 across = above if values[name] < limit else below
             else:  # sitting on the threshold: across is whichever side is not its own level
                 across = above if above != level else below
-            if max(others, across) != worst:
-                nearest = min(nearest, _distance(name, values[name], limit))
-    uncertainty = 0.0 if not math.isfinite(nearest) else max(0.0, 1.0 - nearest / UNCERTAINTY_SPAN)
+            entry = _threshold_entry(name, values[name], limit, level_name, worst, max(others, across))
+            distance = _far(entry)
+            if own_nearest is None or distance < _far(own_nearest):
+                own_nearest = entry
+            if any_nearest is None or distance < _far(any_nearest):
+                any_nearest = entry
+            if entry["changes_grade"] and math.isfinite(distance) and (mattering is None or distance < _far(mattering)):
+                mattering = entry
+        checks.append({"measurement": name, "value": round(values[name], 6), "unit": RULES[name].unit,
+                       "direction": threshold.direction, "some": threshold.some, "failure": threshold.failure,
+                       "level": GRADES[level], "margin": None if own_nearest is None else own_nearest["margin"],
+                       "distance": None if own_nearest is None else own_nearest["distance"]})
+    checks.sort(key=lambda row: list(RULES).index(row["measurement"]))
+
+    nearest = mattering if mattering is not None else (
+        any_nearest if any_nearest is not None and any_nearest["distance"] is not None else None)
+    if mattering is not None:
+        uncertainty = max(0.0, 1.0 - mattering["distance"] / UNCERTAINTY_SPAN)
+        uncertainty_reason = (f"uncertainty {uncertainty:.2f}: {_nearest_text(mattering)}; crossing it would make "
+                              f"the grade {mattering['grade_if_crossed']} "
+                              f"(1 = on the threshold, 0 = a factor of 4 or more away)")
+    else:
+        uncertainty = 0.0
+        uncertainty_reason = ("uncertainty 0.00: no single measurement crossing a threshold would change the grade"
+                              if levels else "uncertainty 0.00: nothing was measured")
+    if worst == 0:
+        summary = f"few: every measurement within thresholds ({len(levels)} of {len(RULES)} measured)"
+        if nearest is not None:
+            summary += f"; nearest: {_nearest_text(nearest)}"
+        reasons.append(summary)
+    elif nearest is not None and nearest["measurement"] not in deciding:
+        reasons.append(f"nearest: {_nearest_text(nearest)}")
     return GradeResult(grade=GRADES[worst], reasons=reasons + notes, uncertainty=round(uncertainty, 4),
-                       deciding=deciding, levels=levels, notes=notes)
+                       deciding=deciding, levels=levels, notes=notes, nearest=nearest, checks=checks,
+                       uncertainty_reason=uncertainty_reason)

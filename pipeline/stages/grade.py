@@ -34,8 +34,11 @@ def grade_task(task: CardTask, params: GradeParams) -> StageOutput:
     ``disparity_right``, ``confidence`` (``.npy``), all paths relative to ``task.data_dir``, and
     ``metrics`` = ``{"filter": {...}, "rectify": {...}, "disparity": {...}}``. The record's
     ``outcome`` is the grade, ``reason`` the reasons joined by "; " (the deciding one first),
-    ``metrics`` the measurements plus ``reasons``, ``notes``, ``uncertainty``, ``deciding``,
-    ``levels`` and ``thresholds_hash``. Any error gives a ``failed`` record with a typed reason.
+    ``metrics`` the measurements plus ``reasons``, ``notes``, ``uncertainty``,
+    ``uncertainty_reason``, ``deciding``, ``levels``, ``nearest`` (the measurement nearest a
+    threshold: ``{"measurement", "value", "threshold", "margin", "level", ...}``), ``checks`` (one
+    row per measurement, for a table; see :class:`pipeline.grading.GradeResult`) and
+    ``thresholds_hash``. Measurements are in the rectified views' pixels. Any error gives a ``failed`` record with a typed reason.
     """
     missing = [name for name in TASK_INPUTS if not task.inputs.get(name)]
     if missing:
@@ -53,6 +56,7 @@ def grade_task(task: CardTask, params: GradeParams) -> StageOutput:
         **measurements.as_dict(),
         "reasons": list(result.reasons), "notes": list(result.notes), "uncertainty": result.uncertainty,
         "deciding": list(result.deciding), "levels": dict(result.levels),
+        "nearest": result.nearest, "checks": list(result.checks), "uncertainty_reason": result.uncertainty_reason,
         "thresholds_hash": param_hash(params.thresholds),
     }
     return StageOutput(status="done", outcome=result.grade, reason="; ".join(result.reasons), metrics=metrics)

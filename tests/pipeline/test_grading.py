@@ -83,7 +83,16 @@ def test_a_good_real_pair_grades_few_with_every_measurement(good):
     assert m.shear_deg == pytest.approx(0.1) and m.rotation_deg == pytest.approx(0.3)
     result = grade(m, GradeThresholds())
     assert result.grade == "few" and result.deciding == [] and result.notes == []
-    assert result.reasons == ["few: every measurement within thresholds (14 of 14 measured)"]
+    assert result.reasons[0].startswith("few: every measurement within thresholds (20 of 20 measured); nearest: ")
+    # A clean card's reason names the measurement nearest its threshold, with value and threshold.
+    nearest = result.nearest
+    assert nearest is not None and nearest["changes_grade"] and nearest["grade_if_crossed"] == "some"
+    assert nearest["measurement"] in result.reasons[0] and nearest["level"] == "some"
+    assert nearest["margin"] == pytest.approx(nearest["value"] - nearest["threshold"], abs=1e-6)
+    assert result.uncertainty_reason.startswith(f"uncertainty {result.uncertainty:.2f}: {nearest['measurement']} ")
+    # The scene checks on a real pair: ground near, top far, no streaks, no mount in the crop.
+    assert m.depth_order > 0.4 and m.streak_fraction < 0.01 and m.sky_near_fraction < 0.05
+    assert m.reflection_symmetry < 0.5 and m.border_line < 0.5 and m.border_strokes < 0.01
     assert 0.0 <= result.uncertainty < 0.8
     json.dumps(m.as_dict(), allow_nan=False)
 
@@ -158,7 +167,7 @@ def test_nan_and_inf_disparities_are_not_covered(pair, good):
     m = measure_card(left, right, holed, d_right, conf, CLEAN_STAGES)
     expected = (np.isfinite(holed) & (np.abs(holed) < 1e3))[left.max(axis=2) > 0].mean()
     assert m.coverage == pytest.approx(expected) and 0.45 < m.coverage < 0.52
-    assert all(v is None or math.isfinite(v) for v in m.as_dict().values() if not isinstance(v, bool))
+    assert all(v is None or math.isfinite(v) for v in m.as_dict().values() if not isinstance(v, (bool, str)))
     result = grade(m)
     assert result.grade == "failure"
     # 49.987 % would print as the threshold itself at 0 decimals: the reason shows enough digits.
@@ -179,7 +188,7 @@ def test_bad_inputs_raise_typed_errors(pair, good):
     with pytest.raises(InvalidInputError, match="differ in size"):
         measure_card(left, right[:-2], d, d, None, {})
     with pytest.raises(InvalidInputError, match=r"disp_left: expected shape"):
-        measure_card(left, right, d[:, :-1], d, None, {})
+        measure_card(left, right, d[:, :-40], d, None, {})
     with pytest.raises(InvalidInputError, match="uint8"):
         measure_card(left.astype(np.float32), right, d, d, None, {})
     tiny = np.zeros((8, 40), np.uint8)
@@ -190,9 +199,12 @@ def test_bad_inputs_raise_typed_errors(pair, good):
 def test_missing_measurements_are_skipped_with_notes():
     result = grade(GradeMeasurements(coverage=0.95))
     assert result.grade == "few"
-    assert result.reasons[0] == "few: every measurement within thresholds (1 of 14 measured)"
+    assert result.reasons[0] == ("few: every measurement within thresholds (1 of 20 measured); nearest: coverage 95 % "
+                                 "is 15 points from its some threshold (< 80 %)")
     assert "note: swapped not graded (not measured)" in result.reasons
-    assert len(result.notes) == 13
+    assert len(result.notes) == 19
+    missing = [row for row in result.checks if row["value"] is None]
+    assert len(missing) == 19 and all(row["note"] == "not measured" for row in missing)
 
 
 # ---------------------------------------------------------------------------------- uncertainty
@@ -348,7 +360,9 @@ def test_grade_task_grades_a_card_from_its_files(tmp_path, pair, good):
     record = grade_task(task, params)
     assert record.status == "done" and record.stage == "grade" and record.outcome == "few"
     assert record.param_hash == param_hash(params)
-    assert record.reason == "few: every measurement within thresholds (14 of 14 measured)"
+    assert record.reason.startswith("few: every measurement within thresholds (20 of 20 measured); nearest: ")
+    assert set(record.metrics["nearest"]) >= {"measurement", "value", "threshold", "margin", "level"}
+    assert len(record.metrics["checks"]) == 20 and record.metrics["uncertainty_reason"].startswith("uncertainty ")
     assert record.metrics["coverage"] == 1.0 and record.metrics["lr_consistency"] > 0.85
     assert record.metrics["thresholds_hash"] == param_hash(params.thresholds)
     assert record.metrics["deciding"] == [] and 0.0 <= record.metrics["uncertainty"] <= 1.0

@@ -17,6 +17,8 @@ LAZY_BENCHMARKS = {
     "disparity": "benchmarks.disparity:bench_disparity_command",
     "export": "benchmarks.export:bench_export_command",
     "filter": "benchmarks.filter:bench_filter_command",
+    "grade": "benchmarks.grade:bench_grade_command",
+    "grade-real": "benchmarks.grade_real:bench_grade_real_command",
     "inpainting": "benchmarks.inpainting:bench_inpainting_command",
     "pipeline": "benchmarks.pipeline_cost:bench_pipeline_command",
     "rectify": "benchmarks.rectify:bench_rectify_command",

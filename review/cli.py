@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import click
@@ -90,31 +91,52 @@ def grade_show_command(as_json: bool) -> None:
 
 
 @grade_group.command("fit")
+@click.option("--from-bench", "bench_file", type=click.Path(path_type=Path, dir_okay=False, exists=True),
+              help="Fit to the true error in this `keystone bench grade --json` output instead of curator labels.")
+@click.option("--few-below", default=25.0, show_default=True, type=click.FloatRange(0, 100),
+              help="With --from-bench: a card under this true bad-2 (percent) should grade few.")
+@click.option("--failure-above", default=50.0, show_default=True, type=click.FloatRange(0, 100),
+              help="With --from-bench: a card over this true bad-2 (percent) should grade failure.")
 @click.option("--folds", default=5, show_default=True, type=click.IntRange(2, 20),
               help="Cross-validation folds for the held-out agreement.")
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--dry-run", is_flag=True, help="Report the fit without saving the thresholds.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as one JSON document.")
 @with_appcontext
-def grade_fit_command(folds: int, seed: int, dry_run: bool, as_json: bool) -> None:
-    """Refit the grade thresholds to the curators' labels so far and report their agreement on
-    labels they were not fitted on. Then `keystone run --stages grade` regrades with them."""
+def grade_fit_command(bench_file: Path | None, few_below: float, failure_above: float, folds: int, seed: int,
+                      dry_run: bool, as_json: bool) -> None:
+    """Refit the grade thresholds to the curators' labels so far (or, with --from-bench, to the
+    true error of bench cards) and report their agreement on labels they were not fitted on.
+    Then `keystone run --stages grade` regrades with them."""
+    import json
+
     from app.console import emit_json, ensure_database, fail
 
-    from .grading import GradingError, fit_from_curators
+    from .grading import GradingError, fit_from_bench, fit_from_curators
 
     ensure_database()
     try:
-        document = fit_from_curators(folds=folds, seed=seed, save=not dry_run)
+        if bench_file is not None:
+            try:
+                bench = json.loads(bench_file.read_text())
+            except (OSError, ValueError) as exc:
+                raise GradingError(f"{bench_file}: not readable JSON ({exc})") from exc
+            document = fit_from_bench(bench, few_below=few_below, failure_above=failure_above, folds=folds,
+                                      seed=seed, save=not dry_run)
+        else:
+            document = fit_from_curators(folds=folds, seed=seed, save=not dry_run)
     except GradingError as exc:
         fail(str(exc), as_json)
     if as_json:
         emit_json(document)
         return
     held = document["held_out"]
-    click.echo(f"fitted on {document['labels']} curator labels ({folds}-fold cross-validation)")
+    what = "bench cards (labels from true bad-2)" if bench_file is not None else "curator labels"
+    click.echo(f"fitted on {document['labels']} {what} ({folds}-fold cross-validation)")
     click.echo(f"held-out accuracy {_percent(held.get('accuracy'))}, Cohen's kappa {held.get('cohen_kappa')}; "
                f"default thresholds on the same labels: accuracy {_percent(document['baseline'].get('accuracy'))}")
+    for change in document.get("changed", []):
+        click.echo(f"  {change}")
     click.echo("saved as grade model " + str(document["model"]) if document.get("model") else "not saved (--dry-run)")
 
 

@@ -797,3 +797,120 @@ def write_demo_cards(cards: list[DemoCard], folder: Path) -> list[Path]:
                              SUBJECT_SEPARATOR.join(meta.get("subjects", ()))])
     paths.append(csv_path)
     return paths
+
+
+# ------------------------------------------------------------------ cards from any stereo scene
+
+
+@dataclass(frozen=True)
+class Degradation:
+    """How a card made by :func:`make_card_from_pair` is spoiled (all off by default).
+
+    ``fade`` 0..1: the prints' tonal range shrinks (1 = a quarter of it left) and lifts to a pale
+    grey; ``scratches``: extra rounds of damage on each print (each 2-6 scratches and 15-45 specks,
+    independent per print); ``blur_px``:
+    extra Gaussian blur (sigma, print px) of both prints; ``jpeg_quality``: the scan is saved at
+    this JPEG quality (``None`` = 92); ``dy_px``: right print moved down (print px);
+    ``rotation_deg``: right print turned (OpenCV sign) about its centre; ``low_texture`` 0..1: the
+    source's fine texture blended away (1 = only structure over ~8 source px is left);
+    ``swap``: the right eye's print is mounted on the left and vice versa.
+    """
+
+    fade: float = 0.0
+    scratches: int = 0
+    blur_px: float = 0.0
+    jpeg_quality: int | None = None
+    dy_px: float = 0.0
+    rotation_deg: float = 0.0
+    low_texture: float = 0.0
+    swap: bool = False
+
+
+def _luminance(view: np.ndarray) -> np.ndarray:
+    grey = view if view.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(view[..., :3]), cv2.COLOR_RGB2GRAY)
+    return grey.astype(np.float32)
+
+
+def _flatten_texture(grey: np.ndarray, amount: float) -> np.ndarray:
+    if amount <= 0:
+        return grey
+    smooth = cv2.bilateralFilter(grey, 9, 40, 8)  # keeps object outlines, loses surface texture
+    smooth = cv2.GaussianBlur(smooth, (0, 0), 3.0)
+    return (1.0 - amount) * grey + amount * smooth
+
+
+def make_card_from_pair(left: np.ndarray, right: np.ndarray, seed: int, degradation: Degradation = Degradation(),
+                        name: str = "scene_card") -> DemoCard:
+    """An antique card made from any rectified stereo pair (``left``/``right``: uint8 RGB or grey,
+    the same shape, e.g. a Middlebury scene), spoiled by ``degradation``.
+
+    The prints show the same window of both views (the largest of the print's aspect that leaves
+    16 source px for the right print's rotation and shift), so a ground-truth disparity ``d`` of
+    the left view maps to the scan as: left-eye point ``left_affine @ (x, y, 1)``, right-eye point
+    ``right_affine @ (x - d, y, 1)``. ``truth["left_box"]``/``["right_box"]`` are the left-eye and
+    right-eye prints' boxes wherever they are mounted (exchanged on the card when ``swap``,
+    flagged ``halves_swapped``). Deterministic in ``seed``.
+    """
+    if left.shape[:2] != right.shape[:2]:
+        raise ValueError(f"left {left.shape[:2]} and right {right.shape[:2]} differ in size")
+    rng = np.random.default_rng([seed, 5000])
+    left_src = _flatten_texture(_luminance(left), degradation.low_texture)
+    right_src = _flatten_texture(_luminance(right), degradation.low_texture)
+    src_h, src_w = left_src.shape
+    layout = _layout(rng)
+    pw, ph = layout.photo_w, layout.photo_h
+    margin = min(16, src_w // 20, src_h // 20)
+    win_h = float(src_h - 2 * margin)
+    win_w = win_h * pw / ph
+    if win_w > src_w - 2 * margin:
+        win_w = float(src_w - 2 * margin)
+        win_h = win_w * ph / pw
+    wx0, wy0 = (src_w - win_w) / 2, (src_h - win_h) / 2
+    scale = pw / win_w
+    left_affine = _window_affine(wx0, wy0, scale)
+    right_affine = _misalign(left_affine, pw, ph, degradation.rotation_deg, degradation.dy_px)
+
+    tone = _tone(rng)
+    if degradation.fade > 0:
+        keep = 1.0 - 0.75 * min(1.0, degradation.fade)
+        centre = 0.62 + 0.1 * degradation.fade  # faded prints go pale
+        tone = _Tone(blur=tone.blur, low=centre - keep * (centre - tone.low), high=centre + keep * (tone.high - centre),
+                     gamma=tone.gamma, vignette=tone.vignette, grain=tone.grain, lut=tone.lut)
+    if degradation.blur_px > 0:
+        tone = _Tone(blur=float(np.hypot(tone.blur, degradation.blur_px)), low=tone.low, high=tone.high,
+                     gamma=tone.gamma, vignette=tone.vignette, grain=tone.grain, lut=tone.lut)
+    left_print = _age_print(rng, _render_source(left_src, left_affine, pw, ph), tone)
+    right_print = _age_print(rng, _render_source(right_src, right_affine, pw, ph), tone)
+    alpha, style, radius = _photo_mask(rng, pw, ph)
+
+    scan = _mount(rng, layout)
+    left_eye_box, right_eye_box = (layout.right_box, layout.left_box) if degradation.swap else (
+        layout.left_box, layout.right_box)
+    _paste(scan, left_print, alpha, left_eye_box)
+    _paste(scan, right_print, alpha, right_eye_box)
+    _print_mount_text(rng, scan, layout, _PUBLISHERS[0], "1234-A scene with known depth.", "Copyright 1905.")
+    damage = _damage(rng, scan, [layout.left_box, layout.right_box])
+    extra = 0
+    for box in (layout.left_box, layout.right_box):  # independent damage on each print
+        for rounds in range(degradation.scratches):
+            extra += _damage(np.random.default_rng([seed, 5001 + rounds, box[0]]), scan, [box])["scratches"]
+    image = _to_uint8(scan)
+
+    def placed(affine: np.ndarray, box: tuple[int, int, int, int]) -> list[list[float]]:
+        out = affine.copy()
+        out[:, 2] += box[:2]
+        return out.round(6).tolist()
+
+    truth = {
+        "source": name, "crop_window": [round(wx0, 3), round(wy0, 3), round(wx0 + win_w, 3), round(wy0 + win_h, 3)],
+        "scale": round(scale, 6), "right_rotation_deg": degradation.rotation_deg,
+        "right_vertical_offset_px": degradation.dy_px,
+        "left_affine": placed(left_affine, left_eye_box), "right_affine": placed(right_affine, right_eye_box),
+        "left_box": list(left_eye_box), "right_box": list(right_eye_box),
+        "photo_boxes": [list(layout.left_box), list(layout.right_box)], "card_box": list(layout.card_box),
+        "gutter_px": layout.gutter, "photo_shape": style, "corner_radius_px": radius,
+        "upside_down": False, "inverted": False, "halves_swapped": bool(degradation.swap),
+        "degradation": {k: v for k, v in degradation.__dict__.items()},
+        "extra_scratches": extra, **damage,
+    }
+    return DemoCard(name=name, image=image, kind="stereo", expected_filter=("pass",), truth=truth, metadata={})

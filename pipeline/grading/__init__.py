@@ -11,12 +11,20 @@ One concept per module, all pure:
 * :mod:`.measurements`: :func:`measure_card` -> :class:`GradeMeasurements`.
 * :mod:`.verdict`: :class:`GradeThresholds`, :func:`grade` -> :class:`GradeResult` (reasons,
   nearest measurement, uncertainty).
-* :mod:`.fitting`: :func:`fit_thresholds` with cross-validated agreement.
+* :mod:`.fitting`: :func:`fit_thresholds` with cross-validated agreement, to curator labels or
+  to the true error measured by ``keystone bench grade`` (:func:`labels_from_true_error`).
 
 :func:`pipeline.stages.grade.grade_task` is the per-card stage task the runner calls.
 """
 
-from .fitting import FitReport, NotEnoughLabelsError, agreement, fit_thresholds
+from .fitting import (
+    FitReport,
+    NotEnoughLabelsError,
+    TrueErrorBands,
+    agreement,
+    fit_thresholds,
+    labels_from_true_error,
+)
 from .measurements import GradeMeasurements, measure_card
 from .verdict import (
     GRADES,
@@ -37,9 +45,11 @@ __all__ = [
     "GradeThresholds",
     "NotEnoughLabelsError",
     "Threshold",
+    "TrueErrorBands",
     "agreement",
     "fit_thresholds",
     "grade",
+    "labels_from_true_error",
     "measure_card",
     "paper_distribution",
 ]

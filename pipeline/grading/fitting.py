@@ -17,7 +17,7 @@ from ..errors import InvalidInputError, PipelineError
 from .measurements import GradeMeasurements
 from .verdict import GRADES, RULES, GradeThresholds, Threshold
 
-__all__ = ["FitReport", "NotEnoughLabelsError", "agreement", "fit_thresholds"]
+__all__ = ["FitReport", "NotEnoughLabelsError", "TrueErrorBands", "agreement", "fit_thresholds", "labels_from_true_error"]
 
 MIN_LABELS = 10  # fewer labels cannot be cross-validated meaningfully
 DEFAULT_THRESHOLDS = GradeThresholds()
@@ -249,3 +249,42 @@ def fit_thresholds(
         training=agreement(truth, _predict(values, fitted)),
         labels=n, folds=folds, seed=seed, changed=_changes(base, fitted),
     )
+
+
+@dataclass(frozen=True)
+class TrueErrorBands:
+    """Which grade a measured true error calls for: ``true_bad2`` (percent of ground-truth pixels
+    more than 2 px off) under ``few_below`` is few, above ``failure_above`` failure, between them
+    some. Defaults: the default backend on clean Middlebury pairs is 8-19 % bad-2 (DESIGN.md), so
+    under 25 % is as good as the matcher gets; over 50 % most of the depth map is wrong."""
+
+    few_below: float = 25.0
+    failure_above: float = 50.0
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.few_below <= self.failure_above <= 100.0):
+            raise InvalidInputError(
+                f"Expected 0 <= few_below <= failure_above <= 100 (percent), got {self.few_below}, {self.failure_above}")
+
+    def label(self, true_bad2: float) -> str:
+        return "few" if true_bad2 < self.few_below else "failure" if true_bad2 > self.failure_above else "some"
+
+
+def labels_from_true_error(results: Sequence[Mapping[str, Any]], bands: TrueErrorBands = TrueErrorBands()
+                           ) -> list[tuple[Mapping[str, Any], str]]:
+    """``(measurements, grade the true error calls for)`` for every graded card of a
+    ``keystone bench grade --json`` document's ``results`` (cards the pipeline stopped have no
+    measurements and are left out). Raises :class:`InvalidInputError` for an entry without a
+    numeric ``true_bad2``."""
+    rows: list[tuple[Mapping[str, Any], str]] = []
+    for position, entry in enumerate(results):
+        if not isinstance(entry, Mapping):
+            raise InvalidInputError(f"result {position}: expected an object, got {type(entry).__name__}")
+        measurements = entry.get("measurements")
+        if not measurements:
+            continue
+        error = entry.get("true_bad2")
+        if isinstance(error, bool) or not isinstance(error, (int, float)):
+            raise InvalidInputError(f"result {position}: expected a numeric true_bad2, got {error!r}")
+        rows.append((measurements, bands.label(float(error))))
+    return rows

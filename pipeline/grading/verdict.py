@@ -131,9 +131,11 @@ class GradeThresholds:
     * ``good_match_fraction``: true pairs match 20-34 % of keypoints, unrelated images 0.25-0.45 %,
       the filter culls below 0.5 % and asks people between 0.5 and 1.5 %: under 3 % a pair is
       weakly related (some), under 1 % it is barely a pair (failure).
-    * ``dy_p95_px``: rectification refuses a p95 above 2 px (``RectifyParams.max_dy_p95``) and
-      calls a pair rectified under 1 px: 1.5 px is visible vertical parallax (some), 3 px makes
-      fusion hard (failure; reachable when rectification's own limit is loosened).
+    * ``dy_p95_px``: rectification refuses a p95 above 2 px (``RectifyParams.max_dy_p95``). On
+      ``keystone bench grade`` the accepted 0.9-2.0 px did not follow the true error (Spearman
+      -0.18: it is SIFT's noise on print grain; ``row_misalignment_px`` measures the parallax a
+      viewer sees): over 2 px some (reachable when rectification's own limit is loosened), 3 px
+      makes fusion hard (failure).
     * ``shear_deg``: Loop-Zhang keeps midlines perpendicular to ~0.01 deg; OpenCV's Hartley method
       sheared a good pair by 6 deg with wrong disparities: 3 deg some, 8 deg failure.
     * ``aspect_change``: 1.15 visibly squashes people and buildings (some); 1.35 is close to
@@ -151,10 +153,11 @@ class GradeThresholds:
     * ``coverage``: the default backend covers 100 %, StereoSGBM 82-86 %: under 80 % holes show
       (some), under 50 % the depth map is mostly missing (failure).
     * ``lr_consistency``: the default backend's maps agree on 84-96 % of Middlebury pairs and
-      70-93 % of antique ones, 14 % of unrelated images: under 60 % the maps disagree widely
-      (some), under 30 % they are noise (failure).
+      70-93 % of antique ones, 14 % of unrelated images; on ``keystone bench grade`` cards 44-78 %,
+      falling as the true bad-2 rises (Spearman -0.46): under 70 % (below the antique range) some,
+      under 50 % failure.
     * ``confident_fraction``: Middlebury 68-78 %, antique pairs 29-71 %, unrelated images 2 %;
-      the disparity stage flags ``low_confidence`` under 20 %: 30 % some, 15 % failure.
+      bench cards 18-58 % (Spearman -0.45 with the true bad-2): under 45 % some, under 25 % failure.
     * ``disparity_range_rel``: p95 - p5 of the disparity over the width. Motorcycle spans ~6 %;
       antique cards of distant scenes ~1 %. Under 0.5 % (3.5 px on a 700 px view) the depth map
       is nearly flat (some); under 0.15 % (about 1 px) there is no depth to see (failure: the
@@ -163,8 +166,9 @@ class GradeThresholds:
       photographs measure 36-87 % (Middlebury and antique pairs); under 15 % matching is
       unreliable (some), under 4 % the view is nearly blank (failure).
     * ``depth_order``: Motorcycle reads +0.65 (ground truth and the default backend alike),
-      the same map upside down or reversed -0.66: under -0.1 the top reads nearer than the
-      bottom (some), under -0.35 the depth is most likely reversed (failure: the curators' "Flip").
+      the same map upside down or reversed -0.66; bench cards with swapped eyes -0.58 and -0.34,
+      the others -0.03..+0.65: under -0.1 the top reads nearer than the bottom (some), under -0.25
+      the depth is most likely reversed (failure: the curators' "Flip").
     * ``streak_fraction``: clean disparity on Motorcycle 0 %; a map with a 3-row streak every 12
       rows 38 % (24 % on a plane): over 5 % streaks show (some), over 20 % they are much of the map (failure: the
       careful person's "about 70 % of the map is streaks" card).
@@ -172,9 +176,12 @@ class GradeThresholds:
       over 30 % of the height 55 %: over 8 % a false near blob shows (some), over 30 % (failure).
     * ``reflection_symmetry``: photographs without reflections 0.28-0.35, a mirrored lower half
       0.90: over 0.6 is a reflection read as depth (some; never failure alone).
-    * ``border_line``: Motorcycle 0.12, a 40 px plain mount strip on top 0.79: over 0.6 the crop
-      keeps card or mount (some). ``border_strokes``: 0 without text, 3 % with a caption line
-      in the top strip: over 2 % mount text is inside the crop (some).
+    * ``border_line``: Motorcycle 0.12, a 40 px plain mount strip on top 0.79, the filter's split
+      of simulated cards 0.99. Off by default (always measured and listed in ``checks``): a mount
+      strip did not change the true error on the bench (Spearman 0.12) and the careful person
+      graded a card with caption in its crop few; set a some threshold (0.6) to flag it.
+      ``border_strokes``: 0 without text, 3 % with a caption line in the top strip, bench cards
+      0-3.7 %: over 5 % the crop holds much mount text (some).
     * ``photometric_error_rel``: Middlebury pairs 0.06-0.10, antique pairs (different prints,
       residual misalignment) 0.31-0.44, Motorcycle with the right view 6 px down 0.50,
       unrelated images 0.93: above 0.5 the disparity does not explain the pair (some), above
@@ -182,7 +189,7 @@ class GradeThresholds:
     """
 
     good_match_fraction: Threshold = Threshold("below", 0.03, 0.01)
-    dy_p95_px: Threshold = Threshold("above", 1.5, 3.0)
+    dy_p95_px: Threshold = Threshold("above", 2.0, 3.0)
     shear_deg: Threshold = Threshold("above", 3.0, 8.0)
     aspect_change: Threshold = Threshold("above", 1.15, 1.35)
     rotation_deg: Threshold = Threshold("above", 4.0, 9.0)
@@ -190,17 +197,17 @@ class GradeThresholds:
     swapped: Threshold = Threshold("above", 0.5, None)
     row_misalignment_px: Threshold = Threshold("above", 2.0, 4.0)
     coverage: Threshold = Threshold("below", 0.8, 0.5)
-    lr_consistency: Threshold = Threshold("below", 0.6, 0.3)
-    confident_fraction: Threshold = Threshold("below", 0.3, 0.15)
+    lr_consistency: Threshold = Threshold("below", 0.7, 0.5)
+    confident_fraction: Threshold = Threshold("below", 0.45, 0.25)
     disparity_range_rel: Threshold = Threshold("below", 0.005, 0.0015)
     textured_fraction: Threshold = Threshold("below", 0.15, 0.04)
     photometric_error_rel: Threshold = Threshold("above", 0.5, 0.75)
-    depth_order: Threshold = Threshold("below", -0.1, -0.35)
+    depth_order: Threshold = Threshold("below", -0.1, -0.25)
     streak_fraction: Threshold = Threshold("above", 0.05, 0.2)
     sky_near_fraction: Threshold = Threshold("above", 0.08, 0.3)
     reflection_symmetry: Threshold = Threshold("above", 0.6, None)
-    border_line: Threshold = Threshold("above", 0.6, None)
-    border_strokes: Threshold = Threshold("above", 0.02, None)
+    border_line: Threshold = Threshold("above", None, None)
+    border_strokes: Threshold = Threshold("above", 0.05, None)
 
     def __post_init__(self) -> None:
         for name, spec in RULES.items():

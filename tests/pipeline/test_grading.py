@@ -283,7 +283,7 @@ def _population(n: int, noise: float, seed: int) -> list[tuple[dict, str]]:
             shear_deg=float(rng.uniform(0, 2)), aspect_change=float(rng.uniform(1.0, 1.1)),
             rotation_deg=float(rng.uniform(0, 3)), kept_fraction=float(rng.uniform(0.9, 1.0)), swapped=False,
             row_misalignment_px=float(rng.gamma(1.5, 1.0)), coverage=float(1 - rng.beta(1, 6)),
-            lr_consistency=float(rng.uniform(0.65, 0.95)), confident_fraction=float(rng.uniform(0.35, 0.8)),
+            lr_consistency=float(rng.uniform(0.75, 0.95)), confident_fraction=float(rng.uniform(0.5, 0.8)),
             disparity_range_rel=float(rng.uniform(0.01, 0.1)), textured_fraction=float(rng.uniform(0.3, 0.8)),
             photometric_error_rel=float(rng.uniform(0.05, 0.8)),
         )

@@ -94,3 +94,18 @@ def test_unknown_case_is_a_clear_error():
     result = CliRunner().invoke(bench_grade_command, ["--case", "nope"])
     assert result.exit_code != 0 and "unknown case nope" in result.output
     assert len(CASES) >= 15
+
+
+def test_real_cards_cover_every_labelled_card_and_pairs_become_one_scan(tmp_path):
+    from benchmarks.grade_real import DEFAULT_DATA, _scan_of, read_labels, real_cards
+
+    if not (DEFAULT_DATA / "stereocards").is_dir():
+        pytest.skip("no shared data")
+    cards = dict(real_cards(DEFAULT_DATA))
+    labels = read_labels(DEFAULT_DATA / "labels" / "careful_grades.csv")
+    assert labels and set(labels) <= set(cards)  # every labelled card is found, by the labels' own names
+    assert not any("card_backs" in name for name in cards)
+    pair = next(files for name, files in cards.items() if " + " in name)
+    scan = cv2.imread(str(_scan_of(pair, tmp_path)))
+    left = cv2.imread(str(pair[0]))
+    assert scan.shape[1] == left.shape[1] + 24 + cv2.imread(str(pair[1])).shape[1]

@@ -93,3 +93,57 @@ def test_too_few_labels_is_a_clear_error(runner) -> None:  # type: ignore[no-unt
     result = runner.invoke(args=["grade", "fit", "--json"])
     assert result.exit_code == 1
     assert "label" in json.loads(result.output)["error"]
+
+
+def _bench_document(n: int = 60) -> dict:
+    """A `keystone bench grade --json` document whose true error follows the confident fraction:
+    bad-2 = 80 - 100 x confident (so few under 25 % is confident > 0.55, failure over 50 % < 0.3)."""
+    rng = np.random.default_rng(3)
+    results = []
+    for index in range(n):
+        measurements = _measurements(rng)
+        del measurements["reasons"], measurements["uncertainty"]
+        measurements["confident_fraction"] = confident = float(rng.uniform(0.15, 0.75))
+        results.append({"scene": "s", "case": f"c{index}", "grade": "some", "uncertainty": 0.5,
+                        "true_bad2": round(80.0 - 100.0 * confident, 3), "measurements": measurements})
+    results.append({"scene": "s", "case": "culled", "grade": "culled", "uncertainty": None, "true_bad2": 100.0,
+                    "measurements": None})
+    return {"results": results, "summary": {}}
+
+
+def test_fit_from_bench_learns_the_true_error_and_the_stage_uses_it(app, runner, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from app.db import db
+    from review.grading import active_grade_params
+    from review.models import AuditEvent, GradeModel
+
+    path = tmp_path / "bench.json"
+    path.write_text(json.dumps(_bench_document()))
+    result = runner.invoke(args=["grade", "fit", "--from-bench", str(path), "--json"])
+    assert result.exit_code == 0, result.output
+    fit = json.loads(result.output)
+    assert fit["labels"] == 60 and fit["source"] == "bench grade (true bad-2)"  # the culled card has no measurements
+    assert fit["bands"] == {"few_below": 25.0, "failure_above": 50.0}
+    assert fit["held_out"]["accuracy"] >= 0.85 and fit["held_out"]["accuracy"] > fit["baseline"]["accuracy"]
+    confident = fit["thresholds"]["confident_fraction"]
+    assert 0.5 <= confident["some"] <= 0.6 and 0.25 <= confident["failure"] <= 0.35
+    with app.app_context():
+        model = db.session.get(GradeModel, fit["model"])
+        assert model.evaluation["source"] == "bench grade (true bad-2)" and model.fitted_on == 60
+        event = db.session.query(AuditEvent).filter_by(entity="grade_model").one()
+        assert "60 bench cards by true bad-2" in event.why
+        params, active = active_grade_params()
+        assert active.id == model.id and params.thresholds.confident_fraction.some == confident["some"]
+
+
+def test_fit_from_bench_rejects_what_is_not_a_bench_document(runner, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "other.json"
+    path.write_text(json.dumps({"cards": []}))
+    result = runner.invoke(args=["grade", "fit", "--from-bench", str(path), "--json"])
+    assert result.exit_code == 1 and "results list" in json.loads(result.output)["error"]
+    path.write_text("{not json")
+    result = runner.invoke(args=["grade", "fit", "--from-bench", str(path), "--json"])
+    assert result.exit_code == 1 and "not readable JSON" in json.loads(result.output)["error"]
+    path.write_text(json.dumps(_bench_document()))
+    result = runner.invoke(args=["grade", "fit", "--from-bench", str(path), "--few-below", "60",
+                                 "--failure-above", "40", "--json"])
+    assert result.exit_code == 1 and "few_below <= failure_above" in json.loads(result.output)["error"]

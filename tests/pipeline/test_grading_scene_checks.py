@@ -18,7 +18,13 @@ import pytest
 
 from pipeline.cross_validation import stratified_folds
 from pipeline.disparity import estimate_disparity
-from pipeline.grading import GradeMeasurements, GradeThresholds, grade, measure_card, scene_checks
+from pipeline.grading import (
+    GradeMeasurements,
+    GradeThresholds,
+    grade,
+    measure_card,
+    scene_checks,
+)
 
 
 @pytest.fixture(scope="module")

@@ -33,6 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "ALL_QUESTIONS",
+    "OPTIONAL_QUESTIONS",
     "QUESTIONS",
     "BoxConsensus",
     "ConfidenceRules",
@@ -56,6 +58,10 @@ __all__ = [
 ]
 
 QUESTIONS: tuple[str, ...] = ("is_stereo", "upside_down", "inverted")
+# Asked only by newer task pages (answers stored before it have no such key): "are the left and
+# right photos in the wrong order?". Aggregated like the others, over the answers that have it.
+OPTIONAL_QUESTIONS: tuple[str, ...] = ("swapped",)
+ALL_QUESTIONS: tuple[str, ...] = QUESTIONS + OPTIONAL_QUESTIONS
 
 
 @dataclass(frozen=True)
@@ -69,11 +75,12 @@ class LabelAnswer:
 
 @dataclass(frozen=True)
 class Judgement:
-    """The three judge questions about one card."""
+    """The judge questions about one card; ``swapped`` is None where it was not asked."""
 
     is_stereo: bool
     upside_down: bool
     inverted: bool
+    swapped: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -288,17 +295,21 @@ def aggregate_judgements(
     tol: float = 1e-6,
     max_iter: int = 200,
 ) -> dict[str, DawidSkeneResult]:
-    """One binary Dawid-Skene per question, keyed by the names in :data:`QUESTIONS`.
+    """One binary Dawid-Skene per question, keyed by the names in :data:`QUESTIONS`, plus
+    ``swapped`` when any answer has it (over the answers and gold that have it only).
 
     See the module docstring for why not one joint label; parameters as in :func:`dawid_skene`.
     """
     gold = gold or {}
     out: dict[str, DawidSkeneResult] = {}
-    for q in QUESTIONS:
+    for q in ALL_QUESTIONS:
         labelled = [
-            LabelAnswer(a.item_id, a.worker_id, int(getattr(a.judgement, q))) for a in answers
+            LabelAnswer(a.item_id, a.worker_id, int(getattr(a.judgement, q)))
+            for a in answers if getattr(a.judgement, q) is not None
         ]
-        gold_q = {it: int(getattr(j, q)) for it, j in gold.items()}
+        if not labelled and q in OPTIONAL_QUESTIONS:
+            continue
+        gold_q = {it: int(getattr(j, q)) for it, j in gold.items() if getattr(j, q) is not None}
         out[q] = dawid_skene(labelled, 2, gold_q, smoothing=smoothing, tol=tol, max_iter=max_iter)
     return out
 

@@ -8,7 +8,8 @@ assignment, N, validation and idempotency applies), then :func:`annotation.tasks
 
 Noise model (all draws from one seeded generator, so a seed gives one outcome):
 - honest workers have an accuracy ``a`` (0.93-0.98): a judgement is right with probability
-  ``a``, else one of its three questions is answered wrong; a crop box is the true box with
+  ``a``, else one of its four questions (stereo, upside-down, inverted, swapped eyes) is
+  answered wrong; a crop box is the true box with
   each coordinate jittered by a
   Gaussian of sigma 1.5 px, or, with probability ``1 - a``, a sloppy box off by up to 8 % of
   the box size;
@@ -33,7 +34,7 @@ from sqlalchemy import select
 from app.db import db, read_only
 from app.models import Card, StageResult
 
-from .aggregation import QUESTIONS
+from .aggregation import ALL_QUESTIONS
 from .tasks import (
     DEFAULT_MIN_BOX_PX,
     HALVES,
@@ -45,7 +46,7 @@ from .tasks import (
     submit,
 )
 
-JUDGE_TRUTH: dict[str, bool] = {"is_stereo": True, "upside_down": False, "inverted": False}
+JUDGE_TRUTH: dict[str, bool] = {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": False}
 HONEST_ACCURACY = (0.98, 0.97, 0.96, 0.95, 0.93)
 BOX_SIGMA_PX = 1.5
 SLOPPY_FRACTION = 0.08  # of the box size, for a careless honest box
@@ -96,12 +97,12 @@ def simulated_answer(kind: str, truth: Mapping[str, Any], worker: SimulatedWorke
     """One worker's answer for one card, by the noise model in the module docstring."""
     if kind == "judge":
         if worker.spammer:
-            return {q: bool(rng.random() < 0.5) for q in QUESTIONS}
-        answer = {q: bool(truth[q]) for q in QUESTIONS}
+            return {q: bool(rng.random() < 0.5) for q in ALL_QUESTIONS}
+        answer = {q: bool(truth.get(q, False)) for q in ALL_QUESTIONS}
         if hard:  # a faint, low-contrast scan: is it a negative? honest workers guess
             answer["inverted"] = bool(rng.random() < 0.5)
         if rng.random() >= worker.accuracy:  # a slip: one question answered wrong
-            slip = QUESTIONS[int(rng.integers(len(QUESTIONS)))]
+            slip = ALL_QUESTIONS[int(rng.integers(len(ALL_QUESTIONS)))]
             answer[slip] = not answer[slip]
         return answer
     answer = {}
@@ -127,7 +128,7 @@ def _truths(card_ids: Sequence[int], kind: str,
     skipped: list[dict[str, Any]] = []
     for card_id in dict.fromkeys(card_ids):
         if kind == "judge":
-            extra = set(given.get(card_id, {})) - set(QUESTIONS)
+            extra = set(given.get(card_id, {})) - set(ALL_QUESTIONS)
             if extra:
                 raise TaskError(f"Unexpected judgement fields in the truth of card {card_id}: {', '.join(sorted(extra))}")
             truths[card_id] = {**JUDGE_TRUTH, **given.get(card_id, {})}

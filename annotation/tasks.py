@@ -34,6 +34,8 @@ from app.models import Card
 
 from . import assignment as strategy
 from .aggregation import (
+    ALL_QUESTIONS,
+    OPTIONAL_QUESTIONS,
     QUESTIONS,
     ConfidenceRules,
     InvalidBoxError,
@@ -572,17 +574,21 @@ def _as_box(value: Any, half: str, card: Card | CardSize) -> list[float]:
 def validate_payload(kind: str, payload: Any, card: Card | CardSize) -> dict[str, Any]:
     """The canonical answer, or TaskError saying what is wrong with it.
 
-    judge: ``{"is_stereo", "upside_down", "inverted"}`` booleans. crop: ``{"left", "right"}``
-    boxes ``[x0, y0, x1, y1]`` in original image pixels, inside the card, at least the minimum size.
+    judge: ``{"is_stereo", "upside_down", "inverted"}`` booleans, and ``swapped`` (the photos in
+    the wrong eye order) where the page asked it; stored only when given, so aggregation can tell
+    "not asked" from "no". crop: ``{"left", "right"}`` boxes ``[x0, y0, x1, y1]`` in original
+    image pixels, inside the card, at least the minimum size.
     """
     if not isinstance(payload, dict):
         raise TaskError(f"Expected a JSON object as the answer, got {type(payload).__name__}")
-    expected = set(QUESTIONS) if kind == "judge" else set(HALVES)
+    expected = set(ALL_QUESTIONS) if kind == "judge" else set(HALVES)
     extra = sorted(set(payload) - expected)
     if extra:
         raise TaskError(f"Unexpected fields in the answer: {', '.join(extra)}")
     if kind == "judge":
-        return {q: _as_bool(payload, q) for q in QUESTIONS}
+        answer = {q: _as_bool(payload, q) for q in QUESTIONS}
+        answer.update({q: _as_bool(payload, q) for q in OPTIONAL_QUESTIONS if q in payload})
+        return answer
     return {half: _as_box(payload.get(half), half, card) for half in HALVES}
 
 
@@ -729,9 +735,9 @@ def undo_last(worker: Worker | int, now: datetime | None = None, session: int | 
 
 
 def _gold_label(kind: str, answer: Mapping[str, Any], gold: Mapping[str, Any]) -> int:
-    """1 when the answer matches gold: all three judgements, or both boxes at IoU >= 0.5."""
+    """1 when the answer matches gold: every judgement both have, or both boxes at IoU >= 0.5."""
     if kind == "judge":
-        return int(all(bool(answer[q]) == bool(gold[q]) for q in QUESTIONS))
+        return int(all(bool(answer[q]) == bool(gold[q]) for q in ALL_QUESTIONS if q in answer and q in gold))
     return int(all(box_iou(answer[h], gold[h])[0, 0] >= 0.5 for h in HALVES))
 
 
@@ -810,10 +816,11 @@ def batch_agreement(kind: str, answers: Sequence[Answer], items: Iterable[int]) 
         workers = sorted({a.worker_id for a in answers})
         column, row = {it: j for j, it in enumerate(item_ids)}, {w: i for i, w in enumerate(workers)}
         out: dict[str, dict[str, float | None]] = {}
-        for q in QUESTIONS:
+        asked = [q for q in ALL_QUESTIONS if q in QUESTIONS or any(q in a.payload for a in answers)]
+        for q in asked:
             R = np.full((len(workers), len(item_ids)), np.nan)
             for a in answers:
-                if a.item_id in column:
+                if a.item_id in column and q in a.payload:
                     R[row[a.worker_id], column[a.item_id]] = float(bool(a.payload[q]))
             out[q] = {"percent_agreement": _figure(percent_agreement, R),
                       "krippendorff_alpha": _figure(krippendorff_alpha_nominal, R),
@@ -827,6 +834,12 @@ def batch_agreement(kind: str, answers: Sequence[Answer], items: Iterable[int]) 
                 units[h].setdefault(a.item_id, []).append(a.payload[h])
     return {h: {"krippendorff_alpha": _figure(krippendorff_alpha_boxes, [np.array(u) for u in units[h].values()])}
             for h in HALVES}
+
+
+def _judgement(payload: Mapping[str, Any]) -> Judgement:
+    """A stored judge answer (or gold answer) as a :class:`Judgement`; a question not asked is None."""
+    return Judgement(**{q: bool(payload[q]) for q in QUESTIONS},
+                     **{q: bool(payload[q]) for q in OPTIONAL_QUESTIONS if q in payload})
 
 
 def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> AggregationReport:
@@ -852,15 +865,15 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
     pending = sum(1 for it in items.values() if not it.is_gold) - len(finished)
     results: dict[int, tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]] = {}
     if batch.kind == "judge" and finished:
-        judged = [JudgementAnswer(a.item_id, a.worker_id, Judgement(**{q: bool(a.payload[q]) for q in QUESTIONS}))
-                  for a in answers]
-        gold = {it.id: Judgement(**{q: bool(it.gold_answer[q]) for q in QUESTIONS})
-                for it in items.values() if it.is_gold and it.gold_answer}
+        judged = [JudgementAnswer(a.item_id, a.worker_id, _judgement(a.payload)) for a in answers]
+        gold = {it.id: _judgement(it.gold_answer) for it in items.values() if it.is_gold and it.gold_answer}
         ds = aggregate_judgements(judged, gold)
         for it in finished:
-            label = {q: bool(ds[q].label_of(it.id)) for q in QUESTIONS}
-            posterior = {q: [round(float(p), 6) for p in ds[q].posterior(it.id)] for q in QUESTIONS}
-            asked = QUESTIONS if label["is_stereo"] else ("is_stereo",)
+            # swapped: only where this card's answers asked it (older pages did not).
+            here = [q for q in ALL_QUESTIONS if q in QUESTIONS or any(q in a.payload for a in by_item[it.id])]
+            label = {q: bool(ds[q].label_of(it.id)) for q in here}
+            posterior = {q: [round(float(p), 6) for p in ds[q].posterior(it.id)] for q in here}
+            asked = here if label["is_stereo"] else ["is_stereo"]
             reasons = unconfident_reasons({q: float(ds[q].posterior(it.id)[int(label[q])]) for q in asked},
                                           rules=rules)
             results[it.id] = (posterior, label, reasons)

@@ -178,6 +178,29 @@ def test_aggregate_judgements_runs_one_model_per_question() -> None:
     assert out["upside_down"].label_of("gold1") == 1
 
 
+def test_swapped_is_aggregated_over_the_answers_that_asked_it() -> None:
+    def judged(swapped: bool | None) -> Judgement:
+        return Judgement(is_stereo=True, upside_down=False, inverted=False, swapped=swapped)
+
+    answers = [
+        JudgementAnswer("card1", "a", judged(True)),
+        JudgementAnswer("card1", "b", judged(True)),
+        JudgementAnswer("card1", "c", judged(None)),  # an older page: not asked
+        JudgementAnswer("card2", "a", judged(False)),
+        JudgementAnswer("card2", "b", judged(False)),
+        JudgementAnswer("card2", "c", judged(False)),
+        JudgementAnswer("gold1", "a", judged(True)),
+        JudgementAnswer("gold1", "b", judged(True)),
+    ]
+    out = aggregate_judgements(answers, gold={"gold1": judged(True)})
+    assert set(out) == {"is_stereo", "upside_down", "inverted", "swapped"}
+    assert out["swapped"].label_of("card1") == 1 and out["swapped"].posterior("card1")[1] > 0.7
+    assert out["swapped"].label_of("card2") == 0 and out["swapped"].posterior("card2")[0] > 0.9
+    # Without any answer that asked it, there is no swapped model at all (older batches).
+    older = [JudgementAnswer(a.item_id, a.worker_id, judged(None)) for a in answers]
+    assert set(aggregate_judgements(older)) == {"is_stereo", "upside_down", "inverted"}
+
+
 # --- worker quality --------------------------------------------------------------------------
 
 

@@ -27,7 +27,7 @@ def split_cards(make_card, add_stage_result, card_image):  # type: ignore[no-unt
     return make
 
 
-JUDGE_OK = {"is_stereo": True, "upside_down": False, "inverted": False}
+JUDGE_OK = {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": False}
 
 
 def _aggregates(batch_id: int) -> dict[int, Aggregate]:
@@ -76,15 +76,18 @@ def test_judge_crowd_with_gold_approves_the_truth_and_refills_flagged_slots(app,
     regular = cards[:6]
     # Gold over-represents the rare answers, as curators are told to pick it.
     gold = {cards[6]: JUDGE_OK, cards[7]: {**JUDGE_OK, "upside_down": True},
-            cards[8]: {**JUDGE_OK, "inverted": True}, cards[9]: {**JUDGE_OK, "is_stereo": False}}
-    truth = {regular[0]: {"upside_down": True}}
+            cards[8]: {**JUDGE_OK, "inverted": True}, cards[9]: {**JUDGE_OK, "is_stereo": False, "swapped": True}}
+    truth = {regular[0]: {"upside_down": True}, regular[1]: {"swapped": True}}
     with app.app_context():
-        summary = seed_simulated_crowd(regular, kind="judge", seed=5, gold=gold, truth=truth)
+        summary = seed_simulated_crowd(regular, kind="judge", seed=8, gold=gold, truth=truth)
         assert summary["gold_cards"] == sorted(gold)
         assert summary["approved"] >= 4 and summary["approved"] + summary["needs_curator"] == 6
         batch = db.session.get(Batch, summary["batch"])
         assert batch.answers_per_item == 4 and batch.gold_rate == 0.3
         aggregates = _aggregates(summary["batch"])
+        # Simulated workers answer the eye-order question too: every label carries it, and the
+        # card with swapped photos is labelled swapped wherever it was approved.
+        assert all("swapped" in a.label and len(a.posterior["swapped"]) == 2 for a in aggregates.values())
         for card_id, aggregate in aggregates.items():
             if aggregate.state == "approved":
                 assert aggregate.label == {**JUDGE_OK, **truth.get(card_id, {})}

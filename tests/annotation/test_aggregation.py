@@ -195,7 +195,7 @@ def test_swapped_is_aggregated_over_the_answers_that_asked_it() -> None:
     out = aggregate_judgements(answers, gold={"gold1": judged(True)})
     assert set(out) == {"is_stereo", "upside_down", "inverted", "swapped"}
     assert out["swapped"].label_of("card1") == 1 and out["swapped"].posterior("card1")[1] > 0.7
-    assert out["swapped"].label_of("card2") == 0 and out["swapped"].posterior("card2")[0] > 0.9
+    assert out["swapped"].label_of("card2") == 0 and out["swapped"].posterior("card2")[0] > 0.8
     # Without any answer that asked it, there is no swapped model at all (older batches).
     older = [JudgementAnswer(a.item_id, a.worker_id, judged(None)) for a in answers]
     assert set(aggregate_judgements(older)) == {"is_stereo", "upside_down", "inverted"}

@@ -124,7 +124,13 @@ def aggregate_command(batch_id: int, as_json: bool) -> None:
                         f"{doc['pending']} unfinished, {doc['flagged_workers']} workers flagged")
 
 
-def _answer_rows(batch: Batch) -> list[dict[str, Any]]:
+ANSWER_COLUMNS: tuple[str, ...] = ("answer_id", "batch", "card_id", "is_gold", "worker", "session", "flagged",
+                                   "submitted_at", "payload")
+AGGREGATE_COLUMNS: tuple[str, ...] = ("batch", "card_id", "kind", "state", "confident", "answers", "label",
+                                      "posterior", "reasons")
+
+
+def answer_rows(batch: Batch) -> list[dict[str, Any]]:
     """One row per answer; ``session`` is the provider's session key (Prolific SESSION_ID, MTurk
     assignmentId) the answer was given in, what a researcher approves submissions by."""
     rows = db.session.execute(
@@ -137,7 +143,7 @@ def _answer_rows(batch: Batch) -> list[dict[str, Any]]:
             for a, it, w, session in rows]
 
 
-def _aggregate_rows(batch: Batch) -> list[dict[str, Any]]:
+def aggregate_rows(batch: Batch) -> list[dict[str, Any]]:
     rows = db.session.scalars(select(Aggregate).where(Aggregate.batch_id == batch.id).order_by(Aggregate.card_id))
     return [{"batch": batch.id, "card_id": a.card_id, "kind": a.kind, "state": a.state, "confident": a.confident,
              "answers": a.answers, "label": json.dumps(a.label, sort_keys=True),
@@ -199,10 +205,8 @@ def export_command(batch_id: int, out: Path, as_json: bool) -> None:
     if batch is None:
         raise click.ClickException(f"no batch {batch_id}")
     out.mkdir(parents=True, exist_ok=True)
-    files = _write_table(_answer_rows(batch), ["answer_id", "batch", "card_id", "is_gold", "worker", "session",
-                                               "flagged", "submitted_at", "payload"], out, "answers")
-    files += _write_table(_aggregate_rows(batch), ["batch", "card_id", "kind", "state", "confident", "answers",
-                                                   "label", "posterior", "reasons"], out, "aggregates")
+    files = _write_table(answer_rows(batch), list(ANSWER_COLUMNS), out, "answers")
+    files += _write_table(aggregate_rows(batch), list(AGGREGATE_COLUMNS), out, "aggregates")
     if batch.kind == "crop":
         files += _box_formats(batch, out)
     _emit({"batch": batch_id, "out": str(out), "files": files}, as_json, "\n".join(str(out / f) for f in files))

@@ -943,8 +943,19 @@ def batch_progress(batch: Batch, now: datetime | None = None) -> dict[str, Any]:
         row(worker_id)[key] += 1
         reserved += key == "reserved"
         expired += key == "expired"
+    # What the batch still needs: usable answers on regular items, at most N per item (answers
+    # on gold items and flagged answers fill no slot; an item can briefly hold more than N).
+    usable: dict[int, int] = {}
+    for item_id, _worker, _payload, flagged in answers:
+        if not flagged and not items[item_id].is_gold:
+            usable[item_id] = usable.get(item_id, 0) + 1
+    n = batch.answers_per_item
     return {"batch": batch.id, "kind": batch.kind, "items": regular, "gold_items": len(items) - regular,
-            "answers_per_item": batch.answers_per_item, "answers": len(answers),
+            "answers_per_item": n, "answers": len(answers),
+            "regular_answers": sum(min(c, n) for c in usable.values()),
+            "gold_answers": sum(1 for a in answers if items[a[0]].is_gold),
+            "flagged_answers": sum(1 for a in answers if a[3]),
+            "items_done": sum(1 for c in usable.values() if c >= n),
             "answers_needed": regular * batch.answers_per_item, "reserved": reserved, "expired": expired,
             "workers": {str(w): counts for w, counts in sorted(per_worker.items())}}
 
@@ -986,3 +997,193 @@ def worker_progress() -> list[dict[str, Any]]:
                      "served": not worker.flagged, "sessions": int(opened),
                      "completed_sessions": int(completed), "refused_sessions": int(refused)})
     return rows
+
+
+# ---------------------------------------------------------------------------------------------
+# What the annotator's page shows: progress per batch, kinds with work, renewing a lapsed task
+
+
+def batch_positions(worker: Worker | int, batch_ids: Iterable[int]) -> dict[int, dict[str, int]]:
+    """Per batch: ``done`` (this worker's answers in it, every session) and ``total`` (done plus
+    the items still open to them: regular items below N usable answers that they have not
+    answered, and gold items they hold). ``total`` can shrink while they work, as others finish
+    items; it never counts an item twice. Two grouped reads, whatever the batch size.
+    """
+    worker_id, ids = worker_id_of(worker), sorted(set(batch_ids))
+    if not ids:
+        return {}
+    done = dict(db.session.execute(
+        select(BatchItem.batch_id, func.count()).join(Answer, Answer.item_id == BatchItem.id)
+        .where(Answer.worker_id == worker_id, BatchItem.batch_id.in_(ids)).group_by(BatchItem.batch_id)).all())
+    answered = select(Answer.id).where(Answer.item_id == BatchItem.id, Answer.worker_id == worker_id).exists()
+    holds = select(Reservation.id).where(Reservation.item_id == BatchItem.id, Reservation.worker_id == worker_id,
+                                         Reservation.answered_at.is_(None)).exists()
+    open_ = dict(db.session.execute(
+        select(BatchItem.batch_id, func.count()).join(Batch, Batch.id == BatchItem.batch_id)
+        .where(BatchItem.batch_id.in_(ids), ~answered,
+               or_(and_(BatchItem.is_gold.is_(False), BatchItem.answers < Batch.answers_per_item),
+                   and_(BatchItem.is_gold.is_(True), holds)))
+        .group_by(BatchItem.batch_id)).all())
+    return {b: {"done": int(done.get(b, 0)), "total": int(done.get(b, 0)) + int(open_.get(b, 0))} for b in ids}
+
+
+def renew_reservation(worker: Worker | int, token: Any, now: datetime | None = None,
+                      session: int | None = None) -> Task:
+    """Extend the worker's reservation ``token`` (open or lapsed) by the reservation time, if it still can be held.
+
+    It can while it is unanswered and the item has a free slot or this reservation still
+    counts in it. The page calls this when a reservation is about to lapse or lapsed while the
+    annotator worked, so their drawn boxes are not lost. TaskError 404 / 403 / 409 otherwise.
+    """
+    now = now or utcnow()
+    worker_id = worker_id_of(worker)
+    if not isinstance(token, str) or not token:
+        raise TaskError("Expected the task token to renew")
+    with one_writer():
+        row = db.session.scalar(select(Reservation).where(Reservation.token == token))
+        if row is None:
+            raise TaskError("No such task; fetch a new one", 404)
+        if row.worker_id != worker_id or row.session_id != session:
+            raise TaskError("This task is reserved for another worker", 403)
+        if row.answered_at is not None:
+            raise TaskError("You already answered this task", 409)
+        item = row.item
+        if not _on_sqlite():
+            _core(_LOCK_ITEMS, {"item_ids": [item.id]})
+        db.session.refresh(item)
+        counted = row.released_at is None
+        if not counted and not item.is_gold and item.taken >= item.batch.answers_per_item:
+            db.session.rollback()
+            raise TaskError("Someone else took this card while your reservation had lapsed; fetch a new one", 409)
+        row.expires_at, row.released_at = now + _reservation_ttl(), None
+        db.session.flush()
+        recount_items([item.id], locked=True)
+        task = _task(row)
+        db.session.commit()
+    return task
+
+
+_HAS_WALKABLE = (select(_items.c.id)
+                 .where(_items.c.batch_id == bindparam("batch_id"), _items.c.is_gold.is_(False),
+                        _items.c.taken < bindparam("n"), ~_held_by(bindparam("worker_id")))
+                 .limit(1))
+
+
+def open_kinds(worker: Worker | int, session: int | None = None, now: datetime | None = None) -> list[str]:
+    """The task kinds, in :data:`TASK_KINDS` order, with work for this worker's session now: tasks it
+    holds, or a free regular item of an open batch it has not answered or held. A read: nothing
+    is reserved (a hold that lapsed but was not yet released by a fetch still counts as taken).
+    """
+    now = now or utcnow()
+    worker_id = worker_id_of(worker)
+    if _core(_WORKER_FLAGGED, {"worker_id": worker_id, "session_id": session}).scalar():
+        return []
+    kinds = []
+    for kind in TASK_KINDS:
+        if open_tasks(worker_id, kind, now, session):
+            kinds.append(kind)
+            continue
+        for batch_id, n, _rate in _core(_OPEN_BATCHES, {"kind": kind}).all():
+            if _core(_HAS_WALKABLE, {"batch_id": batch_id, "n": n, "worker_id": worker_id}).first() is not None:
+                kinds.append(kind)
+                break
+    return kinds
+
+
+def any_unfinished_batch() -> bool:
+    """Whether any batch of any kind still wants answers (someone may hand theirs back)."""
+    return any(_core(_OPEN_BATCHES, {"kind": kind}).first() is not None for kind in TASK_KINDS)
+
+
+def preview_card() -> Card | None:
+    """The card an MTurk preview shows: the first regular item of the oldest judge batch still open."""
+    return db.session.scalar(
+        select(Card).join(BatchItem, BatchItem.card_id == Card.id).join(Batch, Batch.id == BatchItem.batch_id)
+        .where(Batch.kind == "judge", BatchItem.is_gold.is_(False), BatchItem.answers < Batch.answers_per_item)
+        .order_by(Batch.id, BatchItem.id).limit(1))
+
+
+def account_worker(person_id: int, username: str) -> Worker:
+    """The invited worker of a logged-in account (``account:<username>``), made on first use."""
+    worker = db.session.scalar(select(Worker).where(Worker.provider == "invite", Worker.person_id == person_id)
+                               .order_by(Worker.id).limit(1))
+    return worker or get_or_create_worker("invite", f"account:{username}", person_id=person_id)
+
+
+def set_worker_flag(worker_id: int, flagged: bool) -> Worker:
+    """A curator flags a worker (their answers leave aggregation, their open tasks go back to the
+    pool: what failing gold does) or clears them (answers count again, they are served again).
+
+    A cleared worker who is still below the gold threshold is flagged again at their next gold
+    answer: clearing overrides the past, not the rule.
+    """
+    worker = db.session.get(Worker, worker_id)
+    if worker is None:
+        raise TaskError(f"No worker {worker_id}", 404)
+    no_sync = {"synchronize_session": False}
+    with one_writer():
+        touched = sorted(set(db.session.scalars(select(Answer.item_id).where(Answer.worker_id == worker_id)))
+                         | set(db.session.scalars(select(Reservation.item_id).where(
+                             Reservation.worker_id == worker_id, Reservation.answered_at.is_(None)))))
+        if touched and not _on_sqlite():
+            _core(_LOCK_ITEMS, {"item_ids": touched})
+        db.session.execute(update(Worker).where(Worker.id == worker_id).values(flagged=flagged).execution_options(**no_sync))
+        db.session.execute(update(Answer).where(Answer.worker_id == worker_id).values(flagged=flagged)
+                           .execution_options(**no_sync))
+        if flagged:
+            db.session.execute(delete(Reservation).where(Reservation.worker_id == worker_id,
+                                                         Reservation.answered_at.is_(None)).execution_options(**no_sync))
+        recount_items(touched, locked=True)
+        db.session.commit()
+    db.session.refresh(worker)
+    return worker
+
+
+@dataclass(frozen=True)
+class SubmissionCheck:
+    """What a researcher should do with one Prolific submission (participant id), and why."""
+
+    participant: str
+    decision: str  # "approve", "reject" or "unknown"
+    reason: str
+    sessions: int
+    completed: int
+    answers: int
+
+    def as_json(self) -> dict[str, Any]:
+        return {"participant": self.participant, "decision": self.decision, "reason": self.reason,
+                "sessions": self.sessions, "completed": self.completed, "answers": self.answers}
+
+
+def check_prolific_submissions(participants: Sequence[str], study: str | None = None) -> list[SubmissionCheck]:
+    """For each Prolific participant id: approve when a session of theirs reached the completion
+    step (where the completion code is handed out) with answers and they are not flagged on gold;
+    reject when flagged; unknown when this tool never saw them or they gave no answer.
+    ``study`` (a STUDY_ID) limits the sessions considered.
+    """
+    out = []
+    for participant in dict.fromkeys(p.strip() for p in participants if p.strip()):
+        worker = db.session.scalar(select(Worker).where(Worker.provider == "prolific", Worker.external_id == participant))
+        if worker is None:
+            out.append(SubmissionCheck(participant, "unknown", "never opened this study here", 0, 0, 0))
+            continue
+        query = select(CrowdSession).where(CrowdSession.worker_id == worker.id)
+        if study:
+            query = query.where(CrowdSession.study == study)
+        sessions = list(db.session.scalars(query))
+        ids = [s.id for s in sessions]
+        answers = db.session.scalar(select(func.count()).select_from(Answer).where(
+            Answer.worker_id == worker.id, Answer.session_id.in_(ids))) if ids else 0
+        completed = sum(s.completed_at is not None for s in sessions)
+        if worker.flagged or any(s.flagged for s in sessions):
+            decision, reason = "reject", "flagged: failed the known-answer (gold) cards"
+        elif not sessions:
+            decision, reason = "unknown", "no session in this study"
+        elif not completed:
+            decision, reason = "unknown", "never reached the completion step (no completion code was shown)"
+        elif not answers:
+            decision, reason = "unknown", "reached the completion step without answering a card"
+        else:
+            decision, reason = "approve", f"completed with {answers} answers"
+        out.append(SubmissionCheck(participant, decision, reason, len(sessions), completed, int(answers or 0)))
+    return out

@@ -14,6 +14,7 @@ and refuse any POST without a valid token (403) or without a JSON body (415/400)
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from flask import (
@@ -29,10 +30,13 @@ from flask import (
 from sqlalchemy import select
 from werkzeug.wrappers import Response
 
+from flask_login import current_user
+
 from app.auth import add_nav_link, role_required
 from app.db import db, read_only
 from app.extensions import csrf
 from app.json_body import load_json_body
+from app.models import Card
 from app.security import frameable_by
 
 from . import run_hooks
@@ -46,8 +50,17 @@ from .providers import (
     sign_entry,
 )
 from .sessions import complete_session
+from .pictures import EXAMPLES, WIGGLE_ORDERS, example_picture, eye_order_wiggle, sample_card_picture
+from .proposals import proposed_boxes
 from .tasks import (
     DEFAULT_MIN_BOX_PX,
+    DEFAULT_RESERVATION_MINUTES,
+    account_worker,
+    any_unfinished_batch,
+    batch_positions,
+    open_kinds,
+    preview_card,
+    renew_reservation,
     TaskError,
     answer_count,
     batch_progress,
@@ -61,8 +74,12 @@ from .tasks import (
 bp = Blueprint("crowd", __name__, url_prefix="/crowd", template_folder="templates", static_folder="static")
 bp.record_once(lambda state: add_nav_link(state.app, "Crowd", "crowd.batches", "curator", order=40))
 bp.record_once(lambda state: run_hooks.register(state.app))
+bp.record_once(lambda state: add_nav_link(state.app, "My tasks", "crowd.mine", "annotator", order=35))
 
 TOKEN_HEADER = "X-Crowd-Token"
+# Curators' pages (annotation.staff_views): their errors render in the staff layout.
+STAFF_ENDPOINTS = frozenset({"crowd.batches", "crowd.new_batch", "crowd.new_invite", "crowd.flag_worker",
+                             "crowd.check_submissions", "crowd.answers_csv"})
 
 
 @bp.errorhandler(TaskError)
@@ -71,6 +88,8 @@ def task_error(error: TaskError) -> Any:
     headers = {"Retry-After": str(error.retry_after)} if error.retry_after is not None else {}
     if request.path.startswith("/crowd/api/") or request.accept_mimetypes.best == "application/json":
         return jsonify({"error": {"code": error.status, "message": error.message}}), error.status, headers
+    if request.endpoint in STAFF_ENDPOINTS:
+        return render_template("annotation/staff_message.html", message=error.message), error.status, headers
     return (render_template("annotation/message.html", title="Cannot open this task", message=error.message),
             error.status, headers)
 
@@ -81,15 +100,47 @@ def _answered(worker: Worker | int, session: int) -> int:
         return answer_count(worker, session)
 
 
+def _finished_words(entry: Entry) -> tuple[str, str]:
+    """The finished screen's title and sentence when nothing is open for this worker now."""
+    if entry.worker is not None and (entry.worker.flagged or (entry.session is not None and entry.session.flagged)):
+        return "Thank you", "Thank you for your work; there are no more tasks for you."
+    minutes = int(float(current_app.config.get("KEYSTONE_CROWD_RESERVATION_MINUTES", DEFAULT_RESERVATION_MINUTES)))
+    if any_unfinished_batch():
+        return ("Nothing for you right now",
+                f"Other people hold the remaining cards. Come back in about {minutes} minutes with this same link: "
+                "cards they do not finish come back to you.")
+    return ("All done, thank you!",
+            "You have answered every card open to you. New cards may open later: keep this link, it brings you "
+            "back to your place.")
+
+
 def _task_page(entry: Entry) -> str:
-    """The judge page, or the crop page with ``?kind=crop`` on any entry link."""
-    kind = request.args.get("kind", "judge")
-    if kind not in TASK_KINDS:
-        raise TaskError(f"Expected kind judge or crop, got {kind!r}")
+    """One link serves whatever is open for this worker: judge first, then crop (``?kind=`` forces one).
+
+    Which kinds have work is a read (nothing is reserved here: the page's first fetch does it).
+    With nothing open, the page is the finished screen: the same template without controls, so
+    the link keeps working when work opens later.
+    """
+    forced = request.args.get("kind")
+    if forced is not None and forced not in TASK_KINDS:
+        raise TaskError(f"Expected kind judge or crop, got {forced!r}")
     worker_token = sign_entry(entry) if entry.worker is not None else ""
+    kinds: list[str] = []
+    if entry.worker is not None and entry.session is not None:
+        with read_only():
+            kinds = open_kinds(entry.worker, entry.session.id)
+    kind = forced or (kinds[0] if kinds else "judge")
+    later = [k for k in kinds if TASK_KINDS.index(k) > TASK_KINDS.index(kind)]
+    finished = entry.worker is not None and not forced and not kinds
+    title, message = _finished_words(entry) if finished else ("", "")
     answered = _answered(entry.worker, entry.session.id) if entry.worker is not None and entry.session else 0
+    here = url_for(request.endpoint or "crowd.invite", **(request.view_args or {}),
+                   **{k: v for k, v in request.args.items() if k != "kind"})
     return render_template(f"annotation/{kind}.html", entry=entry, worker_token=worker_token, answered=answered,
-                           min_box=current_app.config.get("KEYSTONE_CROWD_MIN_BOX_PX", DEFAULT_MIN_BOX_PX))
+                           min_box=current_app.config.get("KEYSTONE_CROWD_MIN_BOX_PX", DEFAULT_MIN_BOX_PX),
+                           finished=finished, finished_title=title, finished_message=message,
+                           next_kind_url=(here + ("&" if "?" in here else "?") + f"kind={later[0]}") if later else "",
+                           entry_url=here, examples=EXAMPLES)
 
 
 @bp.route("/invite/<token>")
@@ -106,6 +157,41 @@ def prolific() -> str:
 @frameable_by("'self'", *MTURK_SUBMIT_ORIGINS)
 def mturk() -> str:
     return _task_page(PROVIDERS["mturk"].enter(request.args.to_dict()))
+
+
+@bp.route("/mine")
+@role_required("annotator")
+def mine() -> Response:
+    """A logged-in annotator's own link: their account's invited worker, made on first use."""
+    worker = account_worker(current_user.id, current_user.username)
+    return redirect(url_for("crowd.invite", token=worker.token), code=303)
+
+
+@bp.route("/preview.jpg")
+@frameable_by("'self'", *MTURK_SUBMIT_ORIGINS)
+def preview_image() -> Response:
+    """What an MTurk preview shows: a card of the oldest open judge batch, else the synthetic example card."""
+    from app.catalog import _send_image, ensure_previews, preview_etag
+
+    with read_only():
+        card = preview_card()
+        found = (card.content_hash, card.stored_path) if card is not None else None
+    if found is None:
+        response = Response(sample_card_picture(), mimetype="image/jpeg")
+    else:
+        response = _send_image(ensure_previews(*found)["display"], "image/jpeg", preview_etag(found[0], "display"))
+    response.headers["Cache-Control"] = "public, max-age=600"
+    return response
+
+
+@bp.route("/examples/<name>.jpg")
+def example(name: str) -> Response:
+    """An instruction picture (a good crop, a bad crop, an upside-down card, a negative), made once per process."""
+    if name not in EXAMPLES:
+        abort(404, "No such example picture.")
+    response = Response(example_picture(name), mimetype="image/jpeg")
+    response.headers["Cache-Control"] = "public, max-age=86400"
+    return response
 
 
 # ---------------------------------------------------------------------------------------------
@@ -126,7 +212,21 @@ def _api_entry() -> tuple[SignedWorker, dict[str, Any]]:
 
 
 def _task_json(task: Any) -> dict[str, Any]:
-    return {**task.as_json(), "image_url": url_for("crowd.task_image", token=task.reservation_token)}
+    document = {**task.as_json(), "image_url": url_for("crowd.task_image", token=task.reservation_token)}
+    if task.kind == "judge":
+        document["wiggle_urls"] = {order: url_for("crowd.task_wiggle", token=task.reservation_token, order=order)
+                                   for order in WIGGLE_ORDERS}
+    else:
+        with read_only():
+            card = db.session.get(Card, task.card_id)
+            proposal = proposed_boxes(card) if card is not None else None
+        document["proposed"] = proposal.as_json() if proposal is not None else None
+    return document
+
+
+def _positions(worker_id: int, tasks: list[Any]) -> dict[str, dict[str, int]]:
+    with read_only():
+        return {str(b): p for b, p in batch_positions(worker_id, {t.batch_id for t in tasks}).items()}
 
 
 @csrf.exempt
@@ -138,6 +238,7 @@ def api_next() -> Any:
         raise TaskError(f"Expected kind judge or crop, got {kind!r}")
     tasks, why = next_tasks(caller.worker_id, kind, session=caller.session_id)
     return jsonify({"tasks": [_task_json(t) for t in tasks], "answered": caller.answered,
+                    "positions": _positions(caller.worker_id, tasks),
                     "reason": why.reason.value if why else None,
                     "retry_after": why.retry_after.isoformat() if why and why.retry_after else None})
 
@@ -152,6 +253,15 @@ def api_submit() -> Any:
     if caller.provider == "mturk":
         document["finish"] = PROVIDERS["mturk"].finish(caller.context)
     return jsonify(document), 200 if result.duplicate else 201
+
+
+@csrf.exempt
+@bp.route("/api/renew", methods=["POST"])
+def api_renew() -> Any:
+    """Keep a task the annotator is still working on: extend its reservation (also once it lapsed)."""
+    caller, body = _api_entry()
+    task = renew_reservation(caller.worker_id, body.get("token"), session=caller.session_id)
+    return jsonify({"task": _task_json(task)})
 
 
 @csrf.exempt
@@ -171,11 +281,19 @@ def finish() -> Response:
     """
     with read_only():
         caller = load_signed_worker(request.args.get("t"))
-    outcome = PROVIDERS[caller.provider].finish(caller.context)
+    try:
+        outcome = PROVIDERS[caller.provider].finish(caller.context)
+    except TaskError:
+        # Prolific with no completion code configured: the answers are saved and the session is
+        # complete; say so, and what to tell the researcher, rather than fail the participant.
+        outcome = {"message": "Your answers are saved and your session is recorded as complete. This study "
+                              "has no completion code set up here, so you cannot be sent back to Prolific "
+                              "automatically: return to Prolific and message the researcher, quoting your "
+                              f"session {caller.context.get('session', '')}."}
     complete_session(caller.session_id)
     if "redirect" not in outcome:
         return Response(render_template("annotation/message.html", title="Thank you",
-                                        message="Your answers are saved. You can close this page."))
+                                        message=outcome.get("message", "Your answers are saved. You can close this page.")))
     return redirect(outcome["redirect"], code=303)
 
 
@@ -199,15 +317,36 @@ def task_image(token: str) -> Response:
     return response
 
 
+@bp.route("/task/<token>/wiggle/<order>.gif")
+def task_wiggle(token: str, order: str) -> Response:
+    """The eye-order animation of a reserved card: its photos as scanned (``as-is``) or exchanged (``swapped``)."""
+    from pipeline.errors import PipelineError
+    from pipeline.io import read_image
+
+    if order not in WIGGLE_ORDERS:
+        abort(404, "No such animation.")
+    with read_only():
+        reservation = reservation_by_token(token)
+        if reservation is None:
+            abort(404, "No such task.")
+        card = reservation.item.card
+        proposal = proposed_boxes(card)
+        key, width, height = (card.id, card.content_hash), card.width, card.height
+        path = Path(current_app.config["KEYSTONE_DATA_DIR"]).resolve() / card.stored_path
+    left, right = ((proposal.left, proposal.right) if proposal is not None
+                   else ([0, 0, width // 2, height], [width - width // 2, 0, width, height]))
+    try:
+        data = eye_order_wiggle(key, lambda: read_image(path), left, right, order)
+    except (OSError, ValueError, PipelineError) as exc:  # a missing or unreadable original
+        abort(404, f"No animation for this card: {exc}")
+    response = Response(data, mimetype="image/gif")
+    response.headers["Cache-Control"] = "private, max-age=3600"
+    return response
+
+
 # ---------------------------------------------------------------------------------------------
 # Staff
 
 
-@bp.route("/batches")
-@role_required("curator")
-def batches() -> str:
-    with read_only():
-        rows = [batch_progress(b) for b in db.session.scalars(select(Batch).order_by(Batch.id.desc()))]
-        workers = {w.id: w for w in db.session.scalars(select(Worker))}
-        return render_template("annotation/batches.html", batches=rows, workers=workers, crowd=worker_progress(),
-                               configured=bool(current_app.config.get("KEYSTONE_PROLIFIC_COMPLETION_CODE")))
+# The staff pages (batches, invites, workers, submissions, exports) register on this blueprint.
+from . import staff_views  # noqa: E402,F401

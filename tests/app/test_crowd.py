@@ -343,8 +343,9 @@ def test_batches_page_shows_progress(app, client, cards, login):
     answer(client, t, task["token"], JUDGE_OK, "progress-key")
     login("curator")
     html = client.get("/crowd/batches").get_data(as_text=True)
-    assert "1 of 6 answers" in html and "1 reserved" in html and "invite:worker-one" in html
-    assert "(3 items × 2, 0 gold)" in html and "built-in method" not in html
+    assert "<strong>1 of 6</strong> answers needed" in html and "1 cards reserved now" in html
+    assert "invite:worker-one" in html
+    assert "3 cards × 2 answers" in html and "0 gold cards" in html and "built-in method" not in html
 
 
 # ---------------------------------------------------------------------------------------------
@@ -682,7 +683,8 @@ def test_a_flagged_participant_stays_flagged_in_new_sessions_and_new_ids_from_it
 
     # The same participant id in a new session, from anywhere: still flagged.
     again = prolific_token(client, "spammer", "spam-2", address="203.0.113.50")
-    assert fetch(client, again) == {"tasks": [], "answered": 0, "reason": "worker_flagged", "retry_after": None}
+    assert fetch(client, again) == {"tasks": [], "answered": 0, "reason": "worker_flagged", "retry_after": None,
+                                   "positions": {}}
     # A new participant id in the same study from the spammer's address gets no work either.
     renamed = prolific_token(client, "spammer-renamed", "spam-3", address=spam_address)
     assert fetch(client, renamed)["reason"] == "worker_flagged"

@@ -1,23 +1,40 @@
-// The judge page: keyboard first (one key per judgement, Enter submits, U undoes, H helps).
-// No inline script (CSP script-src 'self'); settings come from data-* attributes.
+// The judge page: one key or one tap per judgement, Enter or the Submit button sends, U undoes,
+// H (or the Help button) helps. No inline script (CSP script-src 'self'); settings come from
+// data-* attributes.
 (function () {
   "use strict";
   const root = document.getElementById("crowd-task");
   if (!root) return;
   const form = document.getElementById("judge-form");
   const image = document.getElementById("card-image");
+  const wiggles = { "as-is": document.getElementById("wiggle-as-is"), swapped: document.getElementById("wiggle-swapped") };
 
   const client = window.KeystoneTasks.create(root, {
     kind: "judge",
     undoneText: "Undone: judge this card again.",
-    cardText: (n) => "Card " + n,
-    show(task) { image.src = task.image_url; image.hidden = false; form.reset(); },
-    hide() { image.hidden = true; },
+    cardText: (n, total) => "Card " + n + (total ? " of " + total : ""),
+    show(task) {
+      image.src = task.image_url; image.hidden = false; form.reset();
+      for (const order in wiggles) {
+        const url = task.wiggle_urls && task.wiggle_urls[order];
+        wiggles[order].hidden = !url;
+        if (url) wiggles[order].src = url;
+      }
+    },
+    showPreview(url) {
+      // MTurk preview: a real card, read-only (nothing is reserved, nothing can be sent).
+      if (!url) return;
+      image.src = url; image.hidden = false;
+      document.getElementById("status").textContent = "A card like the ones in this task. Accept the HIT to answer.";
+      form.querySelectorAll("input").forEach(input => { input.disabled = true; });
+    },
+    hide() { image.hidden = true; for (const order in wiggles) wiggles[order].hidden = true; },
     answer() {
       return {
         is_stereo: !form.elements.not_stereo.checked,
         upside_down: form.elements.upside_down.checked,
         inverted: form.elements.inverted.checked,
+        swapped: form.elements.swapped.checked,
       };
     },
   });
@@ -30,7 +47,7 @@
     if (event.ctrlKey || event.metaKey || event.altKey || help.isOpen()) return;
     const key = event.key.toLowerCase();
     const box = form.querySelector('input[data-key="' + key + '"]');
-    if (box) { event.preventDefault(); box.checked = !box.checked; return; }
+    if (box) { event.preventDefault(); if (!box.disabled) box.checked = !box.checked; return; }
     if (key === "enter") { event.preventDefault(); client.submit(); }
     else if (key === "u") { event.preventDefault(); client.undo(); }
     else if (key === "h" || key === "?") { event.preventDefault(); help.open(); }

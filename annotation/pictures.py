@@ -1,0 +1,142 @@
+"""Pictures the crowd pages show besides the card itself, made at request time and cached in memory.
+
+* Instruction examples (:func:`example_picture`): a good crop, a bad crop that takes in the
+  mount, an upside-down card and a negative, drawn on a synthetic demo card
+  (:func:`pipeline.synthetic_cards.make_stereo_card`: built from scikit-image's Motorcycle pair,
+  so any install has it; nothing is read from a collection and nothing is stored in the repo).
+* Eye-order wiggles (:func:`eye_order_wiggle`): the two photos of a card shown one after the
+  other, as scanned and with the photos exchanged, for the judge task's ``swapped`` question.
+"""
+
+from __future__ import annotations
+
+import functools
+import io
+import threading
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+EXAMPLES: dict[str, str] = {
+    "good-crop": "A good crop: each box holds only the photograph.",
+    "bad-crop": "A bad crop: the boxes take in the card's mount, its printed title and the gap between the photos.",
+    "upside-down": "An upside-down card: the sky is at the bottom and the writing reads upside-down.",
+    "negative": "A negative: dark skies, white shadows.",
+}
+EXAMPLE_WIDTH = 480  # px: the help dialog shows them at most this wide
+WIGGLE_WIDTH = 180  # px per animation: two sit side by side on a 390 px phone
+WIGGLE_ORDERS: tuple[str, ...] = ("as-is", "swapped")
+GOOD = (40, 170, 60)
+BAD = (220, 40, 40)
+
+
+def _resize(image: np.ndarray, width: int) -> np.ndarray:
+    import cv2
+
+    height = max(1, round(image.shape[0] * width / image.shape[1]))
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def _jpeg(image: np.ndarray, quality: int = 82) -> bytes:
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="JPEG", quality=quality, optimize=True)
+    return buffer.getvalue()
+
+
+def _draw_box(image: np.ndarray, box: list[int], colour: tuple[int, int, int], thickness: int) -> None:
+    import cv2
+
+    x0, y0, x1, y1 = box
+    cv2.rectangle(image, (int(x0), int(y0)), (int(x1) - 1, int(y1) - 1), colour, thickness)
+
+
+@functools.lru_cache(maxsize=1)
+def _example_card() -> Any:
+    from pipeline.synthetic_cards import make_stereo_card
+
+    return make_stereo_card(0, 0)
+
+
+@functools.lru_cache(maxsize=len(EXAMPLES))
+def example_picture(name: str) -> bytes:
+    """The JPEG of one instruction example (a key of :data:`EXAMPLES`); KeyError for any other name."""
+    if name not in EXAMPLES:
+        raise KeyError(name)
+    card = _example_card()
+    image = card.image.copy()
+    thickness = max(3, image.shape[1] // 160)
+    if name == "good-crop":
+        for x0, y0, x1, y1 in card.truth["photo_boxes"]:
+            inset = round(0.04 * (x1 - x0))
+            _draw_box(image, [x0 + inset, y0 + inset, x1 - inset, y1 - inset], GOOD, thickness)
+    elif name == "bad-crop":
+        cx0, cy0, cx1, cy1 = card.truth["card_box"]
+        middle = (cx0 + cx1) // 2
+        margin = round(0.02 * (cx1 - cx0))
+        _draw_box(image, [cx0 + margin, cy0 + margin, middle + margin, cy1 - margin], BAD, thickness)
+        _draw_box(image, [middle + 2 * margin, cy0 + margin, cx1 - margin, cy1 - margin], BAD, thickness)
+    elif name == "upside-down":
+        image = np.ascontiguousarray(image[::-1, ::-1])
+    else:
+        image = 255 - image
+    return _jpeg(_resize(image, EXAMPLE_WIDTH))
+
+
+_wiggles: OrderedDict[tuple[Any, ...], bytes] = OrderedDict()
+_wiggle_lock = threading.Lock()
+_WIGGLE_CACHE = 256
+
+
+def wiggle_frames(card: np.ndarray, left_box: list[float], right_box: list[float], order: str,
+                  width: int = WIGGLE_WIDTH) -> list[np.ndarray]:
+    """The frames of one eye-order wiggle: the left photo, then the right (``as-is``) or the other way round.
+
+    ``card``: ``(H, W, 3)`` or ``(H, W)`` uint8 as scanned; boxes ``[x0, y0, x1, y1]`` in its
+    pixels. Both photos are cut to the size they share (top-left aligned in their boxes) and
+    scaled to ``width`` px. Each view is shown for two frames of the wiggle writer.
+    """
+    if order not in WIGGLE_ORDERS:
+        raise ValueError(f"Expected a wiggle order of {' or '.join(WIGGLE_ORDERS)}, got {order!r}")
+    rgb = card if card.ndim == 3 else np.repeat(card[:, :, None], 3, axis=2)
+    lx0, ly0, lx1, ly1 = (int(round(v)) for v in left_box)
+    rx0, ry0, rx1, ry1 = (int(round(v)) for v in right_box)
+    w, h = min(lx1 - lx0, rx1 - rx0), min(ly1 - ly0, ry1 - ry0)
+    if w < 2 or h < 2:
+        raise ValueError(f"Expected photo boxes of at least 2 x 2 px, got {left_box} and {right_box}")
+    first, second = rgb[ly0:ly0 + h, lx0:lx0 + w], rgb[ry0:ry0 + h, rx0:rx0 + w]
+    if order == "swapped":
+        first, second = second, first
+    first, second = _resize(np.ascontiguousarray(first), width), _resize(np.ascontiguousarray(second), width)
+    return [first, first, second, second]
+
+
+def eye_order_wiggle(key: tuple[Any, ...], card: Any, left_box: list[float], right_box: list[float],
+                     order: str) -> bytes:
+    """An animated GIF of :func:`wiggle_frames` (the export's wiggle writer), cached under ``key``.
+
+    ``card`` is the image or a callable returning it (so a cached wiggle never decodes the original).
+    """
+    cache_key = (*key, order)
+    with _wiggle_lock:
+        if cache_key in _wiggles:
+            _wiggles.move_to_end(cache_key)
+            return _wiggles[cache_key]
+    from exports.stereo import CardCaption, encode_wiggle
+
+    image = card() if callable(card) else card
+    data = encode_wiggle(wiggle_frames(image, left_box, right_box, order),
+                         CardCaption.of({}, None, "eye-order check"), "gif")
+    with _wiggle_lock:
+        _wiggles[cache_key] = data
+        while len(_wiggles) > _WIGGLE_CACHE:
+            _wiggles.popitem(last=False)
+    return data
+
+
+@functools.lru_cache(maxsize=1)
+def sample_card_picture() -> bytes:
+    """The synthetic example card as it is (a JPEG), for previews when no collection card is at hand."""
+    return _jpeg(_resize(_example_card().image, 2 * EXAMPLE_WIDTH))

@@ -70,8 +70,8 @@ def test_annotator_judges_with_the_keyboard_submits_and_undoes(app, server, brow
     wait_for_answers(page, app, 2)
     stored = [payload for _, _, payload in answers(app)]
     assert stored == [
-        {"is_stereo": True, "upside_down": True, "inverted": False},
-        {"is_stereo": False, "upside_down": False, "inverted": True},
+        {"is_stereo": True, "upside_down": True, "inverted": False, "swapped": False},
+        {"is_stereo": False, "upside_down": False, "inverted": True, "swapped": False},
     ]
     page.wait_for_selector("#status:has-text('Card 3')", timeout=10_000)
     page.keyboard.press("u")  # undo the last answer
@@ -168,8 +168,12 @@ def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, serve
         page.mouse.move(frame["x"] + fx1 * frame["width"], frame["y"] + fy1 * frame["height"], steps=8)
         page.mouse.up()
 
-    drag(0.05, 0.10, 0.45, 0.90)  # the left box; the right one is selected next
-    drag(0.55, 0.10, 0.95, 0.90)
+    # The task starts from proposed boxes; remove both to draw from scratch (L/R pick, Delete removes).
+    for key in ("l", "Delete", "r", "Delete"):
+        page.keyboard.press(key)
+    assert page.is_hidden(".box-left") and page.is_hidden(".box-right")
+    drag(0.05, 0.10, 0.45, 0.90)  # on the left photo: the left box, whichever box was selected
+    drag(0.55, 0.10, 0.95, 0.90)  # on the right photo: the right box
     page.keyboard.press("Enter")
     wait_for_answers(page, app, 1)
     payload = answers(app)[0][2]

@@ -66,7 +66,10 @@
     const top = viewport.getBoundingClientRect().top + window.scrollY;
     const below = document.getElementById("crop-form").offsetHeight + 24;
     const room = Math.max(160, window.innerHeight - Math.min(top, 0.5 * window.innerHeight) - below);
-    return Math.min(viewport.clientWidth, room * aspect);
+    const style = getComputedStyle(viewport);
+    const inner = viewport.clientWidth - parseFloat(style.paddingLeft) - parseFloat(style.paddingRight);
+    const innerRoom = room - parseFloat(style.paddingTop) - parseFloat(style.paddingBottom);
+    return Math.min(inner, innerRoom * aspect);
   }
   function fit() { setZoom(zoom); }
   window.addEventListener("resize", fit);

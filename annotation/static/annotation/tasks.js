@@ -76,6 +76,10 @@ window.KeystoneTasks = (function () {
       if (!p || !p.total) return page.cardText(Number(answered.textContent) + 1);
       return page.cardText(Math.min(p.done + 1, p.total), p.total);
     }
+    function positionText(task) {
+      const p = positions[String(task.batch)];
+      return p && p.total ? "Card " + Math.min(p.done + 1, p.total) + " of " + p.total : "";
+    }
 
     function scheduleRenew(task) {
       clearTimeout(renewTimer);
@@ -94,7 +98,7 @@ window.KeystoneTasks = (function () {
       const task = queue[0];
       if (!task) { page.hide(); shown = null; return; }
       const text = progressText(task);
-      position.textContent = text;
+      position.textContent = positionText(task);
       if (shown === task.token && !force) return;
       shown = task.token;
       page.show(task);

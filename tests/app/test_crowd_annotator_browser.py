@@ -172,3 +172,36 @@ def test_annotator_walks_the_invite_link_through_judge_and_crop(app, server, bro
     page.goto(link)  # coming back later: the same link, the finished screen, nothing to press
     assert page.is_visible("#finished") and page.is_hidden("#submit-answer") and "keeps your place" in page.inner_text("#finished")
     context.close()
+
+
+@pytest.mark.parametrize("device", ["laptop", "phone"])
+def test_a_curator_makes_a_batch_and_an_invite_link_on_the_web(app, server, browser, make_person, make_card,
+                                                              card_image, device):
+    phone = device == "phone"
+    card_id = make_card(card_image(), state="review")
+    person = make_person("curator", username=f"cur-{device}")
+    options = ({"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True}
+               if phone else {"viewport": {"width": 1366, "height": 800}})
+    context = browser.new_context(**options)
+    page = context.new_page()
+    page.goto(f"{server}/auth/login")
+    page.fill("input[name=username]", person.username)
+    page.fill("input[name=password]", person.password)
+    page.click("input[type=submit], button[type=submit]")
+    page.wait_for_load_state()
+    page.goto(f"{server}/crowd/batches")
+    assert "The review queue (1 cards)" in page.inner_text("#new-batch")
+    page.click("#new-batch button[type=submit]")  # the review queue is ticked by default
+    page.wait_for_selector(".flash:has-text('Batch 1 created: 1 judge cards, 3 answers each')")
+    assert "0 of 3" in page.inner_text("#batch-1")
+    page.fill("#new-invite input[name=name]", "Ada")
+    page.click("#new-invite button[type=submit]")
+    link = page.locator(".flash:has-text('Invite link for Ada')").inner_text().split(": ", 1)[1]
+    assert "/crowd/invite/" in link
+    assert page.evaluate(NO_SIDEWAYS_SCROLL)
+    page.screenshot(path=str(SHOTS / f"{device}-7-batches.png"), full_page=True)
+    page.goto(link)  # the invite works at once: Ada gets the card
+    page.wait_for_selector("#status:has-text('Card 1 of 1')", timeout=15_000)
+    with app.app_context():
+        assert db.session.scalar(select(BatchItem.card_id)) == card_id
+    context.close()

@@ -134,6 +134,7 @@ def test_proposed_boxes_come_from_orientation_then_photo_areas_then_the_filter(a
                                                   "source": "filter"}
 
 
+@pytest.mark.both_databases
 def test_a_lapsed_reservation_is_renewed_and_the_same_answer_goes_through(app, client, cards):
     new_batch(app, cards(1))
     t = worker_token(client.get(invite_link(app, "dee")).get_data(as_text=True))
@@ -153,6 +154,7 @@ def test_a_lapsed_reservation_is_renewed_and_the_same_answer_goes_through(app, c
     assert api(client, "renew", t, {}).status_code == 400
 
 
+@pytest.mark.both_databases
 def test_renewing_fails_when_someone_else_took_the_card(app, client, cards):
     new_batch(app, cards(1))
     first = worker_token(client.get(invite_link(app, "eve")).get_data(as_text=True))

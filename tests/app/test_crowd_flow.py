@@ -270,7 +270,7 @@ def test_batches_page_counts_needed_answers_and_curators_manage_the_crowd(app, c
         api(client, "submit", t, {"token": task["token"], "answer": JUDGE_OK, "key": f"jo-key-{step}"})
     login("curator")
     page = client.get("/crowd/batches").get_data(as_text=True)
-    assert "<strong>2 of 4</strong> answers needed (50 %)" in page and "0 of 2 cards complete" in page
+    assert "<strong>2 of 4</strong> answers needed (50 %)" in page and "2 cards × 2 answers; 0 of 2 complete" in page
     token = csrf_token("/crowd/batches")
     made = client.post("/crowd/batches/new", data={"csrf_token": token, "cards": f"{ids[2]}", "kind": "crop",
                                                    "answers_per_item": "2", "gold_rate": "0"}, follow_redirects=True)

@@ -174,7 +174,8 @@ def test_annotator_walks_the_invite_link_through_judge_and_crop(app, server, bro
     context.close()
 
 
-@pytest.mark.parametrize("device", ["laptop", "phone"])
+# On a phone only (the narrow layout is the one that can break; the suite's time is short).
+@pytest.mark.parametrize("device", ["phone"])
 def test_a_curator_makes_a_batch_and_an_invite_link_on_the_web(app, server, browser, make_person, make_card,
                                                               card_image, device):
     phone = device == "phone"

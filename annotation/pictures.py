@@ -101,8 +101,8 @@ def wiggle_frames(card: np.ndarray, left_box: list[float], right_box: list[float
     if order not in WIGGLE_ORDERS:
         raise ValueError(f"Expected a wiggle order of {' or '.join(WIGGLE_ORDERS)}, got {order!r}")
     rgb = card if card.ndim == 3 else np.repeat(card[:, :, None], 3, axis=2)
-    lx0, ly0, lx1, ly1 = (int(round(v)) for v in left_box)
-    rx0, ry0, rx1, ry1 = (int(round(v)) for v in right_box)
+    lx0, ly0, lx1, ly1 = (round(float(v)) for v in left_box)
+    rx0, ry0, rx1, ry1 = (round(float(v)) for v in right_box)
     w, h = min(lx1 - lx0, rx1 - rx0), min(ly1 - ly0, ry1 - ry0)
     if w < 2 or h < 2:
         raise ValueError(f"Expected photo boxes of at least 2 x 2 px, got {left_box} and {right_box}")

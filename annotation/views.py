@@ -27,10 +27,8 @@ from flask import (
     request,
     url_for,
 )
-from sqlalchemy import select
-from werkzeug.wrappers import Response
-
 from flask_login import current_user
+from werkzeug.wrappers import Response
 
 from app.auth import add_nav_link, role_required
 from app.db import db, read_only
@@ -40,7 +38,15 @@ from app.models import Card
 from app.security import frameable_by
 
 from . import run_hooks
-from .models import TASK_KINDS, Batch, Worker
+from .models import TASK_KINDS, Worker
+from .pictures import (
+    EXAMPLES,
+    WIGGLE_ORDERS,
+    example_picture,
+    eye_order_wiggle,
+    sample_card_picture,
+)
+from .proposals import proposed_boxes
 from .providers import (
     MTURK_SUBMIT_ORIGINS,
     PROVIDERS,
@@ -50,25 +56,21 @@ from .providers import (
     sign_entry,
 )
 from .sessions import complete_session
-from .pictures import EXAMPLES, WIGGLE_ORDERS, example_picture, eye_order_wiggle, sample_card_picture
-from .proposals import proposed_boxes
 from .tasks import (
     DEFAULT_MIN_BOX_PX,
     DEFAULT_RESERVATION_MINUTES,
+    TaskError,
     account_worker,
+    answer_count,
     any_unfinished_batch,
     batch_positions,
+    next_tasks,
     open_kinds,
     preview_card,
     renew_reservation,
-    TaskError,
-    answer_count,
-    batch_progress,
-    next_tasks,
     reservation_by_token,
     submit,
     undo_last,
-    worker_progress,
 )
 
 bp = Blueprint("crowd", __name__, url_prefix="/crowd", template_folder="templates", static_folder="static")
@@ -107,11 +109,11 @@ def _finished_words(entry: Entry) -> tuple[str, str]:
     minutes = int(float(current_app.config.get("KEYSTONE_CROWD_RESERVATION_MINUTES", DEFAULT_RESERVATION_MINUTES)))
     if any_unfinished_batch():
         return ("Nothing for you right now",
-                f"Other people hold the remaining cards. Come back in about {minutes} minutes with this same link: "
-                "cards they do not finish come back to you.")
+                (f"Other people hold the remaining cards. Come back in about {minutes} minutes with this same link: "
+                 "cards they do not finish come back to you."))
     return ("All done, thank you!",
-            "You have answered every card open to you. New cards may open later: keep this link, it brings you "
-            "back to your place.")
+            ("You have answered every card open to you. New cards may open later: keep this link, it brings you "
+             "back to your place."))
 
 
 def _task_page(entry: Entry) -> str:
@@ -349,4 +351,4 @@ def task_wiggle(token: str, order: str) -> Response:
 
 
 # The staff pages (batches, invites, workers, submissions, exports) register on this blueprint.
-from . import staff_views  # noqa: E402,F401
+from . import staff_views  # noqa: F401

@@ -16,6 +16,7 @@ from sqlalchemy import select
 from annotation.models import Answer, Reservation
 from app.db import db
 
+
 @pytest.fixture(autouse=True)
 def prolific_completion_code(app) -> None:  # type: ignore[no-untyped-def]
     app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C0DE42"

@@ -2,7 +2,7 @@
 
 * Instruction examples (:func:`example_picture`): a good crop, a bad crop that takes in the
   mount, an upside-down card and a negative, drawn on a synthetic demo card
-  (:func:`pipeline.synthetic_cards.make_stereo_card`: built from scikit-image's Motorcycle pair,
+  (:func:`simulation.cards.make_stereo_card`: built from scikit-image's Motorcycle pair,
   so any install has it; nothing is read from a collection and nothing is stored in the repo).
 * Eye-order wiggles (:func:`eye_order_wiggle`): the two photos of a card shown one after the
   other, as scanned and with the photos exchanged, for the judge task's ``swapped`` question.
@@ -55,7 +55,7 @@ def _draw_box(image: np.ndarray, box: list[int], colour: tuple[int, int, int], t
 
 @functools.lru_cache(maxsize=1)
 def _example_card() -> Any:
-    from pipeline.synthetic_cards import make_stereo_card
+    from simulation.cards import make_stereo_card
 
     return make_stereo_card(0, 0)
 

@@ -93,6 +93,7 @@ def test_annotator_walks_the_invite_link_through_judge_and_crop(app, server, bro
     page.goto(link)
     page.wait_for_selector("#status:has-text('Card 1 of 1')", timeout=15_000)
     assert page.is_visible("#help") and page.is_visible("#help img[alt='An upside-down stereo card']")
+    wait_until(page, "[...document.querySelectorAll('#help img')].every(img => img.naturalWidth === 480)")
     page.screenshot(path=str(SHOTS / f"{device}-1-judge-help.png"))
     click("#help button[type=submit]")
     assert page.inner_text("#position") == "Card 1 of 1" and page.evaluate(NO_SIDEWAYS_SCROLL)

@@ -67,6 +67,7 @@ from .views import (
     Reprojection,
     ViewImageTooSmallError,
     corner_cameras,
+    crack_fraction,
     look_at,
     make_gd_image,
     needs_inpainting,
@@ -130,7 +131,7 @@ class ViewsStageParams:
     # A triangle is a depth edge only if it also stretches: its vertices' parallax between v0 and a
     # corner differs by more than this (px). Without it a far surface's noisy disparity, or a slanted
     # plane, breaks into cracks (relative depth steps of 10 % at a fraction of a pixel of parallax).
-    max_stretch_px: float = 2.0
+    max_stretch_px: float | None = 2.0  # None: the paper's rule alone
     min_side: int = 16  # below this a scene has too few pixels for a mesh worth looking at
     min_depth_fraction: float = 0.5  # of v0 with real (not filled) depth
     max_hole_fraction: float = 0.5  # of any corner view
@@ -198,12 +199,13 @@ def _known_inverse_range(depth: np.ndarray, known: np.ndarray) -> tuple[float, f
 CLASSICAL_FILL = "classical"
 
 
-def _classical(intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, fill_intensity: bool) -> tuple[np.ndarray, np.ndarray]:
+def _classical(intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray,
+               fill_intensity: bool) -> tuple[np.ndarray, np.ndarray]:
     known = ~hole & np.isfinite(depth) & (depth > 0)
     lo, hi = _known_inverse_range(depth, known)
     inv = np.where(known, 1.0 / np.where(known, depth, 1.0), lo)
     dhat = ((inv - lo) / (hi - lo)).astype(np.float32)
-    dhat_filled, colour_filled = background_fill_with_colour(dhat, intensity, hole)
+    dhat_filled, colour_filled = background_fill_with_colour(dhat, intensity, hole, boundary)
     inv_filled = np.maximum(lo + dhat_filled.astype(np.float64) * (hi - lo), 0.5 * lo)
     out_depth = np.where(hole, 1.0 / inv_filled, depth).astype(np.float32)
     out_int = colour_filled if fill_intensity else intensity
@@ -214,16 +216,19 @@ _DHAT_LEVELS = 65535  # D^ carried at 16 bits (a step of 1.5e-5 of the known inv
 _COLOUR_BITS = 24  # 8 bits per channel, up to three channels
 
 
-def background_fill_with_colour(dhat: np.ndarray, values: np.ndarray, hole: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def background_fill_with_colour(dhat: np.ndarray, values: np.ndarray, hole: np.ndarray,
+                                foreground: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fill ``hole`` (H, W) bool in ``dhat`` (H, W) normalised inverse depth in [0, 1] (larger =
-    nearer) and in ``values`` (H, W) or (H, W, 3) float in [0, 1], both biased to the **background**:
-    ring by ring from the hole's edge inwards, each hole pixel takes the depth *and the colour* of
-    its farthest known or already-filled 8-neighbour (:func:`pipeline.inpainting.background_fill`'s
-    rule, with the colour riding along). A disocclusion uncovers what lay behind the foreground, so
-    the foreground's colour is not smeared into it (diffusion, Navier-Stokes or Telea, blends both
-    sides). One erosion per ring does both: D^ (16 bits) and the 8-bit colour are packed into one
-    float64 key, D^ in the high bits, so the minimum picks the farthest neighbour. The copied
-    colours are then softened by a 5 x 5 mean over hole pixels only (no streaks, no foreground).
+    nearer) and in ``values`` (H, W) or (H, W, 3) float in [0, 1], from the **background**: ring by
+    ring from the hole's edge inwards, each hole pixel takes the depth *and the colour* of its
+    farthest known or already-filled 8-neighbour (:func:`pipeline.inpainting.background_fill`'s
+    rule, with the colour riding along), and the ``foreground`` (H, W) bool rim of the holes (the
+    boundary mask B: the nearer side of a depth step) is no source while the background's front can
+    still advance: a disocclusion uncovers what lay behind the foreground, so the foreground's colour
+    is not smeared into it (diffusion, Navier-Stokes or Telea, blends both sides). A hole that only
+    the foreground borders is filled from it at the end. One erosion per ring: D^ (16 bits) and the
+    8-bit colour are packed into one float64 key, D^ in the high bits, so the minimum is the farthest
+    neighbour. The copied colours are then softened by a 5 x 5 mean over hole pixels only.
     Returns ``(dhat, values)`` float32, known pixels unchanged (D^ quantised to 1.5e-5 in holes)."""
     hole = np.asarray(hole, bool)
     colour = np.asarray(values, np.float64)
@@ -237,13 +242,24 @@ def background_fill_with_colour(dhat: np.ndarray, values: np.ndarray, hole: np.n
         code = code * 256.0 + np.clip(np.round(planes[..., k] * 255.0), 0, 255)
     depth_level = np.clip(np.round(np.nan_to_num(np.asarray(dhat, np.float64)) * _DHAT_LEVELS), 0, _DHAT_LEVELS)
     key = np.where(hole, np.inf, depth_level * 2.0 ** _COLOUR_BITS + code)
+    held = np.zeros(hole.shape, bool) if foreground is None else np.asarray(foreground, bool) & ~hole
+    held_keys = key[held]
+    key[held] = np.inf  # no source while the background can advance
     eight = np.ones((3, 3), np.uint8)
     done = ~hole
     while not done.all():
         ring = cv2.erode(key, eight, borderType=cv2.BORDER_REPLICATE)
         new = ~done & np.isfinite(ring)
+        if not new.any():
+            if not held.any():
+                break  # cannot happen: some pixel is known (hole.all() returned above)
+            key[held] = held_keys  # only the foreground borders what is left
+            held = np.zeros(hole.shape, bool)
+            continue
         key[new] = ring[new]
         done |= new
+    if held.any():
+        key[held] = held_keys
     level, code = np.divmod(key, 2.0 ** _COLOUR_BITS)
     filled = np.empty(planes.shape, np.float64)
     for k in range(planes.shape[2] - 1, -1, -1):
@@ -315,7 +331,7 @@ def fill_holes(
                 if not fill_intensity:
                     out_i = intensity
                 return np.asarray(out_i, np.float32), np.asarray(out_d, np.float32), "network", None
-    out_i, out_d = _classical(intensity, depth, hole, fill_intensity)
+    out_i, out_d = _classical(intensity, depth, hole, boundary, fill_intensity)
     return out_i, out_d, CLASSICAL_FILL, note
 
 
@@ -438,6 +454,7 @@ def synthesise_views(
         "reference_depth_filled_fraction": round(float(missing.mean()), 6),
         "reference_depth_fill": v0_method, "reference_depth_note": v0_note,
         "hole_fractions": fractions,
+        "crack_fractions": [round(crack_fraction(r.hole), 6) for r in renders],
         "boundary_fractions": [round(float(r.boundary.mean()), 6) for r in renders],
         "dropped_triangles": [r.dropped_triangles for r in renders],
         "inpainting": inpainting,

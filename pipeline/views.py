@@ -81,6 +81,7 @@ __all__ = [
     "corner_cameras",
     "corner_views",
     "double_reprojection",
+    "crack_fraction",
     "look_at",
     "make_gd_image",
     "max_disparity",
@@ -527,6 +528,31 @@ def boundary_mask(
     mid_px = np.concatenate([[np.inf], mid])[lab]
     out = border & (inv > mid_px)
     return out
+
+
+def crack_fraction(hole: np.ndarray) -> float:
+    """The fraction of the image in **cracks**: thin holes inside the picture. A triangle dropped in
+    a continuous surface leaves a line a pixel or two wide; a disocclusion at a depth edge is as wide
+    as the parallax step (more than ``max_stretch_px``), and what the source never saw is a band
+    along the border. So: the hole pixels (``hole`` (H, W) bool) that an opening by a 3 x 3 square
+    removes, in 8-connected pieces that touch neither a wider hole (its ragged rim) nor the image
+    border. A crack that runs into a disocclusion is not counted: a lower bound."""
+    hole = np.asarray(hole, bool)
+    if not hole.any():
+        return 0.0
+    eight = np.ones((3, 3), bool)
+    thick = ndimage.binary_opening(hole, structure=eight)
+    thin = hole & ~thick
+    if not thin.any():
+        return 0.0
+    labels, n = ndimage.label(thin, structure=eight)
+    attached = np.unique(labels[ndimage.binary_dilation(thick, structure=eight) & thin])
+    edge = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    crack = np.ones(n + 1, bool)
+    crack[0] = False
+    crack[attached] = False
+    crack[edge] = False
+    return float(crack[labels].mean())
 
 
 # --------------------------------------------------------------------------- double reprojection

@@ -131,7 +131,7 @@ class ViewsStageParams:
     # A triangle is a depth edge only if it also stretches: its vertices' parallax between v0 and a
     # corner differs by more than this (px). Without it a far surface's noisy disparity, or a slanted
     # plane, breaks into cracks (relative depth steps of 10 % at a fraction of a pixel of parallax).
-    max_stretch_px: float | None = 2.0  # None: the paper's rule alone
+    max_stretch_px: float | None = 3.0  # None: the paper's rule alone
     min_side: int = 16  # below this a scene has too few pixels for a mesh worth looking at
     min_depth_fraction: float = 0.5  # of v0 with real (not filled) depth
     max_hole_fraction: float = 0.5  # of any corner view

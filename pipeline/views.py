@@ -63,6 +63,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy import ndimage
 
@@ -362,7 +363,12 @@ def reproject(
     def quad(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         return a[:-1, :-1], a[:-1, 1:], a[1:, :-1], a[1:, 1:]
 
-    d00, d01, d10, d11 = quad(d)
+    # The edge test reads the depth through a 3 x 3 median when the stretch rule is on: a lone noisy
+    # pixel is no edge, a real step (a line of pixels) survives the median where it was.
+    d_rule = d if max_stretch_px is None or min(h, w) < 3 else \
+        cv2.medianBlur(gd.depth.astype(np.float32), 3).astype(np.float64)
+    d_rule = np.where(d_rule > 0, d_rule, d)
+    d00, d01, d10, d11 = quad(d_rule)
     o00, o01, o10, o11 = quad(ok)
     edge_ok = o01 & o10
     shared_lo, shared_hi = np.minimum(d01, d10), np.maximum(d01, d10)

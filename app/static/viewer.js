@@ -132,7 +132,9 @@
     "void main() {",
     "  vec4 near = texture2D(u_near, v_uv);",
     "  vec4 all = texture2D(u_all, v_uv);",
-    "  vec3 colour = near.a > 0.004 ? near.rgb / near.a : (all.a > 0.004 ? all.rgb / all.a : vec3(0.067));",
+    // The sums are 8-bit: a weight under 0.1 would divide a quantisation step into a false colour
+    // (the fringes of yellow and pink seen at depth edges); the equal-weight sum is >= 0.2 where covered.
+    "  vec3 colour = near.a > 0.1 ? near.rgb / near.a : (all.a > 0.1 ? all.rgb / all.a : vec3(0.067));",
     "  gl_FragColor = vec4(colour, 1.0);",
     "}"].join("\n");
 

@@ -4,7 +4,8 @@ parallax preview (the paper's view-synthesis viewer).
 
 What the views stage does for one card
 -----------------------------------------
-1. Reads the rectified left view (grey) and its depth: ``inputs["depth"]`` (float32 npy, depth up to
+1. Reads the rectified left view (colour when its channels differ, :func:`pipeline.stages.views.is_colour`;
+   else grey) and its depth: ``inputs["depth"]`` (float32 npy, depth up to
    scale) or ``inputs["disparity_left"]`` (float32 npy, rectified-view pixels, ``x_right = x_left - d``)
    turned into ``D = f / d`` (baseline 1, :func:`pipeline.disparity.depth_from_disparity`).
 2. Scales both so the longer side is at most ``max_side`` px (the paper works at 512): the grey image
@@ -18,20 +19,24 @@ What the views stage does for one card
    nearest point moving ``shift_px`` * min(H, W) / 512 px), each rendered at a focal length zoomed by
    ``zoom`` >= 1 (:func:`fit_zoom`) so that the plane through the scene centre fills the corner view:
    a corner camera sits farther from the scene centre than v0 and sees past v0's borders, and those
-   slivers are not disocclusions. So a scene at a single depth leaves no holes at all, and
+   slivers are not disocclusions. Triangles are dropped only at depth edges (relative step > 0.1 that
+   also stretches by more than ``max_stretch_px``: :func:`pipeline.views.reproject`). So a scene at
+   a single depth leaves no holes at all, and
    inpainting is skipped (the record says so); otherwise the holes are disocclusions and the parts
    of off-centre-depth surfaces that leave v0's field of view.
 5. Holes are filled by the partial-convolution networks (:func:`pipeline.inpainting.inpaint`) when
    ``params.checkpoint`` names a checkpoint that exists (torch is imported then, not before), else by
-   the classical fill (``"classical"``): the background-biased :func:`pipeline.inpainting.background_fill`
-   for normalised inverse depth and OpenCV's Navier-Stokes for intensity. ``metrics["inpainting"]``
+   the classical fill (``"classical"``): :func:`background_fill_with_colour`, depth and colour
+   together from the background side of each hole (the foreground rim is no source). ``metrics["inpainting"]``
    records which, or that it was skipped. A corner view with more than ``max_hole_fraction`` holes fails (``mostly_holes``):
    an invented view is not a view of the scene.
 6. Writes the artifacts and an animated WebP that circles through the four corners.
 
 Artifacts (paths relative to the data dir; all five views are W x H, the same size)
 -----------------------------------------------------------------------------------
-* ``v0`` .. ``v4``: ``v<i>.png``, 8-bit grey intensity (row 0 at the top).
+* ``v0`` .. ``v4``: ``v<i>.png``, 8-bit grey, or 8-bit RGB for a colour view (row 0 at the top).
+* ``v0_web`` .. ``v4_web``, ``v0_mesh`` .. ``v4_mesh``: what the browser viewer downloads,
+  ``v<i>.jpg`` and ``v<i>_mesh.png`` (:func:`pipeline.stages.views.viewer_mesh_png`).
 * ``v0_depth`` .. ``v4_depth``: ``v<i>_depth.npy``, float32 (H, W), depth along view i's viewing
   axis (``D = -Z`` in its camera frame), in the stereo baseline's units (baseline 1, so up to scale),
   finite and > 0 at every pixel.
@@ -42,8 +47,9 @@ Artifacts (paths relative to the data dir; all five views are W x H, the same si
 * ``preview``: ``preview.webp``, an animated WebP (``preview_frames`` frames, longer side at most
   ``preview_side`` px, looping) along the circle through the four corner cameras.
 
-Cost at 512 px wide: about 1.0 CPU-s a card in all on the Motorcycle pair (3.0 s before the
-rasteriser worked on per-vertex columns and the preview frames skipped the boundary mask).
+Cost at 512 px (the whole stage, ``keystone bench views``, old and new in one run): see
+docs/BENCHMARKS.md. The corner renders are a third of it; the preview reuses the four filled
+corner views as its corner frames and renders only v0's mesh between them.
 """
 
 from __future__ import annotations

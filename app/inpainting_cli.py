@@ -25,7 +25,7 @@ def catalogue_gd_images() -> list:
     from app.db import db, read_only
     from app.models import StageResult
     from pipeline.errors import PipelineError
-    from pipeline.io import read_image
+    from pipeline.io import read_image, to_grey
     from pipeline.views import make_gd_image
 
     data_dir = Path(current_app.config["KEYSTONE_DATA_DIR"])
@@ -42,7 +42,7 @@ def catalogue_gd_images() -> list:
             focal = float(scene["views"][0]["focal_px"])
             grey = read_image(data_dir / result.artifacts["v0"])
             depth = np.load(data_dir / result.artifacts["v0_depth"])
-            images.append(make_gd_image(grey if grey.ndim == 2 else grey[..., 0], depth, focal))
+            images.append(make_gd_image(to_grey(grey), depth, focal))  # the networks are grey; views may be colour
         except (KeyError, OSError, ValueError, PipelineError) as exc:
             click.echo(f"skipping card {result.card_id}: its views cannot be read ({exc})", err=True)
     return images

@@ -1,9 +1,12 @@
 """The view-synthesis viewer: a card's five GD images as textured meshes in WebGL (issue 8, part 6).
 
 The page reads the card's latest ``views`` stage result (:mod:`pipeline.view_synthesis`): its scene
-document (``views.json``: the five cameras) goes into the page, and ``app/static/viewer.js`` fetches
-the grey images (PNG) and depths (float32 ``.npy``) through :func:`view_file`, builds one grid mesh
-per GD image, and blends them by the virtual camera's distance to each of v0..v4.
+document (``views.json``: the five cameras and the mesh grid) goes into the page, and
+``app/static/viewer.js`` fetches, per view, the picture as a JPEG (``v<i>_web``: colour where the
+card has it) and its depth as quantised inverse depth on the mesh grid (``v<i>_mesh``, a small PNG)
+through :func:`view_file`, builds one grid mesh per view (triangles dropped only at depth edges), and
+blends them by the virtual camera's distance to each of v0..v4. About 0.3-0.5 MB a card; the PNGs
+and float32 ``.npy`` maps stay for releases and are served too, but the page does not fetch them.
 
 Files are served by card id and an artifact name from a fixed list, never from a path a request
 controls, with an ETag; a URL carrying the current ``?v=`` version is cacheable for a year, any
@@ -31,6 +34,8 @@ VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")
 # Artifact name -> mimetype: the only files this blueprint serves.
 VIEW_FILES: dict[str, str] = {
     **{name: "image/png" for name in VIEW_NAMES},
+    **{f"{name}_web": "image/jpeg" for name in VIEW_NAMES},
+    **{f"{name}_mesh": "image/png" for name in VIEW_NAMES},
     **{f"{name}_depth": "application/octet-stream" for name in VIEW_NAMES},
     "preview": "image/webp",
     "scene": "application/json",
@@ -76,16 +81,21 @@ def card_view(card_id: int) -> Any:
             abort(404, "The views are recorded but their files are missing; rerun the views stage.")
         scene = json.loads(path.read_text())
         files = {name: view_file_url(card, result, name) for name in VIEW_FILES if name in (result.artifacts or {})}
-        missing = [name for name in (*VIEW_NAMES, *(f"{n}_depth" for n in VIEW_NAMES)) if name not in files]
-        if missing:
-            abort(404, f"The views of card {card_id} lack {', '.join(missing)}; rerun the views stage.")
+        missing = [name for name in (*(f"{n}_web" for n in VIEW_NAMES), *(f"{n}_mesh" for n in VIEW_NAMES))
+                   if name not in files]
+        if missing or not isinstance(scene.get("mesh"), dict):
+            abort(404, f"The views of card {card_id} were made before the viewer's compact files "
+                       f"({', '.join(missing) or 'mesh grid'} missing); rerun `keystone run --stages views`.")
         config = {
             "width": scene["width"], "height": scene["height"], "sceneCentre": scene["scene_centre"],
             "quadRadius": scene["quad_radius"], "depthRange": scene["depth_range"],
-            "maxRelativeStep": scene.get("max_relative_step", 0.1),
+            "maxRelativeStep": scene.get("max_relative_step", 0.1), "maxStretchPx": scene.get("max_stretch_px"),
+            "colour": bool(scene.get("colour")),
+            "mesh": {"step": scene["mesh"]["step"], "columns": scene["mesh"]["columns"], "rows": scene["mesh"]["rows"],
+                     "inverseDepthRange": scene["mesh"]["inverse_depth_range"]},
             "views": [{"name": view["name"], "rotation": view["rotation"], "translation": view["translation"],
-                       "centre": view["centre"], "focal": view["focal_px"], "image": files[view["name"]],
-                       "depth": files[f"{view['name']}_depth"]} for view in scene["views"]],
+                       "centre": view["centre"], "focal": view["focal_px"], "image": files[f"{view['name']}_web"],
+                       "mesh": files[f"{view['name']}_mesh"]} for view in scene["views"]],
         }
         return render_template("viewer/card.html", card=card, result=result, config=config,
                                preview_url=files.get("preview"), metrics=result.metrics or {})
@@ -95,7 +105,8 @@ def card_view(card_id: int) -> Any:
 @role_required(*ROLES)
 def view_file(card_id: int, name: str) -> Response:
     """One file of the card's latest views: ``v0``..``v4`` (PNG), ``v0_depth``..``v4_depth``
-    (float32 .npy), ``preview`` (animated WebP) or ``scene`` (JSON)."""
+    (float32 .npy), ``v0_web``..``v4_web`` (JPEG), ``v0_mesh``..``v4_mesh`` (the viewer's depth PNG),
+    ``preview`` (animated WebP) or ``scene`` (JSON)."""
     if name not in VIEW_FILES:
         abort(404, f"There is no view file called {name!r}; expected one of {', '.join(VIEW_FILES)}.")
     with read_only():

@@ -77,7 +77,7 @@ CARD_FIELDS: tuple[tuple[str, str, str], ...] = (
 VIEW_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("key", "sc:Text", "The card's key (as in cards): its views are in views/<key>/."),
     ("card_id", "sc:Integer", "The card's id in the catalogue."),
-    ("folder", "sc:Text", ("Folder of v0.png..v4.png (grey), v0_depth.exr..v4_depth.exr (float32 depth, baseline 1), "
+    ("folder", "sc:Text", ("Folder of v0.png..v4.png (8-bit grey, or RGB for a colour card), v0_depth.exr..v4_depth.exr (float32 depth, baseline 1), "
                            "views.json (cameras) and preview.webp.")),
     ("width", "sc:Integer", "Width of the five views in pixels."),
     ("height", "sc:Integer", "Height of the five views in pixels."),

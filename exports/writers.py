@@ -130,6 +130,9 @@ def read_views(card: ReleaseCard) -> ViewsPayload:
         raise ValueError(f"views.json does not describe {len(VIEW_NAMES)} views")
     for view in scene["views"]:
         view["depth"] = f"{view['name']}_depth.exr"
+        for web_only in ("web_image", "mesh"):  # the viewer's JPEG and mesh PNG stay out of releases
+            view.pop(web_only, None)
+    scene.pop("mesh", None)
     depths = [_load_map(card.views[f"{name}_depth"], f"{name}_depth") for name in VIEW_NAMES]
     if any(depth.shape != depths[0].shape for depth in depths):
         raise ValueError("the five views' depth maps differ in size")
@@ -447,7 +450,8 @@ def view_files(key: str) -> tuple[str, ...]:
 
 
 class ViewsWriter:
-    """``views/<key>/v0.png`` .. ``v4.png`` (8-bit grey, copied byte for byte), ``v<i>_depth.exr``
+    """``views/<key>/v0.png`` .. ``v4.png`` (8-bit grey, or RGB where the rectified view is colour;
+    copied byte for byte), ``v<i>_depth.exr``
     (float32 channel ``Y``, depth along view i's -z axis, baseline 1, finite and > 0), ``views.json``
     (the cameras; its ``depth`` entries name the EXR files) and ``preview.webp`` (animated
     parallax), plus ``views/views.jsonl``, one line per card that has views. Cards without a

@@ -4,7 +4,8 @@ parallax preview (the paper's view-synthesis viewer).
 
 What the views stage does for one card
 -----------------------------------------
-1. Reads the rectified left view (grey) and its depth: ``inputs["depth"]`` (float32 npy, depth up to
+1. Reads the rectified left view (colour when its channels differ, :func:`pipeline.stages.views.is_colour`;
+   else grey) and its depth: ``inputs["depth"]`` (float32 npy, depth up to
    scale) or ``inputs["disparity_left"]`` (float32 npy, rectified-view pixels, ``x_right = x_left - d``)
    turned into ``D = f / d`` (baseline 1, :func:`pipeline.disparity.depth_from_disparity`).
 2. Scales both so the longer side is at most ``max_side`` px (the paper works at 512): the grey image
@@ -18,20 +19,24 @@ What the views stage does for one card
    nearest point moving ``shift_px`` * min(H, W) / 512 px), each rendered at a focal length zoomed by
    ``zoom`` >= 1 (:func:`fit_zoom`) so that the plane through the scene centre fills the corner view:
    a corner camera sits farther from the scene centre than v0 and sees past v0's borders, and those
-   slivers are not disocclusions. So a scene at a single depth leaves no holes at all, and
+   slivers are not disocclusions. Triangles are dropped only at depth edges (relative step > 0.1 that
+   also stretches by more than ``max_stretch_px``: :func:`pipeline.views.reproject`). So a scene at
+   a single depth leaves no holes at all, and
    inpainting is skipped (the record says so); otherwise the holes are disocclusions and the parts
    of off-centre-depth surfaces that leave v0's field of view.
 5. Holes are filled by the partial-convolution networks (:func:`pipeline.inpainting.inpaint`) when
    ``params.checkpoint`` names a checkpoint that exists (torch is imported then, not before), else by
-   the classical fill (``"classical"``): the background-biased :func:`pipeline.inpainting.background_fill`
-   for normalised inverse depth and OpenCV's Navier-Stokes for intensity. ``metrics["inpainting"]``
+   the classical fill (``"classical"``): :func:`background_fill_with_colour`, depth and colour
+   together from the background side of each hole (the foreground rim is no source). ``metrics["inpainting"]``
    records which, or that it was skipped. A corner view with more than ``max_hole_fraction`` holes fails (``mostly_holes``):
    an invented view is not a view of the scene.
 6. Writes the artifacts and an animated WebP that circles through the four corners.
 
 Artifacts (paths relative to the data dir; all five views are W x H, the same size)
 -----------------------------------------------------------------------------------
-* ``v0`` .. ``v4``: ``v<i>.png``, 8-bit grey intensity (row 0 at the top).
+* ``v0`` .. ``v4``: ``v<i>.png``, 8-bit grey, or 8-bit RGB for a colour view (row 0 at the top).
+* ``v0_web`` .. ``v4_web``, ``v0_mesh`` .. ``v4_mesh``: what the browser viewer downloads,
+  ``v<i>.jpg`` and ``v<i>_mesh.png`` (:func:`pipeline.stages.views.viewer_mesh_png`).
 * ``v0_depth`` .. ``v4_depth``: ``v<i>_depth.npy``, float32 (H, W), depth along view i's viewing
   axis (``D = -Z`` in its camera frame), in the stereo baseline's units (baseline 1, so up to scale),
   finite and > 0 at every pixel.
@@ -42,8 +47,9 @@ Artifacts (paths relative to the data dir; all five views are W x H, the same si
 * ``preview``: ``preview.webp``, an animated WebP (``preview_frames`` frames, longer side at most
   ``preview_side`` px, looping) along the circle through the four corner cameras.
 
-Cost at 512 px wide: about 1.0 CPU-s a card in all on the Motorcycle pair (3.0 s before the
-rasteriser worked on per-vertex columns and the preview frames skipped the boundary mask).
+Cost at 512 px (the whole stage, ``keystone bench views``, old and new in one run): see
+docs/BENCHMARKS.md. The corner renders are a third of it; the preview reuses the four filled
+corner views as its corner frames and renders only v0's mesh between them.
 """
 
 from __future__ import annotations
@@ -58,6 +64,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from .errors import InvalidInputError, PipelineError
 from .views import (
@@ -67,6 +74,7 @@ from .views import (
     Reprojection,
     ViewImageTooSmallError,
     corner_cameras,
+    crack_fraction,
     look_at,
     make_gd_image,
     needs_inpainting,
@@ -127,6 +135,10 @@ class ViewsStageParams:
     max_side: int = PAPER_SIDE
     shift_px: float = 96.0
     max_relative_step: float = MAX_RELATIVE_DEPTH_STEP
+    # A triangle is a depth edge only if it also stretches: its vertices' parallax between v0 and a
+    # corner differs by more than this (px). Without it a far surface's noisy disparity, or a slanted
+    # plane, breaks into cracks (relative depth steps of 10 % at a fraction of a pixel of parallax).
+    max_stretch_px: float | None = 3.0  # None: the paper's rule alone
     min_side: int = 16  # below this a scene has too few pixels for a mesh worth looking at
     min_depth_fraction: float = 0.5  # of v0 with real (not filled) depth
     max_hole_fraction: float = 0.5  # of any corner view
@@ -188,24 +200,104 @@ def _known_inverse_range(depth: np.ndarray, known: np.ndarray) -> tuple[float, f
     return lo, hi
 
 
-# The fill without a network: depth by the background-biased fill, intensity by Navier-Stokes.
-# Measured by `keystone bench inpainting` on held-out double-reprojection holes: depth L1 0.086
-# against 0.108 for Telea; intensity 0.109 against 0.115 for Telea.
+# The fill without a network: depth and colour by the background-biased fill. Measured by
+# `keystone bench inpainting` on held-out double-reprojection holes: depth L1 0.086 against 0.108
+# for Telea. (Navier-Stokes on intensity, 0.109 there, blended the foreground into disocclusions.)
 CLASSICAL_FILL = "classical"
 
 
-def _classical(intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, fill_intensity: bool) -> tuple[np.ndarray, np.ndarray]:
-    from .inpainting import background_fill, baseline_inpaint
-
+def _classical(intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray,
+               fill_intensity: bool) -> tuple[np.ndarray, np.ndarray]:
     known = ~hole & np.isfinite(depth) & (depth > 0)
     lo, hi = _known_inverse_range(depth, known)
     inv = np.where(known, 1.0 / np.where(known, depth, 1.0), lo)
     dhat = ((inv - lo) / (hi - lo)).astype(np.float32)
-    dhat_filled = background_fill(dhat, hole)
+    dhat_filled, colour_filled = background_fill_with_colour(dhat, intensity, hole, boundary)
     inv_filled = np.maximum(lo + dhat_filled.astype(np.float64) * (hi - lo), 0.5 * lo)
     out_depth = np.where(hole, 1.0 / inv_filled, depth).astype(np.float32)
-    out_int = baseline_inpaint(intensity, hole, "navier-stokes", "intensity") if fill_intensity else intensity
+    out_int = colour_filled if fill_intensity else intensity
     return np.asarray(out_int, np.float32), out_depth
+
+
+_DHAT_LEVELS = 65535  # D^ carried at 16 bits (a step of 1.5e-5 of the known inverse-depth range)
+_COLOUR_BITS = 24  # 8 bits per channel, up to three channels
+
+
+def _ring_fill(key: np.ndarray, todo: np.ndarray, held: np.ndarray, rings: int | None, release: bool) -> np.ndarray:
+    """In place on ``key`` (H, W) float64: ring by ring, each ``todo`` pixel with a finite 8-neighbour
+    takes the smallest neighbouring key; ``held`` pixels are no source (their keys hidden) until
+    nothing else advances, then (``release``) they are. At most ``rings`` rings (None: until done).
+    Returns the ``todo`` pixels left."""
+    saved = key[held]
+    key[held] = np.inf
+    eight = np.ones((3, 3), np.uint8)
+    count = 0
+    while todo.any() and (rings is None or count < rings):
+        ring = cv2.erode(key, eight, borderType=cv2.BORDER_REPLICATE)
+        new = todo & np.isfinite(ring)
+        if not new.any():
+            if not (release and np.isfinite(saved).any()):
+                break
+            key[held] = saved  # only the foreground borders what is left
+            release = False
+            continue
+        key[new] = ring[new]
+        todo &= ~new
+        count += 1
+    if not np.isfinite(key[held]).all():
+        key[held] = saved
+    return todo
+
+
+def background_fill_with_colour(dhat: np.ndarray, values: np.ndarray, hole: np.ndarray,
+                                foreground: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Fill ``hole`` (H, W) bool in ``dhat`` (H, W) normalised inverse depth in [0, 1] (larger =
+    nearer) and in ``values`` (H, W) or (H, W, 3) float in [0, 1], from the **background**: ring by
+    ring from the hole's edge inwards, each hole pixel takes the depth *and the colour* of its
+    farthest known or already-filled 8-neighbour (:func:`pipeline.inpainting.background_fill`'s
+    rule, with the colour riding along), and the ``foreground`` (H, W) bool rim of the holes (the
+    boundary mask B: the nearer side of a depth step) is no source while the background's front can
+    still advance: a disocclusion uncovers what lay behind the foreground, so the foreground's colour
+    is not smeared into it (diffusion, Navier-Stokes or Telea, blends both sides). A hole that only
+    the foreground borders is filled from it at the end. One erosion per ring: D^ (16 bits) and the
+    8-bit colour are packed into one float64 key, D^ in the high bits, so the minimum is the farthest
+    neighbour. The copied colours are then softened by a 5 x 5 mean over hole pixels only.
+    Returns ``(dhat, values)`` float32, known pixels unchanged (D^ quantised to 1.5e-5 in holes)."""
+    hole = np.asarray(hole, bool)
+    colour = np.asarray(values, np.float64)
+    if not hole.any():
+        return np.asarray(dhat, np.float32), colour.astype(np.float32)
+    if hole.all():
+        return np.zeros(hole.shape, np.float32), np.zeros(colour.shape, np.float32)
+    planes = colour.reshape(*hole.shape, -1)
+    code = np.zeros(hole.shape, np.float64)
+    for k in range(planes.shape[2]):
+        code = code * 256.0 + np.clip(np.round(planes[..., k] * 255.0), 0, 255)
+    depth_level = np.clip(np.round(np.nan_to_num(np.asarray(dhat, np.float64)) * _DHAT_LEVELS), 0, _DHAT_LEVELS)
+    key = np.where(hole, np.inf, depth_level * 2.0 ** _COLOUR_BITS + code)
+    held = np.zeros(hole.shape, bool) if foreground is None else np.asarray(foreground, bool) & ~hole
+    # Cost: one erosion per ring. A few rings over the whole image close the small holes; each hole
+    # still open is then finished inside its own bounding box (the wide bands along the border take
+    # a hundred rings at 512 px: over the whole image that was 0.5 CPU-s a card).
+    left = _ring_fill(key, hole.copy(), held, rings=4, release=False)
+    if left.any():
+        labels, _ = ndimage.label(left, structure=np.ones((3, 3), bool))
+        h, w = hole.shape
+        for index, box in enumerate(ndimage.find_objects(labels), start=1):
+            crop = (slice(max(box[0].start - 1, 0), min(box[0].stop + 1, h)),
+                    slice(max(box[1].start - 1, 0), min(box[1].stop + 1, w)))
+            _ring_fill(key[crop], labels[crop] == index, held[crop], rings=None, release=True)
+    level, code = np.divmod(key, 2.0 ** _COLOUR_BITS)
+    filled = np.empty(planes.shape, np.float64)
+    for k in range(planes.shape[2] - 1, -1, -1):
+        code, filled[..., k] = np.divmod(code, 256.0)
+    filled /= 255.0
+    inside = hole.astype(np.float64)
+    weight = np.maximum(cv2.blur(inside, (5, 5)), 1e-12)
+    smooth = cv2.blur(filled * inside[..., None], (5, 5)).reshape(filled.shape) / weight[..., None]
+    filled = np.where(hole[..., None], smooth, planes)
+    out_dhat = np.where(hole, level / _DHAT_LEVELS, dhat).astype(np.float32)
+    return out_dhat, filled.reshape(colour.shape).astype(np.float32)
 
 
 _NETWORKS: dict[tuple[str, float], Any] = {}
@@ -237,12 +329,12 @@ def fill_holes(
     intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray,
     checkpoint: str | None, fill_intensity: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
-    """Fill ``hole`` (H, W) bool of a GD view: ``intensity`` (H, W) float32 in [0, 1], ``depth``
+    """Fill ``hole`` (H, W) bool of a GD view: ``intensity`` (H, W) or (H, W, 3) float32 in [0, 1], ``depth``
     (H, W) float32 (> 0 outside the holes), ``boundary`` (H, W) bool (the network's B input).
 
     Returns ``(intensity, depth, method, note)``: the network (``"network"``) when ``checkpoint``
-    names an existing checkpoint that loads, else the classical fill (``"classical"``: background
-    fill for depth, Navier-Stokes for intensity); ``note`` says why the network
+    names an existing checkpoint that loads, else the classical fill (``"classical"``:
+    :func:`background_fill_with_colour`); ``note`` says why the network
     was not used when a checkpoint was asked for. With ``fill_intensity`` False the intensity is
     returned unchanged (v0: its pixels are real, only its depth is missing). Filled depth is finite
     and > 0 (inverse depth clamped to at least half the smallest known one)."""
@@ -258,11 +350,15 @@ def fill_holes(
             else:
                 from .inpainting import inpaint
 
-                out_i, out_d = inpaint(intensity, depth, hole, boundary, networks)
+                if intensity.ndim == 2:
+                    out_i, out_d = inpaint(intensity, depth, hole, boundary, networks)
+                else:  # the intensity network is grey: one pass per colour channel, depth from the first
+                    channels = [inpaint(intensity[..., k], depth, hole, boundary, networks) for k in range(3)]
+                    out_i, out_d = np.stack([c[0] for c in channels], axis=-1), channels[0][1]
                 if not fill_intensity:
                     out_i = intensity
                 return np.asarray(out_i, np.float32), np.asarray(out_d, np.float32), "network", None
-    out_i, out_d = _classical(intensity, depth, hole, fill_intensity)
+    out_i, out_d = _classical(intensity, depth, hole, boundary, fill_intensity)
     return out_i, out_d, CLASSICAL_FILL, note
 
 
@@ -285,20 +381,20 @@ def _resize_depth(depth: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -
 
 
 def synthesise_views(
-    grey: np.ndarray, depth: np.ndarray, valid: np.ndarray, focal_px: float, params: ViewsStageParams,
+    image: np.ndarray, depth: np.ndarray, valid: np.ndarray, focal_px: float, params: ViewsStageParams,
 ) -> SceneViews:
     """The five GD images of a scene (module docstring, steps 2-5).
 
-    ``grey`` (H, W) uint8; ``depth`` (H, W) float, depth up to scale (any value where not ``valid``);
+    ``image`` (H, W) grey or (H, W, 3) RGB uint8 (the views keep its channels); ``depth`` (H, W) float, depth up to scale (any value where not ``valid``);
     ``valid`` (H, W) bool; ``focal_px`` for this H x W image. Raises :class:`ViewImageTooSmallError`
     (below ``params.min_side``), :class:`TooLittleDepthError`, :class:`MostlyHolesError`, or
     :class:`InvalidInputError` for broken inputs."""
     clock = time.perf_counter()
-    h0, w0 = grey.shape
+    h0, w0 = image.shape[:2]
     if min(h0, w0) < params.min_side:
         raise ViewImageTooSmallError(f"the view is {w0}x{h0} px; a scene needs at least {params.min_side} px a side")
-    if depth.shape != grey.shape or valid.shape != grey.shape:
-        raise InvalidInputError(f"depth {depth.shape} and view {grey.shape} differ in size")
+    if depth.shape != image.shape[:2] or valid.shape != image.shape[:2]:
+        raise InvalidInputError(f"depth {depth.shape} and view {image.shape} differ in size")
     if not (math.isfinite(focal_px) and focal_px > 0):
         raise InvalidInputError(f"focal_px must be finite and > 0, got {focal_px!r}")
     d64 = np.asarray(depth, np.float64)
@@ -306,14 +402,14 @@ def synthesise_views(
     scale = min(1.0, params.max_side / max(h0, w0))
     if scale < 1.0:
         size = (max(params.min_side, round(w0 * scale)), max(params.min_side, round(h0 * scale)))
-        grey = _area_resize(grey, size)
+        image = _area_resize(image, size)
         depth, valid = _resize_depth(np.where(valid, d64, 1.0), valid, size)
         focal = focal_px * size[0] / w0
     else:
         depth = np.where(valid, d64, 0.0).astype(np.float32)
         focal = float(focal_px)
-    h, w = grey.shape
-    partial = make_gd_image(grey, depth, focal, valid)  # masks zero / infinite / extreme depths
+    h, w = image.shape[:2]
+    partial = make_gd_image(image, depth, focal, valid)  # masks zero / infinite / extreme depths
     real = float(partial.valid.mean())
     if real < params.min_depth_fraction:
         raise TooLittleDepthError(
@@ -339,7 +435,8 @@ def synthesise_views(
     zoom = max(fit_zoom(v0, cam) for cam in corners)
     corners = [replace(cam, focal_px=cam.focal_px * zoom) for cam in corners]
     ref = reference_camera(v0)
-    renders: list[Reprojection] = [reproject(v0, ref, cam, params.max_relative_step) for cam in corners]
+    renders: list[Reprojection] = [reproject(v0, ref, cam, params.max_relative_step, max_stretch_px=params.max_stretch_px)
+                                   for cam in corners]
     seconds_reproject = time.perf_counter() - clock - seconds_v0
     holes = [r.hole for r in renders]
     fractions = [round(float(m.mean()), 6) for m in holes]
@@ -376,7 +473,7 @@ def synthesise_views(
     cameras = [ref, *corners]
     all_depths = np.concatenate([v.depth.ravel() for v in views])
     metrics = {
-        "size": [w, h], "scale": round(w / w0, 6), "focal_px": round(focal, 4),
+        "size": [w, h], "max_stretch_px": params.max_stretch_px, "scale": round(w / w0, 6), "focal_px": round(focal, 4),
         "corner_focal_px": round(float(focal * zoom), 4), "zoom": round(float(zoom), 6), "shift_px": round(shift, 3),
         "quad_radius": float(np.linalg.norm(corners[0].centre[:2]) / math.sqrt(2.0)),
         "scene_centre_depth": float(-scene_centre(v0)[2]),
@@ -384,6 +481,7 @@ def synthesise_views(
         "reference_depth_filled_fraction": round(float(missing.mean()), 6),
         "reference_depth_fill": v0_method, "reference_depth_note": v0_note,
         "hole_fractions": fractions,
+        "crack_fractions": [round(crack_fraction(r.hole), 6) for r in renders],
         "boundary_fractions": [round(float(r.boundary.mean()), 6) for r in renders],
         "dropped_triangles": [r.dropped_triangles for r in renders],
         "inpainting": inpainting,
@@ -407,60 +505,45 @@ def _scaled(gd: GDImage, cam: Camera, side: int) -> tuple[GDImage, Camera]:
     return small, replace(cam, focal_px=focal, width=size[0], height=size[1])
 
 
-def render_preview_frames(scene: SceneViews, side: int, frames: int) -> list[np.ndarray]:
-    """``frames`` (>= 2) uint8 (h, w) pictures along the circle through the four corner cameras
-    (radius r sqrt 2 about v0, starting at v1, counter-clockwise through v2, v3, v4), each looking at
-    the scene centre at the corner views' focal length. A frame blends the two nearest corner GD
-    images' mesh renders, weighted linearly by angle, over the pixels each covers; pixels neither
-    covers take v0's render, and any left are filled by Telea. Longer side at most ``side`` px."""
+def render_preview_frames(scene: SceneViews, side: int, frames: int, max_stretch_px: float | None = None) -> list[np.ndarray]:
+    """``frames`` (>= 2) uint8 (h, w) or (h, w, 3) pictures along the circle through the four corner
+    cameras (radius r sqrt 2 about v0, starting at v1, counter-clockwise through v2, v3, v4), each
+    looking at the scene centre at the corner views' focal length: at the four corners (when
+    ``frames`` is a multiple of 4) the filled corner views themselves, between them v0's mesh rendered
+    there (one render a frame; its triangles dropped only at depth edges, ``max_stretch_px``) with the
+    few pixels it leaves uncovered (depth edges, past v0's border) filled by Telea. Longer side at
+    most ``side`` px."""
     if frames < 2:
         raise InvalidInputError(f"a parallax preview needs at least 2 frames, got {frames}")
-    small = [_scaled(gd, cam, side) for gd, cam in zip(scene.views, scene.cameras)]
-    v0_small, ref = small[0]
-    corner_small = small[1:]
+    v0_small, ref = _scaled(scene.views[0], scene.cameras[0], side)
     centre = scene_centre(scene.views[0])
     radius = float(np.linalg.norm(scene.cameras[1].centre[:2]))
     h, w = v0_small.shape
-    focal = corner_small[0][1].focal_px
+    focal = scene.cameras[1].focal_px * w / scene.views[0].shape[1]
     up = np.array([0.0, 1.0, 0.0])
     out = []
     for k in range(frames):
         angle = math.pi / 4 + 2 * math.pi * k / frames  # v1 sits at 45 deg: (+r, +r)
         eye = np.array([radius * math.cos(angle), radius * math.sin(angle), 0.0])
+        if frames % 4 == 0 and k % (frames // 4) == 0:  # a corner: that corner view, filled, made smaller
+            corner = scene.views[1 + k // (frames // 4)].intensity
+            out.append(np.clip(np.round(_area_resize(corner, (w, h)) * 255.0), 0, 255).astype(np.uint8))
+            continue
         cam = look_at(eye, centre, up, focal, w, h)
-        position = (angle - math.pi / 4) / (math.pi / 2)  # 0 at v1, 1 at v2, ...
-        first = math.floor(position) % 4
-        t = position - math.floor(position)
-        total = np.zeros((h, w))
-        weight = np.zeros((h, w))
-        for index, wgt in ((first, 1.0 - t), ((first + 1) % 4, t)):
-            if wgt <= 1e-9:
-                continue
-            gd, source = corner_small[index]
-            r = reproject(gd, source, cam, with_boundary=False)
-            cover = ~r.hole
-            total += wgt * np.where(cover, r.intensity, 0.0)
-            weight += wgt * cover
-        picture = np.where(weight > 0, total / np.maximum(weight, 1e-12), 0.0)
-        empty = weight <= 0
-        if empty.any():
-            r = reproject(v0_small, ref, cam, with_boundary=False)
-            picture = np.where(empty & ~r.hole, r.intensity, picture)
-            empty &= r.hole
-        if empty.any() and not empty.all():
-            from .inpainting import baseline_inpaint
-
-            picture = baseline_inpaint(picture.astype(np.float32), empty, "telea", "intensity")
-        out.append(np.clip(np.round(picture * 255.0), 0, 255).astype(np.uint8))
+        r = reproject(v0_small, ref, cam, with_boundary=False, max_stretch_px=max_stretch_px)
+        picture = np.clip(np.round(r.intensity * 255.0), 0, 255).astype(np.uint8)
+        if r.hole.any() and not r.hole.all():
+            picture = cv2.inpaint(picture, r.hole.astype(np.uint8), 3, cv2.INPAINT_TELEA)
+        out.append(picture)
     return out
 
 
 def encode_webp(frames: list[np.ndarray], frame_ms: int) -> bytes:
-    """An animated, looping WebP of the grey ``frames`` (lossy, quality 80)."""
+    """An animated, looping WebP of the grey or RGB ``frames`` (lossy, quality 80)."""
     from PIL import Image
 
     pictures = [Image.fromarray(f) for f in frames]
     buffer = io.BytesIO()
     pictures[0].save(buffer, format="WEBP", save_all=True, append_images=pictures[1:], duration=frame_ms,
-                     loop=0, quality=80, method=4)
+                     loop=0, quality=80, method=2)  # method 4: 2 % smaller, twice the time
     return buffer.getvalue()

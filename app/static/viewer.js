@@ -1,8 +1,9 @@
-// Keystone's view-synthesis viewer: five grey + depth (GD) images drawn as textured meshes in raw
-// WebGL 1 and blended by the virtual camera's distance to each of v0..v4 (KeystoneDepth, section 6).
-// No build step, no libraries.
+// Keystone's view-synthesis viewer: five colour (or grey) + depth images drawn as textured meshes in
+// raw WebGL 1 and blended by the virtual camera's distance to each of v0..v4 (KeystoneDepth, section 6).
+// No build step, no libraries. Per view it downloads a JPEG and a small PNG of quantised inverse depth
+// on the mesh grid (pipeline/stages/views.py: viewer_mesh_png), 0.3-0.5 MB a card in all.
 //
-// Conventions (pipeline/view_stage.py, views.json): world = v0's camera frame; cameras look down -z
+// Conventions (pipeline/view_synthesis.py, views.json): world = v0's camera frame; cameras look down -z
 // with y up; x_cam = R x_world + t; pixel (u, v) with depth D is ((u-cx) D/f, -(v-cy) D/f, -D) in its
 // camera, cx = (W-1)/2, cy = (H-1)/2. Matrices here are row-major arrays of 16 and are transposed
 // when uploaded (WebGL 1 wants column-major).
@@ -12,7 +13,6 @@
   var canvas = document.getElementById("viewer-canvas");
   var statusLine = document.getElementById("viewer-status");
   var config = JSON.parse(document.getElementById("viewer-config").textContent);
-  var MAX_VERTICES = 65000; // one 16-bit index buffer per mesh
 
   function say(text) { statusLine.textContent = text; }
 
@@ -65,24 +65,6 @@
   }
 
   // ---------------------------------------------------------------------------------- loading
-  function parseNpy(buffer) { // numpy .npy, little-endian float32, C order, 2-D
-    var bytes = new Uint8Array(buffer);
-    if (bytes[0] !== 0x93 || String.fromCharCode.apply(null, bytes.subarray(1, 6)) !== "NUMPY") {
-      throw new Error("a depth file is not a .npy array");
-    }
-    var view = new DataView(buffer);
-    var major = bytes[6];
-    var headerLength = major === 1 ? view.getUint16(8, true) : view.getUint32(8, true);
-    var start = (major === 1 ? 10 : 12) + headerLength;
-    var header = new TextDecoder("latin1").decode(bytes.subarray(major === 1 ? 10 : 12, start));
-    if (header.indexOf("'<f4'") < 0 || header.indexOf("'fortran_order': False") < 0) {
-      throw new Error("a depth file is not little-endian float32 in C order: " + header);
-    }
-    var shape = /'shape': \((\d+), (\d+)\)/.exec(header);
-    if (!shape) throw new Error("a depth file is not 2-D: " + header);
-    return { height: +shape[1], width: +shape[2], values: new Float32Array(buffer.slice(start)) };
-  }
-
   function loadImage(url) {
     return new Promise(function (resolve, reject) {
       var image = new Image();
@@ -92,11 +74,33 @@
     });
   }
 
-  function loadDepth(url) {
-    return fetch(url, { credentials: "same-origin" }).then(function (response) {
-      if (!response.ok) throw new Error("cannot load " + url + ": " + response.status);
-      return response.arrayBuffer();
-    }).then(parseNpy);
+  // The mesh PNG: 8-bit RGB on the mesh grid, q = 256 R + G, 1/D = lo + q / 65535 (hi - lo). A PNG
+  // without colour chunks reaches a 2D canvas unchanged, so getImageData gives the bytes back.
+  function loadMesh(url) {
+    return loadImage(url).then(function (image) {
+      var mesh = config.mesh;
+      if (image.width !== mesh.columns || image.height !== mesh.rows) throw new Error("a mesh file has the wrong size");
+      var scratch = document.createElement("canvas");
+      scratch.width = image.width;
+      scratch.height = image.height;
+      var context = scratch.getContext("2d", { willReadFrequently: true });
+      context.drawImage(image, 0, 0);
+      var bytes = context.getImageData(0, 0, image.width, image.height).data;
+      var lo = mesh.inverseDepthRange[0], span = mesh.inverseDepthRange[1] - lo;
+      var depths = new Float32Array(image.width * image.height);
+      for (var k = 0; k < depths.length; k++) {
+        var inverse = lo + (bytes[4 * k] * 256 + bytes[4 * k + 1]) / 65535 * span;
+        depths[k] = inverse > 0 ? 1 / inverse : 0;
+      }
+      return depths;
+    });
+  }
+
+  function meshAxis(size, step) { // as pipeline.stages.views.mesh_grid: 0, step, ... and the last pixel
+    var axis = [];
+    for (var x = 0; x < size - 1; x += step) axis.push(x);
+    if (axis[axis.length - 1] !== size - 1) axis.push(size - 1);
+    return axis;
   }
 
   // ------------------------------------------------------------------------------------ WebGL
@@ -111,25 +115,27 @@
     "  gl_Position = u_projection * u_modelView * vec4(p, 1.0);",
     "  v_uv = (a_pixel + 0.5) / u_size;",
     "}"].join("\n");
-  // Two sums in one RGBA target: (R, G) = (sum w g, sum w) over the views the viewpoint is near,
-  // (B, A) = the same with a small equal weight for every view. Where no near view's mesh covers a
-  // pixel (a dropped triangle at a depth edge, or past its border), any other view's mesh fills it.
+  // Two RGBA sums, (sum w rgb, sum w), in two targets: one over the views the viewpoint is near, one
+  // with an equal weight for every view. Where no near view's mesh covers a pixel (a dropped triangle
+  // at a depth edge, or past its border), any other view's mesh fills it.
   var FRAGMENT = [
     "precision mediump float;",
-    "uniform sampler2D u_image;", "uniform float u_weight;", "uniform float u_floor;", "varying vec2 v_uv;",
+    "uniform sampler2D u_image;", "uniform float u_weight;", "varying vec2 v_uv;",
     "void main() {",
-    "  float grey = texture2D(u_image, v_uv).r;",
-    "  gl_FragColor = vec4(grey * u_weight, u_weight, grey * u_floor, u_floor);",
+    "  gl_FragColor = vec4(texture2D(u_image, v_uv).rgb * u_weight, u_weight);",
     "}"].join("\n");
   var RESOLVE_VERTEX = [
     "attribute vec2 a_corner;", "varying vec2 v_uv;",
     "void main() { v_uv = a_corner * 0.5 + 0.5; gl_Position = vec4(a_corner, 0.0, 1.0); }"].join("\n");
   var RESOLVE_FRAGMENT = [
-    "precision mediump float;", "uniform sampler2D u_sum;", "varying vec2 v_uv;",
+    "precision mediump float;", "uniform sampler2D u_near;", "uniform sampler2D u_all;", "varying vec2 v_uv;",
     "void main() {",
-    "  vec4 sum = texture2D(u_sum, v_uv);",
-    "  float grey = sum.g > 0.004 ? sum.r / sum.g : (sum.a > 0.004 ? sum.b / sum.a : 0.067);",
-    "  gl_FragColor = vec4(vec3(grey), 1.0);",
+    "  vec4 near = texture2D(u_near, v_uv);",
+    "  vec4 all = texture2D(u_all, v_uv);",
+    // The sums are 8-bit: a weight under 0.1 would divide a quantisation step into a false colour
+    // (the fringes of yellow and pink seen at depth edges); the equal-weight sum is >= 0.2 where covered.
+    "  vec3 colour = near.a > 0.1 ? near.rgb / near.a : (all.a > 0.1 ? all.rgb / all.a : vec3(0.067));",
+    "  gl_FragColor = vec4(colour, 1.0);",
     "}"].join("\n");
 
   function compile(gl, vertexSource, fragmentSource) {
@@ -148,30 +154,31 @@
     return program;
   }
 
-  // A grid mesh over one GD image: a vertex every `step` px, triangles dropped where their
-  // vertices' depths differ by more than maxRelativeStep (the paper's 0.1): depth discontinuities.
-  function buildMesh(gl, depth, maxRelativeStep) {
-    var W = depth.width, H = depth.height;
-    var step = Math.max(1, Math.ceil(Math.sqrt(W * H / MAX_VERTICES)));
-    var xs = [], ys = [];
-    for (var x = 0; x < W - 1; x += step) xs.push(x);
-    xs.push(W - 1);
-    for (var y = 0; y < H - 1; y += step) ys.push(y);
-    ys.push(H - 1);
+  // A grid mesh over one view's depth on the mesh grid (a vertex every config.mesh.step px).
+  // Triangles are dropped only at depth edges: a relative depth step above maxRelativeStep (the
+  // paper's 0.1) that also stretches, i.e. whose vertices move apart by more than maxStretchPx per
+  // grid step when the viewpoint moves as far as the blending reaches (r sqrt 2). A far surface with
+  // noisy depth or a slanted plane has large relative steps but tiny parallax: it stays whole.
+  function buildMesh(gl, depths, focal) {
+    var xs = meshAxis(config.width, config.mesh.step), ys = meshAxis(config.height, config.mesh.step);
     var nx = xs.length, ny = ys.length;
-    var pixels = new Float32Array(nx * ny * 2), depths = new Float32Array(nx * ny);
+    if (nx !== config.mesh.columns || ny !== config.mesh.rows) throw new Error("the mesh grid does not match");
+    var pixels = new Float32Array(nx * ny * 2);
     for (var j = 0; j < ny; j++) {
       for (var i = 0; i < nx; i++) {
         var k = j * nx + i;
         pixels[2 * k] = xs[i];
         pixels[2 * k + 1] = ys[j];
-        depths[k] = depth.values[ys[j] * W + xs[i]];
       }
     }
+    var useStretch = typeof config.maxStretchPx === "number"; // absent: the paper's rule alone
+    var stretchScale = focal * config.quadRadius * Math.SQRT2;
+    var stretchLimit = (config.maxStretchPx || 0) * config.mesh.step;
     function keep(a, b, c) {
       var da = depths[a], db = depths[b], dc = depths[c];
       var lo = Math.min(da, db, dc), hi = Math.max(da, db, dc);
-      return lo > 0 && isFinite(hi) && hi - lo <= maxRelativeStep * lo;
+      if (!(lo > 0) || !isFinite(hi)) return false;
+      return hi - lo <= config.maxRelativeStep * lo || (useStretch && stretchScale * (1 / lo - 1 / hi) <= stretchLimit);
     }
     var indices = [];
     for (j = 0; j < ny - 1; j++) {
@@ -188,16 +195,16 @@
       return b;
     }
     return {
-      pixels: buffer(gl.ARRAY_BUFFER, pixels), depths: buffer(gl.ARRAY_BUFFER, depths),
+      pixels: buffer(gl.ARRAY_BUFFER, pixels), depths: buffer(gl.ARRAY_BUFFER, depths), dropped: (nx - 1) * (ny - 1) * 2 - indices.length / 3,
       indices: buffer(gl.ELEMENT_ARRAY_BUFFER, new Uint16Array(indices)), count: indices.length,
     };
   }
 
-  function greyTexture(gl, image) {
+  function colourTexture(gl, image) {
     var texture = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D, texture);
     gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, false);
-    gl.texImage2D(gl.TEXTURE_2D, 0, gl.LUMINANCE, gl.LUMINANCE, gl.UNSIGNED_BYTE, image);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB, gl.RGB, gl.UNSIGNED_BYTE, image); // a grey JPEG fills all three
     // Non-power-of-two sizes: no mipmaps, clamped (WebGL 1's rule).
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
@@ -206,7 +213,7 @@
     return texture;
   }
 
-  function accumulationTarget(gl, width, height) {
+  function accumulationTarget(gl, width, height, depth) {
     var texture = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D, texture);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, width, height, 0, gl.RGBA, gl.UNSIGNED_BYTE, null);
@@ -214,9 +221,6 @@
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
-    var depth = gl.createRenderbuffer();
-    gl.bindRenderbuffer(gl.RENDERBUFFER, depth);
-    gl.renderbufferStorage(gl.RENDERBUFFER, gl.DEPTH_STENCIL, width, height);
     var framebuffer = gl.createFramebuffer();
     gl.bindFramebuffer(gl.FRAMEBUFFER, framebuffer);
     gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, texture, 0);
@@ -242,7 +246,7 @@
     return weights.map(function (w) { return w / total; });
   }
 
-  function start(gl, images, depths) {
+  function start(gl, images, meshes) {
     var W = config.width, H = config.height;
     var scale = Math.min(2, window.devicePixelRatio || 1);
     canvas.width = Math.round(W * scale);
@@ -250,13 +254,18 @@
     var meshProgram = compile(gl, VERTEX, FRAGMENT);
     var resolveProgram = compile(gl, RESOLVE_VERTEX, RESOLVE_FRAGMENT);
     var views = config.views.map(function (view, i) {
-      if (depths[i].width !== W || depths[i].height !== H) throw new Error("view " + view.name + " has the wrong size");
+      if (images[i].width !== W || images[i].height !== H) throw new Error("view " + view.name + " has the wrong size");
       return {
         toWorld: cameraToWorld(view.rotation, view.translation), focal: view.focal,
-        mesh: buildMesh(gl, depths[i], config.maxRelativeStep), texture: greyTexture(gl, images[i]),
+        mesh: buildMesh(gl, meshes[i], view.focal), texture: colourTexture(gl, images[i]),
       };
     });
-    var target = accumulationTarget(gl, canvas.width, canvas.height);
+    canvas.dataset.dropped = views.map(function (v) { return v.mesh.dropped; }).join(",");
+    var depthBuffer = gl.createRenderbuffer(); // shared: each mesh clears it before it is drawn
+    gl.bindRenderbuffer(gl.RENDERBUFFER, depthBuffer);
+    gl.renderbufferStorage(gl.RENDERBUFFER, gl.DEPTH_STENCIL, canvas.width, canvas.height);
+    var targets = [accumulationTarget(gl, canvas.width, canvas.height, depthBuffer),
+                   accumulationTarget(gl, canvas.width, canvas.height, depthBuffer)];
     var corner = gl.createBuffer();
     gl.bindBuffer(gl.ARRAY_BUFFER, corner);
     gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 3, -1, -1, 3]), gl.STATIC_DRAW);
@@ -270,31 +279,22 @@
       projection: gl.getUniformLocation(meshProgram, "u_projection"),
       principal: gl.getUniformLocation(meshProgram, "u_principal"), size: gl.getUniformLocation(meshProgram, "u_size"),
       focal: gl.getUniformLocation(meshProgram, "u_focal"), image: gl.getUniformLocation(meshProgram, "u_image"),
-      weight: gl.getUniformLocation(meshProgram, "u_weight"), floor: gl.getUniformLocation(meshProgram, "u_floor"),
-      corner: gl.getAttribLocation(resolveProgram, "a_corner"), sum: gl.getUniformLocation(resolveProgram, "u_sum"),
+      weight: gl.getUniformLocation(meshProgram, "u_weight"),
+      corner: gl.getAttribLocation(resolveProgram, "a_corner"),
+      near: gl.getUniformLocation(resolveProgram, "u_near"), all: gl.getUniformLocation(resolveProgram, "u_all"),
     };
 
-    function draw(eye) {
-      var viewMatrix = lookAt(eye, config.sceneCentre, [0, 1, 0]);
-      var weights = blendWeights(eye);
+    function accumulate(target, viewMatrix, weightOf) {
       gl.bindFramebuffer(gl.FRAMEBUFFER, target.framebuffer);
       gl.viewport(0, 0, canvas.width, canvas.height);
       gl.clearColor(0, 0, 0, 0);
       gl.clear(gl.COLOR_BUFFER_BIT);
-      gl.useProgram(meshProgram);
-      gl.uniformMatrix4fv(loc.projection, false, proj);
-      gl.uniform2f(loc.principal, (W - 1) / 2, (H - 1) / 2);
-      gl.uniform2f(loc.size, W, H);
-      gl.uniform1i(loc.image, 0);
-      gl.enable(gl.DEPTH_TEST);
-      gl.enableVertexAttribArray(loc.pixel);
-      gl.enableVertexAttribArray(loc.depth);
       views.forEach(function (view, i) {
-        if (view.mesh.count === 0) return;
+        var weight = weightOf(i);
+        if (view.mesh.count === 0 || weight === 0) return;
         gl.uniformMatrix4fv(loc.modelView, false, transpose(multiply(viewMatrix, view.toWorld)));
         gl.uniform1f(loc.focal, view.focal);
-        gl.uniform1f(loc.weight, weights[i] < 1e-3 ? 0 : weights[i]);
-        gl.uniform1f(loc.floor, 1 / views.length); // the five floor weights sum to 1: no saturation
+        gl.uniform1f(loc.weight, weight);
         gl.bindBuffer(gl.ARRAY_BUFFER, view.mesh.pixels);
         gl.vertexAttribPointer(loc.pixel, 2, gl.FLOAT, false, 0, 0);
         gl.bindBuffer(gl.ARRAY_BUFFER, view.mesh.depths);
@@ -315,20 +315,40 @@
         gl.blendFunc(gl.ONE, gl.ONE);
         gl.drawElements(gl.TRIANGLES, view.mesh.count, gl.UNSIGNED_SHORT, 0);
       });
+    }
+
+    function draw(eye) {
+      var viewMatrix = lookAt(eye, config.sceneCentre, [0, 1, 0]);
+      var weights = blendWeights(eye);
+      gl.useProgram(meshProgram);
+      gl.uniformMatrix4fv(loc.projection, false, proj);
+      gl.uniform2f(loc.principal, (W - 1) / 2, (H - 1) / 2);
+      gl.uniform2f(loc.size, W, H);
+      gl.uniform1i(loc.image, 0);
+      gl.enable(gl.DEPTH_TEST);
+      gl.enableVertexAttribArray(loc.pixel);
+      gl.enableVertexAttribArray(loc.depth);
+      accumulate(targets[0], viewMatrix, function (i) { return weights[i] < 1e-3 ? 0 : weights[i]; });
+      accumulate(targets[1], viewMatrix, function () { return 1 / views.length; }); // sums to 1: no saturation
       gl.disableVertexAttribArray(loc.pixel);
       gl.disableVertexAttribArray(loc.depth);
       gl.disable(gl.BLEND);
       gl.disable(gl.DEPTH_TEST);
       gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      gl.viewport(0, 0, canvas.width, canvas.height);
       gl.useProgram(resolveProgram);
       gl.activeTexture(gl.TEXTURE0);
-      gl.bindTexture(gl.TEXTURE_2D, target.texture);
-      gl.uniform1i(loc.sum, 0);
+      gl.bindTexture(gl.TEXTURE_2D, targets[0].texture);
+      gl.activeTexture(gl.TEXTURE1);
+      gl.bindTexture(gl.TEXTURE_2D, targets[1].texture);
+      gl.uniform1i(loc.near, 0);
+      gl.uniform1i(loc.all, 1);
       gl.bindBuffer(gl.ARRAY_BUFFER, corner);
       gl.enableVertexAttribArray(loc.corner);
       gl.vertexAttribPointer(loc.corner, 2, gl.FLOAT, false, 0, 0);
       gl.drawArrays(gl.TRIANGLES, 0, 3);
       gl.disableVertexAttribArray(loc.corner);
+      gl.activeTexture(gl.TEXTURE0);
       canvas.dataset.frames = String((+canvas.dataset.frames || 0) + 1);
       canvas.dataset.weights = weights.map(function (w) { return w.toFixed(3); }).join(",");
     }
@@ -395,7 +415,12 @@
     canvas.dataset.state = state;
     say(message);
     var fallback = document.getElementById("viewer-fallback");
-    if (fallback) { fallback.hidden = false; canvas.style.display = "none"; }
+    if (fallback) { // fetched only now: a browser with WebGL never downloads the preview
+      var picture = fallback.querySelector("img");
+      picture.src = picture.dataset.src;
+      fallback.hidden = false;
+      canvas.style.display = "none";
+    }
   }
 
   var gl = canvas.getContext("webgl", { preserveDrawingBuffer: true, antialias: false, alpha: false });
@@ -405,7 +430,7 @@
   }
   Promise.all([
     Promise.all(config.views.map(function (v) { return loadImage(v.image); })),
-    Promise.all(config.views.map(function (v) { return loadDepth(v.depth); })),
+    Promise.all(config.views.map(function (v) { return loadMesh(v.mesh); })),
   ]).then(function (loaded) {
     start(gl, loaded[0], loaded[1]);
   }).catch(function (error) {

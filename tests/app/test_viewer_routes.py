@@ -40,7 +40,10 @@ def test_any_role_sees_the_viewer_page_with_five_views(client, login, card_with_
     assert [v["name"] for v in config["views"]] == ["v0", "v1", "v2", "v3", "v4"]
     assert (config["width"], config["height"]) == tuple(record.metrics["size"])
     assert config["quadRadius"] == pytest.approx(record.metrics["quad_radius"])
-    assert config["views"][2]["image"].startswith(f"/viewer/cards/{card_id}/files/v2?v=")
+    assert config["views"][2]["image"].startswith(f"/viewer/cards/{card_id}/files/v2_web?v=")
+    assert config["views"][2]["mesh"].startswith(f"/viewer/cards/{card_id}/files/v2_mesh?v=")
+    assert config["mesh"]["step"] >= 1 and config["maxStretchPx"] == record.metrics["max_stretch_px"]
+    assert "_depth" not in page  # the float32 maps are for releases; the page never fetches them
     assert "viewer.js" in page and 'id="viewer-canvas"' in page
 
 
@@ -81,6 +84,39 @@ def test_a_versioned_url_is_cacheable_for_a_year(client, login, card_with_views)
     card_id, _ = card_with_views
     login("curator")
     page = client.get(f"/viewer/cards/{card_id}").get_data(as_text=True)
-    url = re.search(rf'"(/viewer/cards/{card_id}/files/v0\?v=[0-9a-f]+)"', page).group(1)
+    url = re.search(rf'"(/viewer/cards/{card_id}/files/v0_web\?v=[0-9a-f]+)"', page).group(1)
     response = client.get(url)
     assert response.status_code == 200 and "immutable" in response.headers["Cache-Control"]
+
+
+def test_the_viewer_files_are_a_jpeg_and_a_mesh_png_that_decodes_to_the_depth(client, login, data_dir, card_with_views):
+    from PIL import Image
+
+    card_id, record = card_with_views
+    login("annotator")
+    page = client.get(f"/viewer/cards/{card_id}").get_data(as_text=True)
+    config = json.loads(re.search(r'<script id="viewer-config" type="application/json">(.*?)</script>', page, re.DOTALL).group(1))
+    picture = client.get(f"/viewer/cards/{card_id}/files/v1_web")
+    assert picture.status_code == 200 and picture.mimetype == "image/jpeg" and picture.data[:2] == b"\xff\xd8"
+    mesh = client.get(f"/viewer/cards/{card_id}/files/v1_mesh")
+    assert mesh.status_code == 200 and mesh.mimetype == "image/png"
+    rgb = np.asarray(Image.open(io.BytesIO(mesh.data)))
+    assert rgb.shape == (config["mesh"]["rows"], config["mesh"]["columns"], 3) and rgb.dtype == np.uint8
+    lo, hi = config["mesh"]["inverseDepthRange"]
+    inverse = lo + (rgb[..., 0].astype(float) * 256 + rgb[..., 1]) / 65535 * (hi - lo)
+    depth = np.load(Path(data_dir) / record.artifacts["v1_depth"])
+    step = config["mesh"]["step"]
+    w, h = record.metrics["size"]
+    xs = sorted({*range(0, w - 1, step), w - 1})
+    ys = sorted({*range(0, h - 1, step), h - 1})
+    truth = 1.0 / depth[np.ix_(ys, xs)].astype(float)
+    assert np.abs(inverse - truth).max() <= (hi - lo) / 65535  # 16-bit quantisation, nothing worse
+
+
+def test_views_made_before_the_compact_files_ask_for_a_rerun(client, login, data_dir, card_with_views, add_stage_result):
+    card_id, record = card_with_views
+    login("curator")
+    old = {k: v for k, v in record.artifacts.items() if not k.endswith(("_web", "_mesh"))}
+    add_stage_result(card_id, "views", status="done", outcome=None, param_hash="old", metrics=record.metrics, artifacts=old)
+    response = client.get(f"/viewer/cards/{card_id}")
+    assert response.status_code == 404 and "keystone run --stages views" in response.get_data(as_text=True)

@@ -84,7 +84,7 @@ def test_views_are_released_for_cards_that_have_them(app, tmp_path, three_cards,
     for relative in view_files(key):
         assert (root / relative).is_file(), relative
     assert not (root / "views" / f"{ids[1]:05d}").exists() and not (root / "views" / f"{ids[2]:05d}").exists()
-    # Grey images and the preview byte for byte; depth exactly, as float EXR; cameras name the EXRs.
+    # The images (grey or RGB, as the card) and the preview byte for byte; depth exactly, as float EXR; cameras name the EXRs.
     for name in ("v0", "v3"):
         assert (root / f"views/{key}/{name}.png").read_bytes() == (data_dir / artifacts[name]).read_bytes()
         depth = np.load(data_dir / artifacts[f"{name}_depth"])
@@ -96,6 +96,10 @@ def test_views_are_released_for_cards_that_have_them(app, tmp_path, three_cards,
     original = json.loads((data_dir / artifacts["scene"]).read_text())
     assert [v["depth"] for v in scene["views"]] == [f"v{i}_depth.exr" for i in range(5)]
     assert [v["focal_px"] for v in scene["views"]] == [v["focal_px"] for v in original["views"]]
+    # The viewer's JPEGs and mesh PNGs are not released, so the released document names none of them.
+    assert "mesh" in original and all("web_image" in v for v in original["views"])
+    assert "mesh" not in scene and not any("web_image" in v or "mesh" in v for v in scene["views"])
+    assert not list((root / f"views/{key}").glob("*.jpg")) and not list((root / f"views/{key}").glob("*_mesh.png"))
     assert scene["width"] == stored.shape[1] and scene["height"] == stored.shape[0] and max(stored.shape) <= 160
 
     # Every card is listed; cards.jsonl says where the views are or why there are none.

@@ -18,6 +18,7 @@ from pipeline.views import (
     ViewImageTooSmallError,
     boundary_mask,
     corner_cameras,
+    crack_fraction,
     double_reprojection,
     look_at,
     make_gd_image,
@@ -286,3 +287,77 @@ def test_needs_inpainting_skips_scenes_without_holes():
     some[2, 2] = True
     ok, reason = needs_inpainting([none, some])
     assert ok and reason.startswith("holes")
+
+
+# ------------------------------------------------------------------ cracks, edges and colour
+def _far_slanted_plane(noise_px: float, size: int = 128) -> GDImage:
+    """A plane seen at a slant, far away: disparity (f b / D) runs from 0.3 px at the top row to
+    3 px at the bottom, as on a card whose crop alignment put the horizon near zero; plus, if asked,
+    Gaussian disparity noise of ``noise_px`` (optical flow's, a few hundredths of a pixel)."""
+    rows = np.linspace(0.3, 3.0, size)[:, None] * np.ones((1, size))
+    rows = rows + np.random.default_rng(3).normal(0.0, noise_px, rows.shape) if noise_px else rows
+    return make_gd_image(_texture(size, size), (F / rows).astype(np.float32), F)
+
+
+def _inside_holes(hole: np.ndarray) -> np.ndarray:
+    """Hole pixels in components that do not touch the border (what v0 never saw touches it)."""
+    labels = cv2.connectedComponents(hole.astype(np.uint8), connectivity=8)[1]
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    return hole & ~np.isin(labels, border)
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.03])
+def test_a_smooth_slanted_plane_renders_without_a_crack_under_the_stretch_rule(noise_px):
+    gd = _far_slanted_plane(noise_px)
+    ref = reference_camera(gd)
+    for cam in corner_cameras(gd, shift_px=24):
+        stage = reproject(gd, ref, cam, max_stretch_px=2.0)
+        assert stage.dropped_triangles == 0
+        assert not _inside_holes(stage.hole).any() and crack_fraction(stage.hole) == 0.0
+        paper = reproject(gd, ref, cam)
+        if noise_px:  # the paper's rule alone cracks the far part: what the viewer showed
+            assert paper.dropped_triangles > 200 and _inside_holes(paper.hole).sum() > 100
+            assert crack_fraction(paper.hole) > 0.005
+
+
+def test_a_depth_step_opens_a_hole_only_at_the_step():
+    size = 96
+    depth = np.full((size, size), 6.0, np.float32)
+    depth[:, : size // 2] = 2.0  # a near wall on the left, a far one on the right: a real edge
+    gd = make_gd_image(_texture(size, size), depth, F)
+    ref = reference_camera(gd)
+    cam = look_at(np.array([0.05, 0.0, 0.0]), scene_centre(gd), np.array([0, 1.0, 0]), F, size, size)
+    rp = reproject(gd, ref, cam, max_stretch_px=2.0)
+    assert rp.dropped_triangles == 2 * (size - 1)  # the one column of quads across the step
+    # Moving right uncovers the far wall just right of the near wall's edge: the hole lies between
+    # where the near wall's last column and the far wall's first column land (4.3 px apart).
+    cx, cy = ref.principal_point
+    edge = []
+    for column, d in ((size // 2 - 1, 2.0), (size // 2, 6.0)):
+        point = np.array([[(column - cx) * d / F, 0.0, -d]])
+        edge.append(_project(cam, point)[0, 0])
+    expected = np.zeros(size, bool)
+    expected[math.ceil(edge[0]):math.floor(edge[1]) + 1] = True
+    inner = rp.hole[2:-2]  # the top and bottom rows also lose a sliver v0 never saw (perspective)
+    assert (inner == expected[None, :]).all()  # every row, exactly those columns, nothing else
+    assert crack_fraction(rp.hole) == 0.0  # a disocclusion 4 px wide, not a crack
+
+
+def test_colour_is_rendered_channel_by_channel():
+    grey = _texture(64, 64)
+    rgb = np.stack([grey, 1 - grey, np.full_like(grey, 0.25)], axis=-1)
+    depth = np.full((64, 64), 3.0, np.float32)
+    depth[20:40, 20:40] = 2.0
+    cam = corner_cameras(make_gd_image(grey, depth, 64.0), shift_px=8)[0]
+    ref = reference_camera(make_gd_image(grey, depth, 64.0))
+    mono = reproject(make_gd_image(grey, depth, 64.0), ref, cam)
+    colour = reproject(make_gd_image(rgb, depth, 64.0), ref, cam)
+    assert colour.intensity.shape == (64, 64, 3) and mono.intensity.shape == (64, 64)
+    assert np.array_equal(colour.hole, mono.hole)
+    seen = ~colour.hole
+    assert np.allclose(colour.intensity[..., 0][seen], mono.intensity[seen], atol=1e-5)
+    assert np.allclose(colour.intensity[..., 1][seen], 1 - mono.intensity[seen], atol=1e-5)
+    assert np.allclose(colour.intensity[..., 2][seen], 0.25, atol=1e-5)
+    assert (colour.intensity[colour.hole] == 0).all()
+    with pytest.raises(InvalidInputError):
+        make_gd_image(np.zeros((8, 8, 2)), np.ones((8, 8)), 8.0)

@@ -1,0 +1,466 @@
+"""View synthesis for the per-card ``views`` stage (:func:`pipeline.stages.views.views_task`): the five
+GD images of a scene with their holes filled, the cameras they were rendered with, and an animated
+parallax preview (the paper's view-synthesis viewer).
+
+What the views stage does for one card
+-----------------------------------------
+1. Reads the rectified left view (grey) and its depth: ``inputs["depth"]`` (float32 npy, depth up to
+   scale) or ``inputs["disparity_left"]`` (float32 npy, rectified-view pixels, ``x_right = x_left - d``)
+   turned into ``D = f / d`` (baseline 1, :func:`pipeline.disparity.depth_from_disparity`).
+2. Scales both so the longer side is at most ``max_side`` px (the paper works at 512): the grey image
+   by area averaging, the depth by a valid-weighted area average of **inverse** depth (so a far pixel
+   never drags a near one into a depth no surface has). The focal length scales with the image.
+3. v0: the reference GD image. Pixels without a usable depth (no disparity, the warp's black fill,
+   depth <= 0, infinite, or more than 1e6 times off the median: :func:`pipeline.views.make_gd_image`)
+   get a depth filled in, so every GD image is a complete mesh; their fraction is recorded, and a
+   view with less than ``min_depth_fraction`` of real depth fails (``too_little_depth``).
+4. v1..v4: v0 reprojected into the quad of corner cameras (:func:`pipeline.views.corner_cameras`,
+   nearest point moving ``shift_px`` * min(H, W) / 512 px), each rendered at a focal length zoomed by
+   ``zoom`` >= 1 (:func:`fit_zoom`) so that the plane through the scene centre fills the corner view:
+   a corner camera sits farther from the scene centre than v0 and sees past v0's borders, and those
+   slivers are not disocclusions. So a scene at a single depth leaves no holes at all, and
+   inpainting is skipped (the record says so); otherwise the holes are disocclusions and the parts
+   of off-centre-depth surfaces that leave v0's field of view.
+5. Holes are filled by the partial-convolution networks (:func:`pipeline.inpainting.inpaint`) when
+   ``params.checkpoint`` names a checkpoint that exists (torch is imported then, not before), else by
+   the classical fill (``"classical"``): the background-biased :func:`pipeline.inpainting.background_fill`
+   for normalised inverse depth and OpenCV's Navier-Stokes for intensity. ``metrics["inpainting"]``
+   records which, or that it was skipped. A corner view with more than ``max_hole_fraction`` holes fails (``mostly_holes``):
+   an invented view is not a view of the scene.
+6. Writes the artifacts and an animated WebP that circles through the four corners.
+
+Artifacts (paths relative to the data dir; all five views are W x H, the same size)
+-----------------------------------------------------------------------------------
+* ``v0`` .. ``v4``: ``v<i>.png``, 8-bit grey intensity (row 0 at the top).
+* ``v0_depth`` .. ``v4_depth``: ``v<i>_depth.npy``, float32 (H, W), depth along view i's viewing
+  axis (``D = -Z`` in its camera frame), in the stereo baseline's units (baseline 1, so up to scale),
+  finite and > 0 at every pixel.
+* ``scene``: ``views.json``, the cameras (world = v0's frame, OpenGL convention: x right, y up,
+  looking down -z; ``x_cam = R x_world + t``; principal point at the image centre
+  ``((W-1)/2, (H-1)/2)``; pixel (u, v) with depth D is ``((u-cx) D/f, -(v-cy) D/f, -D)`` in its
+  camera), the scene centre, the quad radius and the depth range. The browser viewer reads it.
+* ``preview``: ``preview.webp``, an animated WebP (``preview_frames`` frames, longer side at most
+  ``preview_side`` px, looping) along the circle through the four corner cameras.
+
+Cost at 512 px wide: about 1.0 CPU-s a card in all on the Motorcycle pair (3.0 s before the
+rasteriser worked on per-vertex columns and the preview frames skipped the boundary mask).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import time
+import traceback
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from pipeline.errors import InvalidInputError, PipelineError
+from .geometry import (
+    MAX_RELATIVE_DEPTH_STEP,
+    Camera,
+    GDImage,
+    Reprojection,
+    ViewImageTooSmallError,
+    corner_cameras,
+    look_at,
+    make_gd_image,
+    needs_inpainting,
+    reference_camera,
+    reproject,
+    scene_centre,
+)
+
+__all__ = [
+    "VIEW_NAMES",
+    "MissingInputError",
+    "MostlyHolesError",
+    "NonFiniteOutputError",
+    "SceneViews",
+    "TooLittleDepthError",
+    "ViewsStageParams",
+    "fill_holes",
+    "fit_zoom",
+    "render_preview_frames",
+    "synthesise_views",
+    "encode_webp",
+]
+
+VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")
+PAPER_SIDE = 512  # the paper's GD images are 512 x 512; shift_px is stated at that size
+DEFAULT_VERTICAL_FOV_FOCAL = 1.2071  # f = H / (2 tan 22.5 deg): the paper's 45 deg vertical field of view
+
+
+class MissingInputError(PipelineError):
+    """An input the stage needs (the rectified view, its depth or disparity) is not there."""
+
+    code = "missing_input"
+
+
+class TooLittleDepthError(InvalidInputError):
+    """Too little of the reference view has a usable depth to build a scene from."""
+
+    code = "too_little_depth"
+
+
+class MostlyHolesError(InvalidInputError):
+    """A corner view would be mostly invented: its holes cover more than the allowed fraction."""
+
+    code = "mostly_holes"
+
+
+class NonFiniteOutputError(PipelineError):
+    """A bug guard: an output map holds NaN or infinity (never written)."""
+
+    code = "non_finite_output"
+
+
+@dataclass(frozen=True)
+class ViewsStageParams:
+    """The views stage's settings. Sizes in px; ``shift_px`` is stated at the paper's 512 px and
+    scaled by min(H, W) / 512 (as the inpainting network's training holes are)."""
+
+    max_side: int = PAPER_SIDE
+    shift_px: float = 96.0
+    max_relative_step: float = MAX_RELATIVE_DEPTH_STEP
+    min_side: int = 16  # below this a scene has too few pixels for a mesh worth looking at
+    min_depth_fraction: float = 0.5  # of v0 with real (not filled) depth
+    max_hole_fraction: float = 0.5  # of any corner view
+    checkpoint: str | None = None  # a trained inpainting checkpoint (file or folder); else the classical fill
+    preview_side: int = 200
+    preview_frames: int = 12
+    preview_frame_ms: int = 90
+
+
+@dataclass(frozen=True)
+class SceneViews:
+    """The result of :func:`synthesise_views`. ``views``: five complete :class:`GDImage` (v0..v4,
+    valid everywhere); ``cameras``: their five cameras (v0 = identity); ``holes``: the four corner
+    views' hole masks (H, W) bool before filling; ``metrics``: JSON-ready figures."""
+
+    views: list[GDImage]
+    cameras: list[Camera]
+    holes: list[np.ndarray]
+    metrics: dict[str, Any]
+
+
+# --------------------------------------------------------------------------------- the pure part
+def fit_zoom(gd: GDImage, camera: Camera) -> float:
+    """Zoom factor (>= 1) for ``camera``'s focal length so that its whole image (pixel centres
+    ``(0..W-1, 0..H-1)``) sees only points of the plane ``z = -D_c`` through the scene centre that v0
+    sees: v0's pixel-centre rectangle on that plane, projected into ``camera`` at v0's focal length,
+    is a convex quadrilateral Q around the principal point (the camera looks at the centre), and the
+    zoom is the smallest that shrinks the target rectangle into Q, plus half a pixel."""
+    h, w = gd.shape
+    f0 = gd.focal_px
+    dc = -float(scene_centre(gd)[2])
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    corners_px = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
+    world = np.stack([(corners_px[:, 0] - cx) * dc / f0, -(corners_px[:, 1] - cy) * dc / f0, np.full(4, -dc)], 1)
+    pc = world @ camera.rotation.T + camera.translation
+    if not (pc[:, 2] < 0).all():
+        raise InvalidInputError("a corner camera does not see the whole scene-centre plane in front of it")
+    quad = np.stack([f0 * pc[:, 0] / -pc[:, 2], f0 * pc[:, 1] / -pc[:, 2]], 1)  # y up, about the centre
+    targets = np.array([[cx, cy], [-cx, cy], [-cx, -cy], [cx, -cy]], np.float64)
+    shrink = math.inf  # largest s with s * target inside Q, over the four target corners
+    for p in targets:
+        for k in range(4):
+            a, b = quad[k], quad[(k + 1) % 4]
+            e = b - a
+            cross_p = e[0] * p[1] - e[1] * p[0]
+            cross_a = e[0] * a[1] - e[1] * a[0]
+            if abs(cross_p) > 1e-12 and cross_a / cross_p > 0:
+                shrink = min(shrink, cross_a / cross_p)
+    if not math.isfinite(shrink) or shrink <= 0:
+        raise InvalidInputError("cannot fit the corner view inside the reference view's footprint")
+    return max(1.0, 1.0 / shrink) * (1.0 + 0.5 / min(h, w))
+
+
+def _known_inverse_range(depth: np.ndarray, known: np.ndarray) -> tuple[float, float]:
+    inv = 1.0 / depth[known].astype(np.float64)
+    lo, hi = float(inv.min()), float(inv.max())
+    if hi - lo <= 1e-12 * hi:  # a single depth: any positive span keeps D^ finite
+        hi = lo + max(lo, 1e-12)
+    return lo, hi
+
+
+# The fill without a network: depth by the background-biased fill, intensity by Navier-Stokes.
+# Measured by `keystone bench inpainting` on held-out double-reprojection holes: depth L1 0.086
+# against 0.108 for Telea; intensity 0.109 against 0.115 for Telea.
+CLASSICAL_FILL = "classical"
+
+
+def _classical(intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, fill_intensity: bool) -> tuple[np.ndarray, np.ndarray]:
+    from pipeline.inpainting import background_fill, baseline_inpaint
+
+    known = ~hole & np.isfinite(depth) & (depth > 0)
+    lo, hi = _known_inverse_range(depth, known)
+    inv = np.where(known, 1.0 / np.where(known, depth, 1.0), lo)
+    dhat = ((inv - lo) / (hi - lo)).astype(np.float32)
+    dhat_filled = background_fill(dhat, hole)
+    inv_filled = np.maximum(lo + dhat_filled.astype(np.float64) * (hi - lo), 0.5 * lo)
+    out_depth = np.where(hole, 1.0 / inv_filled, depth).astype(np.float32)
+    out_int = baseline_inpaint(intensity, hole, "navier-stokes", "intensity") if fill_intensity else intensity
+    return np.asarray(out_int, np.float32), out_depth
+
+
+_NETWORKS: dict[tuple[str, float], Any] = {}
+
+
+def _load_networks(checkpoint: str) -> Any:
+    """The checkpoint's networks, loaded once per process and file version (torch imported here)."""
+    from pipeline.inpainting import CHECKPOINT_NAME, load_checkpoint
+
+    path = Path(checkpoint)
+    file = path / CHECKPOINT_NAME if path.is_dir() else path
+    key = (str(file.resolve()), file.stat().st_mtime)
+    if key not in _NETWORKS:
+        _NETWORKS.clear()
+        _NETWORKS[key] = load_checkpoint(file)
+    return _NETWORKS[key]
+
+
+def _checkpoint_exists(checkpoint: str | None) -> bool:
+    if not checkpoint:
+        return False
+    from pipeline.inpainting import CHECKPOINT_NAME
+
+    path = Path(checkpoint)
+    return (path / CHECKPOINT_NAME).is_file() if path.is_dir() else path.is_file()
+
+
+def fill_holes(
+    intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray,
+    checkpoint: str | None, fill_intensity: bool = True,
+) -> tuple[np.ndarray, np.ndarray, str, str | None]:
+    """Fill ``hole`` (H, W) bool of a GD view: ``intensity`` (H, W) float32 in [0, 1], ``depth``
+    (H, W) float32 (> 0 outside the holes), ``boundary`` (H, W) bool (the network's B input).
+
+    Returns ``(intensity, depth, method, note)``: the network (``"network"``) when ``checkpoint``
+    names an existing checkpoint that loads, else the classical fill (``"classical"``: background
+    fill for depth, Navier-Stokes for intensity); ``note`` says why the network
+    was not used when a checkpoint was asked for. With ``fill_intensity`` False the intensity is
+    returned unchanged (v0: its pixels are real, only its depth is missing). Filled depth is finite
+    and > 0 (inverse depth clamped to at least half the smallest known one)."""
+    note = None
+    if checkpoint:
+        if not _checkpoint_exists(checkpoint):
+            note = f"checkpoint {checkpoint} does not exist"
+        else:
+            try:
+                networks = _load_networks(checkpoint)
+            except Exception as exc:  # noqa: BLE001 - torch missing or a broken file: fill anyway, say why
+                note = f"checkpoint could not be loaded: {traceback.format_exception_only(type(exc), exc)[-1].strip()}"
+            else:
+                from pipeline.inpainting import inpaint
+
+                out_i, out_d = inpaint(intensity, depth, hole, boundary, networks)
+                if not fill_intensity:
+                    out_i = intensity
+                return np.asarray(out_i, np.float32), np.asarray(out_d, np.float32), "network", None
+    out_i, out_d = _classical(intensity, depth, hole, fill_intensity)
+    return out_i, out_d, CLASSICAL_FILL, note
+
+
+def _area_resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA if size[0] <= image.shape[1] else cv2.INTER_LINEAR)
+
+
+def _resize_depth(depth: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Valid-weighted area average of inverse depth; a pixel is valid when at least half of what it
+    covers was. ``size`` = (width, height)."""
+    inv = np.where(valid, 1.0 / np.where(valid, depth, 1.0), 0.0).astype(np.float64)
+    weight = _area_resize(valid.astype(np.float64), size)
+    total = _area_resize(inv, size)
+    ok = weight >= 0.5
+    out = np.zeros(weight.shape, np.float32)
+    inv_out = np.where(ok, total / np.maximum(weight, 1e-12), 1.0)
+    ok &= inv_out > 0
+    out[ok] = (1.0 / inv_out[ok]).astype(np.float32)
+    return out, ok & np.isfinite(out) & (out > 0)
+
+
+def synthesise_views(
+    grey: np.ndarray, depth: np.ndarray, valid: np.ndarray, focal_px: float, params: ViewsStageParams,
+) -> SceneViews:
+    """The five GD images of a scene (module docstring, steps 2-5).
+
+    ``grey`` (H, W) uint8; ``depth`` (H, W) float, depth up to scale (any value where not ``valid``);
+    ``valid`` (H, W) bool; ``focal_px`` for this H x W image. Raises :class:`ViewImageTooSmallError`
+    (below ``params.min_side``), :class:`TooLittleDepthError`, :class:`MostlyHolesError`, or
+    :class:`InvalidInputError` for broken inputs."""
+    clock = time.perf_counter()
+    h0, w0 = grey.shape
+    if min(h0, w0) < params.min_side:
+        raise ViewImageTooSmallError(f"the view is {w0}x{h0} px; a scene needs at least {params.min_side} px a side")
+    if depth.shape != grey.shape or valid.shape != grey.shape:
+        raise InvalidInputError(f"depth {depth.shape} and view {grey.shape} differ in size")
+    if not (math.isfinite(focal_px) and focal_px > 0):
+        raise InvalidInputError(f"focal_px must be finite and > 0, got {focal_px!r}")
+    d64 = np.asarray(depth, np.float64)
+    valid = np.asarray(valid, bool) & np.isfinite(d64) & (d64 > 0)
+    scale = min(1.0, params.max_side / max(h0, w0))
+    if scale < 1.0:
+        size = (max(params.min_side, round(w0 * scale)), max(params.min_side, round(h0 * scale)))
+        grey = _area_resize(grey, size)
+        depth, valid = _resize_depth(np.where(valid, d64, 1.0), valid, size)
+        focal = focal_px * size[0] / w0
+    else:
+        depth = np.where(valid, d64, 0.0).astype(np.float32)
+        focal = float(focal_px)
+    h, w = grey.shape
+    partial = make_gd_image(grey, depth, focal, valid)  # masks zero / infinite / extreme depths
+    real = float(partial.valid.mean())
+    if real < params.min_depth_fraction:
+        raise TooLittleDepthError(
+            f"{100 * real:.1f} % of the reference view has a usable depth; at least "
+            f"{100 * params.min_depth_fraction:.0f} % is needed")
+
+    # v0: fill the pixels without depth so every GD image is a complete mesh.
+    missing = ~partial.valid
+    v0_method: str | None = None
+    v0_note = None
+    depth0 = partial.depth
+    if missing.any():
+        no_boundary = np.zeros_like(missing)
+        _, depth0, v0_method, v0_note = fill_holes(partial.intensity, partial.depth, missing, no_boundary,
+                                                   params.checkpoint, fill_intensity=False)
+    v0 = make_gd_image(partial.intensity, depth0, focal)
+    if not v0.valid.all():  # filled depth always lies inside the known range: a bug if not
+        raise NonFiniteOutputError("the reference view's filled depth left invalid pixels")
+    seconds_v0 = time.perf_counter() - clock
+
+    shift = max(4.0, params.shift_px * min(h, w) / PAPER_SIDE)
+    corners = corner_cameras(v0, shift_px=shift)
+    zoom = max(fit_zoom(v0, cam) for cam in corners)
+    corners = [replace(cam, focal_px=cam.focal_px * zoom) for cam in corners]
+    ref = reference_camera(v0)
+    renders: list[Reprojection] = [reproject(v0, ref, cam, params.max_relative_step) for cam in corners]
+    seconds_reproject = time.perf_counter() - clock - seconds_v0
+    holes = [r.hole for r in renders]
+    fractions = [round(float(m.mean()), 6) for m in holes]
+    worst = max(fractions)
+    if worst > params.max_hole_fraction:
+        raise MostlyHolesError(
+            f"holes cover {100 * worst:.1f} % of a corner view (at most {100 * params.max_hole_fraction:.0f} % "
+            "may be invented); the depth has steps everywhere")
+
+    needed, why = needs_inpainting(holes)
+    views = [v0]
+    if needed:
+        methods, notes = set(), set()
+        for cam, r in zip(corners, renders):
+            if r.hole.any():
+                i_out, d_out, method, note = fill_holes(r.intensity, r.depth, r.hole, r.boundary, params.checkpoint)
+                methods.add(method)
+                if note:
+                    notes.add(note)
+            else:
+                i_out, d_out = r.intensity, r.depth
+            views.append(make_gd_image(i_out, d_out, cam.focal_px))
+        inpainting: dict[str, Any] = {
+            "status": "done", "method": "network" if methods == {"network"} else CLASSICAL_FILL,
+            "reason": why, "checkpoint": params.checkpoint, "note": "; ".join(sorted(notes)) or None,
+        }
+    else:
+        views.extend(make_gd_image(r.intensity, r.depth, cam.focal_px) for cam, r in zip(corners, renders))
+        inpainting = {"status": "skipped", "method": None, "reason": f"not needed: {why.split(': ', 1)[-1]}",
+                      "checkpoint": params.checkpoint, "note": None}
+    for i, view in enumerate(views):
+        if not (view.valid.all() and np.isfinite(view.depth).all() and np.isfinite(view.intensity).all()):
+            raise NonFiniteOutputError(f"view v{i} has pixels without a finite positive depth after filling")
+    cameras = [ref, *corners]
+    all_depths = np.concatenate([v.depth.ravel() for v in views])
+    metrics = {
+        "size": [w, h], "scale": round(w / w0, 6), "focal_px": round(focal, 4),
+        "corner_focal_px": round(float(focal * zoom), 4), "zoom": round(float(zoom), 6), "shift_px": round(shift, 3),
+        "quad_radius": float(np.linalg.norm(corners[0].centre[:2]) / math.sqrt(2.0)),
+        "scene_centre_depth": float(-scene_centre(v0)[2]),
+        "depth_range": [float(all_depths.min()), float(all_depths.max())],
+        "reference_depth_filled_fraction": round(float(missing.mean()), 6),
+        "reference_depth_fill": v0_method, "reference_depth_note": v0_note,
+        "hole_fractions": fractions,
+        "boundary_fractions": [round(float(r.boundary.mean()), 6) for r in renders],
+        "dropped_triangles": [r.dropped_triangles for r in renders],
+        "inpainting": inpainting,
+        "seconds_reference": round(seconds_v0, 4), "seconds_reproject": round(seconds_reproject, 4),
+        "seconds_fill": round(time.perf_counter() - clock - seconds_v0 - seconds_reproject, 4),
+    }
+    return SceneViews(views=views, cameras=cameras, holes=holes, metrics=metrics)
+
+
+def _scaled(gd: GDImage, cam: Camera, side: int) -> tuple[GDImage, Camera]:
+    """A complete GD image and its camera at a longer side of at most ``side`` px."""
+    h, w = gd.shape
+    s = min(1.0, side / max(h, w))
+    if s >= 1.0:
+        return gd, cam
+    size = (max(2, round(w * s)), max(2, round(h * s)))
+    grey = _area_resize(gd.intensity, size)
+    inv = _area_resize(1.0 / gd.depth.astype(np.float64), size)
+    focal = gd.focal_px * size[0] / w
+    small = make_gd_image(np.clip(grey, 0, 1), (1.0 / inv).astype(np.float32), focal)
+    return small, replace(cam, focal_px=focal, width=size[0], height=size[1])
+
+
+def render_preview_frames(scene: SceneViews, side: int, frames: int) -> list[np.ndarray]:
+    """``frames`` (>= 2) uint8 (h, w) pictures along the circle through the four corner cameras
+    (radius r sqrt 2 about v0, starting at v1, counter-clockwise through v2, v3, v4), each looking at
+    the scene centre at the corner views' focal length. A frame blends the two nearest corner GD
+    images' mesh renders, weighted linearly by angle, over the pixels each covers; pixels neither
+    covers take v0's render, and any left are filled by Telea. Longer side at most ``side`` px."""
+    if frames < 2:
+        raise InvalidInputError(f"a parallax preview needs at least 2 frames, got {frames}")
+    small = [_scaled(gd, cam, side) for gd, cam in zip(scene.views, scene.cameras)]
+    v0_small, ref = small[0]
+    corner_small = small[1:]
+    centre = scene_centre(scene.views[0])
+    radius = float(np.linalg.norm(scene.cameras[1].centre[:2]))
+    h, w = v0_small.shape
+    focal = corner_small[0][1].focal_px
+    up = np.array([0.0, 1.0, 0.0])
+    out = []
+    for k in range(frames):
+        angle = math.pi / 4 + 2 * math.pi * k / frames  # v1 sits at 45 deg: (+r, +r)
+        eye = np.array([radius * math.cos(angle), radius * math.sin(angle), 0.0])
+        cam = look_at(eye, centre, up, focal, w, h)
+        position = (angle - math.pi / 4) / (math.pi / 2)  # 0 at v1, 1 at v2, ...
+        first = math.floor(position) % 4
+        t = position - math.floor(position)
+        total = np.zeros((h, w))
+        weight = np.zeros((h, w))
+        for index, wgt in ((first, 1.0 - t), ((first + 1) % 4, t)):
+            if wgt <= 1e-9:
+                continue
+            gd, source = corner_small[index]
+            r = reproject(gd, source, cam, with_boundary=False)
+            cover = ~r.hole
+            total += wgt * np.where(cover, r.intensity, 0.0)
+            weight += wgt * cover
+        picture = np.where(weight > 0, total / np.maximum(weight, 1e-12), 0.0)
+        empty = weight <= 0
+        if empty.any():
+            r = reproject(v0_small, ref, cam, with_boundary=False)
+            picture = np.where(empty & ~r.hole, r.intensity, picture)
+            empty &= r.hole
+        if empty.any() and not empty.all():
+            from pipeline.inpainting import baseline_inpaint
+
+            picture = baseline_inpaint(picture.astype(np.float32), empty, "telea", "intensity")
+        out.append(np.clip(np.round(picture * 255.0), 0, 255).astype(np.uint8))
+    return out
+
+
+def encode_webp(frames: list[np.ndarray], frame_ms: int) -> bytes:
+    """An animated, looping WebP of the grey ``frames`` (lossy, quality 80)."""
+    from PIL import Image
+
+    pictures = [Image.fromarray(f) for f in frames]
+    buffer = io.BytesIO()
+    pictures[0].save(buffer, format="WEBP", save_all=True, append_images=pictures[1:], duration=frame_ms,
+                     loop=0, quality=80, method=4)
+    return buffer.getvalue()

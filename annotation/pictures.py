@@ -4,8 +4,12 @@
   mount, an upside-down card and a negative, drawn on a synthetic demo card
   (:func:`simulation.cards.make_stereo_card`: built from scikit-image's Motorcycle pair,
   so any install has it; nothing is read from a collection and nothing is stored in the repo).
-* Eye-order wiggles (:func:`eye_order_wiggle`): the two photos of a card shown one after the
-  other, as scanned and with the photos exchanged, for the judge task's ``swapped`` question.
+* Eye-order pictures (:func:`eye_order_wiggle`), for the judge task's ``swapped`` question: the
+  card's first photo alternating with its depth as colours (near warm, far cool), once with the
+  photos as scanned and once exchanged. Two photos simply flicked one after the other look the
+  same in either order (a loop has no first frame), so a person cannot tell the order from them;
+  the depth read with the photos in the wrong order comes out inside out (the near ground cool,
+  the sky warm), which anybody sees at a glance.
 """
 
 from __future__ import annotations
@@ -110,7 +114,43 @@ def wiggle_frames(card: np.ndarray, left_box: list[float], right_box: list[float
     if order == "swapped":
         first, second = second, first
     first, second = _resize(np.ascontiguousarray(first), width), _resize(np.ascontiguousarray(second), width)
-    return [first, first, second, second]
+    depth = depth_colours(signed_disparity(first, second))
+    return [first, first, depth, depth]
+
+
+def signed_disparity(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """``(H, W)`` float32 disparity of ``first`` against ``second`` (``x_second = x_first - d``; with
+    the photos in the right order nearer is larger), searched on both sides of zero (the offset
+    between a card's photos is arbitrary, and exchanged photos flip the sign), NaN where nothing
+    matched."""
+    import cv2
+
+    grey = [cv2.cvtColor(view, cv2.COLOR_RGB2GRAY) if view.ndim == 3 else view for view in (first, second)]
+    reach = 16 * max(1, round(first.shape[1] * 0.15 / 16))  # +-15 % of the width, in SGBM's steps of 16
+    block = 5
+    matcher = cv2.StereoSGBM_create(minDisparity=-reach, numDisparities=2 * reach, blockSize=block,
+                                    P1=8 * block * block, P2=32 * block * block, uniquenessRatio=10,
+                                    speckleWindowSize=50, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    disparity = matcher.compute(grey[0], grey[1]).astype(np.float32) / 16.0
+    disparity[disparity < -reach + 0.5] = np.nan  # SGBM marks "no match" with minDisparity - 1
+    return disparity
+
+
+def depth_colours(disparity: np.ndarray) -> np.ndarray:
+    """``(H, W, 3)`` uint8 RGB: the disparity's 5th..95th percentile spread over turbo colours,
+    larger (nearer in the right eye order) warm, unmatched pixels mid grey; all grey when nothing
+    matched (a blank photo: no colours to mislead)."""
+    import cv2
+
+    picture = np.full((*disparity.shape, 3), 128, np.uint8)
+    known = np.isfinite(disparity)
+    if known.sum() < 16:
+        return picture
+    low, high = np.percentile(disparity[known], [5, 95])
+    scaled = np.clip((np.nan_to_num(disparity) - low) / max(float(high - low), 1e-3), 0.0, 1.0)
+    coloured = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
+    picture[known] = coloured[known]
+    return picture
 
 
 def eye_order_wiggle(key: tuple[Any, ...], card: Any, left_box: list[float], right_box: list[float],

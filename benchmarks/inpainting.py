@@ -20,10 +20,10 @@ from pipeline.errors import InvalidInputError
 from pipeline.inpainting import (
     METHODS,
     InpaintConfig,
-    _run_nets,
     baseline_inpaint,
     builtin_gd_images,
     make_samples,
+    run_networks,
     train,
 )
 
@@ -58,7 +58,7 @@ def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig
         if not sel.any():
             continue
         guide = s.guide()
-        oi, od = _run_nets(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known, guide)
+        oi, od = run_networks(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known, guide)
         inp = {"intensity": s.intensity, "depth": s.dhat}
         fill = hole | ~known
         for ci, (c, net_out) in enumerate((("intensity", oi), ("depth", od))):

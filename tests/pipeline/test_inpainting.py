@@ -233,14 +233,14 @@ def _sloped_scene(n: int, seed: int):
 
 
 def _depth_l1(samples, nets):
-    from pipeline.inpainting import _run_nets
+    from pipeline.inpainting import run_networks
 
     err = {"network": 0.0, "init": 0.0, "none": 0.0}
     count = 0
     for s in samples:
         sel = (s.hole > 0) & (s.known > 0)
         fill = (s.hole > 0) | (s.known <= 0)
-        _, od = _run_nets(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known)
+        _, od = run_networks(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known)
         preds = {"network": np.where(fill, od, s.dhat), "init": s.guide()[1],
                  "none": baseline_inpaint(np.where(fill, 0, s.dhat), fill, "none", "depth")}
         for k, p in preds.items():

@@ -302,7 +302,8 @@ def finish() -> Response:
 @bp.route("/task/<token>/image")
 def task_image(token: str) -> Response:
     """The display image of a reserved card, named by the reservation token (never a card id or path)."""
-    from app.catalog import _not_modified, _send_image, ensure_previews, preview_etag
+    from app.catalog import ensure_previews, preview_etag
+    from app.http_images import not_modified as _not_modified, send_image as _send_image
 
     with read_only():
         reservation = reservation_by_token(token)

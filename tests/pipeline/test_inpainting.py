@@ -1,4 +1,4 @@
-"""Partial-convolution inpainting (issue 8 section 3): the layer, the losses, training, resume,
+"""Partial-convolution inpainting (Liu et al. 2018): the layer, the losses, training, resume,
 determinism and NaN-freedom, on tiny synthetic GD images (CPU, a few seconds)."""
 
 from __future__ import annotations

@@ -212,7 +212,7 @@ def dawid_skene(
     worker_index = {w: j for j, w in enumerate(worker_ids)}
     for a in answers:
         _check_label(a.label, K)
-    for it, lab in gold.items():
+    for lab in gold.values():
         _check_label(lab, K)
     ai = np.array([item_index[a.item_id] for a in answers], dtype=np.int64)  # (M,)
     aw = np.array([worker_index[a.worker_id] for a in answers], dtype=np.int64)  # (M,)
@@ -254,7 +254,7 @@ def dawid_skene(
     converged = False
     iterations = 0
     log_lik = 0.0
-    for iterations in range(1, max_iter + 1):
+    for iterations in range(1, max_iter + 1):  # noqa: B007 (read after the loop: how many ran)
         # E-step in log space: log P(k) + sum over the item's answers of log C[w, k, l].
         log_T = np.tile(np.log(prior), (I, 1))
         np.add.at(log_T, ai, np.log(confusion[aw, :, al]))

@@ -25,14 +25,14 @@ from werkzeug.wrappers import Response
 from pipeline.errors import ImageReadError
 from pipeline.io import atomic_write, encode_jpeg, read_image
 
-# Stages whose status is a stage result the catalogue can filter on in SQL.
-FILTERABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
-
 from .auth import add_nav_link, role_required
 from .db import db, read_only
-from .http_images import cache_headers, not_modified, send_image, url_version
+from .http_images import not_modified, send_image, url_version
 from .limits import parse_positive_int
 from .models import CARD_STATES, Card, Collection, MetadataRecord, StageResult
+
+# Stages whose status is a stage result the catalogue can filter on in SQL.
+FILTERABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
 
 bp = Blueprint("catalog", __name__)
 

@@ -93,7 +93,7 @@ def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig
         "test_samples": len(test_samples),
         "hole_pixels": sum(c for _, c in per[("none", "depth")]),
         "first_loss": losses[0] if losses else None,
-        "last_loss": [float(np.mean([l[i] for l in losses[-10:]])) for i in range(2)] if losses else None,
+        "last_loss": [float(np.mean([row[i] for row in losses[-10:]])) for i in range(2)] if losses else None,
         "network_beats_classical_on_depth": bool(beats),
         "depth_l1_space": "normalised inverse depth D^ over known pixels",
         "threads": torch.get_num_threads(),

@@ -370,7 +370,9 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     non_photo = cv2.morphologyEx(raw, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
     return _Mask(
         scale_x=card.shape[1] / small.shape[1], scale_y=card.shape[0] / small.shape[0], grey=grey,
-        non_photo=non_photo.astype(bool), line_columns=line_columns, plain=mount | dark | white, foreign=non_photo.astype(bool) | (spread < params.plain_spread), mount=mount & raw.astype(bool), dark=dark & raw.astype(bool),
+        non_photo=non_photo.astype(bool), line_columns=line_columns, plain=mount | dark | white,
+        foreign=non_photo.astype(bool) | (spread < params.plain_spread), mount=mount & raw.astype(bool),
+        dark=dark & raw.astype(bool),
         white=white & raw.astype(bool), mount_rgb=mount_rgb, lab=lab,
     )
 

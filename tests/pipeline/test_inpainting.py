@@ -6,9 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-torch = pytest.importorskip("torch")
-F = torch.nn.functional
-
 from pipeline.errors import InvalidInputError
 from pipeline.inpainting import (
     InpaintConfig,
@@ -26,6 +23,9 @@ from pipeline.inpainting import (
     train,
 )
 from pipeline.views import make_gd_image
+
+torch = pytest.importorskip("torch")
+F = torch.nn.functional
 
 
 def test_partial_conv_all_ones_mask_equals_conv_inside():

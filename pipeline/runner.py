@@ -76,9 +76,9 @@ def run_tasks(
     reason ``worker_crashed``; the caller may rerun them.
     """
     if executor is None:
-        for task in tasks:
-            clear_stale_temp_files(task)
-            yield function(task)
+        for inline_task in tasks:
+            clear_stale_temp_files(inline_task)
+            yield function(inline_task)
         return
 
     pending: dict[Future[StageRecord], CardTask] = {}

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import cv2
 import numpy as np
@@ -120,7 +120,7 @@ def run_networks(nets: Sequence[torch.nn.Module], intensity: np.ndarray, dhat: n
     torch.manual_seed(0)
     was = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True)  # restored below: no lasting change to the process
-    multiple = 2 ** int(nets[0].depth)
+    multiple = 2 ** cast(int, nets[0].depth)  # PartialUNet.depth: the U-Net's levels
     x, m = network_inputs(intensity, dhat, hole, boundary)
     m = m * known[None]
     gt = None

@@ -119,7 +119,8 @@ def build_network(config: InpaintConfig, channel: str = "depth") -> torch.nn.Mod
             self.guide_in = nn.Conv2d(GUIDE_CHANNELS, chans[1], 5, stride=2, padding=2, bias=False) if guided else None
             if guided:
                 nn.init.zeros_(self.out.conv.weight)
-                nn.init.zeros_(self.out.conv.bias)
+                if self.out.conv.bias is not None:  # Conv2d has one unless bias=False
+                    nn.init.zeros_(self.out.conv.bias)
             self.depth, self.guided, self.out_index = depth, guided, out_index
 
         def forward(self, x: torch.Tensor, m: torch.Tensor, guide: torch.Tensor | None = None) -> torch.Tensor:

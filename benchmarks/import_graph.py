@@ -72,8 +72,9 @@ def imported_modules(module: ModuleFile, known: dict[str, ModuleFile]) -> set[st
                 base = ".".join(base_parts + ([node.module] if node.module else []))
             else:
                 base = node.module or ""
-            # "from pkg import sub" imports the submodule pkg.sub when it exists.
-            names = [f"{base}.{alias.name}" for alias in node.names] + [base]
+            # "from pkg import sub" imports the submodule pkg.sub; "from pkg import name" needs pkg
+            # itself (for a module inside pkg, "from . import sibling" adds no edge to its package).
+            names = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in known else base for alias in node.names]
         else:
             continue
         for name in names:

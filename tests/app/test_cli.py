@@ -49,8 +49,8 @@ def test_every_command_has_help(runner):
 # The command tree before the features registered their own commands (register_cli): moving
 # registration must neither lose nor add a command.
 COMMAND_TREE = {
-    "bench", "bench catalogue", "bench crowd", "bench disparity", "bench export", "bench filter",
-    "bench inpainting", "bench pipeline", "bench rectify", "cards", "check-homographies", "crowd",
+    "bench", "bench catalogue", "bench crowd", "bench disparity", "bench export", "bench filter", "bench grade",
+    "bench grade-real", "bench inpainting", "bench pipeline", "bench rectify", "cards", "check-homographies", "crowd",
     "crowd aggregate", "crowd create-batch", "crowd export", "crowd invite", "demo", "export", "grade",
     "grade fit", "grade show", "ingest", "init", "report", "run", "serve", "train-inpainting", "users",
     "users add", "users list", "verify",

@@ -26,7 +26,7 @@ aggregated per card half by :func:`consensus_box`.
 from __future__ import annotations
 
 from collections.abc import Hashable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -145,21 +145,23 @@ class DawidSkeneResult:
     iterations: int
     converged: bool
     log_likelihood: float  # of the non-gold answers under the final parameters
+    # Id -> row lookups, built once so per-item access stays O(1) on large batches.
+    _item_row: dict[Hashable, int] = field(init=False, repr=False, compare=False)
+    _worker_row: dict[Hashable, int] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        # Id -> row lookups, built once so per-item access stays O(1) on large batches.
         object.__setattr__(self, "_item_row", {it: i for i, it in enumerate(self.item_ids)})
         object.__setattr__(self, "_worker_row", {w: j for j, w in enumerate(self.worker_ids)})
 
     def posterior(self, item_id: Hashable) -> NDArray[np.float64]:
         """(K,) posterior of one item; KeyError for an item with no answers."""
-        return self.posteriors[self._item_row[item_id]]  # type: ignore[attr-defined]
+        return self.posteriors[self._item_row[item_id]]
 
     def label_of(self, item_id: Hashable) -> int:
-        return int(self.labels[self._item_row[item_id]])  # type: ignore[attr-defined]
+        return int(self.labels[self._item_row[item_id]])
 
     def accuracy_of(self, worker_id: Hashable) -> float:
-        return float(self.worker_accuracy[self._worker_row[worker_id]])  # type: ignore[attr-defined]
+        return float(self.worker_accuracy[self._worker_row[worker_id]])
 
 
 def _logsumexp_rows(a: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -212,7 +214,7 @@ def dawid_skene(
     worker_index = {w: j for j, w in enumerate(worker_ids)}
     for a in answers:
         _check_label(a.label, K)
-    for it, lab in gold.items():
+    for lab in gold.values():
         _check_label(lab, K)
     ai = np.array([item_index[a.item_id] for a in answers], dtype=np.int64)  # (M,)
     aw = np.array([worker_index[a.worker_id] for a in answers], dtype=np.int64)  # (M,)
@@ -254,7 +256,7 @@ def dawid_skene(
     converged = False
     iterations = 0
     log_lik = 0.0
-    for iterations in range(1, max_iter + 1):
+    for iterations in range(1, max_iter + 1):  # noqa: B007 (read after the loop: how many ran)
         # E-step in log space: log P(k) + sum over the item's answers of log C[w, k, l].
         log_T = np.tile(np.log(prior), (I, 1))
         np.add.at(log_T, ai, np.log(confusion[aw, :, al]))
@@ -438,6 +440,13 @@ class BoxConsensus:
     mean_iou: float  # mean IoU of the kept boxes to ``box``; 0.0 when none kept
 
 
+
+def _as_box(values: NDArray[np.float64]) -> Box:
+    """Four coordinates (x0, y0, x1, y1) as plain floats."""
+    x0, y0, x1, y1 = (float(v) for v in values)
+    return (x0, y0, x1, y1)
+
+
 def consensus_box(
     boxes: Sequence[Sequence[float]],
     min_iou: float = 0.5,
@@ -457,21 +466,21 @@ def consensus_box(
     keep = box_iou(B, median)[:, 0] >= min_iou
     if not keep.any():
         return BoxConsensus(
-            box=tuple(float(v) for v in median),  # type: ignore[arg-type]
+            box=_as_box(median),
             kept=0,
             dropped=len(B),
             kept_mask=tuple(False for _ in B),
-            mad=tuple(float(v) for v in np.median(np.abs(B - median), axis=0)),  # type: ignore[arg-type]
+            mad=_as_box(np.median(np.abs(B - median), axis=0)),
             mean_iou=0.0,
         )
     K = B[keep]
     box = np.median(K, axis=0)
     return BoxConsensus(
-        box=tuple(float(v) for v in box),  # type: ignore[arg-type]
+        box=_as_box(box),
         kept=int(keep.sum()),
         dropped=int((~keep).sum()),
         kept_mask=tuple(bool(k) for k in keep),
-        mad=tuple(float(v) for v in np.median(np.abs(K - box), axis=0)),  # type: ignore[arg-type]
+        mad=_as_box(np.median(np.abs(K - box), axis=0)),
         mean_iou=float(box_iou(K, box).mean()),
     )
 

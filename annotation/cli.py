@@ -210,3 +210,8 @@ def export_command(batch_id: int, out: Path, as_json: bool) -> None:
     if batch.kind == "crop":
         files += _box_formats(batch, out)
     _emit({"batch": batch_id, "out": str(out), "files": files}, as_json, "\n".join(str(out / f) for f in files))
+
+
+def register_cli(group: click.Group) -> None:
+    """Add the ``crowd`` commands to ``group`` (the ``keystone`` command)."""
+    group.add_command(crowd_group)

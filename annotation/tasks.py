@@ -22,11 +22,11 @@ from sqlalchemy import (
     case,
     delete,
     func,
+    inspect as sa_inspect,
     or_,
     select,
     update,
 )
-from sqlalchemy import inspect as sa_inspect
 from sqlalchemy.exc import IntegrityError
 
 from app.db import db, one_writer, read_only, utcnow

@@ -173,7 +173,8 @@ def mine() -> Response:
 @frameable_by("'self'", *MTURK_SUBMIT_ORIGINS)
 def preview_image() -> Response:
     """What an MTurk preview shows: a card of the oldest open judge batch, else the synthetic example card."""
-    from app.catalog import _send_image, ensure_previews, preview_etag
+    from app.catalog import ensure_previews, preview_etag
+    from app.http_images import send_image as _send_image
 
     with read_only():
         card = preview_card()
@@ -302,7 +303,8 @@ def finish() -> Response:
 @bp.route("/task/<token>/image")
 def task_image(token: str) -> Response:
     """The display image of a reserved card, named by the reservation token (never a card id or path)."""
-    from app.catalog import _not_modified, _send_image, ensure_previews, preview_etag
+    from app.catalog import ensure_previews, preview_etag
+    from app.http_images import not_modified as _not_modified, send_image as _send_image
 
     with read_only():
         reservation = reservation_by_token(token)
@@ -351,4 +353,4 @@ def task_wiggle(token: str, order: str) -> Response:
 
 
 # The staff pages (batches, invites, workers, submissions, exports) register on this blueprint.
-from . import staff_views  # noqa: F401
+from . import staff_views  # noqa: E402, F401 (its routes need bp, defined above)

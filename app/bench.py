@@ -48,3 +48,8 @@ class BenchGroup(click.Group):
 @click.group("bench", cls=BenchGroup)
 def bench_group() -> None:
     """Benchmarks of pipeline stages on real images (medians over repeats, one core)."""
+
+
+def register_cli(group: click.Group) -> None:
+    """Add ``bench`` to ``group`` (the ``keystone`` command); its benchmarks load when they run."""
+    group.add_command(bench_group)

@@ -25,13 +25,14 @@ from werkzeug.wrappers import Response
 from pipeline.errors import ImageReadError
 from pipeline.io import atomic_write, encode_jpeg, read_image
 
-# Stages whose status is a stage result the catalogue can filter on in SQL.
-FILTERABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
-
 from .auth import add_nav_link, role_required
 from .db import db, read_only
+from .http_images import not_modified, send_image, url_version
 from .limits import parse_positive_int
 from .models import CARD_STATES, Card, Collection, MetadataRecord, StageResult
+
+# Stages whose status is a stage result the catalogue can filter on in SQL.
+FILTERABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
 
 bp = Blueprint("catalog", __name__)
 
@@ -42,8 +43,6 @@ DISPLAY_MAX_SIDE = 1600
 THUMB_MAX_SIDE = 320
 # Bump when the way previews are made changes: it is part of their ETag and URL version.
 PREVIEW_VERSION = "1"
-CACHE_FOREVER = "private, max-age=31536000, immutable"
-CACHE_REVALIDATE = "private, no-cache"
 ARTIFACT_IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg",
                         ".webp": "image/webp", ".gif": "image/gif"}
 
@@ -364,10 +363,6 @@ def fit_within(width: int, height: int, side: int) -> tuple[int, int]:
     return max(1, round(width * scale)), max(1, round(height * scale))
 
 
-def _version(etag: str) -> str:
-    return hashlib.sha256(etag.encode()).hexdigest()[:16]
-
-
 def preview_etag(content_hash: str, variant: str) -> str:
     return f"{content_hash}-{variant}-{PREVIEW_VERSION}"
 
@@ -382,41 +377,13 @@ def card_image_url(card: Card, variant: str = "original") -> str:
     """URL of a card's display image (``original``) or thumbnail (``thumb``), versioned."""
     etag = preview_etag(card.content_hash, "display" if variant == "original" else "thumb")
     endpoint = "catalog.original_image" if variant == "original" else "catalog.thumb_image"
-    return url_for(endpoint, card_id=card.id, v=_version(etag))
+    return url_for(endpoint, card_id=card.id, v=url_version(etag))
 
 
 @bp.app_template_global()
 def artifact_image_url(card: Card, result: StageResult, name: str) -> str:
     return url_for("catalog.artifact_image", card_id=card.id, stage=result.stage, name=name,
-                   v=_version(artifact_etag(card, result, name)))
-
-
-def _not_modified(etag: str) -> Response | None:
-    if request.if_none_match.contains(etag):
-        response = Response(status=304)
-        response.set_etag(etag)
-        _cache_headers(response, etag)
-        return response
-    return None
-
-
-def _cache_headers(response: Response, etag: str) -> None:
-    pinned = request.args.get("v") == _version(etag)
-    response.headers["Cache-Control"] = CACHE_FOREVER if pinned else CACHE_REVALIDATE
-    response.headers.pop("Expires", None)
-
-
-def _send_image(image: Path | bytes, mimetype: str, etag: str) -> Response:
-    """An image from a file or, when the preview cache could not be written, from memory."""
-    # Display images are small (<= 1600 px previews, stage previews), so they are sent from
-    # memory: no file handle outlives the request whatever the server or client does.
-    response = Response(image if isinstance(image, bytes) else image.read_bytes(), mimetype=mimetype)
-    response.set_etag(etag)
-    if isinstance(image, Path):
-        response.last_modified = image.stat().st_mtime
-    response = response.make_conditional(request, accept_ranges=True)
-    _cache_headers(response, etag)
-    return response
+                   v=url_version(artifact_etag(card, result, name)))
 
 
 _UNWRITABLE_PREVIEW_FOLDERS: set[str] = set()
@@ -460,11 +427,11 @@ def _preview_response(card_id: int, variant: str) -> Response:
         card = get_card_or_404(card_id, with_results=False)
         content_hash, stored_path = card.content_hash, card.stored_path
     etag = preview_etag(content_hash, variant)
-    cached = _not_modified(etag)
+    cached = not_modified(etag)
     if cached is not None:
         return cached
     path = ensure_previews(content_hash, stored_path)[variant]
-    return _send_image(path, "image/jpeg", etag)
+    return send_image(path, "image/jpeg", etag)
 
 
 @bp.route("/cards/<int:card_id>/image/original")
@@ -495,13 +462,13 @@ def artifact_image(card_id: int, stage: str, name: str) -> Response:
     mimetype = ARTIFACT_IMAGE_TYPES.get(Path(relative).suffix.lower())
     if mimetype is None:
         abort(404, f"Artifact {name!r} is not an image this page can show.")
-    cached = _not_modified(etag)
+    cached = not_modified(etag)
     if cached is not None:
         return cached
     path = inside_data_dir(relative)
     if not path.is_file():
         abort(404, f"Artifact {name!r} is recorded but its file is missing; rerun the {stage} stage.")
-    return _send_image(path, mimetype, etag)
+    return send_image(path, mimetype, etag)
 
 
 # ----------------------------------------------------------------------------- stereo downloads
@@ -539,7 +506,7 @@ def stereo_downloads(card: Card, rectify: StageResult | None, disparity: StageRe
     inputs = _stereo_inputs(rectify, disparity)
     if inputs is None or rectify is None or disparity is None:
         return []
-    version = _version(_stereo_etag(card, inputs, rectify, disparity))
+    version = url_version(_stereo_etag(card, inputs, rectify, disparity))
     return [{"name": name, "file": file_name, "what": what,
              "url": url_for("catalog.stereo_download", card_id=card.id, fmt=name, v=version)}
             for name, (file_name, _mime, what) in STEREO_FORMATS.items()]
@@ -568,7 +535,7 @@ def stereo_download(card_id: int, fmt: str) -> Response:
         etag = _stereo_etag(card, inputs, rectify, disparity)
         caption = CardCaption.of(card.source_metadata or {}, card.accession, card.source_name)
         download_name = f"card-{card.id:05d}-{file_name}"
-    cached = _not_modified(etag)
+    cached = not_modified(etag)
     if cached is None:
         target = data_dir() / "stereo_downloads" / f"{etag}-{file_name}"
         if target.is_file():
@@ -589,7 +556,7 @@ def stereo_download(card_id: int, fmt: str) -> Response:
                     handle.write(payload)
             except OSError as exc:  # a read-only data folder still serves the file, made per request
                 current_app.logger.warning("Serving a stereo file without its cache: cannot write %s (%s)", target, exc)
-        response = _send_image(payload, mimetype, etag)
+        response = send_image(payload, mimetype, etag)
     else:
         response = cached
     response.headers["Content-Disposition"] = f'attachment; filename="{download_name}"'

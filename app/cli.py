@@ -1,25 +1,59 @@
 """The ``keystone`` command: one click group on the Flask app factory, so commands get an app context.
 
 Commands that report take ``--json`` and then print exactly one JSON document on stdout;
-progress bars and messages go to stderr. Each command is defined by the module that owns it
-and added here.
+progress bars and messages go to stderr. Each command is defined by the module that owns it;
+each feature adds its own through a ``register_cli(group)`` function listed in
+:data:`FEATURE_CLIS`, called the first time the group lists or looks up a command (click's
+lazy-group pattern), so importing this module imports no feature.
 """
 
 from __future__ import annotations
 
+import importlib
+
 import click
-from flask import current_app
-from flask.cli import FlaskGroup, with_appcontext
+from flask import Flask
+from flask.cli import FlaskGroup
 
 from . import create_app
-from .console import data_dir, emit_json, ensure_database
+
+# "module:function" of each feature's register_cli(group), in the order they are called
+FEATURE_CLIS = (
+    "app.commands:register_cli",
+    "app.bench:register_cli",
+    "annotation.cli:register_cli",
+    "review.cli:register_cli",
+    "exports.cli:register_cli",
+)
 
 
-def _create_app():  # type: ignore[no-untyped-def]
+class KeystoneGroup(FlaskGroup):
+    """The ``keystone`` group: the features register their commands on first use."""
+
+    _features_registered = False
+
+    def _register_features(self) -> None:
+        if self._features_registered:
+            return
+        self._features_registered = True
+        for target in FEATURE_CLIS:
+            module_name, function = target.split(":")
+            getattr(importlib.import_module(module_name), function)(self)
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        self._register_features()
+        return super().list_commands(ctx)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        self._register_features()
+        return super().get_command(ctx, cmd_name)
+
+
+def _create_app() -> Flask:
     return create_app()
 
 
-cli = FlaskGroup(
+cli = KeystoneGroup(
     name="keystone",
     create_app=_create_app,
     add_default_commands=False,
@@ -30,68 +64,6 @@ cli = FlaskGroup(
     "Configuration: KEYSTONE_DATABASE_URL (default SQLite in the instance folder), "
     "KEYSTONE_DATA_DIR, KEYSTONE_SECRET_KEY. See the README for a tour.",
 )
-
-
-@cli.command("init")
-@click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document.")
-@with_appcontext
-def init_command(as_json: bool) -> None:
-    """Create or upgrade the catalogue database (applies migrations)."""
-    from .db import db
-    from .schema import current_revision
-
-    applied = ensure_database()
-    document = {
-        "database": db.engine.url.render_as_string(hide_password=True),
-        "revision": current_revision(db.engine),
-        "migrated": applied,
-        "data_dir": str(data_dir()),
-    }
-    if as_json:
-        emit_json(document)
-    else:
-        state = "Migrated" if applied else "Up to date"
-        click.echo(f"{state}: {document['database']} at revision {document['revision']}; data in {document['data_dir']}")
-
-
-@cli.command("serve")
-@click.option("--host", default="127.0.0.1", show_default=True, help="Interface to listen on.")
-@click.option("--port", default=5000, show_default=True, type=int, help="Port to listen on.")
-@click.option("--processes", type=click.IntRange(1, 64), default=None,
-              help="Server processes [default: one per core on Linux and macOS (gunicorn), 1 elsewhere]. "
-                   "1 runs waitress.")
-@click.option("--threads", type=click.IntRange(1, 256), default=None,
-              help="Threads per process [default: 1 with several processes, 8 with one].")
-@with_appcontext
-def serve_command(host: str, port: int, threads: int | None, processes: int | None) -> None:
-    """Serve the web app with a production WSGI server: gunicorn's pre-forked workers, or waitress."""
-    from .serving import serve
-
-    ensure_database()
-    serve(current_app._get_current_object(), host=host, port=port, threads=threads,  # type: ignore[attr-defined]
-          processes=processes)
-
-
-def _register() -> None:
-    import exports.cli
-    import review.cli
-    from annotation.cli import crowd_group
-
-    from .bench import bench_group
-    from .demo import demo_command
-    from .geometry import check_homographies_command
-    from .ingest import ingest_command
-    from .inpainting_cli import train_inpainting_command
-    from .people import users_group
-    from .runs import cards_command, run_command
-
-    for command in (ingest_command, run_command, cards_command, bench_group, demo_command, users_group,
-                    check_homographies_command, crowd_group, train_inpainting_command,
-                    *review.cli.commands(), *exports.cli.commands()):
-        cli.add_command(command)
-
-
-_register()
 
 
 def main() -> None:

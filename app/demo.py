@@ -118,13 +118,13 @@ def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
 
 def release_demo(folder: Path, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     """Publish a release of the accepted cards (unless one with the same data exists) and verify it."""
+    from flask import current_app
+
     from exports.release import ReleaseError, plan_release, publish_release
     from exports.verify import verify_release
 
     from .db import db
     from .models import Person
-
-    from flask import current_app
 
     releases = Path(current_app.config.get("KEYSTONE_RELEASES_DIR") or folder / "releases")
     plan = plan_release(min_grade="some")

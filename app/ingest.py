@@ -292,8 +292,7 @@ def ingest(
     files = list(discover_files(paths, report))
     # ---- stereo hook: MPOs, left/right pairs and JPS / side-by-side eye order (app.stereo_ingest)
     # become cards there; the other files go on to the one-file-per-card ingest below.
-    from .stereo_ingest import StereoOptions as _StereoOptions
-    from .stereo_ingest import ingest_stereo_inputs
+    from .stereo_ingest import StereoOptions as _StereoOptions, ingest_stereo_inputs
 
     files = ingest_stereo_inputs(files, stereo or _StereoOptions(), collection_id, data_dir, max_pixels, report)
     # ---- end of the stereo hook

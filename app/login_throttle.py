@@ -24,7 +24,7 @@ import ipaddress
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
 from flask import current_app, request
@@ -75,7 +75,7 @@ class Lockout:
 
 def as_utc(moment: datetime) -> datetime:
     # SQLite hands timezone-aware columns back naive; they were stored in UTC.
-    return moment if moment.tzinfo else moment.replace(tzinfo=timezone.utc)
+    return moment if moment.tzinfo else moment.replace(tzinfo=UTC)
 
 
 def counted_failures(failures: int, window_started_at: datetime, now: datetime, window: timedelta) -> int:

@@ -1,4 +1,4 @@
-"""The view-synthesis viewer: a card's five GD images as textured meshes in WebGL (issue 8, part 6).
+"""The view-synthesis viewer: a card's five GD images as textured meshes in WebGL (the real-time viewer of KeystoneDepth, Luo et al.).
 
 The page reads the card's latest ``views`` stage result (:mod:`pipeline.view_synthesis`): its scene
 document (``views.json``: the five cameras and the mesh grid) goes into the page, and

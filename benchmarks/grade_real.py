@@ -69,8 +69,10 @@ def _scan_of(files: list[Path], folder: Path) -> Path:
 
     left, right = read_image(files[0]), read_image(files[1])
     height = max(left.shape[0], right.shape[0])
-    pad = lambda view: np.pad(view, ((0, height - view.shape[0]), (0, 0), (0, 0)) if view.ndim == 3
-                              else ((0, height - view.shape[0]), (0, 0)), constant_values=255)
+    def pad(view: np.ndarray) -> np.ndarray:
+        return np.pad(view, ((0, height - view.shape[0]), (0, 0), (0, 0)) if view.ndim == 3
+                      else ((0, height - view.shape[0]), (0, 0)), constant_values=255)
+
     gutter = np.full((height, 24, *left.shape[2:]), 255, np.uint8)
     scan = folder / "card.png"
     folder.mkdir(parents=True, exist_ok=True)
@@ -100,7 +102,9 @@ def grade_real_cards(data: Path, labels_path: Path, grade_params: Any = None) ->
                             "person": person if person in GRADES else None, "person_reason": row.get("reason")})
     automatic = {g: sum(r["grade"] == g for r in results) for g in GRADES}
     labelled = [r for r in results if r["person"] is not None]
-    as_level = lambda grade: GRADES.index(grade) if grade in GRADES else 2
+    def as_level(grade: str | None) -> int:
+        return GRADES.index(grade) if grade in GRADES else 2
+
     person_counts = {g: sum(r["person"] == g for r in labelled) for g in GRADES}
     auto_on_labelled = {g: sum(r["grade"] == g for r in labelled) for g in GRADES}
     figures = agreement([GRADES.index(r["person"]) for r in labelled], [as_level(r["grade"]) for r in labelled])
@@ -154,8 +158,9 @@ def bench_grade_real_command(data: Path, labels_path: Path | None, thresholds_fi
         shown = f"{near.get('measurement')} {near.get('value')} vs {near.get('threshold')}" if near else "-"
         click.echo(f"{r['file'][:58]:<58} {r['grade']:<16} person {r['person'] or '-':<8} nearest {shown}")
     s = report["summary"]
-    show = lambda block: " / ".join(f"{block['counts'][g]} ({100 * (block['fractions'][g] or 0):.0f} %)"
-                                    for g in GRADES)
+    def show(block: dict[str, Any]) -> str:
+        return " / ".join(f"{block['counts'][g]} ({100 * (block['fractions'][g] or 0):.0f} %)" for g in GRADES)
+
     click.echo(f"\n{s['cards']} cards, {s['graded']} graded, {s['stopped']} stopped by the pipeline")
     click.echo(f"automatic, all graded:   {show(s['automatic'])}")
     click.echo(f"automatic, labelled:     {show(s['automatic_on_labelled'])}")

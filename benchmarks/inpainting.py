@@ -20,10 +20,10 @@ from pipeline.errors import InvalidInputError
 from pipeline.inpainting import (
     METHODS,
     InpaintConfig,
-    _run_nets,
     baseline_inpaint,
     builtin_gd_images,
     make_samples,
+    run_networks,
     train,
 )
 
@@ -58,7 +58,7 @@ def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig
         if not sel.any():
             continue
         guide = s.guide()
-        oi, od = _run_nets(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known, guide)
+        oi, od = run_networks(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known, guide)
         inp = {"intensity": s.intensity, "depth": s.dhat}
         fill = hole | ~known
         for ci, (c, net_out) in enumerate((("intensity", oi), ("depth", od))):
@@ -93,7 +93,7 @@ def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig
         "test_samples": len(test_samples),
         "hole_pixels": sum(c for _, c in per[("none", "depth")]),
         "first_loss": losses[0] if losses else None,
-        "last_loss": [float(np.mean([l[i] for l in losses[-10:]])) for i in range(2)] if losses else None,
+        "last_loss": [float(np.mean([row[i] for row in losses[-10:]])) for i in range(2)] if losses else None,
         "network_beats_classical_on_depth": bool(beats),
         "depth_l1_space": "normalised inverse depth D^ over known pixels",
         "threads": torch.get_num_threads(),

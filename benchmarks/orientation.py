@@ -260,7 +260,7 @@ def evaluate(rows: list[dict], weights: dict[str, float], auto_probability: floa
     out["doubtful_needing_one_answer"] = sum(
         1 for r in rows if r["undecidable"] is None and r["tie_decided"]
         and max(p := flag_probabilities(r["values"], weights)["inverted"], 1 - p) >= auto_probability)
-    for f, s in per_flag.items():
+    for s in per_flag.values():
         s["accuracy_decided"] = round(s["right"] / s["decided"], 4) if s["decided"] else None
         s["accuracy_all"] = round(s["right_at_0.5"] / len(rows), 4)
     out["per_flag"] = per_flag

@@ -1,4 +1,4 @@
-"""Side by side with OpenCV (issue 4 §7): our Loop-Zhang :func:`pipeline.rectify.rectify_pair`
+"""Side by side with OpenCV (docs/BENCHMARKS.md): our Loop-Zhang :func:`pipeline.rectify.rectify_pair`
 against ``cv2.stereoRectifyUncalibrated`` (Hartley 1999) on the same inputs.
 
 Fairness: Hartley is given **our** fundamental matrix and inlier matches (the ones
@@ -389,7 +389,7 @@ def _front_seconds(pair: BenchPair, params: RectifyParams) -> float:
 
 def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
     """Per method and kind (real / synthetic / all): medians over the pairs both methods handled,
-    failures counted, and the issue's criterion (better distortion with equal or better |dy|)."""
+    failures counted, and the acceptance criterion (better distortion with equal or better |dy|)."""
     out: dict[str, Any] = {}
     both = {r["pair"] for r in results if r["error"] is None} & {
         r["pair"] for r in results if r["method"] == "hartley" and r["error"] is None

@@ -230,7 +230,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"disp_move {row.get('crop_disparity_move')!s:>5} {row['seconds']:.2f}s "
                   f"{row.get('code', '')}", flush=True)
     if args.json:
-        print(json.dumps({"max_side": args.max_side, "row_gate_px": ROW_GATE, "dy_gate_px": DY_GATE, "max_crop_px": MAX_CROP, "pairs": rows}, indent=1))
+        print(json.dumps({"max_side": args.max_side, "row_gate_px": ROW_GATE, "dy_gate_px": DY_GATE,
+                          "max_crop_px": MAX_CROP, "pairs": rows}, indent=1))
     return 0
 
 

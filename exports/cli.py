@@ -92,6 +92,7 @@ def verify_command(path: Path, no_mlcroissant: bool, as_json: bool) -> None:
         raise SystemExit(1)
 
 
-def commands() -> list[click.Command]:
-    """Top-level commands this feature adds to ``keystone``."""
-    return [export_command, verify_command]
+def register_cli(group: click.Group) -> None:
+    """Add this feature's top-level commands to ``group`` (the ``keystone`` command)."""
+    for command in (export_command, verify_command):
+        group.add_command(command)

@@ -20,7 +20,7 @@ from typing import Any
 RELEASABLE_GRADES: tuple[str, ...] = ("few", "some")
 VIEWS_FOLDER = "views"
 RELEASED_DECISIONS: tuple[str, ...] = ("accepted", "changed")
-# ``views`` (the five GD images per card, issue 8) and ``stereo`` (anaglyph, wiggles, side-by-side,
+# ``views`` (the five GD images per card, :mod:`pipeline.views`) and ``stereo`` (anaglyph, wiggles, side-by-side,
 # JPS, MPO per card) are optional components: never a default.
 FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset", "views", "stereo")
 DEFAULT_FORMATS: tuple[str, ...] = ("keystonedepth", "parquet")

@@ -1,4 +1,4 @@
-"""Crop alignment (issue 4 §1): SIFT matches inside the two crop boxes align them, then both are
+"""Crop alignment (KeystoneDepth's crop step, Luo et al.): SIFT matches inside the two crop boxes align them, then both are
 cut to their intersection so that the two crops have the same size.
 
 Conventions

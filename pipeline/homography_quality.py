@@ -198,10 +198,10 @@ def single_metrics(H: np.ndarray, width: float, height: float) -> dict[str, Any]
     if H.shape != (3, 3) or not np.all(np.isfinite(H)):
         raise ValueError("homography must be a finite 3x3 matrix")
     if abs(np.linalg.det(H)) <= 1e-12 * np.linalg.norm(H) ** 3:
-        out = {k: None for k in SINGLE_METRICS}
-        out["bounded"] = False
-        out["_reasons"] = {"all": "singular homography"}
-        return out
+        singular: dict[str, Any] = {k: None for k in SINGLE_METRICS}
+        singular["bounded"] = False
+        singular["_reasons"] = {"all": "singular homography"}
+        return singular
     Hn = _oriented(H, w, h)
     out: dict[str, Any] = {}
     corners = _corners(w, h)

@@ -103,8 +103,9 @@ from __future__ import annotations
 import itertools
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -304,7 +305,7 @@ def _to_uint8(card: object) -> np.ndarray:
 
 def _check_box(box: object, name: str, width: int, height: int) -> Box:
     try:
-        x0, y0, x1, y1 = (int(v) for v in box)  # type: ignore[union-attr]
+        x0, y0, x1, y1 = (int(v) for v in cast("Iterable[Any]", box))  # not iterable: TypeError below
     except (TypeError, ValueError) as exc:
         raise OrientationInputError(f"Expected {name} as (x0, y0, x1, y1), got {box!r}") from exc
     if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
@@ -415,7 +416,8 @@ def _align_rows(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, dict[s
     gy, gx = np.mgrid[0:h, 0:w].astype(np.float32)
     shifted = cv2.remap(right, gx + np.float32(sx), gy + np.float32(sy), cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_REPLICATE)
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST).calc(left, shifted, None)
+    # OpenCV's stubs omit that the initial flow may be None (start from zero).
+    flow = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_FAST).calc(left, shifted, None)  # type: ignore[call-overload]
     # The scene's horizontal spread around the dominant shift, px (sets the disparity search).
     spread = float(np.nanmax(np.abs(np.nanpercentile(flow[..., 0], [1, 99]))))
     model: dict[str, Any] = {"shift": [round(float(sx), 2), round(float(sy), 2)], "rows": None,
@@ -581,7 +583,8 @@ def _dark_detail(left: np.ndarray, right: np.ndarray) -> float:
 # --------------------------------------------------------------------------------- decision
 
 
-HYPOTHESES = tuple(itertools.product((False, True), repeat=3))  # (upside_down, inverted, swapped)
+# (upside_down, inverted, swapped), all eight
+HYPOTHESES: tuple[tuple[bool, bool, bool], ...] = tuple((u, i, s) for u, i, s in itertools.product((False, True), repeat=3))
 
 
 def parity(hypothesis: tuple[bool, bool, bool], flags: tuple[str, ...]) -> int:
@@ -635,7 +638,7 @@ def _meaning(name: str, value: float) -> str:
 
 def _undecidable(reason: str, clock: float, details: dict[str, Any]) -> OrientationEstimate:
     flags = [FlagEstimate(name=f, probability=0.5, decided=False, evidence=()) for f in FLAGS]
-    return OrientationEstimate(*flags, cues=(), seconds=time.perf_counter() - clock, undecidable=reason,
+    return OrientationEstimate(flags[0], flags[1], flags[2], cues=(), seconds=time.perf_counter() - clock, undecidable=reason,
                                details=details)
 
 
@@ -707,7 +710,7 @@ def estimate_orientation(
     tie = same_turn_and_swap_probability(values, weights)
     tie_decided = tie >= params.auto_probability or tie <= 1.0 - params.auto_probability
     best = max(hypothesis_probabilities(values, weights).values())
-    return OrientationEstimate(*estimates, cues=cues, seconds=time.perf_counter() - clock, details=details,
+    return OrientationEstimate(estimates[0], estimates[1], estimates[2], cues=cues, seconds=time.perf_counter() - clock, details=details,
                                same_turn_and_swap=tie, tie_decided=tie_decided, combination_probability=best,
                                combination_decided=best >= params.auto_probability)
 

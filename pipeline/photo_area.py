@@ -310,16 +310,17 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     spread = np.sqrt(np.maximum(cv2.blur(grey * grey, (5, 5)) - mean * mean, 0.0))
     smooth = spread < params.smooth_spread
     colour = _mount_colour(lab, grey, params)
+    mount_rgb: tuple[int, int, int] | None = None
     if colour is None:
         mount = np.zeros(grey.shape, bool)
-        mount_rgb = None
     else:
         distance = np.linalg.norm(lab - colour, axis=2)
         # Between the strokes of printed titles the mount is not smooth, but exactly its colour.
         mount = (smooth & (distance < params.mount_distance)) | (distance < params.mount_exact)
         typical = np.median(colour.reshape(-1, 3), axis=0)
         pixel = cv2.cvtColor(typical.astype(np.float32).reshape(1, 1, 3), cv2.COLOR_LAB2RGB).reshape(3)
-        mount_rgb = tuple(int(v) for v in np.clip(np.rint(pixel * 255.0), 0, 255))
+        red, green, blue = (int(v) for v in np.clip(np.rint(pixel * 255.0), 0, 255))
+        mount_rgb = (red, green, blue)
     dark = smooth & (mean < params.dark_level)
     white = smooth & (mean > params.white_level)
 
@@ -339,8 +340,8 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     for xa, ya, xb, yb in (np.zeros((0, 4), int) if segments is None else segments.reshape(-1, 4)):
         if abs(int(xa) - int(xb)) <= 2 or abs(int(ya) - int(yb)) <= 2:
             cv2.line(edges, (int(xa), int(ya)), (int(xb), int(yb)), 255, 1)
-    edges = edges > 0
-    plain = (mount | dark | white) & ~edges
+    is_edge = edges > 0
+    plain = (mount | dark | white) & ~is_edge
     count, labels, stats, _ = cv2.connectedComponentsWithStats(plain.astype(np.uint8), connectivity=4)
     frame = max(2, round(params.mount_ring[1] * min(height, width)))
     seeds = np.zeros((height, width), bool)
@@ -370,7 +371,9 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     non_photo = cv2.morphologyEx(raw, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
     return _Mask(
         scale_x=card.shape[1] / small.shape[1], scale_y=card.shape[0] / small.shape[0], grey=grey,
-        non_photo=non_photo.astype(bool), line_columns=line_columns, plain=mount | dark | white, foreign=non_photo.astype(bool) | (spread < params.plain_spread), mount=mount & raw.astype(bool), dark=dark & raw.astype(bool),
+        non_photo=non_photo.astype(bool), line_columns=line_columns, plain=mount | dark | white,
+        foreign=non_photo.astype(bool) | (spread < params.plain_spread), mount=mount & raw.astype(bool),
+        dark=dark & raw.astype(bool),
         white=white & raw.astype(bool), mount_rgb=mount_rgb, lab=lab,
     )
 
@@ -450,7 +453,7 @@ def _prefer_full_width(
     area is at least ``preference`` of ``best``'s, else ``best``. Rectangles are ``(r0, c0, r1, c1)``."""
     r0, c0, r1, c1 = best
     middle = (r0 + r1) // 2
-    lower = good[middle:r1].all(axis=0)
+    lower = np.asarray(good[middle:r1].all(axis=0))
     left, right = c0, c1
     while left > 0 and lower[left - 1]:
         left -= 1
@@ -458,7 +461,7 @@ def _prefer_full_width(
         right += 1
     if right - left < 1.05 * (c1 - c0) + 1:  # a cell or two wider is no arch
         return best
-    full = good[:r1, left:right].all(axis=1)
+    full = np.asarray(good[:r1, left:right].all(axis=1))
     top = middle
     while top > 0 and full[top - 1]:
         top -= 1
@@ -600,7 +603,7 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
         return None
     pooled = bad[: ch * cell, : cw * cell].reshape(ch, cell, cw, cell).mean(axis=(1, 3))
     # A film edge or separator line may be thinner than a cell: it still separates.
-    lined = mask.line_columns[x0 : x0 + cw * cell].reshape(cw, cell).any(axis=1)
+    lined = np.asarray(mask.line_columns[x0 : x0 + cw * cell].reshape(cw, cell).any(axis=1))
     good = (pooled < 0.5) & ~lined[None, :]
     found = _largest_rectangle(good)
     if found is None:
@@ -836,10 +839,11 @@ def find_photo_areas(card: np.ndarray, params: PhotoAreaParams = PhotoAreaParams
     if mask.mount_rgb is not None and text.mean() > 0.005:
         evidence.append("printed text on the mount")
 
-    halves = [_half_area_both_ways(mask, turned, 0, gutter, params),
-              _half_area_both_ways(mask, turned, gutter, mask.non_photo.shape[1], params)]
-    if halves[0] is None or halves[1] is None:
+    left_half = _half_area_both_ways(mask, turned, 0, gutter, params)
+    right_half = _half_area_both_ways(mask, turned, gutter, mask.non_photo.shape[1], params)
+    if left_half is None or right_half is None:
         return _fallback(split, "no photo found in a half (blank or plain card)", evidence, params)
+    halves = [left_half, right_half]
     for name, half in zip(("left", "right"), halves):
         evidence.extend(f"{name}: {note}" for note in half.notes)
     if not (mask.non_photo.any()):

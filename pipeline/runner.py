@@ -8,9 +8,9 @@ they complete for the driver to write in batches.
 
 from __future__ import annotations
 
+import multiprocessing
 import time
 from collections.abc import Callable, Iterable, Iterator
-import multiprocessing
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
@@ -76,9 +76,9 @@ def run_tasks(
     reason ``worker_crashed``; the caller may rerun them.
     """
     if executor is None:
-        for task in tasks:
-            clear_stale_temp_files(task)
-            yield function(task)
+        for inline_task in tasks:
+            clear_stale_temp_files(inline_task)
+            yield function(inline_task)
         return
 
     pending: dict[Future[StageRecord], CardTask] = {}

@@ -1,4 +1,4 @@
-"""View synthesis geometry (issue 8, sections 1, 2, 5 and 8): GD images, the quad of corner
+"""View synthesis geometry (KeystoneDepth, Luo et al.; docs/PIPELINE.md): GD images, the quad of corner
 cameras, textured-mesh reprojection with holes, and double-reprojection training holes.
 
 Pure numpy/scipy; no torch, no web or database imports.

@@ -140,6 +140,7 @@ def grade_fit_command(bench_file: Path | None, few_below: float, failure_above: 
     click.echo("saved as grade model " + str(document["model"]) if document.get("model") else "not saved (--dry-run)")
 
 
-def commands() -> list[click.Command]:
-    """Top-level commands this feature adds to ``keystone``."""
-    return [report_command, grade_group]
+def register_cli(group: click.Group) -> None:
+    """Add this feature's top-level commands to ``group`` (the ``keystone`` command)."""
+    for command in (report_command, grade_group):
+        group.add_command(command)

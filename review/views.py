@@ -284,7 +284,7 @@ def _anaglyph_etag(card: Any, rectify: Any) -> str:
 
 
 def _anaglyph_url(card: Any, rectify: Any) -> str | None:
-    from app.catalog import _version
+    from app.http_images import url_version as _version
 
     artifacts = (rectify.artifacts or {}) if rectify is not None else {}
     if not (artifacts.get("left_preview") and artifacts.get("right_preview")):
@@ -319,12 +319,8 @@ def red_cyan_anaglyph(left: np.ndarray, right: np.ndarray) -> np.ndarray:
 def anaglyph(card_id: int) -> Response:
     from PIL import Image
 
-    from app.catalog import (
-        _cache_headers,
-        _not_modified,
-        get_card_or_404,
-        inside_data_dir,
-    )
+    from app.catalog import get_card_or_404, inside_data_dir
+    from app.http_images import cache_headers as _cache_headers, not_modified as _not_modified
     from pipeline.errors import ImageReadError
     from pipeline.io import read_image
 

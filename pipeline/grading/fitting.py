@@ -29,7 +29,7 @@ class NotEnoughLabelsError(PipelineError):
     code = "not_enough_labels"
 
 
-def agreement(truth: Sequence[int], predicted: Sequence[int]) -> dict[str, Any]:
+def agreement(truth: Sequence[int] | np.ndarray, predicted: Sequence[int] | np.ndarray) -> dict[str, Any]:
     """Confusion matrix (rows = curator label, columns = automatic grade, order few/some/failure),
     accuracy, Cohen's kappa, macro-F1 and per-class precision / recall / support. Labels and
     grades are indices into :data:`GRADES`. Undefined figures (no such class) are ``None``."""
@@ -185,8 +185,7 @@ def _changes(base: GradeThresholds, fitted: GradeThresholds) -> list[str]:
         for level in ("some", "failure"):
             a, b = getattr(before, level), getattr(after, level)
             if a != b:
-                show = lambda t: "off" if t is None else f"{t:.6g}"
-                out.append(f"{name} {level}: {show(a)} -> {show(b)}")
+                out.append(f"{name} {level}: {_threshold_text(a)} -> {_threshold_text(b)}")
     return out
 
 
@@ -232,21 +231,21 @@ def fit_thresholds(
         raise NotEnoughLabelsError(
             f"all {n} curator labels are {classes[0]!r}: grade at least one card of another class "
             "(few, some, failure) before fitting")
-    values = _matrix_of(measured)
+    matrix = _matrix_of(measured)
     rng = np.random.default_rng(seed)
     predicted = np.full(n, -1, np.int64)
     for test in stratified_folds(truth, folds, rng):
         if test.size == 0:
             continue
         train = np.setdiff1d(np.arange(n), test)
-        fold_thresholds = _fit(values[train], truth[train], base)
-        predicted[test] = _predict(values[test], fold_thresholds)
-    fitted = _fit(values, truth, base)
+        fold_thresholds = _fit(matrix[train], truth[train], base)
+        predicted[test] = _predict(matrix[test], fold_thresholds)
+    fitted = _fit(matrix, truth, base)
     return FitReport(
         thresholds=fitted,
         held_out=agreement(truth, predicted),
-        baseline=agreement(truth, _predict(values, base)),
-        training=agreement(truth, _predict(values, fitted)),
+        baseline=agreement(truth, _predict(matrix, base)),
+        training=agreement(truth, _predict(matrix, fitted)),
         labels=n, folds=folds, seed=seed, changed=_changes(base, fitted),
     )
 
@@ -288,3 +287,7 @@ def labels_from_true_error(results: Sequence[Mapping[str, Any]], bands: TrueErro
             raise InvalidInputError(f"result {position}: expected a numeric true_bad2, got {error!r}")
         rows.append((measurements, bands.label(float(error))))
     return rows
+
+
+def _threshold_text(threshold: float | None) -> str:
+    return "off" if threshold is None else f"{threshold:.6g}"

@@ -133,7 +133,7 @@ class GradeMeasurements:
         return dict(self.notes).get(name)
 
     @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> GradeMeasurements:
+    def from_dict(cls, values: GradeMeasurements | Mapping[str, Any]) -> GradeMeasurements:
         """Read :meth:`as_dict` output (or a grade record's metrics: other keys are ignored).
         Non-numeric or non-finite values become ``None``."""
         if isinstance(values, GradeMeasurements):
@@ -231,7 +231,7 @@ def _row_misalignment(grey_l: np.ndarray, grey_r: np.ndarray, inside: np.ndarray
     small_r = cv2.resize(grey_r, size, interpolation=cv2.INTER_AREA) if scale < 1 else grey_r
     mask = cv2.resize(inside.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     mask = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(small_l, small_r, None)
+    flow = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(small_l, small_r, None)  # type: ignore[call-overload]
     magnitude = _gradient(small_l)
     keep = mask & (magnitude >= TEXTURE_GRADIENT) & np.isfinite(flow[..., 1])
     if keep.sum() < 50:
@@ -266,9 +266,9 @@ def _texture(grey_l: np.ndarray, inside: np.ndarray) -> tuple[float | None, floa
     scale = min(1.0, WORK_SIDE / max(h, w))
     size = (max(MIN_SIDE, round(w * scale)), max(MIN_SIDE, round(h * scale)))
     small = cv2.resize(grey_l, size, interpolation=cv2.INTER_AREA) if scale < 1 else grey_l
-    mask = cv2.resize(inside.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    inside_u8 = cv2.resize(inside.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
     # The black fill's edge is steep but is not the photograph's texture.
-    mask = cv2.erode(mask, np.ones((5, 5), np.uint8)) > 0
+    mask = np.asarray(cv2.erode(inside_u8, np.ones((5, 5), np.uint8)) > 0)
     if not mask.any():
         return None, None
     magnitude = _gradient(small)[mask]

@@ -137,8 +137,8 @@ def sky_near_fraction(grey: np.ndarray, disp: np.ndarray, inside: np.ndarray) ->
     sh, sw = small_grey.shape
     small_disp = cv2.resize(np.where(np.isfinite(disp), disp, np.nan).astype(np.float32), (sw, sh),
                             interpolation=cv2.INTER_NEAREST)
-    small_inside = cv2.resize(inside.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
-    small_inside = cv2.erode(small_inside, np.ones((5, 5), np.uint8)) > 0
+    inside_u8 = cv2.resize(inside.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
+    small_inside = np.asarray(cv2.erode(inside_u8, np.ones((5, 5), np.uint8)) > 0)
     has = small_inside & np.isfinite(small_disp)
     flat = _local_std(small_grey) < FLAT_STD
     textured = has & ~flat
@@ -231,8 +231,8 @@ def border_intrusion(grey: np.ndarray, inside: np.ndarray) -> BorderIntrusion | 
     sh, sw = small.shape
     if min(sh, sw) < 32:
         return None
-    mask = cv2.resize(inside.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
-    mask = cv2.erode(mask, np.ones((7, 7), np.uint8)) > 0
+    inside_u8 = cv2.resize(inside.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
+    mask = np.asarray(cv2.erode(inside_u8, np.ones((7, 7), np.uint8)) > 0)
     if mask.sum() < 100:
         return None
     g = small.astype(np.float32)

@@ -19,8 +19,8 @@ from .measurements import GradeMeasurements
 __all__ = ["GRADES", "RULES", "GradeParams", "GradeResult", "GradeThresholds", "Threshold", "grade",
            "paper_distribution"]
 
-GRADES: tuple[str, ...] = ("few", "some", "failure")
 Grade = Literal["few", "some", "failure"]
+GRADES: tuple[Grade, Grade, Grade] = ("few", "some", "failure")
 Direction = Literal["above", "below"]
 
 UNCERTAINTY_SPAN = math.log(4.0)  # a factor of 4 from the nearest threshold that matters gives 0
@@ -47,7 +47,9 @@ class Threshold:
 
     def level(self, value: float) -> int:
         """0 few, 1 some, 2 failure."""
-        beyond = (lambda t: value > t) if self.direction == "above" else (lambda t: value < t)
+        def beyond(threshold: float) -> bool:
+            return value > threshold if self.direction == "above" else value < threshold
+
         if self.failure is not None and beyond(self.failure):
             return 2
         if self.some is not None and beyond(self.some):
@@ -74,20 +76,29 @@ RULES: dict[str, _Rule] = {
     "aspect_change": _Rule("above", "excess", "rectification changed the aspect ratio by x{v}", "ratio"),
     "rotation_deg": _Rule("above", "ratio", "rectification turned a view by {v}", "deg"),
     "kept_fraction": _Rule("below", "complement", "rectification kept only {v} of a view", "percent"),
-    "swapped": _Rule("above", "flag", "eyes swapped on the card (the halves were exchanged: check the depth is not reversed)", "flag"),
+    "swapped": _Rule("above", "flag", "eyes swapped on the card (the halves were exchanged: check the depth is not "
+                                      "reversed)", "flag"),
     "row_misalignment_px": _Rule("above", "ratio", "rows of the two views are misaligned by {v}", "px"),
     "coverage": _Rule("below", "complement", "disparity covers {v} of the view", "percent"),
     "lr_consistency": _Rule("below", "complement", "left and right disparities agree on only {v} of the pixels", "percent"),
     "confident_fraction": _Rule("below", "complement", "only {v} of the disparities are confident", "percent"),
-    "disparity_range_rel": _Rule("below", "ratio", "disparity spans only {range_px} ({v} of the width): little depth to see", "percent1"),
+    "disparity_range_rel": _Rule("below", "ratio", "disparity spans only {range_px} ({v} of the width): little depth to "
+                                                   "see", "percent1"),
     "textured_fraction": _Rule("below", "ratio", "low texture: only {v} of the view is textured", "percent"),
-    "photometric_error_rel": _Rule("above", "ratio", "the right view warped by the disparity misses the left by {grey} on average, {v} of the difference between unrelated images", "number"),
-    "depth_order": _Rule("below", "linear", "the depth ordering reads {v}: the top of the picture comes out nearer than the bottom (upside down, eyes swapped, or a near blob high up)", "number", span=0.5),
-    "streak_fraction": _Rule("above", "ratio", "{v} of the disparity is row streaks (runs along rows that break against the rows above and below)", "percent"),
-    "sky_near_fraction": _Rule("above", "ratio", "{v} of the upper half is textureless (sky, blank print) yet reads nearer than the textured scene", "percent"),
-    "reflection_symmetry": _Rule("above", "linear", "the picture mirrors itself about row {horizon} in intensity and depth (symmetry {v}): a reflection read as a second scene", "number", span=0.3),
-    "border_line": _Rule("above", "ratio", "a straight edge with a plain strip outside it runs along {v} of the {side} border: card edge or mount inside the crop", "percent"),
-    "border_strokes": _Rule("above", "ratio", "{v} of a border strip is ink-like strokes: mount text or a caption inside the crop", "percent1"),
+    "photometric_error_rel": _Rule("above", "ratio", "the right view warped by the disparity misses the left by {grey} on "
+                                                     "average, {v} of the difference between unrelated images", "number"),
+    "depth_order": _Rule("below", "linear", "the depth ordering reads {v}: the top of the picture comes out nearer than "
+                                            "the bottom (upside down, eyes swapped, or a near blob high up)", "number", span=0.5),
+    "streak_fraction": _Rule("above", "ratio", "{v} of the disparity is row streaks (runs along rows that break against "
+                                               "the rows above and below)", "percent"),
+    "sky_near_fraction": _Rule("above", "ratio", "{v} of the upper half is textureless (sky, blank print) yet reads nearer "
+                                                 "than the textured scene", "percent"),
+    "reflection_symmetry": _Rule("above", "linear", "the picture mirrors itself about row {horizon} in intensity and depth "
+                                                    "(symmetry {v}): a reflection read as a second scene", "number", span=0.3),
+    "border_line": _Rule("above", "ratio", "a straight edge with a plain strip outside it runs along {v} of the {side} "
+                                           "border: card edge or mount inside the crop", "percent"),
+    "border_strokes": _Rule("above", "ratio", "{v} of a border strip is ink-like strokes: mount text or a caption inside "
+                                              "the crop", "percent1"),
 }
 
 
@@ -108,7 +119,9 @@ def _format(value: float, unit: str, beside: float | None = None) -> str:
 
 def _context(m: GradeMeasurements) -> dict[str, str]:
     """Companion figures some reasons quote beside their own value."""
-    show = lambda value, text: "?" if value is None else text.format(value)
+    def show(value: float | None, text: str) -> str:
+        return "?" if value is None else text.format(value)
+
     return {"range_px": show(m.disparity_range_px, "{:.1f} px"), "grey": show(m.photometric_error, "{:.1f} grey levels"),
             "horizon": show(m.reflection_row_px, "{:.0f}"), "side": m.border_side or "crop's"}
 

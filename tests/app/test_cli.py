@@ -46,6 +46,28 @@ def test_every_command_has_help(runner):
         assert "Usage:" in result.output
 
 
+# The command tree before the features registered their own commands (register_cli): moving
+# registration must neither lose nor add a command.
+COMMAND_TREE = {
+    "bench", "bench catalogue", "bench crowd", "bench disparity", "bench export", "bench filter", "bench grade",
+    "bench grade-real", "bench inpainting", "bench pipeline", "bench rectify", "cards", "check-homographies", "crowd",
+    "crowd aggregate", "crowd create-batch", "crowd export", "crowd invite", "demo", "export", "grade",
+    "grade fit", "grade show", "ingest", "init", "report", "run", "serve", "train-inpainting", "users",
+    "users add", "users list", "verify",
+}
+
+
+def test_the_command_tree_is_the_features_registrations():
+    assert {" ".join(path) for path in _all_commands(cli)} == COMMAND_TREE
+
+
+def test_importing_the_command_imports_no_feature():
+    code = ("import sys, app.cli; "
+            "print(sorted(m for m in ('annotation', 'review', 'exports', 'app.runs', 'app.bench') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
 def test_init_reports_json_and_is_idempotent(app, runner):
     result = runner.invoke(cli, ["init", "--json"])
     assert result.exit_code == 0, result.output

@@ -102,7 +102,7 @@ def test_workers_never_get_an_item_twice_and_items_get_exactly_n(app, client, ca
             task = data["tasks"][0]
             seen[t].append(item_of(app, task["token"]))
             assert answer(client, t, task["token"], JUDGE_OK, f"key-{w}-{round_:04d}").status_code == 201
-    for t, items in seen.items():
+    for items in seen.values():
         assert len(items) == len(set(items)), f"worker got an item twice: {items}"
     with app.app_context():
         per_item = dict(db.session.execute(

@@ -78,7 +78,7 @@ def test_latency_summary_percentiles() -> None:
 @pytest.mark.bench
 @pytest.mark.timeout(300)
 def test_fifty_annotators_meet_the_p95_target_on_the_default_server(tmp_path: Path) -> None:
-    """The issue's target, as `keystone bench crowd` measures it: 50 annotators x 10 tasks arriving
+    """The crowd target (docs/CROWD.md), as `keystone bench crowd` measures it: 50 annotators x 10 tasks arriving
     over two seconds, p95 of fetch-next and of submit under 100 ms (kept out of the default run:
     a timing on a shared machine)."""
     report = run_crowd_bench(50, 10, root=tmp_path)

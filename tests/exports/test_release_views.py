@@ -1,4 +1,4 @@
-"""The optional ``views`` release component: the five GD images per card (issue 8 part 7).
+"""The optional ``views`` release component: the five GD images per card (docs/RELEASES.md).
 
 The views are made by the real views stage (:func:`pipeline.stages.views.views_task`) on the
 real rectified Motorcycle pairs that ``keystone run`` produced, at a reduced size to stay fast.

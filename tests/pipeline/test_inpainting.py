@@ -1,13 +1,10 @@
-"""Partial-convolution inpainting (issue 8 section 3): the layer, the losses, training, resume,
+"""Partial-convolution inpainting (Liu et al. 2018): the layer, the losses, training, resume,
 determinism and NaN-freedom, on tiny synthetic GD images (CPU, a few seconds)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-
-torch = pytest.importorskip("torch")
-F = torch.nn.functional
 
 from pipeline.errors import InvalidInputError
 from pipeline.inpainting import (
@@ -26,6 +23,9 @@ from pipeline.inpainting import (
     train,
 )
 from pipeline.views import make_gd_image
+
+torch = pytest.importorskip("torch")
+F = torch.nn.functional
 
 
 def test_partial_conv_all_ones_mask_equals_conv_inside():
@@ -233,14 +233,14 @@ def _sloped_scene(n: int, seed: int):
 
 
 def _depth_l1(samples, nets):
-    from pipeline.inpainting import _run_nets
+    from pipeline.inpainting import run_networks
 
     err = {"network": 0.0, "init": 0.0, "none": 0.0}
     count = 0
     for s in samples:
         sel = (s.hole > 0) & (s.known > 0)
         fill = (s.hole > 0) | (s.known <= 0)
-        _, od = _run_nets(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known)
+        _, od = run_networks(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known)
         preds = {"network": np.where(fill, od, s.dhat), "init": s.guide()[1],
                  "none": baseline_inpaint(np.where(fill, 0, s.dhat), fill, "none", "depth")}
         for k, p in preds.items():

@@ -77,7 +77,10 @@ def rendered_scene(seed: int = 0, w: int = 420, h: int = 320) -> tuple[np.ndarra
     left[y0:y1, x0:x1] = sample(box, xs)[y0:y1, x0:x1]
     rx0, rx1 = int(x0 - d_box), int(x1 - d_box)
     right[y0:y1, rx0:rx1] = sample(box, xs + d_box)[y0:y1, rx0:rx1]
-    to8 = lambda a: np.clip(a * 255, 0, 255).astype(np.uint8)
+
+    def to8(a: np.ndarray) -> np.ndarray:
+        return np.clip(a * 255, 0, 255).astype(np.uint8)
+
     return to8(left), to8(right)
 
 

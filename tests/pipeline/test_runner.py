@@ -31,7 +31,8 @@ def _tasks(n: int) -> list[CardTask]:
 def test_inline_and_pools_agree():
     inline = sorted((r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), stage="test", param_hash="p"))
     with ThreadPoolExecutor(3) as threads:
-        threaded = sorted((r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), threads, stage="test", param_hash="p", window=4))
+        threaded = sorted((r.card_id, r.metrics["square"])
+                          for r in run_tasks(_square_task, _tasks(20), threads, stage="test", param_hash="p", window=4))
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("forkserver")) as pool:
         pooled = sorted((r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), pool, stage="test", param_hash="p"))
     assert inline == threaded == pooled == [(i, i * i) for i in range(20)]

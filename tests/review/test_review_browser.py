@@ -12,6 +12,7 @@ from typing import Any
 import pytest
 from sqlalchemy import select
 
+
 @pytest.fixture
 def queue_cards(app, make_card, add_stage_result, card_image) -> list[int]:  # type: ignore[no-untyped-def]
     """Three graded cards in queue order (most uncertain first): auto grades some, few, failure."""

@@ -180,7 +180,10 @@ def test_the_anaglyph_is_red_left_cyan_right_and_cached_by_etag(client, login, r
     assert response.status_code == 200 and response.mimetype == "image/png"
     picture = np.asarray(Image.open(io.BytesIO(response.data)))
     assert picture.shape == (120, 160, 3)
-    luma = lambda image: np.asarray(Image.fromarray(image).convert("L")).astype(int)
+
+    def luma(image: np.ndarray) -> np.ndarray:
+        return np.asarray(Image.fromarray(image).convert("L")).astype(int)
+
     assert np.abs(picture[..., 0].astype(int) - luma(left)).max() <= 1
     assert np.abs(picture[..., 1].astype(int) - luma(right)).max() <= 1
     assert np.array_equal(picture[..., 1], picture[..., 2])

@@ -10,7 +10,7 @@ Create Date: 2026-11-24
 """
 
 import hashlib
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import sqlalchemy as sa
 from alembic import op
@@ -42,7 +42,7 @@ def upgrade() -> None:
     reservations = sa.table('crowd_reservations', sa.column('answered_at', sa.DateTime(timezone=True)),
                             sa.column('released_at', sa.DateTime(timezone=True)),
                             sa.column('expires_at', sa.DateTime(timezone=True)))
-    now = datetime.now(timezone.utc)
+    now = datetime.now(UTC)
     # Holds that lapsed before this upgrade no longer count.
     connection.execute(reservations.update().where(reservations.c.answered_at.is_(None), reservations.c.expires_at <= now)
                        .values(released_at=now))

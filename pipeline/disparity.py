@@ -22,14 +22,20 @@ Backends (:data:`BACKENDS`):
      shift stands in as a plain offset.
   2. The right view is resampled so that rows align (``R'(x, y) = R(x - c1 (y - cy), y + v(x, y))``;
      the horizontal term undoes the horizontal part of a small rotation about the image centre).
-  3. StereoSGBM on the corrected pair for both views (the right view by mirroring), with the search
+  3. The corrected right view's grey levels are remapped so its histogram matches the left's (a
+     global exposure / development difference between the views biases SGBM's intensity cost).
+  4. StereoSGBM on the corrected pair for both views (the right view by mirroring), with the search
      range from ``DisparityParams.disparity_range`` when known, else from the flow's percentiles
      widened to the dominant shift found by phase correlation (huge disparities the flow misses).
-  4. Left-right check -> confidence; pixels SGBM rejected are filled along their row with the smaller
+     Both views are padded by the search range (replicated columns) so that SGBM matches the strip
+     it otherwise leaves empty on the reference side; a match that lands outside the other view
+     stays empty (then filled as an occlusion).
+  5. Left-right check -> confidence; pixels SGBM rejected are filled along their row with the smaller
      (background) of the nearest consistent disparities on either side (occlusions belong to the
      background), a 5x5 median smooths the filled pixels; rows with nothing SGBM kept take the
      flow's disparity. Then every pixel that fails the left-right check (filled or inconsistent)
      takes an image-guided weighted median (half resolution). Full coverage, no NaN.
+  Tuned on Motorcycle and Tsukuba, held out: Adirondack (both exposures); see docs/BENCHMARKS.md.
   ``disp_right`` is expressed in the corrected right view's pixel grid (within a few px of the
   original's for the residual offsets this corrects).
 """

@@ -370,7 +370,7 @@ def test_grade_task_grades_a_card_from_its_files(tmp_path, pair, good):
     # The stored metrics read back as the same measurements (fitting reads them this way).
     assert GradeMeasurements.from_dict(record.metrics).as_dict() == good[0].as_dict()
 
-    strict = GradeParams(GradeThresholds.from_dict({"lr_consistency": {"direction": "below", "some": 0.99, "failure": 0.95}}))
+    strict = GradeParams(GradeThresholds.from_dict({"lr_consistency": {"direction": "below", "some": 0.995, "failure": 0.99}}))
     failed_grade = grade_task(task, strict)
     assert failed_grade.outcome == "failure" and failed_grade.param_hash != record.param_hash
     assert failed_grade.reason.startswith("failure: left and right disparities agree on only ")

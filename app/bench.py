@@ -22,6 +22,7 @@ LAZY_BENCHMARKS = {
     "inpainting": "benchmarks.inpainting:bench_inpainting_command",
     "pipeline": "benchmarks.pipeline_cost:bench_pipeline_command",
     "rectify": "benchmarks.rectify:bench_rectify_command",
+    "workres": "benchmarks.workres:bench_workres_command",
 }
 
 

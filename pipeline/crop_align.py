@@ -28,7 +28,7 @@ by less than 16 px in a dimension.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -103,11 +103,27 @@ class CropAlignment:
     matches: int  # ratio-test matches between the two boxes
     inliers: int  # matches in the translation consensus
     seconds: float = 0.0
+    points: tuple[np.ndarray, np.ndarray] = field(default=(np.zeros((0, 2)), np.zeros((0, 2))), repr=False)
+    """Every ratio-test match ``(pts_l, pts_r)``, ``(N, 2)`` px relative to the boxes *before*
+    alignment (full resolution, origin at the box's top-left pixel centre)."""
 
     @property
     def size(self) -> tuple[int, int]:
         """(width, height) px of both aligned crops."""
         return self.left_box[2] - self.left_box[0], self.left_box[3] - self.left_box[1]
+
+    def matches_in_crops(self) -> tuple[np.ndarray, np.ndarray]:
+        """The matches as ``(pts_l, pts_r)`` in px of the aligned crops (``left_box`` /
+        ``right_box``), only those inside both: rectification can reuse the SIFT work done here
+        instead of matching the same crops again."""
+        pts_l, pts_r = self.points
+        width, height = self.size
+        pts_l = pts_l - np.array([self.left_box[0] - self.left_box_before[0], self.left_box[1] - self.left_box_before[1]])
+        pts_r = pts_r - np.array([self.right_box[0] - self.right_box_before[0], self.right_box[1] - self.right_box_before[1]])
+        inside = np.ones(len(pts_l), bool)
+        for pts in (pts_l, pts_r):
+            inside &= (pts[:, 0] >= -0.5) & (pts[:, 0] < width - 0.5) & (pts[:, 1] >= -0.5) & (pts[:, 1] < height - 0.5)
+        return pts_l[inside], pts_r[inside]
 
     def metrics(self) -> dict[str, Any]:
         return {
@@ -187,5 +203,5 @@ def align_crops(
     new_r = (rb[0] + x0 + ix, rb[1] + y0 + iy, rb[0] + x1 + ix, rb[1] + y1 + iy)
     return CropAlignment(
         left_box_before=lb, right_box_before=rb, left_box=new_l, right_box=new_r, dx=dx, dy=dy,
-        dy_spread=spread, matches=n, inliers=n_in, seconds=time.perf_counter() - clock,
+        dy_spread=spread, matches=n, inliers=n_in, seconds=time.perf_counter() - clock, points=(pts_l, pts_r),
     )

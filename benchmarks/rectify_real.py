@@ -47,7 +47,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.crop_align import CropAlignParams, align_crops
+from pipeline.crop_align import CropAlignParams, align_crops, matches_in_boxes
+from pipeline.filter import filter_card
 from pipeline.errors import PipelineError
 from pipeline.io import read_image
 from pipeline.rectify import (
@@ -60,7 +61,6 @@ from pipeline.rectify import (
     stored_view_scale,
     warp_pair,
 )
-from pipeline.split import split_card
 
 ROW_GATE = 3.0  # px: fresh matches further from their row than this are mismatches (the headline figure)
 DY_GATE = 10.0  # px: the looser gate, reported beside it
@@ -115,17 +115,28 @@ def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0),
         assert pair.left is not None and pair.right is not None
         return Prepared(_cut(pair.left, crop), _cut(pair.right, crop), (crop[0], crop[1]), (crop[0], crop[1]), None)
     card = _cut(pair.card, crop)
-    split = split_card(card)
+    # As the filter stage then the rectify stage: the filter splits the card and keeps its SIFT
+    # matches; crop alignment and rectification reuse them (else they match at params' side).
+    split, filtered = filter_card(card)
     boxes_before = split.left_box, split.right_box
+    card_matches = np.hstack([filtered.points[0] + split.left_box[:2], filtered.points[1] + split.right_box[:2]])
     matches = None
     try:
-        alignment = align_crops(card, split.left_box, split.right_box,
-                                CropAlignParams(ratio=params.ratio, max_side=params.max_side,
-                                                max_keypoints=params.max_keypoints))
+        alignment, scale = None, filtered.match_scale
+        box_matches = matches_in_boxes(card_matches, split.left_box, split.right_box)
+        if len(box_matches[0]) >= params.min_matches:
+            try:
+                alignment = align_crops(card, split.left_box, split.right_box, matches=box_matches)
+            except PipelineError:
+                alignment = None
+        if alignment is None:
+            alignment = align_crops(card, split.left_box, split.right_box,
+                                    CropAlignParams(ratio=params.ratio, max_side=params.max_side,
+                                                    max_keypoints=params.max_keypoints))
+            lb, rb = alignment.left_box_before, alignment.right_box_before
+            scale = max(1.0, max(lb[2] - lb[0], lb[3] - lb[1], rb[2] - rb[0], rb[3] - rb[1]) / params.max_side)
         boxes = alignment.left_box, alignment.right_box
-        lb, rb = alignment.left_box_before, alignment.right_box_before
-        longest = max(lb[2] - lb[0], lb[3] - lb[1], rb[2] - rb[0], rb[3] - rb[1])
-        matches = (*alignment.matches_in_crops(), max(1.0, longest / params.max_side))
+        matches = (*alignment.matches_in_crops(), scale)
     except PipelineError:
         boxes = boxes_before
     (lx0, ly0, lx1, ly1), (rx0, ry0, rx1, ry1) = boxes

@@ -234,14 +234,16 @@ class RectifyParams:
     coordinates, carried through rectification) is negative."""
     random_seed: int = 0
     """USAC random generator state: same input, same F."""
-    work_side: int | None = 1000
+    work_side: int | None = 800
     """px: the rectify stage stores the rectified views at most this long on their longer side
     (:func:`stored_view_scale`), and the disparity stage works on them at that size; ``None``
     keeps the full resolution (the behaviour before the working resolution). The homographies
-    still take the full-resolution crops as input. Chosen by ``keystone bench workres`` (error
-    against run time across working sides, docs/BENCHMARKS.md): on ground-truth scenes scanned
-    at 2x, bad-2 at full resolution is flat down to about 1000 px and the time a quarter of the
-    full-resolution one; the real ~3000 px scans come out clean at half resolution."""
+    still take the full-resolution crops as input. Chosen by ``keystone bench workres`` (disparity
+    error against CPU time across working sides, docs/BENCHMARKS.md): on ground-truth scenes
+    scanned at 2x (1482x1000 views, as a ~3000 px card's), mean bad-2 15.7 % at 800 against
+    17.6 % at full resolution, in 0.31 s against 1.02 s; 1000 and full are dominated by 800, and
+    600 (17.8 %, 0.17 s) loses 1.5-2 points on scenes given at their own ~740 px resolution,
+    the size of a Keystone-Mast raw scan's views."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.ratio <= 1.0:

@@ -16,9 +16,9 @@ from ..disparity import (
     resample_512,
 )
 from ..errors import InvalidInputError
-from ..rectify import stored_view_scale
 from ..io import read_image, write_jpeg, write_npy
 from ..records import CardTask
+from ..rectify import stored_view_scale
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
 
 __all__ = ["DisparityStageParams", "colour_disparity", "disparity_at_work_side", "disparity_task", "upsample_map"]
@@ -33,7 +33,7 @@ class DisparityStageParams:
     consistency_px: float = 1.0
     release_size: int = 512  # the paper's depth maps are 512 x 512
     range_margin_px: float = 4.0  # widen the measured disparity range: inliers miss extremes
-    work_side: int | None = 1000
+    work_side: int | None = 800
     """px: views longer than this on their longer side are downscaled (area filter) to it for the
     backend, and the maps brought back to the views' pixels (:func:`disparity_at_work_side`);
     ``None``: full resolution. The same default as ``RectifyParams.work_side``, so views the
@@ -86,7 +86,7 @@ def disparity_at_work_side(left: np.ndarray, right: np.ndarray, backend: str, pa
     if scale >= 1.0 or small == (width, height):
         return estimate_disparity(left, right, backend, params), 1.0
     sx = small[0] / width
-    shrink = lambda view: cv2.resize(np.ascontiguousarray(view), small, interpolation=cv2.INTER_AREA)  # noqa: E731
+    shrink = lambda view: cv2.resize(np.ascontiguousarray(view), small, interpolation=cv2.INTER_AREA)
     search = params.disparity_range
     work_params = replace(params, disparity_range=None if search is None else (search[0] * sx, search[1] * sx))
     result = estimate_disparity(shrink(left), shrink(right), backend, work_params)

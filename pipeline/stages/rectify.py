@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..crop_align import CropAlignParams, align_crops
+from ..crop_align import CropAlignParams, align_crops, matches_in_boxes
 from ..errors import PipelineError
 from ..io import read_image, write_jpeg, write_json, write_png
 from ..records import CardTask
@@ -23,7 +23,7 @@ from ..rectify import (
 from ..split import CardSplit, crop_halves
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
 
-__all__ = ["orient_card", "rectify_task"]
+__all__ = ["filter_matches", "orient_card", "rectify_task"]
 
 
 def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
@@ -47,6 +47,27 @@ def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
     return card, {"status": "skipped", "applied": [], "reason": f"not needed: {judged}"}
 
 
+def filter_matches(task: CardTask, card_shape: tuple[int, ...]) -> tuple[np.ndarray, float] | None:
+    """The filter's good matches ``(N, 4)`` in px of the card as oriented here, and their scale
+    (card px per SIFT px), or None when the filter left none (older runs) or they cannot be read.
+    A card turned 180 deg turns its matches with it; an inverted one keeps them (same places)."""
+    relative, scale = task.inputs.get("filter_matches"), task.inputs.get("filter_match_scale")
+    if not isinstance(relative, str) or not isinstance(scale, (int, float)) or not scale >= 1:
+        return None
+    try:
+        matches = np.load(Path(task.data_dir) / relative, allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    if matches.ndim != 2 or matches.shape[1] != 4 or not np.all(np.isfinite(matches)):
+        return None
+    matches = matches.astype(np.float64)
+    if task.inputs.get("upside_down"):
+        height, width = card_shape[:2]
+        matches = np.column_stack([width - 1 - matches[:, 0], height - 1 - matches[:, 1],
+                                   width - 1 - matches[:, 2], height - 1 - matches[:, 3]])
+    return matches, float(scale)
+
+
 @stage_task("rectify")
 def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     """Rectify the card's two halves (Loop-Zhang with the paper's changes).
@@ -68,18 +89,31 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     boxes_before = boxes
     # The paper aligns the two crops by SIFT matches and cuts both to their intersection;
     # when that cannot be done the boxes go on as given and rectification decides.
-    # Crop alignment matches at rectification's working side, so its SIFT matches are reused
-    # for rectification (one SIFT pass a card, not two: the stage's largest cost).
-    matches = None
+    # SIFT is most of a card's cost: the filter's matches (card px) align the crops and rectify
+    # the pair when there are enough of them inside the boxes; else crop alignment matches at
+    # rectification's SIFT side and rectification reuses those. One SIFT pass a card either way.
+    matches, source = None, "rectify"
+    reused = filter_matches(task, card.shape)
     try:
-        alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]),
-                                CropAlignParams(ratio=params.ratio, max_side=params.max_side,
-                                                max_keypoints=params.max_keypoints))
+        alignment = None
+        if reused is not None:
+            box_matches = matches_in_boxes(reused[0], tuple(boxes[0]), tuple(boxes[1]))
+            if len(box_matches[0]) >= params.min_matches:
+                try:
+                    alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]), matches=box_matches)
+                    match_scale, source = reused[1], "filter"
+                except PipelineError:
+                    alignment = None
+        if alignment is None:
+            alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]),
+                                    CropAlignParams(ratio=params.ratio, max_side=params.max_side,
+                                                    max_keypoints=params.max_keypoints))
+            before = (*alignment.left_box_before, *alignment.right_box_before)
+            longest = max(before[2] - before[0], before[3] - before[1], before[6] - before[4], before[7] - before[5])
+            match_scale = max(1.0, longest / params.max_side)
         boxes = alignment.left_box, alignment.right_box
-        crop_record = {"status": "done", **alignment.metrics()}
-        before = (*alignment.left_box_before, *alignment.right_box_before)
-        longest = max(before[2] - before[0], before[3] - before[1], before[6] - before[4], before[7] - before[5])
-        matches = (*alignment.matches_in_crops(), max(1.0, longest / params.max_side))
+        crop_record = {"status": "done", **alignment.metrics(), "match_source": source}
+        matches = (*alignment.matches_in_crops(), match_scale)
     except PipelineError as exc:
         crop_record = {"status": "failed", "reason": exc.reason(), "left_box": list(boxes[0]),
                        "right_box": list(boxes[1])}

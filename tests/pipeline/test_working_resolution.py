@@ -189,3 +189,42 @@ def test_rectify_and_disparity_stages_store_views_at_most_the_working_side(tmp_p
     p50 = disparity.metrics["disparity_p50"]
     expected = 30 * size[0] / 741
     assert 0.4 * expected < p50 < 2.0 * expected
+
+
+def test_matches_in_boxes_takes_either_end_in_either_box():
+    from pipeline.crop_align import matches_in_boxes
+
+    card_matches = np.array([[10.0, 20.0, 110.0, 21.0],   # left end in the left box
+                             [112.0, 30.0, 12.0, 31.0],   # ends given the other way round
+                             [10.0, 20.0, 300.0, 20.0]])  # right end outside both boxes
+    pts_l, pts_r = matches_in_boxes(card_matches, (0, 0, 50, 50), (100, 0, 150, 50))
+    np.testing.assert_allclose(pts_l, [[10, 20], [12, 31]])
+    np.testing.assert_allclose(pts_r, [[10, 21], [12, 30]])
+
+
+def test_the_rectify_stage_reuses_the_filters_matches(tmp_path: Path):
+    """Filter then rectify, as a run does: crop alignment and rectification take the filter's
+    SIFT matches (no second SIFT pass) and give the rectification the own-SIFT path gives."""
+    from pipeline.filter import FilterParams
+    from pipeline.stages.filter import filter_task
+
+    task = _card_task(tmp_path, 1.0)
+    filtered = filter_task(task, FilterParams())
+    assert filtered.outcome == "pass" and "matches" in filtered.artifacts
+    matches = np.load(tmp_path / filtered.artifacts["matches"])
+    assert matches.shape == (filtered.metrics["good_matches"], 4) and matches.dtype == np.float32
+    inputs = {**task.inputs, "left_box": filtered.metrics["left_box"], "right_box": filtered.metrics["right_box"]}
+    own = rectify_task(CardTask(1, "x", task.image_path, task.work_dir, task.data_dir, inputs), RectifyParams())
+    reused = rectify_task(CardTask(1, "x", task.image_path, task.work_dir, task.data_dir,
+                                   {**inputs, "filter_matches": filtered.artifacts["matches"],
+                                    "filter_match_scale": filtered.metrics["match_scale"]}), RectifyParams())
+    assert own.status == reused.status == "done", (own.reason, reused.reason)
+    assert own.metrics["crop_alignment"]["match_source"] == "rectify"
+    assert reused.metrics["crop_alignment"]["match_source"] == "filter"
+    assert reused.metrics["dy_p95"] < 1.5
+    assert abs(reused.metrics["disparity_max"] - own.metrics["disparity_max"]) < 3
+    # A card judged upside down turns the filter's matches with it: still found in the turned boxes.
+    flipped = rectify_task(CardTask(1, "x", task.image_path, task.work_dir, task.data_dir,
+                                    {**inputs, "upside_down": True, "filter_matches": filtered.artifacts["matches"],
+                                     "filter_match_scale": filtered.metrics["match_scale"]}), RectifyParams())
+    assert flipped.status == "done" and flipped.metrics["crop_alignment"]["match_source"] == "filter"

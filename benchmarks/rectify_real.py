@@ -48,8 +48,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.crop_align import CropAlignParams, align_crops, matches_in_boxes
-from pipeline.filter import filter_card
 from pipeline.errors import PipelineError
+from pipeline.filter import filter_card
 from pipeline.io import read_image
 from pipeline.rectify import (
     Rectification,

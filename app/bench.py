@@ -23,6 +23,7 @@ LAZY_BENCHMARKS = {
     "pipeline": "benchmarks.pipeline_cost:bench_pipeline_command",
     "rectify": "benchmarks.rectify:bench_rectify_command",
     "views": "benchmarks.views:bench_views_command",
+    "workres": "benchmarks.workres:bench_workres_command",
 }
 
 

@@ -70,7 +70,9 @@ def filter_boxes(card: Card) -> dict[str, Any]:
     if result is None or result.status != "done":
         return {}
     return {"left_box": result.metrics.get("left_box"), "right_box": result.metrics.get("right_box"),
-            "box_source": f"filter split ({result.param_hash})"}
+            "box_source": f"filter split ({result.param_hash})",
+            # The filter's SIFT matches, reused by rectification (card px, and card px per SIFT px).
+            "filter_matches": result.artifacts.get("matches"), "filter_match_scale": result.metrics.get("match_scale")}
 
 
 def rectify_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:

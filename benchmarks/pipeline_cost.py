@@ -7,6 +7,14 @@ task is wrapped to read ``time.process_time()`` around every card. A card the fi
 pass, or that a stage fails, has no figure for the stages it did not reach (the report says
 which stages each card ran).
 
+Variants, side by side in one run (``--variant``, default both): ``full`` runs rectification and
+disparity at full resolution (``work_side=None``, the behaviour before the working resolution) and
+``work`` with the defaults (views stored and matched at ``RectifyParams.work_side``). Each variant
+runs in its own fresh process (spawned), one after the other, so its ``peak_rss_mb`` is its own;
+CPU seconds (``time.process_time``) move less with other load on the machine than wall time.
+Medians are given per scan size (``by_size``: the card's width, 760 px NYPL cards, ~1400 px
+Keystone-Mast raw scans, ~3000 px JPS pairs).
+
 Cards: the real scans in ``../shared/data/stereocards`` (NYPL cards ~760 px, Keystone-Mast raw
 scans ~1400 px, JPS pairs ~3000 px wide), or with ``--synthetic`` (and when that folder is not
 there) the Motorcycle card of scikit-image mounted at those three widths.
@@ -32,6 +40,8 @@ DEFAULT_STAGES = ("filter", "rectify", "disparity", "grade")
 ALL_STAGES = (*DEFAULT_STAGES, "views")
 CARD_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".jps"}
 SYNTHETIC_WIDTHS = (760, 1400, 3000)
+VARIANTS = ("full", "work")
+SIZE_CLASSES = ((0, 1000, "<1000 px"), (1000, 2000, "1000-2000 px"), (2000, 10**9, ">=2000 px"))
 TARGET_PIPELINE_CPU_S = 1.0
 TARGET_VIEWS_CPU_S = 0.5
 
@@ -70,10 +80,48 @@ def _timed(task: Callable[[Any], Any], seconds: dict[int, float], card_task: Any
         seconds[card_task.card_id] = time.process_time() - clock
 
 
+def variant_params(variant: str) -> dict[str, Any]:
+    """Stage parameters that differ from the defaults in ``variant`` (``full``: no working side)."""
+    from pipeline.rectify import RectifyParams
+    from pipeline.stages.disparity import DisparityStageParams
+
+    if variant == "work":
+        return {}
+    if variant == "full":
+        return {"rectify": RectifyParams(work_side=None), "disparity": DisparityStageParams(work_side=None)}
+    raise click.BadParameter(f"expected a variant among {', '.join(VARIANTS)}, got {variant!r}")
+
+
+def by_size(rows: list[dict[str, Any]], stages: tuple[str, ...]) -> list[dict[str, Any]]:
+    """Median pipeline and per-stage CPU seconds of the cards that reached the grade, per scan size."""
+    out = []
+    for low, high, label in SIZE_CLASSES:
+        group = [r for r in rows if r["reached_grade"] and low <= r["width"] < high]
+        if not group:
+            continue
+        out.append({
+            "size": label, "cards": len(group), "widths": sorted({r["width"] for r in group}),
+            "median_pipeline_cpu_seconds": round(statistics.median(r["pipeline_cpu_seconds"] for r in group), 4),
+            "max_pipeline_cpu_seconds": max(r["pipeline_cpu_seconds"] for r in group),
+            "median_cpu_seconds": {name: round(statistics.median(r["cpu_seconds"][name] for r in group), 4)
+                                   for name in stages if all(name in r["cpu_seconds"] for r in group)},
+        })
+    return out
+
+
+def benchmark_variant(cards: list[Path], stages: tuple[str, ...], sbs_order: str | None, variant: str) -> dict[str, Any]:
+    """:func:`benchmark_pipeline` with ``variant``'s parameters (run in a fresh process by the command)."""
+    document = benchmark_pipeline(cards, stages, sbs_order=sbs_order, params=variant_params(variant))
+    document["variant"] = variant
+    return document
+
+
 def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
-                       echo: Callable[[str], None] = lambda _m: None, sbs_order: str | None = None) -> dict[str, Any]:
+                       echo: Callable[[str], None] = lambda _m: None, sbs_order: str | None = None,
+                       params: dict[str, Any] | None = None) -> dict[str, Any]:
     """Ingest ``cards`` into a throwaway instance and run ``stages`` inline; per-card CPU seconds.
-    ``sbs_order`` is ``keystone ingest --sbs-order`` (None: JPS files are read cross-eyed)."""
+    ``sbs_order`` is ``keystone ingest --sbs-order`` (None: JPS files are read cross-eyed);
+    ``params``: stage name -> parameters replacing that stage's defaults."""
     from dataclasses import replace
 
     from sqlalchemy import select
@@ -99,7 +147,10 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
         specs = available_stages()
         for name in stages:
             seconds: dict[int, float] = {}
-            spec = replace(specs[name], task=functools.partial(_timed, specs[name].task, seconds))
+            spec = specs[name]
+            if params and name in params:
+                spec = replace(spec, params=params[name], task=functools.partial(spec.task.func, params=params[name]))
+            spec = replace(spec, task=functools.partial(_timed, spec.task, seconds))
             echo(f"{name}: running")
             run_stage(spec, data_dir=data_dir, executor=None)
             per_stage[name] = seconds
@@ -132,6 +183,7 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
         "per_stage_median_cpu_seconds": {
             name: round(statistics.median(per_stage[name].values()), 4) for name in stages if per_stage[name]},
         "target_pipeline_cpu_seconds": TARGET_PIPELINE_CPU_S, "target_views_cpu_seconds": TARGET_VIEWS_CPU_S,
+        "by_size": by_size(rows, stages),
     }
     import shutil
 
@@ -149,9 +201,12 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
 @click.option("--sbs-order", type=click.Choice(["cross", "parallel"]), default="parallel", show_default=True,
               help="Eye order of side-by-side files, as keystone ingest --sbs-order: the shared JPS files are "
                    "stored parallel (../shared/data/PROVENANCE.md, and the ingest's own eye-order check).")
+@click.option("--variant", "variants", multiple=True, type=click.Choice(VARIANTS),
+              help="full (work_side None: full resolution, as before) and/or work (the defaults); repeatable. "
+                   "Default: both, side by side, each in its own process.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
 def bench_pipeline_command(shared_data: Path | None, synthetic: bool, stages: str, limit: int | None,
-                           sbs_order: str, as_json: bool) -> None:
+                           sbs_order: str, variants: tuple[str, ...], as_json: bool) -> None:
     """CPU seconds per card for each stage (one core, inline) and peak memory on real cards."""
     names = tuple(name.strip() for name in stages.split(",") if name.strip())
     unknown = [name for name in names if name not in ALL_STAGES]
@@ -165,16 +220,48 @@ def bench_pipeline_command(shared_data: Path | None, synthetic: bool, stages: st
     if not cards:
         cards = synthetic_cards(Path(tempfile.mkdtemp(prefix="keystone-bench-cards-")))
     cards = cards[:limit] if limit else cards
-    document = benchmark_pipeline(cards, names, echo=lambda m: click.echo(m, err=True), sbs_order=sbs_order)
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    runs: dict[str, dict[str, Any]] = {}
+    for variant in variants or VARIANTS:
+        click.echo(f"{variant}: running", err=True)
+        # A fresh process per variant: its peak memory is its own, and nothing is cached across.
+        with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            runs[variant] = pool.submit(benchmark_variant, cards, names, sbs_order, variant).result()
+    main = runs.get("work") or next(iter(runs.values()))
+    document = {**main, "variants": runs,
+                "comparison": comparison(runs) if len(runs) > 1 else None}
     if as_json:
         click.echo(json.dumps(document, indent=2))
         return
-    click.echo(f"{'card':<52} {'size':>10} " + " ".join(f"{name:>9}" for name in names) + f" {'pipeline':>9}")
-    for row in document["results"]:
-        cells = " ".join(f"{row['cpu_seconds'][n]:9.3f}" if n in row["cpu_seconds"] else f"{'-':>9}" for n in names)
-        click.echo(f"{row['card'][:52]:<52} {row['width']:>5}x{row['height']:<4} {cells} "
-                   f"{row['pipeline_cpu_seconds']:9.3f}")
-    summary = document["summary"]
-    click.echo(f"median pipeline {summary['median_pipeline_cpu_seconds']} CPU-s a card (target <= "
-               f"{TARGET_PIPELINE_CPU_S}), views {summary['median_views_cpu_seconds']} (target <= "
-               f"{TARGET_VIEWS_CPU_S}); peak {document['peak_rss_mb']} MB")
+    for variant, run in runs.items():
+        click.echo(f"== {variant}")
+        click.echo(f"{'card':<52} {'size':>10} " + " ".join(f"{name:>9}" for name in names) + f" {'pipeline':>9}")
+        for row in run["results"]:
+            cells = " ".join(f"{row['cpu_seconds'][n]:9.3f}" if n in row["cpu_seconds"] else f"{'-':>9}" for n in names)
+            click.echo(f"{row['card'][:52]:<52} {row['width']:>5}x{row['height']:<4} {cells} "
+                       f"{row['pipeline_cpu_seconds']:9.3f}")
+        summary = run["summary"]
+        for group in summary["by_size"]:
+            click.echo(f"{group['size']:>13}: median {group['median_pipeline_cpu_seconds']} CPU-s a card "
+                       f"({group['cards']} cards) {group['median_cpu_seconds']}")
+        click.echo(f"median pipeline {summary['median_pipeline_cpu_seconds']} CPU-s a card (target <= "
+                   f"{TARGET_PIPELINE_CPU_S}), views {summary['median_views_cpu_seconds']} (target <= "
+                   f"{TARGET_VIEWS_CPU_S}); peak {run['peak_rss_mb']} MB")
+
+
+def comparison(runs: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per scan size: the median pipeline CPU seconds of each variant side by side, and the ratio."""
+    labels = [label for _, _, label in SIZE_CLASSES]
+    out = []
+    for label in labels:
+        row: dict[str, Any] = {"size": label}
+        for variant, run in runs.items():
+            group = next((g for g in run["summary"]["by_size"] if g["size"] == label), None)
+            row[variant] = group["median_pipeline_cpu_seconds"] if group else None
+        if row.get("full") and row.get("work"):
+            row["work_over_full"] = round(row["work"] / row["full"], 3)
+        if any(row.get(v) is not None for v in runs):
+            out.append(row)
+    return out

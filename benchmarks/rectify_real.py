@@ -25,7 +25,13 @@ Per pair:
   for each physical view the direction, in original card pixels, of the rectified row through the
   centre of the view is compared with the uncropped rectification. The largest change over views
   and crops is reported, with the largest change of the disparity range ends (px);
-- ``seconds``: rectify_pair alone, on the uncropped pair.
+- ``seconds``: crop alignment and rectification of the uncropped pair (the stage's order: crop
+  alignment matches at rectification's SIFT side and its matches are reused, so one SIFT pass).
+
+Working resolution (``--work-side``, default ``RectifyParams.work_side``): the fresh matches are
+found on the views as the stage stores them, at most that many px on the longer side; ``dy_*`` are
+given in full-resolution px (stored px divided by ``view_scale``), ``dy_*_stored_px`` as measured.
+The gates apply in stored px.
 """
 
 from __future__ import annotations
@@ -41,11 +47,20 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.crop_align import align_crops
+from pipeline.crop_align import CropAlignParams, align_crops, matches_in_boxes
 from pipeline.errors import PipelineError
+from pipeline.filter import filter_card
 from pipeline.io import read_image
-from pipeline.rectify import Rectification, RectifyParams, match_features, rectify_pair, warp_pair
-from pipeline.split import split_card
+from pipeline.rectify import (
+    Rectification,
+    RectifyParams,
+    match_features,
+    rectify_matches,
+    rectify_pair,
+    scale_rectification,
+    stored_view_scale,
+    warp_pair,
+)
 
 ROW_GATE = 3.0  # px: fresh matches further from their row than this are mismatches (the headline figure)
 DY_GATE = 10.0  # px: the looser gate, reported beside it
@@ -69,6 +84,7 @@ class Prepared:
     origin_l: tuple[int, int]  # (x, y) of each view's top-left pixel in the (uncropped) source px
     origin_r: tuple[int, int]
     principal_point: tuple[float, float] | None
+    matches: tuple[np.ndarray, np.ndarray, float] | None = None  # crop alignment's (pts_l, pts_r, match_scale)
 
 
 def real_pairs(data: Path) -> list[RealPair]:
@@ -90,18 +106,37 @@ def _cut(image: np.ndarray, crop: tuple[int, int, int, int]) -> np.ndarray:
     return np.ascontiguousarray(image[top:h - bottom, left:w - right])
 
 
-def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0)) -> Prepared:
+def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0),
+            params: RectifyParams = RectifyParams()) -> Prepared:
     """The two views as the rectify stage gets them, ``crop`` = (left, top, right, bottom) px cut
-    off the card (off each file for a pre-split pair) first."""
+    off the card (off each file for a pre-split pair) first. As in the stage, crop alignment
+    matches at ``params``' SIFT side and its matches are kept for rectification."""
     if pair.card is None:
         assert pair.left is not None and pair.right is not None
         return Prepared(_cut(pair.left, crop), _cut(pair.right, crop), (crop[0], crop[1]), (crop[0], crop[1]), None)
     card = _cut(pair.card, crop)
-    split = split_card(card)
+    # As the filter stage then the rectify stage: the filter splits the card and keeps its SIFT
+    # matches; crop alignment and rectification reuse them (else they match at params' side).
+    split, filtered = filter_card(card)
     boxes_before = split.left_box, split.right_box
+    card_matches = np.hstack([filtered.points[0] + split.left_box[:2], filtered.points[1] + split.right_box[:2]])
+    matches = None
     try:
-        alignment = align_crops(card, split.left_box, split.right_box)
+        alignment, scale = None, filtered.match_scale
+        box_matches = matches_in_boxes(card_matches, split.left_box, split.right_box)
+        if len(box_matches[0]) >= params.min_matches:
+            try:
+                alignment = align_crops(card, split.left_box, split.right_box, matches=box_matches)
+            except PipelineError:
+                alignment = None
+        if alignment is None:
+            alignment = align_crops(card, split.left_box, split.right_box,
+                                    CropAlignParams(ratio=params.ratio, max_side=params.max_side,
+                                                    max_keypoints=params.max_keypoints))
+            lb, rb = alignment.left_box_before, alignment.right_box_before
+            scale = max(1.0, max(lb[2] - lb[0], lb[3] - lb[1], rb[2] - rb[0], rb[3] - rb[1]) / params.max_side)
         boxes = alignment.left_box, alignment.right_box
+        matches = (*alignment.matches_in_crops(), scale)
     except PipelineError:
         boxes = boxes_before
     (lx0, ly0, lx1, ly1), (rx0, ry0, rx1, ry1) = boxes
@@ -109,8 +144,18 @@ def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0)) -> P
     principal_point = ((full[0] + full[2] - 1) / 2 - lx0, (full[1] + full[3] - 1) / 2 - ly0)
     return Prepared(
         np.ascontiguousarray(card[ly0:ly1, lx0:lx1]), np.ascontiguousarray(card[ry0:ry1, rx0:rx1]),
-        (lx0 + crop[0], ly0 + crop[1]), (rx0 + crop[0], ry0 + crop[1]), principal_point,
+        (lx0 + crop[0], ly0 + crop[1]), (rx0 + crop[0], ry0 + crop[1]), principal_point, matches,
     )
+
+
+def rectify_prepared(prepared: Prepared, params: RectifyParams) -> Rectification:
+    """Rectify as the stage does: from crop alignment's matches when it found them, else by
+    :func:`rectify_pair` (which matches the crops itself)."""
+    if prepared.matches is None:
+        return rectify_pair(prepared.left, prepared.right, params, principal_point=prepared.principal_point)
+    pts_l, pts_r, scale = prepared.matches
+    return rectify_matches(pts_l, pts_r, prepared.left.shape[1::-1], prepared.right.shape[1::-1], params,
+                           principal_point=prepared.principal_point, match_scale=scale)
 
 
 def method_of(rect: Rectification) -> str:
@@ -170,27 +215,35 @@ def crops(n: int, seed: int = 0) -> list[tuple[int, int, int, int]]:
 
 def measure(pair: RealPair, params: RectifyParams = RectifyParams(), n_crops: int = 3) -> dict[str, Any]:
     row: dict[str, Any] = {"pair": pair.name}
-    prepared = prepare(pair)
-    row["view_size"] = [int(prepared.left.shape[1]), int(prepared.left.shape[0])]
     clock = time.perf_counter()
+    prepared = prepare(pair, params=params)
+    row["view_size"] = [int(prepared.left.shape[1]), int(prepared.left.shape[0])]
     try:
-        rect = rectify_pair(prepared.left, prepared.right, params, principal_point=prepared.principal_point)
+        rect = rectify_prepared(prepared, params)
     except PipelineError as exc:
         row.update(method="refused", code=exc.code, reason=str(exc), seconds=round(time.perf_counter() - clock, 3))
         return row
-    row["seconds"] = round(time.perf_counter() - clock, 3)
+    row["seconds"] = round(time.perf_counter() - clock, 3)  # crop alignment and rectification
     row.update(method=method_of(rect), reason=rect.reason, swapped=rect.swapped, inliers=rect.inliers,
                inlier_dy_p95=round(rect.dy_p95, 3), midline_angle=round(rect.midline_angle, 3),
                aspect_change=round(rect.aspect_change, 4), rotation=round(rect.rotation, 3),
                kept_fraction=round(rect.kept_fraction, 4),
                disparity_range=[round(v, 1) for v in rect.disparity_range])
-    row.update(fresh_dy(*warp_pair(prepared.left, prepared.right, rect)))
+    # Fresh matches on the views as the stage stores them (at the working side), their |dy| in
+    # full-resolution px (divided by the view scale) so figures compare across working sides.
+    stored = scale_rectification(rect, stored_view_scale(rect.size, params.work_side))
+    fresh = fresh_dy(*warp_pair(prepared.left, prepared.right, stored))
+    for key in ("dy_median", "dy_p95", "dy_median_within10", "dy_p95_within10"):
+        if fresh.get(key) is not None:
+            fresh[f"{key}_stored_px"] = fresh[key]
+            fresh[key] = round(fresh[key] / stored.view_scale, 3)
+    row.update(fresh, view_scale=round(stored.view_scale, 4), stored_size=list(stored.size))
     base = [(H, c, row_direction(H, c)) for H, c in _physical(rect, prepared)]
     worst_angle, worst_range, crop_rows = 0.0, 0.0, []
     for crop in crops(n_crops):
-        cropped = prepare(pair, crop)
+        cropped = prepare(pair, crop, params)
         try:
-            rc = rectify_pair(cropped.left, cropped.right, params, principal_point=cropped.principal_point)
+            rc = rectify_prepared(cropped, params)
         except PipelineError as exc:
             crop_rows.append({"crop": list(crop), "code": exc.code})
             worst_angle = math.inf
@@ -212,16 +265,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", default=None, help="only pairs whose name contains this")
     parser.add_argument("--max-side", type=int, default=RectifyParams().max_side,
                         help="working resolution: longer side (px) of the views SIFT matches on for rectification")
+    parser.add_argument("--max-keypoints", type=int, default=RectifyParams().max_keypoints,
+                        help="SIFT keypoints per view for rectification")
+    parser.add_argument("--work-side", default=str(RectifyParams().work_side),
+                        help="longer side (px) of the stored rectified views the check matches on, or 'none' (full)")
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
     if not (args.data / "stereocards").is_dir():
         print(f"no stereocards under {args.data}", file=sys.stderr)
         return 2
+    work_side = None if args.work_side.lower() in ("none", "full") else int(args.work_side)
+    params = RectifyParams(max_side=args.max_side, max_keypoints=args.max_keypoints, work_side=work_side)
     rows = []
     for pair in real_pairs(args.data):
         if args.only and args.only not in pair.name:
             continue
-        row = measure(pair, RectifyParams(max_side=args.max_side), n_crops=args.crops)
+        row = measure(pair, params, n_crops=args.crops)
         rows.append(row)
         if not args.json:
             print(f"{row['pair']:<58} {row['method']:<11} dy_p95 {row.get('dy_p95')!s:>6} "
@@ -230,8 +289,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"disp_move {row.get('crop_disparity_move')!s:>5} {row['seconds']:.2f}s "
                   f"{row.get('code', '')}", flush=True)
     if args.json:
-        print(json.dumps({"max_side": args.max_side, "row_gate_px": ROW_GATE, "dy_gate_px": DY_GATE,
-                          "max_crop_px": MAX_CROP, "pairs": rows}, indent=1))
+        print(json.dumps({"max_side": args.max_side, "max_keypoints": args.max_keypoints, "work_side": work_side,
+                          "row_gate_px": ROW_GATE, "dy_gate_px": DY_GATE, "max_crop_px": MAX_CROP, "pairs": rows},
+                         indent=1))
     return 0
 
 

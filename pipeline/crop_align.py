@@ -28,7 +28,7 @@ by less than 16 px in a dimension.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -44,6 +44,7 @@ __all__ = [
     "EmptyIntersectionError",
     "TooFewCropMatchesError",
     "align_crops",
+    "matches_in_boxes",
 ]
 
 Box = tuple[int, int, int, int]
@@ -103,11 +104,27 @@ class CropAlignment:
     matches: int  # ratio-test matches between the two boxes
     inliers: int  # matches in the translation consensus
     seconds: float = 0.0
+    points: tuple[np.ndarray, np.ndarray] = field(default=(np.zeros((0, 2)), np.zeros((0, 2))), repr=False)
+    """Every ratio-test match ``(pts_l, pts_r)``, ``(N, 2)`` px relative to the boxes *before*
+    alignment (full resolution, origin at the box's top-left pixel centre)."""
 
     @property
     def size(self) -> tuple[int, int]:
         """(width, height) px of both aligned crops."""
         return self.left_box[2] - self.left_box[0], self.left_box[3] - self.left_box[1]
+
+    def matches_in_crops(self) -> tuple[np.ndarray, np.ndarray]:
+        """The matches as ``(pts_l, pts_r)`` in px of the aligned crops (``left_box`` /
+        ``right_box``), only those inside both: rectification can reuse the SIFT work done here
+        instead of matching the same crops again."""
+        pts_l, pts_r = self.points
+        width, height = self.size
+        pts_l = pts_l - np.array([self.left_box[0] - self.left_box_before[0], self.left_box[1] - self.left_box_before[1]])
+        pts_r = pts_r - np.array([self.right_box[0] - self.right_box_before[0], self.right_box[1] - self.right_box_before[1]])
+        inside = np.ones(len(pts_l), bool)
+        for pts in (pts_l, pts_r):
+            inside &= (pts[:, 0] >= -0.5) & (pts[:, 0] < width - 0.5) & (pts[:, 1] >= -0.5) & (pts[:, 1] < height - 0.5)
+        return pts_l[inside], pts_r[inside]
 
     def metrics(self) -> dict[str, Any]:
         return {
@@ -118,6 +135,24 @@ class CropAlignment:
             "convention": "far content at left-crop (x, y) is at right-crop (x + dx, y + dy)",
             "seconds": round(float(self.seconds), 4),
         }
+
+
+def matches_in_boxes(card_matches: np.ndarray, left_box: Box, right_box: Box) -> tuple[np.ndarray, np.ndarray]:
+    """Matches ``(N, 4)`` ``[x_a, y_a, x_b, y_b]`` in card px (e.g. the filter's, between its two
+    halves) as ``(pts_l, pts_r)`` relative to ``left_box`` / ``right_box``: a match counts when one
+    end lies in each box, whichever end is in which (boxes exchanged by a swap still find them)."""
+    m = np.asarray(card_matches, np.float64).reshape(-1, 4)
+    a, b = m[:, :2], m[:, 2:]
+
+    def inside(pts: np.ndarray, box: Box) -> np.ndarray:
+        return ((pts[:, 0] >= box[0] - 0.5) & (pts[:, 0] < box[2] - 0.5)
+                & (pts[:, 1] >= box[1] - 0.5) & (pts[:, 1] < box[3] - 0.5))
+
+    forward = inside(a, left_box) & inside(b, right_box)
+    backward = inside(b, left_box) & inside(a, right_box) & ~forward
+    pts_l = np.vstack([a[forward], b[backward]]) - np.array(left_box[:2], np.float64)
+    pts_r = np.vstack([b[forward], a[backward]]) - np.array(right_box[:2], np.float64)
+    return pts_l, pts_r
 
 
 def _check_box(box: object, name: str, width: int, height: int) -> Box:
@@ -136,10 +171,13 @@ def _check_box(box: object, name: str, width: int, height: int) -> Box:
 
 
 def align_crops(
-    card: np.ndarray, left_box: Box, right_box: Box, params: CropAlignParams = CropAlignParams()
+    card: np.ndarray, left_box: Box, right_box: Box, params: CropAlignParams = CropAlignParams(),
+    matches: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> CropAlignment:
     """Align two crop boxes on ``card`` (uint8 ``(H, W)``/``(H, W, 3)``) by a SIFT translation and
     cut both to their intersection in aligned coordinates (conventions in the module docstring).
+    ``matches``: SIFT matches already found (``(pts_l, pts_r)``, ``(N, 2)`` px relative to the
+    boxes, e.g. the filter's, :func:`matches_in_boxes`); None: match the boxes here.
 
     The returned ``left_box`` / ``right_box`` lie inside the card, inside the boxes given, and
     have the same size; ``card[right_box]`` row ``r`` shows the same scene row as ``card[left_box]``
@@ -152,8 +190,13 @@ def align_crops(
     rb = _check_box(right_box, "right_box", width, height)
     left = np.ascontiguousarray(card[lb[1]:lb[3], lb[0]:lb[2]])
     right = np.ascontiguousarray(card[rb[1]:rb[3], rb[0]:rb[2]])
-    rp = RectifyParams(ratio=params.ratio, max_side=params.max_side, max_keypoints=params.max_keypoints)
-    pts_l, pts_r = match_features(left, right, rp)
+    if matches is None:
+        rp = RectifyParams(ratio=params.ratio, max_side=params.max_side, max_keypoints=params.max_keypoints)
+        pts_l, pts_r = match_features(left, right, rp)
+    else:
+        pts_l, pts_r = (np.asarray(p, np.float64).reshape(-1, 2) for p in matches)
+        if pts_l.shape != pts_r.shape or not (np.all(np.isfinite(pts_l)) and np.all(np.isfinite(pts_r))):
+            raise InvalidInputError(f"Expected two finite (N, 2) match arrays, got {pts_l.shape} and {pts_r.shape}")
     n = len(pts_l)
     if n < params.min_matches:
         raise TooFewCropMatchesError(f"{n} SIFT matches between the boxes < {params.min_matches}")
@@ -187,5 +230,5 @@ def align_crops(
     new_r = (rb[0] + x0 + ix, rb[1] + y0 + iy, rb[0] + x1 + ix, rb[1] + y1 + iy)
     return CropAlignment(
         left_box_before=lb, right_box_before=rb, left_box=new_l, right_box=new_r, dx=dx, dy=dy,
-        dy_spread=spread, matches=n, inliers=n_in, seconds=time.perf_counter() - clock,
+        dy_spread=spread, matches=n, inliers=n_in, seconds=time.perf_counter() - clock, points=(pts_l, pts_r),
     )

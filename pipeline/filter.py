@@ -68,7 +68,12 @@ class FilterParams:
     """px: each half is downscaled (area filter) so its longer side is at most this. SIFT time
     grows with pixels (a 3000 px scan half would take seconds); at ~600 px the halves are at
     the scale of the paper's web-size scans, where the thresholds above were measured, and
-    fine film grain and JPEG noise no longer make keypoints."""
+    fine film grain and JPEG noise no longer make keypoints. The good matches found here are
+    reused by crop alignment and rectification (the rectify stage): this is the card's one SIFT
+    pass. Measured 2026-11-24: 480 px / 1,500 keypoints would save 0.12-0.15 s on 1400-3000 px
+    scans, but an unrelated pair's fraction rises from under 0.5 % to 0.69 % (the thresholds'
+    calibration moves) and the 3000 px sports pair's rectification moves 1.6 deg under a 16 px
+    crop (``benchmarks.rectify_real``), so the side stays 600."""
     max_keypoints: int = 2000
     """SIFT keeps at most this many keypoints per half, the strongest (0: all, as the paper).
     Grainy raw scans give 5,000+ keypoints per 600 px half and brute-force matching grows with
@@ -126,6 +131,12 @@ class FilterResult:
     left_size: tuple[int, int] = (0, 0)  # (w, h) px of the left half as given to SIFT
     right_size: tuple[int, int] = (0, 0)
     params: FilterParams = field(default_factory=FilterParams, repr=False)
+    points: tuple[np.ndarray, np.ndarray] = field(default=(np.zeros((0, 2)), np.zeros((0, 2))), repr=False)
+    """The good matches ``(pts_l, pts_r)``, ``(N, 2)`` float64 px of each half as given (full
+    resolution, origin at the top-left pixel centre): later stages reuse them instead of running
+    SIFT on the same photos again."""
+    match_scale: float = 1.0
+    """Half px per SIFT px (>= 1): how much coarser than the halves the matches were found."""
 
     def metrics(self) -> dict[str, Any]:
         """JSON-safe numbers: counts, fraction, denominator, thresholds, sizes and timings."""
@@ -242,6 +253,8 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
 
     clock = time.perf_counter()
     offsets: list[tuple[float, float]] = []
+    pts_l: list[tuple[float, float]] = []
+    pts_r: list[tuple[float, float]] = []
     if descriptors_l is not None and descriptors_r is not None and n_left > 0 and n_right >= 2:
         matcher = cv2.BFMatcher(cv2.NORM_L2, crossCheck=False)
         (hl, wl), (hr, wr) = grey_left.shape, grey_right.shape
@@ -249,6 +262,8 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
             if len(pair) == 2 and pair[0].distance < params.ratio * pair[1].distance:
                 (xl, yl), (xr, yr) = keypoints_l[pair[0].queryIdx].pt, keypoints_r[pair[0].trainIdx].pt
                 offsets.append((xr / wr - xl / wl, yr / hr - yl / hl))
+                pts_l.append((xl, yl))
+                pts_r.append((xr, yr))
     good = len(offsets)
     consistent = consistent_matches(np.array(offsets).reshape(-1, 2), params) if params.check_geometry else None
     match_seconds = time.perf_counter() - clock
@@ -260,7 +275,12 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
         reason = f"culled: no SIFT keypoints in {where} (blank or textureless)"
     else:
         outcome, reason = route(fraction, good, params, consistent)
+    # Pixel centres: x_half + 0.5 = (x_sift + 0.5) / scale, per half and axis.
+    to_half = [np.array([left.shape[1] / grey_left.shape[1], left.shape[0] / grey_left.shape[0]]),
+               np.array([right.shape[1] / grey_right.shape[1], right.shape[0] / grey_right.shape[0]])]
+    points = tuple((np.array(pts, np.float64).reshape(-1, 2) + 0.5) * scale - 0.5 for pts, scale in zip((pts_l, pts_r), to_half))
     return FilterResult(
+        points=points, match_scale=float(max(to_half[0].max(), to_half[1].max())),  # type: ignore[arg-type]
         outcome=outcome, good_matches=good, keypoints_left=n_left, keypoints_right=n_right,
         denominator=DENOMINATOR, good_match_fraction=float(fraction), reason=reason,
         consistent_matches=-1 if consistent is None else consistent,

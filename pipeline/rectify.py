@@ -105,6 +105,9 @@ __all__ = [
     "match_features",
     "rectify_matches",
     "rectify_pair",
+    "scale_rectification",
+    "scaling_matrix",
+    "stored_view_scale",
     "warp_pair",
 ]
 
@@ -231,6 +234,16 @@ class RectifyParams:
     coordinates, carried through rectification) is negative."""
     random_seed: int = 0
     """USAC random generator state: same input, same F."""
+    work_side: int | None = 800
+    """px: the rectify stage stores the rectified views at most this long on their longer side
+    (:func:`stored_view_scale`), and the disparity stage works on them at that size; ``None``
+    keeps the full resolution (the behaviour before the working resolution). The homographies
+    still take the full-resolution crops as input. Chosen by ``keystone bench workres`` (disparity
+    error against CPU time across working sides, docs/BENCHMARKS.md): on ground-truth scenes
+    scanned at 2x (1482x1000 views, as a ~3000 px card's), mean bad-2 15.7 % at 800 against
+    17.6 % at full resolution, in 0.31 s against 1.02 s; 1000 and full are dominated by 800, and
+    600 (17.8 %, 0.17 s) loses 1.5-2 points on scenes given at their own ~740 px resolution,
+    the size of a Keystone-Mast raw scan's views."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.ratio <= 1.0:
@@ -248,6 +261,8 @@ class RectifyParams:
             raise InvalidInputError("Expected planar_ratio, skip_share in (0, 1] and min_kept_fraction in [0, 1]")
         if self.max_aspect_change < 1.0 or self.max_canvas_scale < 1.0 or self.epipole_margin < 0:
             raise InvalidInputError("Expected max_aspect_change >= 1, max_canvas_scale >= 1, epipole_margin >= 0")
+        if self.work_side is not None and (isinstance(self.work_side, bool) or self.work_side < MIN_SIDE):
+            raise InvalidInputError(f"Expected work_side None or >= {MIN_SIDE} px, got {self.work_side!r}")
 
 
 # ------------------------------------------------------------------------------------ result
@@ -292,6 +307,11 @@ class Rectification:
     """The fundamental matrix used (views in output order: ``x_r^T F x_l = 0``, unit norm)."""
     inlier_points: tuple[np.ndarray, np.ndarray] = field(default=(np.zeros((0, 2)), np.zeros((0, 2))), repr=False)
     """Inlier matches ``(pts_l, pts_r)`` (N, 2) px in the (swapped if so) input views."""
+    view_scale: float = 1.0
+    """Rectified-view px per full-resolution rectified px (:func:`scale_rectification`): 1 for
+    the full-resolution frame; below 1 the outputs (``H_l``, ``H_r``, ``size``, ``K``,
+    disparity range, |dy|) are those of views stored at that scale, and :func:`warp_pair`
+    downscales the inputs (area filter) before warping so the views are not aliased."""
 
     def metrics(self) -> dict[str, Any]:
         """JSON-safe numbers for a StageRecord (homographies as nested lists, row = row of H)."""
@@ -306,6 +326,7 @@ class Rectification:
             "matches": int(self.matches), "inliers": int(self.inliers), "swapped": bool(self.swapped),
             "warp_needed": bool(self.warp_needed), "reason": self.reason, "seconds": round(float(self.seconds), 4),
             "rotation": round(float(self.rotation), 3), "method": self.method,
+            "view_scale": float(self.view_scale),
         }
 
 
@@ -1150,8 +1171,12 @@ def warp_pair(left: np.ndarray, right: np.ndarray, rect: Rectification) -> tuple
 
     ``left``/``right`` are the views as given to :func:`rectify_pair`; they are swapped first if
     ``rect.swapped``. Without ``warp_needed`` the (swapped) views come back padded to the common
-    size. Bilinear interpolation, black outside. Raises :class:`UnboundedWarpError` for
-    non-finite homographies or a canvas over 8x the inputs' larger side.
+    size. Bilinear interpolation, black outside. With ``rect.view_scale < 1`` each input is first
+    downscaled by about that factor with an area filter (bilinear sampling alone would alias a
+    3x reduction) and warped by ``H S_in^-1`` (``S_in``: :func:`scaling_matrix` of the resize
+    actually done), which is the same geometry as ``H`` on the full-resolution input. Raises
+    :class:`UnboundedWarpError` for non-finite homographies or a canvas over 8x the inputs'
+    larger side.
     """
     _check_view(left, "the left view")
     _check_view(right, "the right view")
@@ -1165,9 +1190,70 @@ def warp_pair(left: np.ndarray, right: np.ndarray, rect: Rectification) -> tuple
         raise UnboundedWarpError("non-finite homography")
     out = []
     for image, H in ((left, rect.H_l), (right, rect.H_r)):
+        image = np.ascontiguousarray(image)
+        if rect.view_scale < 1.0:
+            h_in, w_in = image.shape[:2]
+            small = (max(1, round(w_in * rect.view_scale)), max(1, round(h_in * rect.view_scale)))
+            if small != (w_in, h_in):
+                image = cv2.resize(image, small, interpolation=cv2.INTER_AREA)
+                H = H @ np.linalg.inv(scaling_matrix(small[0] / w_in, small[1] / h_in))
         warped = cv2.warpPerspective(
-            np.ascontiguousarray(image), H, (width, height), flags=cv2.INTER_LINEAR,
+            image, H, (width, height), flags=cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_CONSTANT, borderValue=0,
         )
         out.append(warped)
     return out[0], out[1]
+
+
+# ------------------------------------------------------------------------- working resolution
+
+
+def scaling_matrix(sx: float, sy: float | None = None) -> np.ndarray:
+    """3x3 ``S`` taking px of an image to px of the same image resized by ``(sx, sy)``.
+
+    With the origin at the top-left pixel *centre* (module conventions), the pixel edge is at
+    -0.5, so ``x' + 0.5 = sx (x + 0.5)``: ``S = [[sx, 0, (sx-1)/2], [0, sy, (sy-1)/2], [0, 0, 1]]``.
+    A homography ``H`` between full-resolution images becomes ``S_out H S_in^-1`` between resized
+    ones, and back: ``H_full = S_out^-1 H_work S_in``.
+    """
+    sy = sx if sy is None else sy
+    if not (math.isfinite(sx) and math.isfinite(sy) and sx > 0 and sy > 0):
+        raise InvalidInputError(f"Expected finite scales > 0, got {sx}, {sy}")
+    return np.array([[sx, 0.0, (sx - 1.0) / 2.0], [0.0, sy, (sy - 1.0) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def stored_view_scale(size: tuple[int, int], work_side: int | None) -> float:
+    """Scale (<= 1) that brings a ``size = (width, height)`` px view to at most ``work_side`` px
+    on its longer side; 1 when it already fits or ``work_side`` is None (full resolution)."""
+    width, height = (int(v) for v in size)
+    if width < 1 or height < 1:
+        raise InvalidInputError(f"Expected a view size of at least 1 x 1 px, got {size}")
+    if work_side is None:
+        return 1.0
+    if work_side < 1:
+        raise InvalidInputError(f"Expected work_side >= 1 px or None, got {work_side}")
+    return min(1.0, work_side / max(width, height))
+
+
+def scale_rectification(rect: Rectification, scale: float) -> Rectification:
+    """The same rectification with its output frame resized by ``scale`` (0 < scale <= 1).
+
+    The inputs stay the full-resolution views; what describes the output changes with it:
+    ``H' = S H`` (:func:`scaling_matrix`), ``size' = round(size x scale)``, ``K' = S K``
+    (focal length times ``scale``, principal point moved with the pixel centres), the disparity
+    range and |dy| times ``scale`` (px of the scaled views). Angles, aspect change, shear, kept
+    fraction, F and the inlier matches (input px) do not change. ``view_scale`` multiplies.
+    """
+    if not (math.isfinite(scale) and 0.0 < scale <= 1.0):
+        raise InvalidInputError(f"Expected 0 < scale <= 1, got {scale}")
+    if scale == 1.0:
+        return rect
+    width, height = rect.size
+    size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    S = scaling_matrix(size[0] / width, size[1] / height)
+    s = math.sqrt(S[0, 0] * S[1, 1])  # the two differ by the rounding of the size only
+    return replace(
+        rect, H_l=S @ rect.H_l, H_r=S @ rect.H_r, size=size, K=S @ rect.K,
+        disparity_range=(rect.disparity_range[0] * S[0, 0], rect.disparity_range[1] * S[0, 0]),
+        dy_median=rect.dy_median * S[1, 1], dy_p95=rect.dy_p95 * S[1, 1], view_scale=rect.view_scale * s,
+    )

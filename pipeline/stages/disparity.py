@@ -2,17 +2,26 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from ..disparity import DEFAULT_BACKEND, DisparityParams, depth_from_disparity, estimate_disparity, resample_512
+from ..disparity import (
+    DEFAULT_BACKEND,
+    DisparityParams,
+    DisparityResult,
+    depth_from_disparity,
+    estimate_disparity,
+    resample_512,
+)
+from ..errors import InvalidInputError
 from ..io import read_image, write_jpeg, write_npy
 from ..records import CardTask
+from ..rectify import stored_view_scale
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
 
-__all__ = ["DisparityStageParams", "colour_disparity", "disparity_task"]
+__all__ = ["DisparityStageParams", "colour_disparity", "disparity_at_work_side", "disparity_task", "upsample_map"]
 
 
 @dataclass(frozen=True)
@@ -24,6 +33,70 @@ class DisparityStageParams:
     consistency_px: float = 1.0
     release_size: int = 512  # the paper's depth maps are 512 x 512
     range_margin_px: float = 4.0  # widen the measured disparity range: inliers miss extremes
+    work_side: int | None = 800
+    """px: views longer than this on their longer side are downscaled (area filter) to it for the
+    backend, and the maps brought back to the views' pixels (:func:`disparity_at_work_side`);
+    ``None``: full resolution. The same default as ``RectifyParams.work_side``, so views the
+    rectify stage stored already fit; chosen by ``keystone bench workres``."""
+
+    def __post_init__(self) -> None:
+        if self.work_side is not None and (isinstance(self.work_side, bool) or self.work_side < 16):
+            raise InvalidInputError(f"Expected work_side None or >= 16 px, got {self.work_side!r}")
+
+
+def upsample_map(values: np.ndarray, size: tuple[int, int], value_scale: float = 1.0) -> np.ndarray:
+    """``values`` ``(h, w)`` (NaN = unknown) resized to ``size = (W, H)`` px, times ``value_scale``.
+
+    Bilinear on the known pixels only (normalised: known values over the resized share of known
+    pixels), so a hole neither spreads NaN nor pulls its neighbours to 0; a pixel whose
+    neighbourhood is under half known stays NaN. Disparity in px of the larger view is the
+    working disparity times ``W / w`` (pass that as ``value_scale``).
+    """
+    import cv2
+
+    values = np.asarray(values, np.float32)
+    if values.ndim != 2 or min(values.shape) < 1:
+        raise InvalidInputError(f"Expected a 2-D map, got shape {values.shape}")
+    known = np.isfinite(values)
+    filled = cv2.resize(np.where(known, values, 0.0).astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    share = cv2.resize(known.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    out = np.full(share.shape, np.nan, np.float32)
+    enough = share >= 0.5
+    out[enough] = filled[enough] / share[enough] * np.float32(value_scale)
+    return out
+
+
+def disparity_at_work_side(left: np.ndarray, right: np.ndarray, backend: str, params: DisparityParams,
+                           work_side: int | None) -> tuple[DisparityResult, float]:
+    """:func:`estimate_disparity` at the working resolution, maps in the given views' pixels.
+
+    ``left``/``right``: rectified views of one size ``(H, W)``; ``params.disparity_range`` in
+    their px. With the longer side over ``work_side`` both are downscaled by ``s`` (area filter),
+    the range times ``s``, and the result's maps are upsampled back (:func:`upsample_map`), the
+    disparities divided by ``s`` (x_right = x_left - d in the given views' px). Returns the
+    result and ``s`` (1: run as given).
+    """
+    import cv2
+
+    height, width = left.shape[:2]
+    if right.shape[:2] != (height, width):
+        raise InvalidInputError(f"Expected views of one size, got {left.shape[:2]} and {right.shape[:2]}")
+    scale = stored_view_scale((width, height), work_side)
+    small = (max(1, round(width * scale)), max(1, round(height * scale)))
+    if scale >= 1.0 or small == (width, height):
+        return estimate_disparity(left, right, backend, params), 1.0
+    sx = small[0] / width
+    shrink = lambda view: cv2.resize(np.ascontiguousarray(view), small, interpolation=cv2.INTER_AREA)
+    search = params.disparity_range
+    work_params = replace(params, disparity_range=None if search is None else (search[0] * sx, search[1] * sx))
+    result = estimate_disparity(shrink(left), shrink(right), backend, work_params)
+    size = (width, height)
+    confidence = upsample_map(result.confidence, size)
+    return replace(
+        result, disp_left=upsample_map(result.disp_left, size, 1.0 / sx),
+        disp_right=upsample_map(result.disp_right, size, 1.0 / sx),
+        confidence=np.nan_to_num(confidence, nan=0.0),
+    ), sx
 
 
 def colour_disparity(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -46,7 +119,8 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
 
     ``task.inputs``: ``left``/``right`` (rectified views, paths under the data dir),
     ``disparity_range`` [min, max] px measured by rectification (sets the search range), and
-    ``focal_px`` (K[0][0]). Disparity convention: x_right = x_left - d. Pixels outside the
+    ``focal_px`` (K[0][0]). Views over ``params.work_side`` are matched at that size and the maps
+    brought back to the views' pixels. Disparity convention: x_right = x_left - d. Pixels outside the
     rectified views (black fill of the warp) and non-positive disparities are invalid in depth.
     """
     data_dir = Path(task.data_dir)
@@ -58,9 +132,10 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
         low, high = float(measured[0]), float(measured[1])
         margin = params.range_margin_px + 0.1 * (high - low)
         search = (low - margin, high + margin)
-    result = estimate_disparity(
+    result, work_scale = disparity_at_work_side(
         left, right, params.backend,
         DisparityParams(disparity_range=search, block_size=params.block_size, consistency_px=params.consistency_px),
+        params.work_side,
     )
     inside = (left.reshape(*left.shape[:2], -1) > 0).any(axis=2)  # the warp fills outside with black
     disp = result.disp_left
@@ -94,6 +169,7 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
         "disparity_p5": percentiles[0], "disparity_p50": percentiles[1], "disparity_p95": percentiles[2],
         "depth_valid_fraction": round(float(depth_valid.mean()), 4), "focal_px": focal,
         "search_range": list(search) if search else None, "flags": list(result.flags),
+        "work_scale": round(work_scale, 6), "work_size": [round(left.shape[1] * work_scale), round(left.shape[0] * work_scale)],
         "vertical_model": list(result.vertical_model) if result.vertical_model else None,
         "convention": "x_right = x_left - d; depth = focal_px * baseline / d with baseline 1 (up to scale)",
     }

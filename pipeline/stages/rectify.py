@@ -6,15 +6,24 @@ from pathlib import Path
 
 import numpy as np
 
-from ..crop_align import align_crops
+from ..crop_align import CropAlignParams, align_crops, matches_in_boxes
 from ..errors import PipelineError
 from ..io import read_image, write_jpeg, write_json, write_png
 from ..records import CardTask
-from ..rectify import RectifyParams, implied_pose, rectify_pair, warp_pair
+from ..rectify import (
+    RectifyParams,
+    implied_pose,
+    rectify_matches,
+    rectify_pair,
+    scale_rectification,
+    scaling_matrix,
+    stored_view_scale,
+    warp_pair,
+)
 from ..split import CardSplit, crop_halves
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
 
-__all__ = ["orient_card", "rectify_task"]
+__all__ = ["filter_matches", "orient_card", "rectify_task"]
 
 
 def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
@@ -38,6 +47,27 @@ def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
     return card, {"status": "skipped", "applied": [], "reason": f"not needed: {judged}"}
 
 
+def filter_matches(task: CardTask, card_shape: tuple[int, ...]) -> tuple[np.ndarray, float] | None:
+    """The filter's good matches ``(N, 4)`` in px of the card as oriented here, and their scale
+    (card px per SIFT px), or None when the filter left none (older runs) or they cannot be read.
+    A card turned 180 deg turns its matches with it; an inverted one keeps them (same places)."""
+    relative, scale = task.inputs.get("filter_matches"), task.inputs.get("filter_match_scale")
+    if not isinstance(relative, str) or not isinstance(scale, (int, float)) or not scale >= 1:
+        return None
+    try:
+        matches = np.load(Path(task.data_dir) / relative, allow_pickle=False)
+    except (OSError, ValueError):
+        return None
+    if matches.ndim != 2 or matches.shape[1] != 4 or not np.all(np.isfinite(matches)):
+        return None
+    matches = matches.astype(np.float64)
+    if task.inputs.get("upside_down"):
+        height, width = card_shape[:2]
+        matches = np.column_stack([width - 1 - matches[:, 0], height - 1 - matches[:, 1],
+                                   width - 1 - matches[:, 2], height - 1 - matches[:, 3]])
+    return matches, float(scale)
+
+
 @stage_task("rectify")
 def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     """Rectify the card's two halves (Loop-Zhang with the paper's changes).
@@ -59,10 +89,31 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     boxes_before = boxes
     # The paper aligns the two crops by SIFT matches and cuts both to their intersection;
     # when that cannot be done the boxes go on as given and rectification decides.
+    # SIFT is most of a card's cost: the filter's matches (card px) align the crops and rectify
+    # the pair when there are enough of them inside the boxes; else crop alignment matches at
+    # rectification's SIFT side and rectification reuses those. One SIFT pass a card either way.
+    matches, source = None, "rectify"
+    reused = filter_matches(task, card.shape)
     try:
-        alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]))
+        alignment = None
+        if reused is not None:
+            box_matches = matches_in_boxes(reused[0], tuple(boxes[0]), tuple(boxes[1]))
+            if len(box_matches[0]) >= params.min_matches:
+                try:
+                    alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]), matches=box_matches)
+                    match_scale, source = reused[1], "filter"
+                except PipelineError:
+                    alignment = None
+        if alignment is None:
+            alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]),
+                                    CropAlignParams(ratio=params.ratio, max_side=params.max_side,
+                                                    max_keypoints=params.max_keypoints))
+            before = (*alignment.left_box_before, *alignment.right_box_before)
+            longest = max(before[2] - before[0], before[3] - before[1], before[6] - before[4], before[7] - before[5])
+            match_scale = max(1.0, longest / params.max_side)
         boxes = alignment.left_box, alignment.right_box
-        crop_record = {"status": "done", **alignment.metrics()}
+        crop_record = {"status": "done", **alignment.metrics(), "match_source": source}
+        matches = (*alignment.matches_in_crops(), match_scale)
     except PipelineError as exc:
         crop_record = {"status": "failed", "reason": exc.reason(), "left_box": list(boxes[0]),
                        "right_box": list(boxes[1])}
@@ -73,7 +124,15 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     # whole left photo as split from the card, in the aligned crop's pixels.
     full = boxes_before[0]
     principal_point = ((full[0] + full[2] - 1) / 2 - boxes[0][0], (full[1] + full[3] - 1) / 2 - boxes[0][1])
-    rect = rectify_pair(left, right, params, principal_point=principal_point)
+    if matches is None:
+        rect_full = rectify_pair(left, right, params, principal_point=principal_point)
+    else:
+        pts_l, pts_r, match_scale = matches  # match_scale: crop px per SIFT px
+        rect_full = rectify_matches(pts_l, pts_r, left.shape[1::-1], right.shape[1::-1], params,
+                                    principal_point=principal_point, match_scale=match_scale)
+    # The views are stored (and disparity runs) at the working resolution; the homographies keep
+    # the full-resolution crops as input: H = S H_full, S the resize of the rectified frame.
+    rect = scale_rectification(rect_full, stored_view_scale(rect_full.size, params.work_side))
     left_rect, right_rect = warp_pair(left, right, rect)
     work_dir = Path(task.work_dir)
     artifacts = {}
@@ -83,17 +142,27 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
         artifacts[name] = str((work_dir / f"{name}.png").relative_to(task.data_dir))
         artifacts[f"{name}_preview"] = str((work_dir / f"{name}_preview.jpg").relative_to(task.data_dir))
     camera = work_dir / "rectification.json"
+    scaling = scaling_matrix(rect.size[0] / rect_full.size[0], rect.size[1] / rect_full.size[1])
     view = right if rect.swapped else left  # the crop H_l maps
     write_json(camera, {
         # Read by `keystone check-homographies` (pipeline.homography_quality): "convention",
         # "pixel_origin", "width" and "height" are its keys.
         "convention": "column", "pixel_origin": "centre",
         "convention_detail": "column vectors, x' ~ H x, pixels with the origin at the top-left pixel centre; "
-                             "H_l/H_r map the cropped left/right halves (boxes in card pixels) to the rectified "
-                             "views (H_l the right half's crop when swapped); disparity d = x_left - x_right >= 0",
+                             "H_l/H_r map the full-resolution cropped left/right halves (boxes in card pixels) to "
+                             "the stored rectified views of size (H_l the right half's crop when swapped); "
+                             "disparity d = x_left - x_right >= 0 in the stored views' px",
+        "working_resolution": {
+            "view_scale": rect.view_scale, "work_side": params.work_side,
+            "S": scaling.tolist(), "full_size": [int(v) for v in rect_full.size],
+            "H_l_full": rect_full.H_l.tolist(), "H_r_full": rect_full.H_r.tolist(), "K_full": rect_full.K.tolist(),
+            "convention": "stored view px = S (full-resolution rectified px), S = [[s,0,(s-1)/2],[0,s,(s-1)/2],"
+                          "[0,0,1]] for the top-left pixel-centre origin; H_l = S H_l_full, K = S K_full; "
+                          "for crops resized by S_in: H_work = S H_full S_in^-1, so H_full = S^-1 H_work S_in",
+        },
         "width": int(view.shape[1]), "height": int(view.shape[0]),
         "left_box": list(boxes[0]), "right_box": list(boxes[1]), **rect.metrics(),
-        "implied_pose": implied_pose(rect.H_l, rect.H_r, rect.K),
+        "implied_pose": implied_pose(rect_full.H_l, rect_full.H_r, rect_full.K),
     })
     artifacts["rectification"] = str(camera.relative_to(task.data_dir))
     status = "done" if rect.warp_needed else "skipped"
@@ -101,7 +170,9 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     if rect.swapped:
         reason = (reason + "; " if reason else "") + "eyes were swapped on the card: halves exchanged"
     metrics = {k: v for k, v in rect.metrics().items() if k not in ("reason",)}
-    metrics["implied_pose"] = implied_pose(rect.H_l, rect.H_r, rect.K)
+    metrics["implied_pose"] = implied_pose(rect_full.H_l, rect_full.H_r, rect_full.K)  # the full-resolution frame's
+    metrics["full_size"] = [int(v) for v in rect_full.size]
+    metrics["dy_p95_full"] = float(rect_full.dy_p95)
     metrics["orientation"] = orientation
     metrics["crop_alignment"] = crop_record
     metrics["box_source"] = task.inputs.get("box_source", "filter split")

@@ -8,9 +8,10 @@ from app.cli import cli
 
 
 def test_bench_pipeline_reports_cpu_seconds_for_every_stage_a_card_reached(runner):
-    result = runner.invoke(cli, ["bench", "pipeline", "--synthetic", "--limit", "1", "--json"])
+    result = runner.invoke(cli, ["bench", "pipeline", "--synthetic", "--limit", "1", "--variant", "work", "--json"])
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
+    assert list(document["variants"]) == ["work"] and document["comparison"] is None
     (row,) = document["results"]
     assert row["card"] == "motorcycle_760px.jpg" and row["width"] == 760
     assert row["filter_outcome"] == "pass" and row["failed"] == {}
@@ -28,3 +29,19 @@ def test_bench_pipeline_reports_cpu_seconds_for_every_stage_a_card_reached(runne
 def test_bench_pipeline_refuses_an_unknown_stage(runner):
     result = runner.invoke(cli, ["bench", "pipeline", "--synthetic", "--stages", "filter,sharpen"])
     assert result.exit_code == 2 and "sharpen" in result.output
+
+
+def test_bench_pipeline_runs_full_and_working_resolution_side_by_side(runner):
+    """The 3000 px Motorcycle card: the working resolution costs less than full resolution in the
+    same run, and each variant reports its own peak memory and medians per scan size."""
+    result = runner.invoke(cli, ["bench", "pipeline", "--synthetic", "--stages", "filter,rectify,disparity,grade",
+                                 "--json"])
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.stdout)
+    assert set(document["variants"]) == {"full", "work"}
+    for run in document["variants"].values():
+        assert run["summary"]["reached_grade"] == 3 and run["peak_rss_mb"] > 50
+        assert [group["size"] for group in run["summary"]["by_size"]] == ["<1000 px", "1000-2000 px", ">=2000 px"]
+    big = next(row for row in document["comparison"] if row["size"] == ">=2000 px")
+    assert big["work"] < big["full"] and big["work_over_full"] == round(big["work"] / big["full"], 3)
+    assert document["results"] == document["variants"]["work"]["results"]

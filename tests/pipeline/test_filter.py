@@ -242,3 +242,18 @@ def test_real_card_backs_are_culled(load_card, name):
     card = load_card(f"card_backs/{name}")
     _, result = filter_card(card)
     assert result.outcome == "culled", result.reason
+
+
+def test_filter_keeps_its_good_matches_in_the_halves_pixels(motorcycle):
+    """The matches the rectify stage reuses: full-resolution px of each half, on the same rows
+    (Motorcycle is rectified), right x = left x - d with d in Motorcycle's 9-59 px range."""
+    left, right = motorcycle
+    result = good_match_fraction(left, right)
+    pts_l, pts_r = result.points
+    assert pts_l.shape == pts_r.shape == (result.good_matches, 2)
+    assert result.match_scale == pytest.approx(741 / 600, rel=1e-2)
+    assert pts_l[:, 0].max() > 600 and pts_l[:, 1].max() > 400  # full-resolution px, not SIFT px
+    dy = pts_l[:, 1] - pts_r[:, 1]
+    assert np.median(np.abs(dy)) < 1.0
+    d = pts_l[:, 0] - pts_r[:, 0]
+    assert 5 < np.median(d) < 65

@@ -385,7 +385,8 @@ def synthesise_views(
 ) -> SceneViews:
     """The five GD images of a scene (module docstring, steps 2-5).
 
-    ``image`` (H, W) grey or (H, W, 3) RGB uint8 (the views keep its channels); ``depth`` (H, W) float, depth up to scale (any value where not ``valid``);
+    ``image`` (H, W) grey or (H, W, 3) RGB uint8 (the views keep its channels); ``depth`` (H, W) float,
+    depth up to scale (any value where not ``valid``);
     ``valid`` (H, W) bool; ``focal_px`` for this H x W image. Raises :class:`ViewImageTooSmallError`
     (below ``params.min_side``), :class:`TooLittleDepthError`, :class:`MostlyHolesError`, or
     :class:`InvalidInputError` for broken inputs."""
@@ -533,7 +534,7 @@ def render_preview_frames(scene: SceneViews, side: int, frames: int, max_stretch
         r = reproject(v0_small, ref, cam, with_boundary=False, max_stretch_px=max_stretch_px)
         picture = np.clip(np.round(r.intensity * 255.0), 0, 255).astype(np.uint8)
         if r.hole.any() and not r.hole.all():
-            picture = cv2.inpaint(picture, r.hole.astype(np.uint8), 3, cv2.INPAINT_TELEA)
+            picture = np.asarray(cv2.inpaint(picture, r.hole.astype(np.uint8), 3, cv2.INPAINT_TELEA), np.uint8)
         out.append(picture)
     return out
 

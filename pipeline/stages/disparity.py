@@ -86,7 +86,9 @@ def disparity_at_work_side(left: np.ndarray, right: np.ndarray, backend: str, pa
     if scale >= 1.0 or small == (width, height):
         return estimate_disparity(left, right, backend, params), 1.0
     sx = small[0] / width
-    shrink = lambda view: cv2.resize(np.ascontiguousarray(view), small, interpolation=cv2.INTER_AREA)
+    def shrink(view: np.ndarray) -> np.ndarray:
+        return cv2.resize(np.ascontiguousarray(view), small, interpolation=cv2.INTER_AREA)
+
     search = params.disparity_range
     work_params = replace(params, disparity_range=None if search is None else (search[0] * sx, search[1] * sx))
     result = estimate_disparity(shrink(left), shrink(right), backend, work_params)

@@ -142,7 +142,7 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
     left = read_image(data_dir / inputs["left"])
     grey = to_grey(left)
     # The rectifying warp fills outside the view with black: no depth there (as the disparity stage).
-    inside = (left.reshape(*left.shape[:2], -1) > 0).any(axis=2)
+    inside: np.ndarray = np.asarray((left.reshape(*left.shape[:2], -1) > 0).any(axis=2))
     colour = is_colour(left, inside)
     picture = left if colour else grey
     if inputs.get("depth"):

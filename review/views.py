@@ -24,6 +24,7 @@ from flask import (
     redirect,
     render_template,
     request,
+    session,
     url_for,
 )
 from flask_login import current_user
@@ -57,7 +58,9 @@ from .tasks import (
     resolve_aggregate,
     review_queue,
     sync_reviews,
+    undo_decision,
 )
+from .threshold_table import threshold_table
 
 bp = Blueprint("review", __name__, url_prefix="/review", template_folder="templates", static_folder="static",
                static_url_path="/review-static")
@@ -196,6 +199,27 @@ def _judgement_counts(answers: list[Any]) -> dict[str, tuple[int, int]]:
     return counts
 
 
+def card_state_sentence(card: Any, latest: dict[str, Any]) -> str:
+    """Why a card without a review has nothing to decide, in terms of where it stands: culled by
+    the filter, a stage that failed, or the stage it is waiting for."""
+    filtered = latest.get("filter")
+    if card.state == "culled" or (filtered is not None and filtered.outcome == "culled"):
+        why = f" ({filtered.reason})" if filtered is not None and filtered.reason else ""
+        return (f"The filter culled this card{why}: it is not a usable stereo pair, so it is not graded and "
+                "there is nothing to review.")
+    for stage in ("filter", "rectify", "disparity", "grade"):
+        result = latest.get(stage)
+        if result is not None and result.status == "failed":
+            return (f"The {stage} stage failed on this card ({result.reason or 'no reason recorded'}), so it has no "
+                    "automatic grade to review.")
+    grade = latest.get("grade")
+    if grade is not None and grade.status == "done":
+        return "This card is graded but not yet in the review queue: sync the queue with the grader."
+    waiting = next((stage for stage in ("filter", "rectify", "disparity", "grade")
+                    if latest.get(stage) is None or latest[stage].status not in ("done", "skipped")), "grade")
+    return f"This card is not graded yet: it is waiting for its {waiting} stage."
+
+
 @bp.route("/cards/<int:card_id>")
 @role_required("curator")
 def card(card_id: int) -> Any:
@@ -218,6 +242,8 @@ def card(card_id: int) -> Any:
             crowd=view, crowd_boxes=_crowd_boxes(view), judgements=_judgement_counts(view.judge_answers),
             previous=previous, following=following, filters=filters, grades=GRADES, grade_names=GRADE_NAMES,
             kinds=SEND_BACK_KINDS, anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
+            table=threshold_table(grade_result.metrics) if grade_result is not None else None,
+            state_sentence=card_state_sentence(card, latest) if review is None else "",
         )
 
 
@@ -254,13 +280,48 @@ def decide_card(card_id: int) -> Any:
     decided = decide(review_id, action, expected_version=version, curator=_curator(), grade=grade,
                      note=str(source.get("note") or ""), kind=str(source.get("kind") or "crop"))
     next_url = _next_url(card_id, _filters(request.args))
+    _offer_undo(decided)
     if body is not None:
         return jsonify({"card": decided.card_id, "decision": decided.decision, "grade": decided.grade,
                         "version": decided.version, "batch": decided.batch_id, "next_url": next_url})
-    flash(f"Card {card_id}: {decided.decision.replace('_', ' ')}"
-          + (f" ({GRADE_NAMES[decided.grade]})" if decided.grade else "")
-          + (f", crowd batch {decided.batch_id}" if decided.batch_id else "") + ".", "success")
     return redirect(next_url, code=303)
+
+
+DECISION_WORDS = {"accepted": "accepted", "changed": "grade changed", "sent_back": "sent back to the crowd",
+                  "rejected": "rejected", "pending": "back to pending"}
+
+
+def _offer_undo(decided: Any) -> None:
+    """The confirmation the next page shows (base.html): what was done, an Undo button that
+    posts the version this decision left, and after a send-back the new batch with its link."""
+    message = f"Card {decided.card_id}: {DECISION_WORDS.get(decided.decision, decided.decision)}"
+    if decided.grade:
+        message += f" as {GRADE_NAMES[decided.grade]}"
+    link = None
+    if decided.batch_id:
+        message += f"; it is in new crowd batch {decided.batch_id}, waiting for annotators"
+        link = {"url": url_for("crowd.batches") + f"#batch-{decided.batch_id}",
+                "text": f"Open batch {decided.batch_id} (invite links, progress)"}
+    session["keystone_undo"] = {"message": message + ".", "link": link,
+                                "action": url_for("review.undo", card_id=decided.card_id),
+                                "fields": {"version": decided.version}}
+
+
+@bp.route("/cards/<int:card_id>/undo", methods=["POST"])
+@role_required("curator")
+def undo(card_id: int) -> Any:
+    try:
+        version = parse_positive_int(request.form.get("version") or "", "version")
+    except ValueError as exc:
+        raise ReviewError(str(exc)) from None
+    with read_only():
+        review_id = db.session.scalar(select(CardReview.id).where(CardReview.card_id == card_id))
+    if review_id is None:
+        raise ReviewError(f"Card {card_id} has no review, so no decision to undo", 404)
+    restored = undo_decision(review_id, expected_version=version, curator=_curator())
+    flash(f"Undone: card {card_id} is {DECISION_WORDS.get(restored.decision, restored.decision)} again"
+          + (f" ({GRADE_NAMES[restored.grade]})" if restored.grade else "") + ".", "success")
+    return redirect(url_for("review.card", card_id=card_id), code=303)
 
 
 @bp.route("/cards/<int:card_id>/history")

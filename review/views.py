@@ -29,9 +29,10 @@ from flask import (
 )
 from flask_login import current_user
 from sqlalchemy import select
+from sqlalchemy.orm import selectinload
 from werkzeug.wrappers import Response
 
-from annotation.models import Aggregate
+from annotation.models import Aggregate, Worker
 from app.auth import add_nav_link, role_required
 from app.db import db, read_only
 from app.json_body import load_json_body
@@ -412,14 +413,26 @@ def anaglyph(card_id: int) -> Response:
 # ----------------------------------------------------------------------------- disputes
 
 
+JUDGE_QUESTIONS = {"is_stereo": "a stereo pair", "upside_down": "upside down", "inverted": "a negative (inverted)"}
+CONFIDENT_POSTERIOR = 0.9  # below this the crowd's label is not offered as the default answer
+
+
 def _label_from_form(kind: str, form: Any) -> dict[str, Any]:
     if kind == "judge":
-        return {q: form.get(q) == "on" for q in ("is_stereo", "upside_down", "inverted")}
+        label = {}
+        for question, words in JUDGE_QUESTIONS.items():
+            raw = (form.get(question) or "").strip().lower()
+            if raw not in ("yes", "no"):
+                raise ReviewError(f"Choose yes or no for whether the card is {words}")
+            label[question] = raw == "yes"
+        return label
     label: dict[str, Any] = {}
     for half in ("left", "right"):
         box = []
         for corner in ("x0", "y0", "x1", "y1"):
             raw = (form.get(f"{half}_{corner}") or "").strip()
+            if not raw:
+                raise ReviewError(f"Draw the {half} box on the card (or type its {corner})")
             try:
                 value = float(raw)
             except ValueError:
@@ -445,9 +458,70 @@ def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200
         if aggregate.kind == "crop":
             view.crop, view.crop_answers = aggregate, answers
             boxes = _crowd_boxes(view)
+        workers = {w.id: w for w in db.session.scalars(
+            select(Worker).where(Worker.id.in_({a.worker_id for a in answers})).options(selectinload(Worker.person)))}
         return render_template("review/dispute.html", aggregate=aggregate, card=card, answers=answers, boxes=boxes,
                                judgements=_judgement_counts(answers) if aggregate.kind == "judge" else {},
-                               error=error), status
+                               workers={wid: worker_label(w) for wid, w in workers.items()},
+                               questions=JUDGE_QUESTIONS, defaults=judge_defaults(aggregate),
+                               posterior=posterior_words(aggregate), error=error, form=request.form), status
+
+
+def worker_label(worker: Any) -> str:
+    """A worker as a curator knows them: the person's name, else the invite name or provider id."""
+    if worker.person is not None:
+        return worker.person.display_name or worker.person.username
+    provider = {"invite": "invite link", "prolific": "Prolific", "mturk": "MTurk"}.get(worker.provider, worker.provider)
+    return f"{worker.external_id} ({provider})"
+
+
+def _yes_probability(aggregate: Any, question: str) -> float | None:
+    value = (aggregate.posterior or {}).get(question)
+    if isinstance(value, list) and len(value) == 2 and all(isinstance(p, (int, float)) for p in value):
+        return float(value[1])
+    return None
+
+
+def judge_defaults(aggregate: Any) -> dict[str, str | None]:
+    """The answer to pre-select per question: the crowd's label only where its posterior is at
+    least :data:`CONFIDENT_POSTERIOR`; otherwise None, and the curator must choose."""
+    if aggregate.kind != "judge":
+        return {}
+    defaults: dict[str, str | None] = {}
+    for question in JUDGE_QUESTIONS:
+        yes = _yes_probability(aggregate, question)
+        label = (aggregate.label or {}).get(question)
+        if yes is None or not isinstance(label, bool):
+            defaults[question] = None
+            continue
+        sure = yes if label else 1.0 - yes
+        defaults[question] = ("yes" if label else "no") if sure >= CONFIDENT_POSTERIOR else None
+    return defaults
+
+
+def posterior_words(aggregate: Any) -> list[str]:
+    """The crowd model's belief in words: "upside down: 25 % likely yes"."""
+    if aggregate.kind == "judge":
+        words = []
+        for question, text in JUDGE_QUESTIONS.items():
+            yes = _yes_probability(aggregate, question)
+            if yes is not None:
+                words.append(f"{text}: {100 * yes:.0f} % likely")
+        return words
+    words = []
+    for half in ("left", "right"):
+        entry = (aggregate.posterior or {}).get(half)
+        if isinstance(entry, dict):
+            iou = entry.get("mean_iou")
+            kept, dropped = entry.get("kept"), entry.get("dropped")
+            part = f"{half} box: "
+            part += f"{len(kept) if isinstance(kept, list) else kept} answers kept" if kept is not None else ""
+            if dropped:
+                part += f", {len(dropped) if isinstance(dropped, list) else dropped} dropped as outliers"
+            if isinstance(iou, (int, float)):
+                part += f", mean overlap {100 * iou:.0f} %"
+            words.append(part)
+    return words
 
 
 @bp.route("/disputes/<int:aggregate_id>", methods=["GET", "POST"])

@@ -101,7 +101,10 @@
         for (const half of ["left", "right"]) {
           ["x0", "y0", "x1", "y1"].forEach((corner, i) => {
             const input = document.querySelector(`input[name="${half}_${corner}"]`);
-            if (input && answer[half]) input.value = answer[half][i];
+            if (input && answer[half]) {
+              input.value = answer[half][i];
+              input.dispatchEvent(new Event("input", { bubbles: true }));  // the box editor redraws
+            }
           });
         }
       });

@@ -51,6 +51,7 @@ from .records import DEFAULT_FORMATS, FORMATS, RELEASABLE_GRADES
 bp = Blueprint("exports", __name__, url_prefix="/releases", template_folder="templates")
 bp.record_once(lambda state: add_nav_link(state.app, "Releases", "exports.index", "exporter", order=70))
 
+FILES_LISTED = 1000  # a release page lists this many files; the archive and SHA256SUMS hold them all
 RELEASE_DOCUMENTS = {"README.md": "text/markdown", "CHANGELOG.md": "text/markdown",
                      "croissant.json": "application/json", "SHA256SUMS": "text/plain"}
 
@@ -183,7 +184,8 @@ def publish() -> Any:
         db.session.rollback()
         flash(str(exc), "error")
         return render_template("exports/index.html", releases=_releases(), form=form, preview=None), 409
-    flash(f"Published release {report.version}: {report.cards} cards, {report.files} files.", "success")
+    flash(f"Published release {report.version}: {report.cards} card{'' if report.cards == 1 else 's'}, "
+          f"{report.files} files.", "success")
     return redirect(url_for("exports.release_page", version=report.version), code=303)
 
 
@@ -215,7 +217,7 @@ def release_page(version: str) -> Any:
         release = db.session.scalar(select(Release).where(Release.version == version).options(defer(Release.stats)))
         db.session.expunge(release)
     files = release_files(root)
-    return render_template("exports/release.html", release=release, files=files,
+    return render_template("exports/release.html", release=release, files=files[:FILES_LISTED], file_count=len(files),
                            total=sum(size for _, size in files))
 
 

@@ -72,3 +72,59 @@ def test_a_curator_reads_the_nearest_threshold_accepts_and_undoes(app, server, s
     assert decision_of(app, first) == "pending"
     assert page.url.endswith(f"/review/cards/{first}")
     look(page, f"undone-{screen}")
+
+
+@pytest.fixture
+def crop_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped-def]
+    from annotation.models import Aggregate, Answer, BatchItem
+    from annotation.tasks import create_batch, get_or_create_worker
+    from app.db import db
+
+    card_id = make_card(card_image(), state="review")  # 604 x 200 px
+    with app.app_context():
+        batch = create_batch([card_id], "crop", 2, 0.0)
+        item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
+        for n, right_x1 in enumerate((600, 470)):
+            worker = get_or_create_worker("invite", f"w{n}")
+            db.session.add(Answer(item_id=item.id, worker_id=worker.id, idempotency_key=f"key-{n}-abcdef",
+                                  payload={"left": [0, 0, 280, 200], "right": [310, 0, right_x1, 200]}))
+        aggregate = Aggregate(batch_id=batch.id, card_id=card_id, kind="crop", state="needs_curator", answers=2,
+                              label={"left": [0, 0, 280, 200], "right": [310, 0, 535, 200]},
+                              reasons="right box: mean IoU 0.58 < 0.7")
+        db.session.add(aggregate)
+        db.session.commit()
+        return aggregate.id
+
+
+def test_a_curator_draws_crop_boxes_on_a_phone(app, server, screen_page, make_person, crop_dispute, look) -> None:  # type: ignore[no-untyped-def]
+    from annotation.models import Aggregate
+    from app.db import db
+
+    page = screen_page("phone", make_person("curator"))
+    page.goto(f"{server}/review/disputes/{crop_dispute}")
+    page.wait_for_selector("#box-editor[data-ready]")
+    page.locator("#box-editor").scroll_into_view_if_needed()
+    box = page.locator("#box-editor svg").bounding_box()
+    scale = 604 / box["width"]  # card pixels per screen pixel
+
+    def drag(x0: float, y0: float, x1: float, y1: float) -> None:  # in card pixels
+        page.mouse.move(box["x"] + x0 / scale, box["y"] + y0 / scale)
+        page.mouse.down()
+        page.mouse.move(box["x"] + x1 / scale, box["y"] + y1 / scale, steps=4)
+        page.mouse.up()
+
+    drag(20, 10, 280, 190)  # the left box, drawn right to left would work too
+    page.click(".box-editor-tools [data-half=right]")
+    drag(590, 190, 330, 10)  # drawn from its bottom-right corner
+    values = page.eval_on_selector_all("input[name$='_x0'], input[name$='_y0'], input[name$='_x1'], input[name$='_y1']",
+                                       "inputs => Object.fromEntries(inputs.map(i => [i.name, Number(i.value)]))")
+    tolerance = 2 * scale  # a screen pixel or two, in card pixels
+    expected = {"left_x0": 20, "left_y0": 10, "left_x1": 280, "left_y1": 190,
+                "right_x0": 330, "right_y0": 10, "right_x1": 590, "right_y1": 190}
+    assert all(abs(values[name] - value) <= tolerance for name, value in expected.items()), values
+    look(page, "dispute-crop-phone")
+    page.click("#resolve-form button[type=submit]")
+    page.wait_for_selector(".flash-success")
+    with app.app_context():
+        label = db.session.get(Aggregate, crop_dispute).label
+    assert abs(label["left"][2] - 280) <= tolerance and abs(label["right"][0] - 330) <= tolerance

@@ -12,6 +12,7 @@ says so.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -47,6 +48,7 @@ class ThresholdTable:
 
 def _thresholds_for(metrics: dict[str, Any]) -> tuple[Any, bool]:
     """The thresholds the grade was computed with (by ``thresholds_hash``), else the active ones."""
+    from pipeline.errors import InvalidInputError
     from pipeline.grading import GradeThresholds
     from pipeline.records import param_hash
 
@@ -55,10 +57,8 @@ def _thresholds_for(metrics: dict[str, Any]) -> tuple[Any, bool]:
     wanted = metrics.get("thresholds_hash")
     candidates = [GradeThresholds()]
     for model in db.session.scalars(select(GradeModel).order_by(GradeModel.id.desc())):
-        try:
+        with contextlib.suppress(InvalidInputError):  # a row another version wrote: not these thresholds
             candidates.append(GradeThresholds.from_dict(model.thresholds))
-        except Exception:  # a row another version wrote: not these thresholds
-            continue
     for candidate in candidates:
         if wanted and param_hash(candidate) == wanted:
             return candidate, True

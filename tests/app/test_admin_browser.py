@@ -3,27 +3,26 @@ then cannot log in; and every staff page, at phone width, fits the screen (no si
 
 from __future__ import annotations
 
-import pytest
 
+def test_an_admin_deactivates_a_person_who_then_cannot_log_in(app, server, screen_page, make_person,
+                                                              look) -> None:  # type: ignore[no-untyped-def]
+    admin = make_person("admin")
+    for screen, name in (("desktop", "ann"), ("phone", "bob")):
+        person = make_person("annotator", username=name)
+        page = screen_page(screen, admin)
+        page.goto(f"{server}/auth/people")
+        look(page, f"people-{screen}")
+        row = page.locator(f"tr[data-username='{name}']")
+        row.locator("summary").click()
+        look(page, f"people-manage-{screen}")
+        row.locator("button:has-text('Deactivate')").click()
+        page.wait_for_selector(f".flash-success:has-text('{name} is deactivated')")
+        assert "deactivated" in page.locator(f"tr[data-username='{name}']").inner_text()
 
-@pytest.mark.parametrize("screen", ["desktop", "phone"])
-def test_an_admin_deactivates_a_person_who_then_cannot_log_in(app, server, screen_page, make_person, look,
-                                                              screen) -> None:  # type: ignore[no-untyped-def]
-    admin, annotator = make_person("admin"), make_person("annotator", username="ann")
-    page = screen_page(screen, admin)
-    page.goto(f"{server}/auth/people")
-    look(page, f"people-{screen}")
-    row = page.locator("tr[data-username='ann']")
-    row.locator("summary").click()
-    look(page, f"people-manage-{screen}")
-    row.locator("button:has-text('Deactivate')").click()
-    page.wait_for_selector(".flash-success:has-text('ann is deactivated')")
-    assert "deactivated" in page.locator("tr[data-username='ann']").inner_text()
-
-    other = screen_page(screen, annotator)  # tries to log in
-    assert "/auth/login" in other.url
-    assert "This account is disabled" in other.inner_text("main")
-    look(other, f"login-refused-{screen}")
+        other = screen_page(screen, person)  # tries to log in
+        assert "/auth/login" in other.url
+        assert "This account is disabled" in other.inner_text("main")
+        look(other, f"login-refused-{screen}")
 
 
 def test_staff_pages_fit_a_phone(app, server, screen_page, make_person, look, make_card, add_stage_result,

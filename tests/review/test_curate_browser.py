@@ -4,7 +4,6 @@ undo. No page may scroll sideways."""
 
 from __future__ import annotations
 
-
 import pytest
 from sqlalchemy import select
 
@@ -44,7 +43,7 @@ def decision_of(app, card_id: int) -> str:  # type: ignore[no-untyped-def]
 @pytest.mark.parametrize("screen", ["desktop", "phone"])
 def test_a_curator_reads_the_nearest_threshold_accepts_and_undoes(app, server, screen_page, make_person, graded_cards,
                                                                     look, screen) -> None:  # type: ignore[no-untyped-def]
-    first, second = graded_cards
+    first, _ = graded_cards
     page = screen_page(screen, make_person("curator"))
     page.goto(f"{server}/review/")
     page.wait_for_function("() => [...document.images].every(i => i.complete)")

@@ -36,30 +36,30 @@ def _review(app, card_id: int) -> tuple[str, str | None, int]:  # type: ignore[n
 
 
 def _undo_form(html: str) -> tuple[str, str]:
-    bar = re.search(r'<form method="post" action="([^"]+/undo)">.*?name="version" value="(\d+)"', html, re.S)
+    bar = re.search(r'<form method="post" action="([^"]+/undo)">.*?name="version" value="(\d+)"', html, re.DOTALL)
     assert bar, "no undo button on the page"
     return bar.group(1), bar.group(2)
 
 
-@pytest.mark.parametrize("choice, decision, grade", [("accept", "accepted", "few"), ("change:failure", "changed", "failure"),
-                                                     ("reject", "rejected", None)])
-def test_each_decision_is_confirmed_and_undone(app, client, login, csrf_token, two_graded, choice, decision,
-                                               grade) -> None:  # type: ignore[no-untyped-def]
+def test_each_decision_is_confirmed_and_undone(app, client, login, csrf_token, two_graded) -> None:  # type: ignore[no-untyped-def]
     card = two_graded[0]
     login("curator")
     token = csrf_token(f"/review/cards/{card}")
-    done = client.post(f"/review/cards/{card}/decide", data={"choice": choice, "version": "1", "csrf_token": token},
-                       follow_redirects=True)
-    html = done.get_data(as_text=True)
-    assert f"Card {card}: " in html and 'id="undo-bar"' in html
-    assert _review(app, card)[:2] == (decision, grade)
-    action, version = _undo_form(html)
-    assert "undo-bar" not in client.get("/review/").get_data(as_text=True)  # shown once
-    undone = client.post(action, data={"version": version, "csrf_token": token}, follow_redirects=True)
-    assert undone.status_code == 200 and "Undone: card" in undone.get_data(as_text=True)
-    assert _review(app, card)[:2] == ("pending", None)
-    again = client.post(action, data={"version": version, "csrf_token": token})
-    assert again.status_code == 409  # the version moved on: nothing undone twice
+    for choice, decision, grade in [("accept", "accepted", "few"), ("change:failure", "changed", "failure"),
+                                    ("reject", "rejected", None)]:
+        version = str(_review(app, card)[2])
+        done = client.post(f"/review/cards/{card}/decide", data={"choice": choice, "version": version,
+                                                                 "csrf_token": token}, follow_redirects=True)
+        html = done.get_data(as_text=True)
+        assert f"Card {card}: " in html and 'id="undo-bar"' in html
+        assert _review(app, card)[:2] == (decision, grade)
+        action, after = _undo_form(html)
+        assert "undo-bar" not in client.get("/review/").get_data(as_text=True)  # shown once
+        undone = client.post(action, data={"version": after, "csrf_token": token}, follow_redirects=True)
+        assert undone.status_code == 200 and "Undone: card" in undone.get_data(as_text=True)
+        assert _review(app, card)[:2] == ("pending", None)
+        again = client.post(action, data={"version": after, "csrf_token": token})
+        assert again.status_code == 409  # the version moved on: nothing undone twice
 
 
 def test_a_send_back_names_its_batch_and_undo_removes_it(app, client, login, csrf_token, two_graded) -> None:  # type: ignore[no-untyped-def]
@@ -102,12 +102,12 @@ def test_undo_refuses_once_the_crowd_answered(app, client, login, csrf_token, tw
     assert _review(app, card)[0] == "sent_back"
 
 
-@pytest.mark.parametrize("data, status", [({}, 400), ({"version": "x"}, 400), ({"version": "-1"}, 400),
-                                          ({"version": "1"}, 409)])
-def test_undo_bad_input(client, login, csrf_token, two_graded, data, status) -> None:  # type: ignore[no-untyped-def]
+def test_undo_bad_input(client, login, csrf_token, two_graded) -> None:  # type: ignore[no-untyped-def]
     login("curator")
     token = csrf_token("/review/")
-    assert client.post(f"/review/cards/{two_graded[0]}/undo", data={**data, "csrf_token": token}).status_code == status
+    for data, status in [({}, 400), ({"version": "x"}, 400), ({"version": "-1"}, 400), ({"version": "1"}, 409)]:
+        response = client.post(f"/review/cards/{two_graded[0]}/undo", data={**data, "csrf_token": token})
+        assert response.status_code == status, data
     assert client.post("/review/cards/99999/undo", data={"version": "1", "csrf_token": token}).status_code == 404
     assert client.post(f"/review/cards/{two_graded[0]}/undo", data={"version": "1"}).status_code == 400  # no CSRF
 

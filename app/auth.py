@@ -42,15 +42,35 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from werkzeug.security import check_password_hash, generate_password_hash
 from werkzeug.wrappers import Response
-from wtforms import HiddenField, PasswordField, SelectMultipleField, StringField, SubmitField
+from wtforms import (
+    HiddenField,
+    PasswordField,
+    SelectMultipleField,
+    StringField,
+    SubmitField,
+)
 from wtforms.validators import DataRequired, Length, Regexp
 from wtforms.widgets import CheckboxInput, ListWidget
 
 from .db import db, one_writer, read_only
 from .extensions import login_manager
-from .login_throttle import Lockout, ThrottlePolicy, client_address, clock, give_back_attempt, reserve_attempt
+from .login_throttle import (
+    Lockout,
+    ThrottlePolicy,
+    client_address,
+    clock,
+    give_back_attempt,
+    reserve_attempt,
+)
 from .models import ROLES, AuthEvent, Person
-from .people import PeopleError, create_person, person_history, reset_password, set_active, set_roles
+from .people import (
+    PeopleError,
+    create_person,
+    person_history,
+    reset_password,
+    set_active,
+    set_roles,
+)
 from .security import prefers_json
 
 bp = Blueprint("auth", __name__, url_prefix="/auth")

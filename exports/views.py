@@ -28,7 +28,6 @@ from flask import (
     flash,
     redirect,
     render_template,
-    request,
     send_file,
     stream_with_context,
     url_for,
@@ -37,7 +36,13 @@ from flask_login import current_user
 from flask_wtf import FlaskForm
 from sqlalchemy import select
 from sqlalchemy.orm import defer
-from wtforms import HiddenField, SelectField, SelectMultipleField, TextAreaField, ValidationError
+from wtforms import (
+    HiddenField,
+    SelectField,
+    SelectMultipleField,
+    TextAreaField,
+    ValidationError,
+)
 from wtforms.fields.choices import SelectChoice
 from wtforms.validators import Length
 from wtforms.widgets import CheckboxInput, ListWidget

@@ -104,7 +104,8 @@ def _row(name: str, value: float, level: int, threshold: Any) -> ThresholdRow | 
 def threshold_table(metrics: dict[str, Any] | None) -> ThresholdTable | None:
     """The table for a grade record's ``metrics``; None when it holds no per-measurement levels."""
     metrics = metrics or {}
-    measurements = metrics.get("measurements") if isinstance(metrics.get("measurements"), dict) else metrics
+    nested = metrics.get("measurements")
+    measurements: dict[str, Any] = nested if isinstance(nested, dict) else metrics
     levels = metrics.get("levels")
     if not isinstance(levels, dict) or not levels:
         return None

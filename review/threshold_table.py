@@ -73,68 +73,90 @@ def _number(value: Any) -> float | None:
     return None
 
 
-def _row(name: str, value: float, level: int, threshold: Any) -> ThresholdRow | None:
-    from pipeline.grading import _RULES, _distance, _format, _threshold_text
+def _show(value: float, unit: str) -> str:
+    """A value in its unit as a curator reads it (fractions as percent)."""
+    if unit in ("percent", "percent1"):
+        return f"{100 * value:.{2 if unit == 'percent1' else 1}f} %"
+    if unit in ("px", "deg"):
+        return f"{value:.1f} {unit}"
+    return f"{value:.3g}"
 
-    rule = _RULES.get(name)
-    if rule is None:
+
+def _show_limit(limit: float, unit: str) -> str:
+    """Thresholds as short as they are exact: 80 %, 1.5 px, 0.5 %."""
+    if unit in ("percent", "percent1"):
+        return f"{100 * limit:.6g} %"
+    if unit in ("px", "deg"):
+        return f"{limit:.6g} {unit}"
+    return f"{limit:.6g}"
+
+
+def _show_margin(margin: float, unit: str) -> str:
+    if unit in ("percent", "percent1"):
+        return f"{100 * margin:+.2f} points"
+    if unit in ("px", "deg"):
+        return f"{margin:+.1f} {unit}" if round(margin, 1) else f"{margin:+.3f} {unit}"
+    return f"{margin:+.3g}"
+
+
+def _row(check: dict[str, Any]) -> ThresholdRow | None:
+    """One row from a grade check: ``{"measurement", "value", "unit", "direction", "some",
+    "failure", "level", "margin", "distance"}`` (margin and distance to the nearer threshold)."""
+    name, unit, direction = check.get("measurement"), check.get("unit"), check.get("direction")
+    value = _number(check.get("value"))
+    if not isinstance(name, str) or value is None or direction not in ("above", "below"):
         return None
-    if rule.unit == "flag":
-        beyond = threshold.level(value) > 0
+    level = str(check.get("level") or "?")
+    level_words = {"few": LEVEL_WORDS[0], "some": LEVEL_WORDS[1], "failure": LEVEL_WORDS[2]}.get(level, level)
+    if unit == "flag":
+        beyond = level != "few"
         return ThresholdRow(name, "yes" if value >= 0.5 else "no", "set or not", LEVEL_WORDS[1], "—",
-                            "beyond" if beyond else "within", LEVEL_WORDS.get(level, "?"), math.inf)
-    limits = [(limit, lv) for limit, lv in ((threshold.some, 1), (threshold.failure, 2)) if limit is not None]
-    if not limits:
+                            "beyond" if beyond else "within", level_words, math.inf)
+    margin = _number(check.get("margin"))
+    limits = [(limit, lv) for limit, lv in ((_number(check.get("some")), 1), (_number(check.get("failure")), 2))
+              if limit is not None]
+    if margin is None or not limits:
         return None
-    limit, limit_level = min(limits, key=lambda pair: _distance(name, value, pair[0]))
-    op = ">" if rule.direction == "above" else "<"
-    beyond = value > limit if rule.direction == "above" else value < limit
-    scale = 100.0 if rule.unit in ("percent", "percent1") else 1.0
-    difference = (value - limit) * scale
-    unit = {"px": " px", "deg": " deg", "percent": " points", "percent1": " points"}.get(rule.unit, "")
-    decimals = 2 if rule.unit in ("percent", "percent1", "ratio") else (1 if rule.unit in ("px", "deg") else 3)
-    margin = f"{difference:+.{decimals}f}{unit}"
-    if round(difference, decimals) == 0:
-        margin = f"{difference:+.{decimals + 3}f}{unit}"
-    return ThresholdRow(name, _format(value, rule.unit, limit), f"{op} {_threshold_text(limit, rule.unit)}",
-                        LEVEL_WORDS[limit_level], margin, "beyond" if beyond else "within",
-                        LEVEL_WORDS.get(level, "?"), _distance(name, value, limit))
+    # The threshold the margin was measured to: value - margin, matched to the nearer of the two.
+    limit, limit_level = min(limits, key=lambda pair: abs((value - margin) - pair[0]))
+    beyond = value > limit if direction == "above" else value < limit
+    distance = _number(check.get("distance"))
+    return ThresholdRow(name, _show(value, str(unit)), f"{'>' if direction == 'above' else '<'} {_show_limit(limit, str(unit))}",
+                        LEVEL_WORDS[limit_level], _show_margin(margin, str(unit)), "beyond" if beyond else "within",
+                        level_words, math.inf if distance is None else distance)
 
 
 def threshold_table(metrics: dict[str, Any] | None) -> ThresholdTable | None:
-    """The table for a grade record's ``metrics``; None when it holds no per-measurement levels."""
+    """The table for a grade record's ``metrics``; None when it holds no per-measurement levels.
+
+    Records from the current grader carry ``checks`` (one row per measurement) and ``nearest``;
+    for older ones the measurements are graded again (:func:`pipeline.grading.grade`, pure and
+    fast) against the thresholds the record's ``thresholds_hash`` names, to get the same rows.
+    """
     metrics = metrics or {}
     nested = metrics.get("measurements")
     measurements: dict[str, Any] = nested if isinstance(nested, dict) else metrics
-    levels = metrics.get("levels")
-    if not isinstance(levels, dict) or not levels:
-        return None
-    threshold_source = metrics.get("thresholds")
-    known = False
-    thresholds = None
-    if isinstance(threshold_source, dict):
-        from pipeline.errors import InvalidInputError
-        from pipeline.grading import GradeThresholds
+    checks, nearest_entry, known, from_record = metrics.get("checks"), metrics.get("nearest"), True, True
+    if not isinstance(checks, list) or not checks:
+        levels = metrics.get("levels")
+        if not isinstance(levels, dict) or not levels:
+            return None
+        from pipeline.errors import PipelineError
+        from pipeline.grading import grade
 
-        try:
-            thresholds, known = GradeThresholds.from_dict(threshold_source), True
-        except InvalidInputError:
-            thresholds = None
-    if thresholds is None:
         thresholds, known = _thresholds_for(metrics)
-    rows = []
-    for name, level in levels.items():
-        value = _number(measurements.get(name))
-        if value is None or not isinstance(level, int):
-            continue
-        row = _row(name, value, level, getattr(thresholds, name, None)) if hasattr(thresholds, name) else None
-        if row is not None:
-            rows.append(row)
+        values = {name: measurements.get(name) for name in levels}
+        try:
+            result = grade(values, thresholds)
+        except PipelineError:
+            return None
+        recorded = isinstance(nearest_entry, dict)  # a grader that named its nearest but kept no checks
+        checks, nearest_entry, from_record = result.checks, nearest_entry if recorded else result.nearest, recorded
+    rows = [row for row in (_row(check) for check in checks if isinstance(check, dict)) if row is not None]
     rows.sort(key=lambda row: row.distance)
-    recorded = metrics.get("nearest")
-    if isinstance(recorded, dict) and recorded.get("measurement") in {row.measurement for row in rows}:
-        nearest = next(row for row in rows if row.measurement == recorded["measurement"])
-        return ThresholdTable(rows, nearest, known, True)
-    finite = [row for row in rows if math.isfinite(row.distance)]
-    return ThresholdTable(rows, finite[0] if finite else None, known, False)
-
+    wanted = nearest_entry.get("measurement") if isinstance(nearest_entry, dict) else None
+    nearest = next((row for row in rows if row.measurement == wanted), None)
+    if nearest is None:
+        finite = [row for row in rows if math.isfinite(row.distance)]
+        nearest, from_record = (finite[0] if finite else None), False
+    return ThresholdTable(rows, nearest, known, from_record)

@@ -54,8 +54,12 @@ def test_a_curator_reads_the_nearest_threshold_accepts_and_undoes(app, server, s
     page.click(f"a.card-link[href*='/cards/{first}']")
     page.wait_for_selector(f"#review-card[data-card='{first}'][data-ready]")
     look(page, f"card-{screen}")
+    from pipeline.grading import GradeThresholds
+
+    some = GradeThresholds().dy_p95_px.some  # the default "some artifacts" threshold, px
     nearest = page.inner_text("#nearest")
-    assert "dy p95 px" in nearest and "1.2 px" in nearest and "> 1.5 px" in nearest and "-0.3 px" in nearest
+    assert "dy p95 px" in nearest and "1.2 px" in nearest and f"> {some:g} px" in nearest
+    assert f"{1.2 - some:+.1f} px" in nearest
     assert "within" in nearest
     rows = page.eval_on_selector_all("#thresholds tbody tr", "rows => rows.map(r => r.cells[0].innerText)")
     assert rows[0] == "dy p95 px" and len(rows) == 4

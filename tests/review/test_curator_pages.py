@@ -120,25 +120,34 @@ def test_the_threshold_table_from_levels_and_from_a_recorded_nearest(app) -> Non
     metrics = {"good_match_fraction": 0.25, "dy_p95_px": 1.2, "coverage": 0.7, "swapped": False,
                "levels": {"good_match_fraction": 0, "dy_p95_px": 0, "coverage": 1, "swapped": 0},
                "thresholds_hash": param_hash(GradeThresholds())}
+    defaults = GradeThresholds()
     with app.app_context():
         table = threshold_table(metrics)
         assert table is not None and table.thresholds_known and not table.from_record
         rows = {row.measurement: row for row in table.rows}
-        # coverage 70 % is beyond "some" (< 80 %), 0.2 from it in what is missing (ln(0.3/0.2) = 0.41),
-        # and nearer the failure threshold 50 % in the same terms (ln(0.5/0.3) = 0.51): "some" is nearer.
-        assert (rows["coverage"].threshold, rows["coverage"].side, rows["coverage"].margin) == ("< 80 %", "beyond",
-                                                                                                 "-10.00 points")
-        assert rows["dy_p95_px"].margin == "-0.3 px" and rows["dy_p95_px"].side == "within"
-        assert table.nearest is not None and table.nearest.measurement == "dy_p95_px"  # ln(1.5/1.2) = 0.22
+        coverage_some = defaults.coverage.some
+        assert rows["coverage"].threshold == f"< {100 * coverage_some:g} %" and rows["coverage"].side == "beyond"
+        assert rows["coverage"].margin == f"{100 * (0.7 - coverage_some):+.2f} points"
+        dy_some = defaults.dy_p95_px.some
+        assert rows["dy_p95_px"].margin == f"{1.2 - dy_some:+.1f} px" and rows["dy_p95_px"].side == "within"
         assert rows["swapped"].value == "no" and math.isinf(rows["swapped"].distance)
         assert table.rows[-1].measurement == "swapped"  # flags are never near
+        assert [row.distance for row in table.rows] == sorted(row.distance for row in table.rows)
+        assert table.nearest is not None and table.nearest.measurement in rows
 
         recorded = threshold_table({**metrics, "nearest": {"measurement": "coverage", "value": 0.7, "threshold": 0.8,
                                                            "margin": -0.1, "level": "some"}})
         assert recorded.from_record and recorded.nearest.measurement == "coverage"
         unknown = threshold_table({**metrics, "thresholds_hash": "not-a-hash"})
-        assert not unknown.thresholds_known and unknown.nearest.measurement == "dy_p95_px"
+        assert not unknown.thresholds_known and unknown.nearest is not None
         assert threshold_table({"uncertainty": 0.5}) is None and threshold_table(None) is None
+
+        from pipeline.grading import grade  # a record from the current grader: its own rows and nearest
+
+        result = grade({k: metrics[k] for k in metrics["levels"]}, defaults)
+        current = threshold_table({**metrics, "checks": result.checks, "nearest": result.nearest})
+        assert current.from_record and current.nearest.measurement == result.nearest["measurement"]
+        assert [row.measurement for row in current.rows] == [row.measurement for row in table.rows]
 
 
 @pytest.fixture

@@ -142,7 +142,9 @@ def test_the_threshold_table_from_levels_and_from_a_recorded_nearest(app) -> Non
         assert not unknown.thresholds_known and unknown.nearest is not None
         assert threshold_table({"uncertainty": 0.5}) is None and threshold_table(None) is None
 
-        from pipeline.grading import grade  # a record from the current grader: its own rows and nearest
+        from pipeline.grading import (
+            grade,  # a record from the current grader: its own rows and nearest
+        )
 
         result = grade({k: metrics[k] for k in metrics["levels"]}, defaults)
         current = threshold_table({**metrics, "checks": result.checks, "nearest": result.nearest})

@@ -71,9 +71,10 @@ bp.record_once(lambda state: run_hooks.register(state.app))
 @bp.app_template_global()
 def queue_thumb_url(row: Any) -> str:
     """The catalogue's cached thumbnail (<= 320 px JPEG, versioned URL cached for a year) of a queue row."""
-    from app.catalog import _version, preview_etag
+    from app.catalog import preview_etag
+    from app.http_images import url_version
 
-    return url_for("catalog.thumb_image", card_id=row.card_id, v=_version(preview_etag(row.content_hash, "thumb")))
+    return url_for("catalog.thumb_image", card_id=row.card_id, v=url_version(preview_etag(row.content_hash, "thumb")))
 
 
 ANAGLYPH_VERSION = "1"  # part of the anaglyph's ETag: bump when the way it is made changes

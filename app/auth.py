@@ -42,15 +42,35 @@ from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 from werkzeug.security import check_password_hash, generate_password_hash
 from werkzeug.wrappers import Response
-from wtforms import HiddenField, PasswordField, SelectMultipleField, StringField, SubmitField
+from wtforms import (
+    HiddenField,
+    PasswordField,
+    SelectMultipleField,
+    StringField,
+    SubmitField,
+)
 from wtforms.validators import DataRequired, Length, Regexp
 from wtforms.widgets import CheckboxInput, ListWidget
 
 from .db import db, one_writer, read_only
 from .extensions import login_manager
-from .login_throttle import Lockout, ThrottlePolicy, client_address, clock, give_back_attempt, reserve_attempt
+from .login_throttle import (
+    Lockout,
+    ThrottlePolicy,
+    client_address,
+    clock,
+    give_back_attempt,
+    reserve_attempt,
+)
 from .models import ROLES, AuthEvent, Person
-from .people import create_person
+from .people import (
+    PeopleError,
+    create_person,
+    person_history,
+    reset_password,
+    set_active,
+    set_roles,
+)
 from .security import prefers_json
 
 bp = Blueprint("auth", __name__, url_prefix="/auth")
@@ -361,6 +381,59 @@ def people() -> Any:
             return redirect(url_for("auth.people"))
     elif form.errors:
         status = 400
+    return _people_page(form, status)
+
+
+def _people_page(form: PersonForm | None = None, status: int = 200, *, error: str | None = None,
+                 one_time: tuple[str, str] | None = None) -> Any:
     with read_only():
         everyone = list(db.session.scalars(select(Person).order_by(Person.username)))
-        return render_template("auth/people.html", form=form, people=everyone, roles=ROLES), status
+        history = {person.id: person_history(person.id, limit=5) for person in everyone}
+        return render_template("auth/people.html", form=form or PersonForm(formdata=None), people=everyone,
+                               roles=ROLES, history=history, error=error, one_time=one_time,
+                               min_password=MIN_PASSWORD_LENGTH), status
+
+
+def _admin() -> Person:
+    return current_user._get_current_object()  # type: ignore[no-any-return]
+
+
+@bp.errorhandler(PeopleError)
+def people_error(error: PeopleError) -> Any:
+    db.session.rollback()
+    return _people_page(status=error.status, error=error.message)
+
+
+@bp.route("/people/<int:person_id>/active", methods=["POST"])
+@role_required("admin")
+def person_active(person_id: int) -> Response:
+    wanted = request.form.get("active", "")
+    if wanted not in ("0", "1"):
+        raise PeopleError(f"Expected active=0 or active=1, got {wanted[:20]!r}")
+    person = set_active(person_id, wanted == "1", actor=_admin())
+    flash(f"{person.username} is {'active again' if person.active else 'deactivated: their sessions ended and they cannot log in'}.",
+          "success")
+    return redirect(url_for("auth.people"), code=303)
+
+
+@bp.route("/people/<int:person_id>/password", methods=["POST"])
+@role_required("admin")
+def person_password(person_id: int) -> Any:
+    typed = request.form.get("password") or ""
+    person, generated = reset_password(person_id, actor=_admin(), password=typed or None,
+                                       min_length=MIN_PASSWORD_LENGTH)
+    if generated is None:
+        flash(f"New password set for {person.username}; their sessions ended.", "success")
+        return redirect(url_for("auth.people"), code=303)
+    # Shown once, in this response only: never in a redirect's flash (the session cookie is signed, not secret).
+    response = make_response(_people_page(one_time=(person.username, generated))[0])
+    response.headers["Cache-Control"] = "no-store"
+    return response
+
+
+@bp.route("/people/<int:person_id>/roles", methods=["POST"])
+@role_required("admin")
+def person_roles(person_id: int) -> Response:
+    person = set_roles(person_id, request.form.getlist("roles"), actor=_admin())
+    flash(f"{person.username} now has the roles {', '.join(sorted(person.roles))}.", "success")
+    return redirect(url_for("auth.people"), code=303)

@@ -48,7 +48,7 @@ def get_views_or_404(card: Card) -> StageResult:
     """The card's latest ``views`` result when it is done, else 404 saying why there are no views."""
     result = card.latest_results().get("views")
     if result is None:
-        abort(404, f"Card {card.id} has no views yet; run `keystone run --stages views`.")
+        abort(404, f"Card {card.id} has no 3D views yet: the views stage has not run on it.")
     if result.status != "done":
         abort(404, f"Card {card.id} has no views: {result.status}, {result.reason or 'no reason recorded'}.")
     return result

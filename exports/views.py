@@ -2,11 +2,21 @@
 
 For exporters (and admins). Releases made here go to ``KEYSTONE_RELEASES_DIR`` (default
 ``<data dir>/releases``); the release's README, CHANGELOG, croissant.json and SHA256SUMS
-can be read from the list.
+can be read from the list, every file of a release downloaded from its own page, and the
+whole release as one tar archive, streamed as it is read.
+
+Publishing publishes exactly what was previewed: the preview carries a digest of its plan
+(version, cards and their content digests, formats, notes) and publish refuses, showing what
+changed, when the plan it would make now has another digest. A release whose content (cards,
+their digests, formats, lowest grade) is the same as the last release's is refused too.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import tarfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -18,15 +28,23 @@ from flask import (
     flash,
     redirect,
     render_template,
+    send_file,
+    stream_with_context,
     url_for,
 )
 from flask_login import current_user
 from flask_wtf import FlaskForm
 from sqlalchemy import select
 from sqlalchemy.orm import defer
-from wtforms import SelectField, SelectMultipleField, TextAreaField
+from wtforms import (
+    HiddenField,
+    SelectField,
+    SelectMultipleField,
+    TextAreaField,
+    ValidationError,
+)
 from wtforms.fields.choices import SelectChoice
-from wtforms.validators import DataRequired, Length
+from wtforms.validators import Length
 from wtforms.widgets import CheckboxInput, ListWidget
 
 from app.auth import add_nav_link, role_required
@@ -38,16 +56,55 @@ from .records import DEFAULT_FORMATS, FORMATS, RELEASABLE_GRADES
 bp = Blueprint("exports", __name__, url_prefix="/releases", template_folder="templates")
 bp.record_once(lambda state: add_nav_link(state.app, "Releases", "exports.index", "exporter", order=70))
 
+FILES_LISTED = 1000  # a release page lists this many files; the archive and SHA256SUMS hold them all
 RELEASE_DOCUMENTS = {"README.md": "text/markdown", "CHANGELOG.md": "text/markdown",
                      "croissant.json": "application/json", "SHA256SUMS": "text/plain"}
 
 
 class ReleaseForm(FlaskForm):
     min_grade = SelectField("Lowest grade", choices=[SelectChoice(g, f"{g} artifacts") for g in RELEASABLE_GRADES], default="some")
+    # No DataRequired: it would put `required` on every checkbox, and a browser then refuses the
+    # form unless all of them are ticked. At least one is checked on the server instead.
     formats = SelectMultipleField("Formats", choices=list(FORMATS), default=list(DEFAULT_FORMATS),
-                                  validators=[DataRequired("Choose at least one format.")],
                                   widget=ListWidget(prefix_label=False), option_widget=CheckboxInput())
     notes = TextAreaField("Notes", validators=[Length(max=5000)])
+    plan_digest = HiddenField()
+    planned_version = HiddenField()
+    planned_cards = HiddenField()
+
+    def validate_formats(self, field: Any) -> None:
+        if not field.data:
+            raise ValidationError("Choose at least one format.")
+
+
+def plan_digest(plan: Any) -> str:
+    """What publishing would write, as one hash: version, lowest grade, formats, notes and each
+    card's content digest. Any change between preview and publish changes it."""
+    document = {"version": plan.version, "min_grade": plan.min_grade, "formats": sorted(plan.formats),
+                "notes": plan.notes, "cards": {key: entry.get("digest") for key, entry in plan.manifest.items()}}
+    return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
+
+
+def content_digest(manifest: dict[str, Any], formats: list[str], min_grade: str) -> str:
+    """A release's content without its version, date or notes: two releases with the same
+    content digest hold the same files for the same cards."""
+    document = {"min_grade": min_grade, "formats": sorted(formats),
+                "cards": {key: (entry or {}).get("digest") for key, entry in manifest.items()}}
+    return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
+
+
+def same_as_last_release(plan: Any) -> str | None:
+    """The version of the last release when ``plan`` would publish the same content, else None."""
+    from .catalogue import latest_release
+
+    with read_only():
+        last = latest_release()
+        if last is None:
+            return None
+        manifest = dict((last.stats or {}).get("manifest") or {})
+        same = content_digest(manifest, list(last.formats or []), last.min_grade) == content_digest(
+            plan.manifest, list(plan.formats), plan.min_grade)
+        return last.version if same else None
 
 
 def releases_dir() -> Path:
@@ -82,17 +139,46 @@ def preview() -> Any:
     if not form.validate_on_submit():
         return render_template("exports/index.html", releases=_releases(), form=form, preview=None), 400
     plan = plan_release(min_grade=form.min_grade.data, formats=tuple(form.formats.data), notes=form.notes.data or "")
-    return render_template("exports/index.html", releases=_releases(), form=form, preview=plan)
+    return _preview_page(form, plan)
+
+
+def _preview_page(form: ReleaseForm, plan: Any, *, changed: dict[str, Any] | None = None, status: int = 200) -> Any:
+    form.plan_digest.data = plan_digest(plan)
+    form.planned_version.data = plan.version
+    form.planned_cards.data = ",".join(sorted(plan.manifest, key=int))
+    return render_template("exports/index.html", releases=_releases(), form=form, preview=plan,
+                           identical_to=same_as_last_release(plan), changed=changed), status
+
+
+def _card_ids(text: str) -> set[int]:
+    return {int(part) for part in (text or "").split(",") if part.strip().isdigit()}
 
 
 @bp.route("/publish", methods=["POST"])
 @role_required("exporter")
 def publish() -> Any:
-    from .release import ReleaseError, publish_release
+    from .release import ReleaseError, plan_release, publish_release
 
     form = ReleaseForm()
     if not form.validate_on_submit():
         return render_template("exports/index.html", releases=_releases(), form=form, preview=None), 400
+    if not form.plan_digest.data:
+        flash("Preview the release first: publishing publishes exactly what the preview showed.", "error")
+        return render_template("exports/index.html", releases=_releases(), form=form, preview=None), 400
+    plan = plan_release(min_grade=form.min_grade.data, formats=tuple(form.formats.data), notes=form.notes.data or "")
+    if plan_digest(plan) != form.plan_digest.data:
+        before, now = _card_ids(form.planned_cards.data), {int(key) for key in plan.manifest}
+        changed = {"version_before": form.planned_version.data or "?", "version_now": plan.version,
+                   "added": sorted(now - before), "removed": sorted(before - now),
+                   "same_cards": before == now}
+        flash("Nothing was published: the release changed since your preview (see below). "
+              "Check the new preview and publish it if it is what you want.", "error")
+        return _preview_page(form, plan, changed=changed, status=409)
+    identical = same_as_last_release(plan)
+    if identical:
+        flash(f"Nothing was published: this release would hold exactly the same cards, files and formats as "
+              f"release {identical}. Accept or change cards in review, or choose other formats, first.", "error")
+        return _preview_page(form, plan, status=409)
     # The logged-in person is already loaded and detached (app.auth): using it opens no
     # transaction, so the export's reads do not hold SQLite's write lock for minutes.
     actor = current_user._get_current_object()
@@ -103,8 +189,94 @@ def publish() -> Any:
         db.session.rollback()
         flash(str(exc), "error")
         return render_template("exports/index.html", releases=_releases(), form=form, preview=None), 409
-    flash(f"Published release {report.version}: {report.cards} cards, {report.files} files in {report.path}.", "success")
-    return redirect(url_for("exports.index"))
+    flash(f"Published release {report.version}: {report.cards} card{'' if report.cards == 1 else 's'}, "
+          f"{report.files} files.", "success")
+    return redirect(url_for("exports.release_page", version=report.version), code=303)
+
+
+def _release_root(version: str) -> Path:
+    with read_only():
+        path = db.session.scalar(select(Release.path).where(Release.version == version))
+    if path is None:
+        abort(404, f"There is no release {version}.")
+    root = Path(path)
+    if not root.is_dir():
+        abort(404, f"Release {version} is not on disk at {path}.")
+    return root.resolve()
+
+
+def release_files(root: Path) -> list[tuple[str, int]]:
+    """(path relative to the release, bytes) of every file in it, sorted; links are left out."""
+    files = []
+    for path in sorted(root.rglob("*")):
+        if path.is_file() and not path.is_symlink():
+            files.append((path.relative_to(root).as_posix(), path.stat().st_size))
+    return files
+
+
+@bp.route("/<version>/")
+@role_required("exporter")
+def release_page(version: str) -> Any:
+    root = _release_root(version)
+    with read_only():
+        release = db.session.scalar(select(Release).where(Release.version == version).options(defer(Release.stats)))
+        db.session.expunge(release)
+    files = release_files(root)
+    return render_template("exports/release.html", release=release, files=files[:FILES_LISTED], file_count=len(files),
+                           total=sum(size for _, size in files))
+
+
+@bp.route("/<version>/files/<path:name>")
+@role_required("exporter")
+def release_file(version: str, name: str) -> Response:
+    root = _release_root(version)
+    target = (root / name).resolve()
+    # Inside the release folder only: "../", absolute paths and links out of it are refused.
+    if not target.is_relative_to(root) or target == root or (root / name).is_symlink():
+        abort(404, f"{name!r} is not a file of release {version}.")
+    if not target.is_file():
+        abort(404, f"Release {version} has no file {name!r}.")
+    return send_file(target, as_attachment=True, download_name=target.name, conditional=True, max_age=3600)
+
+
+class _Chunks:
+    """A write-only file for tarfile's stream mode: what is written is handed on in chunks."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+
+    def write(self, data: bytes) -> int:
+        self.parts.append(bytes(data))
+        return len(data)
+
+    def take(self) -> bytes:
+        data, self.parts = b"".join(self.parts), []
+        return data
+
+
+def stream_tar(root: Path, prefix: str) -> Iterator[bytes]:
+    """The release folder as an uncompressed tar, one file at a time (never all in memory)."""
+    sink = _Chunks()
+    with tarfile.open(fileobj=sink, mode="w|", format=tarfile.PAX_FORMAT) as archive:  # type: ignore[arg-type]
+        for name, _ in release_files(root):
+            path = root / name
+            info = archive.gettarinfo(str(path), arcname=f"{prefix}/{name}")
+            info.uid = info.gid = 0
+            info.uname = info.gname = ""
+            with path.open("rb") as handle:
+                archive.addfile(info, handle)
+            yield sink.take()
+    yield sink.take()
+
+
+@bp.route("/<version>/archive.tar")
+@role_required("exporter")
+def archive(version: str) -> Response:
+    root = _release_root(version)
+    name = f"keystone-{version}"
+    response = Response(stream_with_context(stream_tar(root, name)), mimetype="application/x-tar")
+    response.headers["Content-Disposition"] = f'attachment; filename="{name}.tar"'
+    return response
 
 
 @bp.route("/<version>/<name>")

@@ -503,6 +503,75 @@ def _send_back(outcome: Decided, kind: str, curator: Person, note: str) -> Decid
     return Decided(outcome.review_id, outcome.card_id, outcome.decision, outcome.grade, outcome.version, batch.id)
 
 
+def undo_decision(review_id: int, *, expected_version: int, curator: Person) -> Decided:
+    """Put a review back as it was before its latest decision (accept, change, send back, reject).
+
+    ``expected_version`` is the version the decision left: if anyone changed the card since,
+    the undo is refused as a :class:`ReviewConflict`. Undoing a send-back removes the crowd
+    batch it made, refused (409) once an annotator has answered in it or holds a task from it.
+    The restored review and an audit event (action ``undo``) commit together.
+    """
+    from annotation.models import Batch, Reservation
+
+    if isinstance(expected_version, bool) or not isinstance(expected_version, int):
+        raise ReviewError(f"Expected the review version to undo as a whole number, got {expected_version!r}")
+    review = db.session.get(CardReview, review_id, populate_existing=True)
+    if review is None:
+        db.session.rollback()
+        raise ReviewError(f"There is no review {review_id}", 404)
+    if review.version != expected_version:
+        conflict = _conflict(review, expected_version)
+        db.session.rollback()
+        raise conflict
+    last = db.session.scalar(select(AuditEvent).where(AuditEvent.entity == "review", AuditEvent.entity_id == review.id)
+                             .order_by(AuditEvent.id.desc()).limit(1))
+    if last is None or last.action not in ACTIONS or not isinstance(last.before, dict):
+        db.session.rollback()
+        raise ReviewError(f"Card {review.card_id} has no decision to undo", 409)
+    batch = None
+    if last.action == "send_back":
+        batch_id = db.session.scalar(select(AuditEvent.entity_id).where(
+            AuditEvent.entity == "batch", AuditEvent.action == "created_for_send_back",
+            AuditEvent.card_id == review.card_id, AuditEvent.id > last.id).order_by(AuditEvent.id).limit(1))
+        batch = db.session.get(Batch, batch_id) if batch_id is not None else None
+        if batch is not None:
+            item_ids = [item.id for item in batch.items]
+            answered = db.session.scalar(select(func.count()).select_from(Answer).where(Answer.item_id.in_(item_ids)))
+            held = db.session.scalar(select(func.count()).select_from(Reservation)
+                                     .where(Reservation.item_id.in_(item_ids)))
+            if answered or held:
+                db.session.rollback()
+                raise ReviewError(f"Card {review.card_id} cannot be taken back from crowd batch {batch.id}: "
+                                  f"annotators have already answered ({answered}) or hold tasks ({held}) in it", 409)
+    before, previous = review_snapshot(review), last.before
+    review.decision = previous.get("decision") or "pending"
+    review.grade = previous.get("grade")
+    review.note = previous.get("note") or ""
+    review.reviewer_id = previous.get("reviewer_id")
+    if review.decision == "pending":
+        review.decided_at = None
+    try:
+        db.session.flush()
+    except StaleDataError:
+        db.session.rollback()
+        fresh = db.session.get(CardReview, review_id, populate_existing=True)
+        assert fresh is not None
+        conflict = _conflict(fresh, expected_version)
+        db.session.rollback()
+        raise conflict from None
+    after = review_snapshot(review)
+    if batch is not None:
+        after["removed_batch"] = batch.id
+        record_event(entity="batch", action="removed_by_undo", card_id=review.card_id, entity_id=batch.id,
+                     actor=curator, before={"batch": batch.id, "kind": batch.kind}, after=None,
+                     why=f"undo of the send-back of card {review.card_id}")
+        db.session.delete(batch)
+    record_event(entity="review", action="undo", card_id=review.card_id, entity_id=review.id, actor=curator,
+                 before=before, after=after, why=f"undo of {last.action.replace('_', ' ')} (audit event {last.id})")
+    db.session.commit()
+    return Decided(review.id, review.card_id, review.decision, review.grade, review.version)
+
+
 @dataclass(frozen=True)
 class BulkOutcome:
     review_id: int

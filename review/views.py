@@ -24,13 +24,15 @@ from flask import (
     redirect,
     render_template,
     request,
+    session,
     url_for,
 )
 from flask_login import current_user
 from sqlalchemy import select
+from sqlalchemy.orm import selectinload
 from werkzeug.wrappers import Response
 
-from annotation.models import Aggregate
+from annotation.models import Aggregate, Worker
 from app.auth import add_nav_link, role_required
 from app.db import db, read_only
 from app.json_body import load_json_body
@@ -57,12 +59,23 @@ from .tasks import (
     resolve_aggregate,
     review_queue,
     sync_reviews,
+    undo_decision,
 )
+from .threshold_table import threshold_table
 
 bp = Blueprint("review", __name__, url_prefix="/review", template_folder="templates", static_folder="static",
                static_url_path="/review-static")
 bp.record_once(lambda state: add_nav_link(state.app, "Review", "review.queue", "curator", order=30))
 bp.record_once(lambda state: run_hooks.register(state.app))
+
+@bp.app_template_global()
+def queue_thumb_url(row: Any) -> str:
+    """The catalogue's cached thumbnail (<= 320 px JPEG, versioned URL cached for a year) of a queue row."""
+    from app.catalog import preview_etag
+    from app.http_images import url_version
+
+    return url_for("catalog.thumb_image", card_id=row.card_id, v=url_version(preview_etag(row.content_hash, "thumb")))
+
 
 ANAGLYPH_VERSION = "1"  # part of the anaglyph's ETag: bump when the way it is made changes
 DISPUTES_SHOWN = 50
@@ -196,6 +209,27 @@ def _judgement_counts(answers: list[Any]) -> dict[str, tuple[int, int]]:
     return counts
 
 
+def card_state_sentence(card: Any, latest: dict[str, Any]) -> str:
+    """Why a card without a review has nothing to decide, in terms of where it stands: culled by
+    the filter, a stage that failed, or the stage it is waiting for."""
+    filtered = latest.get("filter")
+    if card.state == "culled" or (filtered is not None and filtered.outcome == "culled"):
+        why = f" ({filtered.reason})" if filtered is not None and filtered.reason else ""
+        return (f"The filter culled this card{why}: it is not a usable stereo pair, so it is not graded and "
+                "there is nothing to review.")
+    for stage in ("filter", "rectify", "disparity", "grade"):
+        result = latest.get(stage)
+        if result is not None and result.status == "failed":
+            return (f"The {stage} stage failed on this card ({result.reason or 'no reason recorded'}), so it has no "
+                    "automatic grade to review.")
+    grade = latest.get("grade")
+    if grade is not None and grade.status == "done":
+        return "This card is graded but not yet in the review queue: sync the queue with the grader."
+    waiting = next((stage for stage in ("filter", "rectify", "disparity", "grade")
+                    if latest.get(stage) is None or latest[stage].status not in ("done", "skipped")), "grade")
+    return f"This card is not graded yet: it is waiting for its {waiting} stage."
+
+
 @bp.route("/cards/<int:card_id>")
 @role_required("curator")
 def card(card_id: int) -> Any:
@@ -218,6 +252,8 @@ def card(card_id: int) -> Any:
             crowd=view, crowd_boxes=_crowd_boxes(view), judgements=_judgement_counts(view.judge_answers),
             previous=previous, following=following, filters=filters, grades=GRADES, grade_names=GRADE_NAMES,
             kinds=SEND_BACK_KINDS, anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
+            table=threshold_table(grade_result.metrics) if grade_result is not None else None,
+            state_sentence=card_state_sentence(card, latest) if review is None else "",
         )
 
 
@@ -254,13 +290,48 @@ def decide_card(card_id: int) -> Any:
     decided = decide(review_id, action, expected_version=version, curator=_curator(), grade=grade,
                      note=str(source.get("note") or ""), kind=str(source.get("kind") or "crop"))
     next_url = _next_url(card_id, _filters(request.args))
+    _offer_undo(decided)
     if body is not None:
         return jsonify({"card": decided.card_id, "decision": decided.decision, "grade": decided.grade,
                         "version": decided.version, "batch": decided.batch_id, "next_url": next_url})
-    flash(f"Card {card_id}: {decided.decision.replace('_', ' ')}"
-          + (f" ({GRADE_NAMES[decided.grade]})" if decided.grade else "")
-          + (f", crowd batch {decided.batch_id}" if decided.batch_id else "") + ".", "success")
     return redirect(next_url, code=303)
+
+
+DECISION_WORDS = {"accepted": "accepted", "changed": "grade changed", "sent_back": "sent back to the crowd",
+                  "rejected": "rejected", "pending": "back to pending"}
+
+
+def _offer_undo(decided: Any) -> None:
+    """The confirmation the next page shows (base.html): what was done, an Undo button that
+    posts the version this decision left, and after a send-back the new batch with its link."""
+    message = f"Card {decided.card_id}: {DECISION_WORDS.get(decided.decision, decided.decision)}"
+    if decided.grade:
+        message += f" as {GRADE_NAMES[decided.grade]}"
+    link = None
+    if decided.batch_id:
+        message += f"; it is in new crowd batch {decided.batch_id}, waiting for annotators"
+        link = {"url": url_for("crowd.batches") + f"#batch-{decided.batch_id}",
+                "text": f"Open batch {decided.batch_id} (invite links, progress)"}
+    session["keystone_undo"] = {"message": message + ".", "link": link,
+                                "action": url_for("review.undo", card_id=decided.card_id),
+                                "fields": {"version": decided.version}}
+
+
+@bp.route("/cards/<int:card_id>/undo", methods=["POST"])
+@role_required("curator")
+def undo(card_id: int) -> Any:
+    try:
+        version = parse_positive_int(request.form.get("version") or "", "version")
+    except ValueError as exc:
+        raise ReviewError(str(exc)) from None
+    with read_only():
+        review_id = db.session.scalar(select(CardReview.id).where(CardReview.card_id == card_id))
+    if review_id is None:
+        raise ReviewError(f"Card {card_id} has no review, so no decision to undo", 404)
+    restored = undo_decision(review_id, expected_version=version, curator=_curator())
+    flash(f"Undone: card {card_id} is {DECISION_WORDS.get(restored.decision, restored.decision)} again"
+          + (f" ({GRADE_NAMES[restored.grade]})" if restored.grade else "") + ".", "success")
+    return redirect(url_for("review.card", card_id=card_id), code=303)
 
 
 @bp.route("/cards/<int:card_id>/history")
@@ -351,14 +422,26 @@ def anaglyph(card_id: int) -> Response:
 # ----------------------------------------------------------------------------- disputes
 
 
+JUDGE_QUESTIONS = {"is_stereo": "a stereo pair", "upside_down": "upside down", "inverted": "a negative (inverted)"}
+CONFIDENT_POSTERIOR = 0.9  # below this the crowd's label is not offered as the default answer
+
+
 def _label_from_form(kind: str, form: Any) -> dict[str, Any]:
     if kind == "judge":
-        return {q: form.get(q) == "on" for q in ("is_stereo", "upside_down", "inverted")}
+        label = {}
+        for question, words in JUDGE_QUESTIONS.items():
+            raw = (form.get(question) or "").strip().lower()
+            if raw not in ("yes", "no"):
+                raise ReviewError(f"Choose yes or no for whether the card is {words}")
+            label[question] = raw == "yes"
+        return label
     label: dict[str, Any] = {}
     for half in ("left", "right"):
         box = []
         for corner in ("x0", "y0", "x1", "y1"):
             raw = (form.get(f"{half}_{corner}") or "").strip()
+            if not raw:
+                raise ReviewError(f"Draw the {half} box on the card (or type its {corner})")
             try:
                 value = float(raw)
             except ValueError:
@@ -384,9 +467,70 @@ def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200
         if aggregate.kind == "crop":
             view.crop, view.crop_answers = aggregate, answers
             boxes = _crowd_boxes(view)
+        workers = {w.id: w for w in db.session.scalars(
+            select(Worker).where(Worker.id.in_({a.worker_id for a in answers})).options(selectinload(Worker.person)))}
         return render_template("review/dispute.html", aggregate=aggregate, card=card, answers=answers, boxes=boxes,
                                judgements=_judgement_counts(answers) if aggregate.kind == "judge" else {},
-                               error=error), status
+                               workers={wid: worker_label(w) for wid, w in workers.items()},
+                               questions=JUDGE_QUESTIONS, defaults=judge_defaults(aggregate),
+                               posterior=posterior_words(aggregate), error=error, form=request.form), status
+
+
+def worker_label(worker: Any) -> str:
+    """A worker as a curator knows them: the person's name, else the invite name or provider id."""
+    if worker.person is not None:
+        return worker.person.display_name or worker.person.username
+    provider = {"invite": "invite link", "prolific": "Prolific", "mturk": "MTurk"}.get(worker.provider, worker.provider)
+    return f"{worker.external_id} ({provider})"
+
+
+def _yes_probability(aggregate: Any, question: str) -> float | None:
+    value = (aggregate.posterior or {}).get(question)
+    if isinstance(value, list) and len(value) == 2 and all(isinstance(p, (int, float)) for p in value):
+        return float(value[1])
+    return None
+
+
+def judge_defaults(aggregate: Any) -> dict[str, str | None]:
+    """The answer to pre-select per question: the crowd's label only where its posterior is at
+    least :data:`CONFIDENT_POSTERIOR`; otherwise None, and the curator must choose."""
+    if aggregate.kind != "judge":
+        return {}
+    defaults: dict[str, str | None] = {}
+    for question in JUDGE_QUESTIONS:
+        yes = _yes_probability(aggregate, question)
+        label = (aggregate.label or {}).get(question)
+        if yes is None or not isinstance(label, bool):
+            defaults[question] = None
+            continue
+        sure = yes if label else 1.0 - yes
+        defaults[question] = ("yes" if label else "no") if sure >= CONFIDENT_POSTERIOR else None
+    return defaults
+
+
+def posterior_words(aggregate: Any) -> list[str]:
+    """The crowd model's belief in words: "upside down: 25 % likely yes"."""
+    if aggregate.kind == "judge":
+        words = []
+        for question, text in JUDGE_QUESTIONS.items():
+            yes = _yes_probability(aggregate, question)
+            if yes is not None:
+                words.append(f"{text}: {100 * yes:.0f} % likely")
+        return words
+    words = []
+    for half in ("left", "right"):
+        entry = (aggregate.posterior or {}).get(half)
+        if isinstance(entry, dict):
+            iou = entry.get("mean_iou")
+            kept, dropped = entry.get("kept"), entry.get("dropped")
+            part = f"{half} box: "
+            part += f"{len(kept) if isinstance(kept, list) else kept} answers kept" if kept is not None else ""
+            if dropped:
+                part += f", {len(dropped) if isinstance(dropped, list) else dropped} dropped as outliers"
+            if isinstance(iou, (int, float)):
+                part += f", mean overlap {100 * iou:.0f} %"
+            words.append(part)
+    return words
 
 
 @bp.route("/disputes/<int:aggregate_id>", methods=["GET", "POST"])

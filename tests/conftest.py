@@ -430,6 +430,47 @@ def browser() -> Iterator[Any]:
             instance.close()
 
 
+# The two screens every role's path is walked on: a laptop and a phone (touch).
+SCREENS: dict[str, dict[str, Any]] = {
+    "desktop": {"viewport": {"width": 1366, "height": 800}},
+    "phone": {"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True, "device_scale_factor": 2},
+}
+
+
+@pytest.fixture
+def screen_page(browser, server) -> Callable[..., Any]:  # type: ignore[no-untyped-def]
+    """A page in a fresh browser context (its own cookies) sized as one of :data:`SCREENS`,
+    logged in as ``person`` through the real form when one is given."""
+
+    def open_page(screen: str, person: Any = None, **context: Any) -> Any:
+        page = browser.new_context(**SCREENS[screen], **context).new_page()
+        if person is not None:
+            page.goto(f"{server}/auth/login")
+            page.fill("input[name=username]", person.username)
+            page.fill("input[name=password]", person.password)
+            page.click("input[type=submit], button[type=submit]")
+            page.wait_for_load_state()
+        return page
+
+    return open_page
+
+
+@pytest.fixture
+def look() -> Callable[[Any, str], None]:
+    """Check a page as a person would first notice: it must not scroll sideways. With
+    ``KEYSTONE_SHOTS=DIR`` a full-page screenshot goes to ``DIR/<name>.png`` to look at."""
+
+    def check(page: Any, name: str) -> None:
+        content, window = page.evaluate("[document.documentElement.scrollWidth, window.innerWidth]")
+        shots = os.environ.get("KEYSTONE_SHOTS")
+        if shots:
+            Path(shots).mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(Path(shots) / f"{name}.png"), full_page=True)
+        assert content <= window, f"{name} scrolls sideways: {content} px of content in a {window} px window"
+
+    return check
+
+
 def _wait_until(page: Any, expression: str, timeout_s: float = 15.0) -> None:
     """Poll a page expression from Python: Playwright's string ``wait_for_function`` compiles the
     predicate with ``new Function``, which the app's Content-Security-Policy (no 'unsafe-eval')

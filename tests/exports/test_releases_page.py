@@ -51,8 +51,11 @@ def test_preview_then_publish_from_the_page(app, client, login, csrf_token, proc
     bad = client.post("/releases/preview", data={**form, "formats": []})
     assert bad.status_code == 400 and "Choose at least one format." in bad.get_data(as_text=True)
 
-    published = client.post("/releases/publish", data=form)
-    assert published.status_code == 302
+    digest = re.search(r'name="plan_digest"[^>]*value="([0-9a-f]{64})"', html).group(1)
+    cards = re.search(r'name="planned_cards"[^>]*value="([0-9,]*)"', html).group(1)
+    published = client.post("/releases/publish", data={**form, "plan_digest": digest, "planned_version": "1.0.0",
+                                                       "planned_cards": cards})
+    assert published.status_code == 303
     listing = client.get("/releases/").get_data(as_text=True)
     assert "Published release 1.0.0: 2 cards" in listing and "from the web" in listing
     assert (tmp_path / "releases" / "1.0.0" / "SHA256SUMS").is_file()

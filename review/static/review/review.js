@@ -43,6 +43,13 @@
         if (!response.ok) {
           const message = (data.error && data.error.message) || ("The server answered " + response.status);
           show(message, response.status === 409 ? "conflict" : "error");
+          const login = data.error && data.error.login_url;
+          if (login || response.status === 401) {  // the session expired: say so, with the way back
+            const link = document.createElement("a");
+            link.href = login || "/auth/login?next=" + encodeURIComponent(window.location.pathname);
+            link.textContent = " Log in again";
+            alertBox.appendChild(link);
+          }
           busy = false;
           return;
         }
@@ -101,7 +108,10 @@
         for (const half of ["left", "right"]) {
           ["x0", "y0", "x1", "y1"].forEach((corner, i) => {
             const input = document.querySelector(`input[name="${half}_${corner}"]`);
-            if (input && answer[half]) input.value = answer[half][i];
+            if (input && answer[half]) {
+              input.value = answer[half][i];
+              input.dispatchEvent(new Event("input", { bubbles: true }));  // the box editor redraws
+            }
           });
         }
       });

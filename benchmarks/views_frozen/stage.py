@@ -17,6 +17,9 @@ import numpy as np
 from pipeline.errors import InvalidInputError
 from pipeline.io import atomic_write, read_image, to_grey, write_json, write_npy, write_png
 from pipeline.records import CardTask
+from pipeline.stages.base import StageOutput, stage_task
+
+from .geometry import MAX_RELATIVE_DEPTH_STEP, scene_centre
 from .synthesis import (
     DEFAULT_VERTICAL_FOV_FOCAL,
     VIEW_NAMES,
@@ -27,8 +30,6 @@ from .synthesis import (
     render_preview_frames,
     synthesise_views,
 )
-from .geometry import MAX_RELATIVE_DEPTH_STEP, scene_centre
-from pipeline.stages.base import StageOutput, stage_task
 
 __all__ = ["read_map", "scene_document", "views_task"]
 

@@ -60,6 +60,7 @@ import cv2
 import numpy as np
 
 from pipeline.errors import InvalidInputError, PipelineError
+
 from .geometry import (
     MAX_RELATIVE_DEPTH_STEP,
     Camera,

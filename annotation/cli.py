@@ -29,6 +29,7 @@ from .tasks import (
     aggregate_batch,
     batch_progress,
     create_batch,
+    orientation_queue_card_ids,
     review_queue_card_ids,
 )
 
@@ -61,7 +62,11 @@ def crowd_group() -> None:
 
 
 @crowd_group.command("create-batch")
-@click.option("--from-review", is_flag=True, help="Add the cards the filter sent to review.")
+@click.option("--from-review", is_flag=True,
+              help="Add the cards waiting for people: those the filter sent to review and those whose "
+                   "orientation the orientation step could not decide (whatever their filter band).")
+@click.option("--from-orientation", is_flag=True,
+              help="Add only the cards whose orientation the orientation step could not decide.")
 @click.option("--cards", "cards", default="", help="Comma-separated card ids.")
 @click.option("--kind", type=click.Choice(TASK_KINDS), default="judge", show_default=True)
 @click.option("--n", "n", type=click.IntRange(min=1), default=3, show_default=True, help="Answers per item.")
@@ -70,11 +75,13 @@ def crowd_group() -> None:
               help='JSON file {"<card id>": <known answer>} of gold items made by curators.')
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
 @with_appcontext
-def create_batch_command(from_review: bool, cards: str, kind: str, n: int, gold_rate: float,
-                         gold_file: Path | None, as_json: bool) -> None:
+def create_batch_command(from_review: bool, from_orientation: bool, cards: str, kind: str, n: int,
+                         gold_rate: float, gold_file: Path | None, as_json: bool) -> None:
     """Create a batch of KIND tasks over the chosen cards."""
     _ensure()
     ids = _card_ids(cards) + (review_queue_card_ids() if from_review else [])
+    if (from_review or from_orientation) and kind == "judge":
+        ids = list(dict.fromkeys(ids + orientation_queue_card_ids()))
     gold: dict[int, dict[str, Any]] = {}
     if gold_file is not None:
         try:
@@ -82,7 +89,8 @@ def create_batch_command(from_review: bool, cards: str, kind: str, n: int, gold_
         except (ValueError, AttributeError) as exc:
             raise click.BadParameter(f"expected a JSON object of card id -> answer: {exc}", param_hint="--gold") from exc
     if not ids and not gold:
-        raise click.UsageError("no cards: give --cards IDS or --from-review (and the review queue must not be empty)")
+        raise click.UsageError("no cards: give --cards IDS, --from-review or --from-orientation (and some card must be "
+                               "waiting for people)")
     try:
         batch = create_batch(ids, kind, n, gold_rate, gold=gold)
     except TaskError as exc:

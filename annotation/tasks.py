@@ -133,6 +133,15 @@ def review_queue_card_ids() -> list[int]:
     return list(db.session.scalars(select(Card.id).where(Card.state == "review").order_by(Card.id)))
 
 
+def orientation_queue_card_ids() -> list[int]:
+    """Cards whose orientation the orientation step could not decide (it asked, or failed) and
+    that no crowd judgement or curator has decided yet, whatever their filter band: they wait
+    for a judge batch (``keystone crowd create-batch --from-review`` includes them)."""
+    from app.runs import waiting_for_people
+
+    return waiting_for_people()["orientation"]
+
+
 def get_or_create_worker(provider: str, external_id: str, person_id: int | None = None) -> Worker:
     """Find the worker by (provider, external id) or make one; a race is settled by the unique key."""
     query = select(Worker).where(Worker.provider == provider, Worker.external_id == external_id)

@@ -32,11 +32,13 @@ from pipeline.rectify import RectifyParams
 from pipeline.runner import RestartingProcessPool, run_tasks
 from pipeline.stages.disparity import DisparityStageParams, disparity_task
 from pipeline.stages.filter import filter_task
+from pipeline.stages.orientation import OrientationStageParams, orientation_task
 from pipeline.stages.rectify import rectify_task
 
 from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
 from .db import db, one_writer, utcnow
 from .models import CARD_STATES, Card, StageResult
+from .orientation import is_decided, public_orientation, resolve_orientation
 from .stage_hooks import after_write, approved_decisions, people_work, stage_params
 
 WRITE_BATCH = 50
@@ -75,10 +77,45 @@ def filter_boxes(card: Card) -> dict[str, Any]:
             "filter_matches": result.artifacts.get("matches"), "filter_match_scale": result.metrics.get("match_scale")}
 
 
+def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """People's approved decisions per card (the features register them, see
+    :mod:`app.stage_hooks`): the crowd's approved judge and crop aggregates and a curator's
+    orientation override, ``{card: {"judge": .., "crop": .., "orientation_override": ..}}``."""
+    return approved_decisions(card_ids)
+
+
+def card_orientation(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+    """The orientation the pipeline uses for ``card`` (:func:`app.orientation.resolve_orientation`)
+    from its latest orientation result, approved judgement and curator override."""
+    return resolve_orientation(card.latest_results().get("orientation"), approved.get("judge"),
+                               approved.get("orientation_override"))
+
+
+def orientation_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+    """What the orientation step reads: the filter's split boxes (card pixels)."""
+    boxes = filter_boxes(card)
+    return {"left_box": boxes["left_box"], "right_box": boxes["right_box"]} if boxes else {}
+
+
+def photo_area_boxes(card: Card) -> dict[str, Any]:
+    """The orientation step's photo-area boxes (original card pixels), unless the finder fell
+    back to the split."""
+    result = card.latest_results().get("orientation")
+    if result is None or result.status != "done":
+        return {}
+    metrics = result.metrics
+    if metrics.get("photo_area_fallback") or not metrics.get("photo_left_box") or not metrics.get("photo_right_box"):
+        return {}
+    return {"left_box": metrics["photo_left_box"], "right_box": metrics["photo_right_box"],
+            "box_source": f"photo area ({result.param_hash}, confidence {metrics.get('photo_area_confidence')})"}
+
+
 def rectify_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
-    """What rectification consumes: the crowd's consensus boxes and orientation where approved,
-    else the filter's automatic split (boxes are in the original card's pixels)."""
+    """What rectification consumes (boxes in the original card's pixels): the crowd's consensus
+    boxes where approved, else the orientation step's photo areas, else the filter's split; and
+    the decided orientation (:func:`card_orientation`; null flags while undecided)."""
     inputs = filter_boxes(card)
+    inputs.update(photo_area_boxes(card))
     crop = approved.get("crop")
     if crop is not None and crop.label.get("left") and crop.label.get("right"):
         inputs.update(left_box=[int(round(v)) for v in crop.label["left"]],
@@ -86,15 +123,20 @@ def rectify_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
                       box_source=f"crowd consensus (batch {crop.batch_id})")
     judge = approved.get("judge")
     if judge is not None:
-        inputs.update(is_stereo=bool(judge.label.get("is_stereo", True)),
-                      upside_down=bool(judge.label.get("upside_down")), inverted=bool(judge.label.get("inverted")),
-                      orientation_source=f"crowd judgement (batch {judge.batch_id})")
+        inputs["is_stereo"] = bool(judge.label.get("is_stereo", True))
+    orientation = card_orientation(card, approved)
+    inputs.update({flag: orientation[flag] for flag in ("upside_down", "inverted", "swapped")},
+                  orientation_decided_by=orientation["decided_by"],
+                  orientation_source=orientation["source"] or "undecided")
     return inputs
 
 
 def rectify_ready(card: Card, inputs: dict[str, Any]) -> bool:
-    """Passed cards unless the crowd judged them no stereo pair; review cards once judged one."""
+    """Passed cards unless the crowd judged them no stereo pair; review cards once judged one;
+    either only once its orientation is decided (by the step, the crowd or a curator)."""
     if not inputs.get("left_box"):
+        return False
+    if not is_decided(inputs):
         return False
     if card.state == "review":
         return inputs.get("is_stereo") is True
@@ -149,7 +191,7 @@ def views_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
 
 
 # The stages ``keystone run`` can run, in flow order (judge, crop and review are people's work).
-RUNNABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
+RUNNABLE_STAGES: tuple[str, ...] = ("filter", "orientation", "rectify", "disparity", "grade", "views")
 
 
 def _has_inputs(card: Card, inputs: dict[str, Any]) -> bool:
@@ -165,6 +207,7 @@ def available_stages() -> dict[str, StageSpec]:
     from pipeline.view_synthesis import ViewsStageParams
 
     filter_params, rectify_params, disparity_params = FilterParams(), RectifyParams(), DisparityStageParams()
+    orientation_params = OrientationStageParams()
     grade_params = stage_params("grade", GradeParams)
     from flask import current_app
 
@@ -176,8 +219,19 @@ def available_stages() -> dict[str, StageSpec]:
             task=functools.partial(filter_task, params=filter_params),
             eligible_states=("ingested", "pass", "review", "culled", "failed"),
         ),
-        # Cards the filter passed; cards in review wait for the crowd's judgement, and a
-        # culled card gets nothing.
+        # Every card the filter passed or sent to review: which way up, positive or negative,
+        # which eye, and the photo area. A doubtful card waits for people (app.orientation).
+        "orientation": StageSpec(
+            name="orientation",
+            params=orientation_params,
+            task=functools.partial(orientation_task, params=orientation_params),
+            eligible_states=("pass", "review"),
+            inputs=orientation_inputs,
+            requires="filter",
+            ready=_has_inputs,
+        ),
+        # Cards the filter passed whose orientation is decided; cards in review wait for the
+        # crowd's judgement too, and a culled card gets nothing.
         "rectify": StageSpec(
             name="rectify",
             params=rectify_params,
@@ -462,6 +516,35 @@ def run_stage(
     return report
 
 
+def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:
+    """Cards that wait for the crowd's judgement, by why: ``orientation`` (the orientation step
+    asked, or failed, and no crowd or curator has decided it yet) and ``filter_review`` (the
+    filter sent it to review and no judgement has come back). A card whose judgement waits
+    for a curator (a dispute) is the curators' work, not counted here; nor a card whose
+    orientation step has not run."""
+    waiting: dict[str, list[int]] = {"orientation": [], "filter_review": []}
+    after = 0
+    while True:
+        cards = list(db.session.scalars(
+            select(Card).where(Card.state.in_(("pass", "review")), Card.id > after).order_by(Card.id).limit(chunk)
+            .options(selectinload(Card.stage_results))))
+        if not cards:
+            return waiting
+        work = people_and_decisions([card.id for card in cards])
+        for card in cards:
+            own = work.get(card.id, {})
+            disputed = own.get("judge") is not None and own["judge"].state == "needs_curator"
+            if disputed or _judged_not_stereo(own):
+                continue
+            step = card.latest_results().get("orientation")
+            if step is not None and not is_decided(card_orientation(card, own.get("approved", {}))):
+                waiting["orientation"].append(card.id)
+            elif card.state == "review" and "judge" not in own.get("approved", {}):
+                waiting["filter_review"].append(card.id)
+        after = cards[-1].id
+        db.session.expunge_all()
+
+
 def _count(report: StageReport, record: StageRecord) -> None:
     report.processed += 1
     if record.status == "failed":
@@ -518,8 +601,18 @@ def write_records(records: list[StageRecord], digests: dict[int, str] | None = N
         session.commit()
 
 
-DOWNSTREAM_OF_CULL = ("judge", "crop", "rectify", "disparity", "grade", "review", "views")
+DOWNSTREAM_OF_CULL = ("orientation", "judge", "crop", "rectify", "disparity", "grade", "review", "views")
 DOWNSTREAM_OF_RECTIFY = ("disparity", "grade", "views")
+
+
+def people_and_decisions(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """:func:`app.stage_hooks.people_work` per card (the crowd's latest aggregates, the curator
+    review), plus ``"approved"``: the approved decisions the orientation is resolved from
+    (:func:`approved_annotations`)."""
+    work = people_work(card_ids)
+    for card_id, approved in approved_annotations(card_ids).items():
+        work.setdefault(card_id, {})["approved"] = approved
+    return work
 
 
 def _status(status: str, reason: str | None = None, outcome: str | None = None,
@@ -527,7 +620,8 @@ def _status(status: str, reason: str | None = None, outcome: str | None = None,
     return {"status": status, "outcome": outcome, "reason": reason, "metrics": metrics or {}}
 
 
-def _crowd_status(stage: str, card: Card, aggregate: Any, latest: dict[str, StageResult]) -> dict[str, Any]:
+def _crowd_status(stage: str, card: Card, aggregate: Any, latest: dict[str, StageResult],
+                  orientation: dict[str, Any] | None = None) -> dict[str, Any]:
     if aggregate is not None:
         metrics = {"label": aggregate.label, "batch": aggregate.batch_id, "answers": aggregate.answers}
         if aggregate.state == "needs_curator":
@@ -539,7 +633,13 @@ def _crowd_status(stage: str, card: Card, aggregate: Any, latest: dict[str, Stag
             outcome = "stereo" if aggregate.label.get("is_stereo", True) else "not_stereo"
         return _status("done", who, outcome, metrics)
     if stage == "judge" and card.state == "pass":
-        return _status("skipped", "not needed: the filter passed the card as a stereo pair")
+        orientation = orientation or card_orientation(card, {})
+        if orientation["decided_by"] == "auto":
+            return _status("skipped", "not needed: the filter passed the card as a stereo pair and the orientation "
+                                      f"step decided it (confidence {orientation['confidence']})")
+        if orientation["decided_by"] == "curator":
+            return _status("skipped", f"not needed: {orientation['source']}")
+        return _status("pending", f"waiting for {orientation['waiting_for']}" if orientation["waiting_for"] else None)
     rectify = latest.get("rectify")
     if stage == "crop" and rectify is not None and rectify.status != "failed":
         return _status("skipped", f"not needed: rectified from {rectify.metrics.get('box_source', 'the filter split')}")
@@ -558,6 +658,16 @@ def _review_status(review: Any, latest: dict[str, StageResult]) -> dict[str, Any
     return _status("done", review.note or None, review.decision, metrics)
 
 
+def _judged_not_stereo(work: dict[str, Any]) -> bool:
+    judge = work.get("approved", {}).get("judge")
+    return judge is not None and judge.label.get("is_stereo", True) is False
+
+
+def card_orientation_field(card: Card, work: dict[str, Any]) -> dict[str, Any]:
+    """The ``orientation`` of ``keystone cards --json`` (DESIGN.md): null flags while undecided."""
+    return public_orientation(card_orientation(card, work.get("approved", {})))
+
+
 def card_stage_statuses(card: Card, only_stage: str | None = None,
                         work: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
     """The stage status map of ``keystone cards --json``: every stage, ``pending`` if not run.
@@ -567,15 +677,25 @@ def card_stage_statuses(card: Card, only_stage: str | None = None,
     """
     latest = card.latest_results()
     if work is None:
-        work = people_work([card.id]).get(card.id, {})
+        work = people_and_decisions([card.id]).get(card.id, {})
     statuses: dict[str, dict[str, Any]] = {}
+    orientation = card_orientation(card, work.get("approved", {}))
     for stage in STAGES if only_stage is None else (only_stage,):
         result = latest.get(stage)
-        if card.state == "culled" and stage in DOWNSTREAM_OF_CULL and result is None:
+        if stage == "judge" and card.state in ("pass", "review") and not is_decided(orientation) \
+                and "orientation" in latest and not _judged_not_stereo(work):
+            # The flow rule: an undecided card waits for people, whatever its filter band.
+            status = _crowd_status(stage, card, work.get(stage), latest, orientation)
+            statuses[stage] = status if status["status"] == "pending" else \
+                _status("pending", f"waiting for {orientation['waiting_for']}", metrics=status["metrics"])
+        elif stage == "rectify" and result is None and card.state in ("pass", "review") \
+                and not is_decided(orientation) and not _judged_not_stereo(work):
+            statuses[stage] = _status("pending", f"not run: the orientation is undecided, waiting for {orientation['waiting_for']}")
+        elif card.state == "culled" and stage in DOWNSTREAM_OF_CULL and result is None:
             filter_reason = latest["filter"].reason if "filter" in latest else "culled"
             statuses[stage] = _status("skipped", f"not needed: the card was culled by the filter ({filter_reason})")
         elif stage in ("judge", "crop"):
-            statuses[stage] = _crowd_status(stage, card, work.get(stage), latest)
+            statuses[stage] = _crowd_status(stage, card, work.get(stage), latest, orientation)
         elif stage == "review":
             statuses[stage] = _review_status(work.get("review"), latest)
         elif result is not None:
@@ -590,9 +710,9 @@ def card_stage_statuses(card: Card, only_stage: str | None = None,
 
 
 @click.command("run")
-@click.option("--stages", default="filter,rectify,disparity,grade", show_default=True,
-              help="Comma-separated stages to run, in order: filter, rectify, disparity, grade, views "
-                   "(views is optional per scene and not in the default).")
+@click.option("--stages", default="filter,orientation,rectify,disparity,grade", show_default=True,
+              help="Comma-separated stages to run, in order: filter, orientation, rectify, disparity, grade, "
+                   "views (views is optional per scene and not in the default).")
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
               help="Worker processes (1 runs inline on one core).")
 @click.option("--executor", "executor_kind", type=click.Choice(["local", "dask"]), default="local",
@@ -676,8 +796,14 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
                         "to wait for it", True)
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from exc
+    waiting = waiting_for_people()
+    counts = {reason: len(ids) for reason, ids in waiting.items()}
+    if sum(counts.values()):
+        say(f"waiting for people: {counts['orientation']} card(s) whose orientation the step could not decide, "
+            f"{counts['filter_review']} the filter sent to review (`keystone crowd create-batch --from-review` "
+            "makes a judge batch of them)", as_json)
     if as_json:
-        emit_json({"stages": [report.as_json() for report in reports],
+        emit_json({"stages": [report.as_json() for report in reports], "waiting_for_people": counts,
                    "workers": workers, "executor": executor_kind, "driver": driver.id,
                    "claim_ttl_s": driver.ttl_s, "heartbeats": driver.heartbeats})
     if any(report.failed for report in reports):
@@ -707,13 +833,14 @@ def card_rows(stage: str | None = None, state: str | None = None, collection_nam
         cards = list(db.session.scalars(query))
         if not cards:
             return
-        work = people_work([card.id for card in cards])
+        work = people_and_decisions([card.id for card in cards])
         for card in cards:
             yield {
                 "id": card.id,
                 "source": card.source_name,
                 "accession": card.accession,
                 "state": card.state,
+                "orientation": card_orientation_field(card, work.get(card.id, {})),
                 "stages": card_stage_statuses(card, stage, work.get(card.id, {})),
             }
         after = cards[-1].id

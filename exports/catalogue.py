@@ -21,6 +21,7 @@ from sqlalchemy.orm import selectinload
 from app.db import db
 from app.models import Card
 from review.models import CardReview
+from review.orientation import flow_blockers_for
 
 from .models import Release
 from .records import RELEASED_DECISIONS, VIEW_ARTIFACTS, ReleaseCard, grades_at_or_above
@@ -88,8 +89,15 @@ def stream_release_cards(card_ids: list[int], data_dir: Path, exclusions: list[E
         for row in db.session.scalars(select(Aggregate).where(Aggregate.card_id.in_(chunk), Aggregate.state == "approved")
                                       .order_by(Aggregate.id)):
             crowd.setdefault(row.card_id, {})[row.kind] = {"batch": row.batch_id, "answers": row.answers}
+        # The flow rule: an undecided orientation, an open crowd dispute or a grade made from an
+        # orientation that changed since keeps an accepted card out of the release.
+        blockers = flow_blockers_for(list(cards))
         ready: list[ReleaseCard] = []
         for card in cards:
+            if blockers[card.id]:
+                if exclusions is not None:
+                    exclusions.append(Exclusion(card.id, "; ".join(blockers[card.id])))
+                continue
             try:
                 ready.append(release_card(card, reviews[card.id], crowd.get(card.id, {}), data_dir, with_views))
             except ReleaseInputError as exc:

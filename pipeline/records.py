@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 StageStatus = Literal["done", "skipped", "failed"]
 
-STAGES: tuple[str, ...] = ("filter", "judge", "crop", "rectify", "disparity", "grade", "review", "views")
+STAGES: tuple[str, ...] = ("filter", "orientation", "judge", "crop", "rectify", "disparity", "grade", "review", "views")
 
 
 def param_hash(params: Any) -> str:

@@ -229,9 +229,14 @@ class RectifyParams:
     """The output canvas is at most this x the input size in each dimension."""
     max_output_pixels: int = 150_000_000
     """Refuse warps whose output canvas has more pixels than this (unbounded warp)."""
-    detect_swapped: bool = True
+    detect_swapped: bool = False
     """Swap the views when the median inlier disparity (x_l - x_r, in the views' own
-    coordinates, carried through rectification) is negative."""
+    coordinates, carried through rectification) is negative. Off in the pipeline: the eye
+    order cannot be read from that sign (the horizontal offset between two photos on a card is
+    arbitrary, and crop alignment puts far content at zero), so it is decided before
+    rectification by the orientation step, the crowd or a curator (``app.orientation``) and
+    never overridden here. Kept for pairs known to be cropped views with content in front of
+    infinity."""
     random_seed: int = 0
     """USAC random generator state: same input, same F."""
     work_side: int | None = 800

@@ -69,6 +69,29 @@ class CardReview(db.Model):
     __mapper_args__ = {"version_id_col": version}
 
 
+class OrientationOverride(db.Model):
+    """A curator's word on a card's orientation, flag by flag (null: not overridden, the step's
+    or the crowd's value stands). One row per card, replaced by the next override; every
+    change is also an audit event (entity ``orientation``). See :mod:`app.orientation`."""
+
+    __tablename__ = "orientation_overrides"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    card_id: Mapped[int] = mapped_column(ForeignKey("cards.id", ondelete="CASCADE"), unique=True)
+    upside_down: Mapped[bool | None] = mapped_column()
+    inverted: Mapped[bool | None] = mapped_column()
+    swapped: Mapped[bool | None] = mapped_column()
+    curator_id: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
+    note: Mapped[str] = mapped_column(Text, default="")
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)
+
+    curator: Mapped[Person | None] = relationship()
+
+    @property
+    def curator_name(self) -> str | None:
+        return self.curator.username if self.curator is not None else None
+
+
 class GradeModel(db.Model):
     """Thresholds of the automatic grader, fitted to curator labels (``keystone grade fit``).
 

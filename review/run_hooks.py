@@ -10,7 +10,9 @@ from sqlalchemy import select
 from app.db import db
 from app.stage_hooks import stage_hooks
 
-from .models import CardReview
+from sqlalchemy.orm import selectinload
+
+from .models import CardReview, OrientationOverride
 
 CHUNK = 500  # card ids per query: under SQLite's bound-parameter limit
 
@@ -22,6 +24,19 @@ def card_reviews(card_ids: list[int]) -> dict[int, dict[str, Any]]:
         rows = db.session.scalars(select(CardReview).where(CardReview.card_id.in_(card_ids[start:start + CHUNK])))
         for review in rows:
             found.setdefault(review.card_id, {})["review"] = review
+    return found
+
+
+def orientation_overrides(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """A curator's orientation override per card: ``{card: {"orientation_override": row}}``
+    (app.orientation resolves the orientation the pipeline uses from it)."""
+    found: dict[int, dict[str, Any]] = {}
+    for start in range(0, len(card_ids), CHUNK):
+        rows = db.session.scalars(select(OrientationOverride)
+                                  .where(OrientationOverride.card_id.in_(card_ids[start:start + CHUNK]))
+                                  .options(selectinload(OrientationOverride.curator)))
+        for row in rows:
+            found.setdefault(row.card_id, {})["orientation_override"] = row
     return found
 
 
@@ -42,5 +57,6 @@ def _sync_new_grades(card_ids: list[int]) -> None:
 def register(app: Flask) -> None:
     hooks = stage_hooks(app)
     hooks.people_work.append(card_reviews)
+    hooks.decisions.append(orientation_overrides)
     hooks.stage_params["grade"] = _grade_params
     hooks.after_write.setdefault("grade", []).append(_sync_new_grades)

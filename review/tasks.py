@@ -452,6 +452,13 @@ def decide(review_id: int, action: str, *, expected_version: int, curator: Perso
                                 f"dispute {row.id})" for row in disputes)
             raise ReviewError(f"Card {review.card_id} cannot be accepted while the crowd disagrees on {what}: "
                               "resolve it under Disputed crowd answers first", 409)
+        from .orientation import flow_blockers
+
+        blockers = flow_blockers(review.card)
+        if blockers:
+            db.session.rollback()
+            raise ReviewError(f"Card {review.card_id} cannot be accepted: {'; '.join(blockers)}. Decide its "
+                              "orientation on the card's page (or wait for the crowd) first", 409)
     before = review_snapshot(review)
     decision, final = {
         "accept": ("accepted", review.auto_grade),

@@ -487,3 +487,29 @@ def _wait_until(page: Any, expression: str, timeout_s: float = 15.0) -> None:
 @pytest.fixture
 def wait_until() -> Callable[..., None]:
     return _wait_until
+
+
+@pytest.fixture
+def decide_orientation(app) -> Callable[..., list[int]]:  # type: ignore[no-untyped-def]
+    """Record a curator's orientation override on cards (all cards when none are named), as a
+    curator who knows how the test's cards were made would: the flow rule keeps a card whose
+    orientation is undecided out of rectification, and the orientation step asks people about
+    most synthetic cards. Returns the card ids."""
+    from app.db import db
+    from app.models import Card
+    from review.models import OrientationOverride
+
+    def decide(card_ids: list[int] | None = None, *, upside_down: bool = False, inverted: bool = False,
+               swapped: bool = False) -> list[int]:
+        with app.app_context():
+            ids = card_ids if card_ids is not None else list(db.session.scalars(select(Card.id).order_by(Card.id)))
+            for card_id in ids:
+                row = db.session.scalar(select(OrientationOverride).where(OrientationOverride.card_id == card_id))
+                if row is None:
+                    row = OrientationOverride(card_id=card_id, note="test: the card's making is known")
+                    db.session.add(row)
+                row.upside_down, row.inverted, row.swapped = upside_down, inverted, swapped
+            db.session.commit()
+        return ids
+
+    return decide

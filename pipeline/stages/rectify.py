@@ -23,16 +23,17 @@ from ..rectify import (
 from ..split import CardSplit, crop_halves
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
 
-__all__ = ["filter_matches", "orient_card", "rectify_task"]
+__all__ = ["filter_matches", "orient_card", "oriented_boxes", "rectify_task"]
 
 
 def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
     """Apply the judged corrections to a derived copy of the card (the original never changes).
 
     ``inputs["upside_down"]`` rotates the card 180 deg, ``inputs["inverted"]`` inverts its
-    intensities (255 - v). A card judged upright and not inverted, or not judged at all, skips
-    the step, and the returned record says so. Boxes stay in the scanned card's pixels; the
-    caller turns them with the card.
+    intensities (255 - v), ``inputs["swapped"]`` (after those) says the left photo is the right
+    eye's: the caller exchanges the halves' boxes (:func:`oriented_boxes`). A card judged upright,
+    positive and in eye order, or not judged at all, skips the step, and the returned record
+    says so. Boxes stay in the scanned card's pixels; the caller turns them with the card.
     """
     applied = []
     if inputs.get("upside_down"):
@@ -41,6 +42,8 @@ def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
     if inputs.get("inverted"):
         card = 255 - card
         applied.append("intensities inverted")
+    if inputs.get("swapped"):
+        applied.append("halves exchanged (eyes swapped)")
     if applied:
         return card, {"status": "done", "applied": applied, "source": inputs.get("orientation_source", "judgement")}
     judged = "judged upright and not inverted" if "upside_down" in inputs else "no judgement asks for a correction"
@@ -68,6 +71,20 @@ def filter_matches(task: CardTask, card_shape: tuple[int, ...]) -> tuple[np.ndar
     return matches, float(scale)
 
 
+def oriented_boxes(shape: tuple[int, int], boxes: tuple, inputs: dict) -> tuple[list, list]:
+    """The (left eye, right eye) boxes on the oriented card, from boxes drawn on the card as
+    scanned (``shape`` = the card's (H, W)): turned 180 deg, the right photo's box becomes the
+    left one; swapped, the two are exchanged after that."""
+    left, right = list(boxes[0]), list(boxes[1])
+    if inputs.get("upside_down"):
+        height, width = shape
+        turn = lambda b: [width - b[2], height - b[3], width - b[0], height - b[1]]  # noqa: E731
+        left, right = turn(right), turn(left)
+    if inputs.get("swapped"):
+        left, right = right, left
+    return left, right
+
+
 @stage_task("rectify")
 def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     """Rectify the card's two halves (Loop-Zhang with the paper's changes).
@@ -80,12 +97,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     boxes = task.inputs.get("left_box"), task.inputs.get("right_box")
     if boxes[0] is None or boxes[1] is None:
         raise PipelineError("no split boxes from the filter stage; run the filter first")
-    if task.inputs.get("upside_down"):
-        # Boxes are drawn on the card as scanned; turned 180 deg, the right photo's box
-        # becomes the left one.
-        height, width = card.shape[:2]
-        turn = lambda b: [width - b[2], height - b[3], width - b[0], height - b[1]]  # noqa: E731
-        boxes = turn(boxes[1]), turn(boxes[0])
+    boxes = oriented_boxes(card.shape[:2], boxes, task.inputs)
     boxes_before = boxes
     # The paper aligns the two crops by SIFT matches and cuts both to their intersection;
     # when that cannot be done the boxes go on as given and rectification decides.
@@ -174,6 +186,8 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     metrics["full_size"] = [int(v) for v in rect_full.size]
     metrics["dy_p95_full"] = float(rect_full.dy_p95)
     metrics["orientation"] = orientation
+    # What this result was computed with: a later change (crowd, curator) makes it stale.
+    metrics["orientation_used"] = {flag: task.inputs.get(flag) for flag in ("upside_down", "inverted", "swapped")}
     metrics["crop_alignment"] = crop_record
     metrics["box_source"] = task.inputs.get("box_source", "filter split")
     return StageOutput(status=status, reason=reason, metrics=metrics, artifacts=artifacts)

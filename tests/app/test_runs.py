@@ -56,8 +56,12 @@ def test_filter_routes_cards_and_cards_json_has_the_documented_shape(app, runner
     by_source = {card["source"]: card for card in listing}
     assert set(by_source) == {"stereo.jpg", "stereo_mirrored_scene.png", "two_unrelated_photos.png"}
     for card in listing:
-        assert set(card) >= {"id", "source", "accession", "stages"}
-        assert set(card["stages"]) == {"filter", "judge", "crop", "rectify", "disparity", "grade", "review", "views"}
+        assert set(card) >= {"id", "source", "accession", "stages", "orientation"}
+        assert set(card["stages"]) == {"filter", "orientation", "judge", "crop", "rectify", "disparity", "grade",
+                                       "review", "views"}
+        # DESIGN.md: null flags while undecided (the orientation step has not run yet).
+        assert card["orientation"] == {"upside_down": None, "inverted": None, "swapped": None, "decided_by": None,
+                                       "confidence": None}
         assert set(card["stages"]["filter"]) >= {"status", "reason", "metrics"}
     stereo = by_source["stereo.jpg"]["stages"]["filter"]
     assert stereo["status"] == "done" and stereo["outcome"] == "pass"
@@ -68,6 +72,9 @@ def test_filter_routes_cards_and_cards_json_has_the_documented_shape(app, runner
     assert unrelated["filter"]["outcome"] == "culled"
     assert unrelated["rectify"]["status"] == "skipped" and "culled" in unrelated["rectify"]["reason"]
     assert by_source["stereo.jpg"]["stages"]["rectify"]["status"] == "pending"
+    assert "orientation is undecided" in by_source["stereo.jpg"]["stages"]["rectify"]["reason"]
+    assert by_source["stereo.jpg"]["stages"]["judge"]["status"] == "pending"
+    assert unrelated["orientation"]["status"] == "skipped" and "culled" in unrelated["orientation"]["reason"]
 
     with app.app_context():
         card = db.session.scalar(select(Card).where(Card.source_name == "stereo.jpg"))
@@ -150,7 +157,7 @@ def test_dask_executor_without_dask_says_how_to_get_it(runner):
         pytest.skip("dask.distributed is installed")
 
 
-def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, runner, tmp_path):
+def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, runner, tmp_path, decide_orientation):
     import cv2
     from skimage import data
 
@@ -164,6 +171,7 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
     Image.fromarray(_mounted(left, tilted)).save(folder / "tilted.png")
     Image.fromarray(_mounted(left, right)).save(folder / "aligned.png")
     assert runner.invoke(cli, ["ingest", str(folder)]).exit_code == 0
+    decide_orientation()  # a curator knows both are upright positives in eye order
     result = runner.invoke(cli, ["run", "--stages", "filter,rectify,disparity", "--json"])
     assert result.exit_code == 0, result.output
     reports = {r["stage"]: r for r in json.loads(result.stdout)["stages"]}
@@ -215,10 +223,13 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
 
     # The default run adds the grade stage: only it has work; a second run has none at all.
     graded = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
-    assert [(r["stage"], r["processed"]) for r in graded] == [("filter", 0), ("rectify", 0), ("disparity", 0), ("grade", 2)]
-    assert graded[3]["failed"] == 0 and sum(graded[3]["outcomes"].values()) == 2
+    # The orientation step runs too (it adds nothing here: the photos fill their halves, so
+    # the photo-area finder keeps the split and rectification's inputs do not change).
+    assert [(r["stage"], r["processed"]) for r in graded] == [("filter", 0), ("orientation", 2), ("rectify", 0),
+                                                              ("disparity", 0), ("grade", 2)]
+    assert graded[4]["failed"] == 0 and sum(graded[4]["outcomes"].values()) == 2
     again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
-    assert [r["processed"] for r in again] == [0, 0, 0, 0]
+    assert [r["processed"] for r in again] == [0, 0, 0, 0, 0]
 
 
 def _approve(app, card_id: int, kind: str, label: dict) -> None:  # type: ignore[no-untyped-def]
@@ -250,15 +261,23 @@ def test_rectify_consumes_approved_crowd_judgements_and_boxes(app, runner, tmp_p
         turned_id = db.session.scalar(select(Card.id).where(Card.source_name == "upside_down.png"))
 
     first = json.loads(runner.invoke(cli, ["run", "--stages", "rectify", "--json"]).stdout)["stages"][0]
-    assert first["processed"] == 1  # the review card waits for its judgement
+    assert first["processed"] == 0  # both wait: the review card for its judgement, both for their orientation
     by_id = {c["id"]: c["stages"]["rectify"] for c in _cards(runner)["cards"]}
-    assert by_id[review_id]["status"] == "pending"
+    assert by_id[review_id]["status"] == by_id[turned_id]["status"] == "pending"
 
-    _approve(app, review_id, "judge", {"is_stereo": True, "upside_down": False, "inverted": False})
-    _approve(app, review_id, "crop", {"left": [10, 10, 700, 480], "right": [775, 12, 1465, 482]})
+    # A judgement that does not say which eye is which leaves the card undecided (the step did not run).
     _approve(app, turned_id, "judge", {"is_stereo": True, "upside_down": True, "inverted": False})
+    assert json.loads(runner.invoke(cli, ["run", "--stages", "rectify", "--json"]).stdout)["stages"][0]["processed"] == 0
+    assert {c["id"]: c for c in _cards(runner)["cards"]}[turned_id]["orientation"]["swapped"] is None
+
+    _approve(app, review_id, "judge", {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": False})
+    _approve(app, review_id, "crop", {"left": [10, 10, 700, 480], "right": [775, 12, 1465, 482]})
+    _approve(app, turned_id, "judge", {"is_stereo": True, "upside_down": True, "inverted": False, "swapped": False})
     second = json.loads(runner.invoke(cli, ["run", "--stages", "rectify", "--json"]).stdout)["stages"][0]
-    assert second["processed"] == 2 and second["failed"] == 0  # the judged review card, and the turned card again
+    assert second["processed"] == 2 and second["failed"] == 0  # the judged review card, and the turned card
+    listing = {c["id"]: c for c in _cards(runner)["cards"]}
+    assert listing[turned_id]["orientation"] == {"upside_down": True, "inverted": False, "swapped": False,
+                                                 "decided_by": "crowd", "confidence": 1.0}
 
     by_id = {c["id"]: c["stages"]["rectify"] for c in _cards(runner)["cards"]}
     crowd = by_id[review_id]["metrics"]

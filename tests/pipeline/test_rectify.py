@@ -257,15 +257,19 @@ def test_loop_zhang_beats_hartley_on_distortion_with_equal_dy(keystoned_cases) -
         assert rect.dy_median <= np.median(dy_h) + 0.05
 
 
-def test_swapped_halves_are_detected(moto) -> None:
+def test_swapped_halves_are_detected_only_when_asked(moto) -> None:
     left, right, _ = moto
-    rect = rectify_pair(right, left)
+    # Off by default: the eye order is decided before rectification (app.orientation); the
+    # pair goes through as given and is translated so that no disparity is negative.
+    given = rectify_pair(right, left)
+    assert not given.swapped and given.disparity_range[0] >= 0
+    rect = rectify_pair(right, left, RectifyParams(detect_swapped=True))
     assert rect.swapped and not rect.warp_needed
     assert rect.disparity_range[0] > 0
     out_l, out_r = warp_pair(right, left, rect)
     assert np.array_equal(out_l, left) and np.array_equal(out_r, right)
     warped = _keystoned(right, 2.0, 10.0, 2e-4)
-    rect = rectify_pair(warped, left)
+    rect = rectify_pair(warped, left, RectifyParams(detect_swapped=True))
     assert rect.swapped and rect.warp_needed and rect.dy_p95 < 1.5 and rect.disparity_range[0] >= 0
 
 

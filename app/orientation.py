@@ -1,0 +1,99 @@
+"""The orientation the pipeline uses for a card: the step's, the crowd's, or a curator's.
+
+Three sources, each flag taken from the strongest that speaks to it:
+
+1. a curator's override (``review.models.OrientationOverride``), flag by flag;
+2. the crowd's approved judge aggregate: ``upside_down`` and ``inverted`` always; ``swapped``
+   when the judge task asked it (``label["swapped"]``), else the step's own value when the step
+   was confident on that flag, else the step's tie (P(upside_down == swapped) confident: the
+   crowd's answer about the turn settles the eye order), else undecided;
+3. the orientation stage's result, when it decided the card automatically (``outcome ==
+   "auto"``); a step that asked contributes nothing on its own.
+
+``decided_by`` names the strongest source used (``curator`` > ``crowd`` > ``auto``); any
+flag still null means the card is undecided: it waits for people, and it is not rectified,
+graded, accepted or released (the flow rule of DESIGN.md).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+FLAGS: tuple[str, ...] = ("upside_down", "inverted", "swapped")
+
+
+def _as_flag(value: Any) -> bool | None:
+    return None if value is None else bool(value)
+
+
+def resolve_orientation(step: Any | None, judge: Any | None, override: Any | None) -> dict[str, Any]:
+    """The ``orientation`` field of ``keystone cards --json`` plus ``source`` (in words) and
+    ``waiting_for`` (why it is undecided, or null).
+
+    ``step``: the latest ``orientation`` StageResult (or None); ``judge``: the latest APPROVED
+    judge Aggregate (or None); ``override``: the card's OrientationOverride row (or None).
+    """
+    flags: dict[str, bool | None] = dict.fromkeys(FLAGS)
+    sources: list[str] = []
+    decided_by: str | None = None
+    confidence: float | None = None
+    step_ok = step is not None and step.status == "done"
+    step_flags = (step.metrics.get("flags") or {}) if step_ok else {}
+    if step_ok and step.outcome == "auto":
+        flags = {flag: _as_flag((step_flags.get(flag) or {}).get("value")) for flag in FLAGS}
+        decided_by, confidence = "auto", step.metrics.get("confidence")
+        sources.append(f"orientation step ({step.param_hash})")
+    if judge is not None:
+        label = judge.label or {}
+        flags["upside_down"] = bool(label.get("upside_down"))
+        flags["inverted"] = bool(label.get("inverted"))
+        if label.get("swapped") is not None:
+            flags["swapped"] = bool(label["swapped"])
+        elif (step_flags.get("swapped") or {}).get("decided"):
+            flags["swapped"] = bool(step_flags["swapped"]["value"])
+        elif step_ok and step.metrics.get("tie_decided"):
+            same = float(step.metrics.get("same_turn_and_swap", 0.5)) >= 0.5
+            flags["swapped"] = flags["upside_down"] if same else not flags["upside_down"]
+        elif decided_by != "auto":
+            flags["swapped"] = None
+        decided_by = "crowd"
+        # The aggregate's posterior is question -> P(its MAP answer); the least sure one counts.
+        posterior = judge.posterior if isinstance(judge.posterior, dict) else {}
+        sure = [float(v) for k, v in posterior.items() if k in FLAGS and isinstance(v, (int, float))]
+        confidence = min(sure) if sure else 1.0
+        sources.append(f"crowd judgement (batch {judge.batch_id})")
+    if override is not None:
+        touched = False
+        for flag in FLAGS:
+            value = getattr(override, flag)
+            if value is not None:
+                flags[flag] = bool(value)
+                touched = True
+        if touched:
+            decided_by, confidence = "curator", 1.0
+            sources.append(f"curator override (by {override.curator_name or 'a curator'})")
+    undecided = [flag for flag in FLAGS if flags[flag] is None]
+    waiting_for = None
+    if undecided:
+        if step is None:
+            waiting_for = "the orientation step (not run yet)"
+        elif step.status == "failed":
+            waiting_for = f"people (the orientation step failed: {step.reason})"
+        else:
+            waiting_for = f"people ({', '.join(undecided)} undecided)"
+    return {
+        **flags,
+        "decided_by": decided_by if not undecided else None,
+        "confidence": None if confidence is None else round(float(confidence), 4),
+        "source": "; ".join(sources) or None,
+        "waiting_for": waiting_for,
+    }
+
+
+def is_decided(orientation: dict[str, Any]) -> bool:
+    return all(orientation.get(flag) is not None for flag in FLAGS)
+
+
+def public_orientation(orientation: dict[str, Any]) -> dict[str, Any]:
+    """The five keys DESIGN.md fixes for ``keystone cards --json``."""
+    return {key: orientation.get(key) for key in (*FLAGS, "decided_by", "confidence")}

@@ -1,0 +1,115 @@
+"""The orientation stage task: which way up, positive or negative, which eye, and the photo area.
+
+Runs on every card the filter passed or sent to review, before rectification. It measures the
+card as scanned (:func:`pipeline.orientation.estimate_orientation` on the filter's split boxes)
+and finds each photo inside its mount (:func:`pipeline.photo_area.find_photo_areas`). The
+record's ``outcome`` is the decision: ``auto`` when the most probable combination of the three
+flags is confident (the flow applies it to derived images), ``ask`` when people must look (the
+card waits in the crowd's judge queue). The driver (``app.runs``) turns that, the crowd's
+judgement and any curator override into the orientation the pipeline uses.
+
+Metrics (all JSON):
+
+* ``flags``: per flag ``{"p": P(flag set), "decided": bool, "value": bool | None,
+  "evidence": [cue meanings in words, strongest first]}``;
+* ``decision`` (``auto`` / ``ask``), ``confidence`` (the least confident flag's probability of
+  its value), ``combination_probability``, ``undecidable`` (why nothing can be said, or null);
+* ``same_turn_and_swap`` / ``tie_decided``: P(upside_down == swapped) and whether it is
+  confident, so one answer from people about the turn settles the eye order too;
+* ``photo_left_box`` / ``photo_right_box``: ``[x0, y0, x1, y1]`` in the ORIGINAL card's pixels
+  as scanned (x1/y1 exclusive), ``photo_area_source`` in words, ``photo_area_confidence``,
+  ``photo_area_fallback`` (the reason the split's boxes were kept, or null) and its evidence;
+* ``seconds_orientation`` / ``seconds_photo_area``: CPU cost of each part.
+
+Degenerate cards never get a silent guess: a contract break (tiny card, box outside it) is a
+typed ``failed`` record (the wrapper), a blank, identical or three-photo card is ``ask`` with
+``undecidable`` saying why.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..errors import PipelineError
+from ..io import read_image
+from ..orientation import FLAGS, OrientationEstimate, OrientationParams, estimate_orientation
+from ..photo_area import PhotoAreaParams, PhotoAreas, find_photo_areas
+from ..records import CardTask
+from .base import StageOutput, stage_task
+
+__all__ = ["OrientationStageParams", "orientation_metrics", "orientation_task"]
+
+
+@dataclass(frozen=True)
+class OrientationStageParams:
+    """Parameters of the orientation stage: the estimator's and the photo-area finder's."""
+
+    orientation: OrientationParams = field(default_factory=OrientationParams)
+    photo_area: PhotoAreaParams = field(default_factory=PhotoAreaParams)
+
+
+def _flag_words(estimate: OrientationEstimate, flag: str) -> list[str]:
+    cues = [cue for cue in getattr(estimate, flag).evidence if cue.weight > 0 and cue.value != 0.0]
+    cues.sort(key=lambda cue: -abs(cue.weight * cue.value))
+    return [f"{cue.name}: {cue.meaning} ({cue.value:+.2f} x {cue.weight:g})" for cue in cues]
+
+
+def orientation_metrics(estimate: OrientationEstimate, areas: PhotoAreas | None) -> dict[str, Any]:
+    """The stage's metrics from an estimate and the photo areas (see the module docstring)."""
+    flags: dict[str, Any] = {}
+    for flag in FLAGS:
+        one = getattr(estimate, flag)
+        words = _flag_words(estimate, flag) if estimate.undecidable is None else [estimate.undecidable]
+        flags[flag] = {"p": round(one.probability, 4), "decided": bool(one.decided and estimate.undecidable is None),
+                       "value": one.value if estimate.undecidable is None else None, "evidence": words}
+    metrics: dict[str, Any] = {
+        "flags": flags,
+        "decision": "auto" if estimate.decided else "ask",
+        "confidence": round(estimate.confidence, 4),
+        "combination_probability": round(estimate.combination_probability, 4),
+        "same_turn_and_swap": round(estimate.same_turn_and_swap, 4),
+        "tie_decided": bool(estimate.tie_decided and estimate.undecidable is None),
+        "undecidable": estimate.undecidable,
+        "seconds_orientation": round(estimate.seconds, 4),
+    }
+    if areas is not None:
+        metrics.update(
+            photo_left_box=[int(v) for v in areas.left_box], photo_right_box=[int(v) for v in areas.right_box],
+            photo_area_confidence=areas.confidence, photo_area_fallback=areas.fallback_reason,
+            photo_area_evidence=list(areas.evidence),
+            photo_area_source=(f"photo area (confidence {areas.confidence:.2f})" if not areas.is_fallback
+                               else f"filter split kept by the photo-area finder: {areas.fallback_reason}"),
+        )
+    return metrics
+
+
+def _reason(metrics: dict[str, Any]) -> str:
+    if metrics["undecidable"]:
+        return f"asking people: {metrics['undecidable']}"
+    words = []
+    for flag, info in metrics["flags"].items():
+        state = "yes" if info["value"] else "no" if info["value"] is False else "?"
+        words.append(f"{flag} {state} (P {info['p']:.2f})")
+    verdict = "decided automatically" if metrics["decision"] == "auto" else "asking people"
+    return f"{verdict}: " + ", ".join(words)
+
+
+@stage_task("orientation")
+def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOutput:
+    """Estimate the card's orientation on the filter's split boxes and find its photo areas.
+
+    ``task.inputs`` must hold the filter's ``left_box`` and ``right_box`` (card pixels).
+    """
+    boxes = task.inputs.get("left_box"), task.inputs.get("right_box")
+    if boxes[0] is None or boxes[1] is None:
+        raise PipelineError("no split boxes from the filter stage; run the filter first")
+    card = read_image(task.image_path)
+    estimate = estimate_orientation(card, tuple(boxes[0]), tuple(boxes[1]), params.orientation)
+    clock = time.perf_counter()
+    areas = find_photo_areas(card, params.photo_area)
+    metrics = orientation_metrics(estimate, areas)
+    metrics["seconds_photo_area"] = round(time.perf_counter() - clock, 4)
+    metrics["card_size"] = [int(card.shape[1]), int(card.shape[0])]
+    return StageOutput(outcome=metrics["decision"], reason=_reason(metrics), metrics=metrics)

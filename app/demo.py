@@ -39,15 +39,26 @@ def _card_ids_by_name() -> dict[str, int]:
     return {Path(name).stem: card_id for card_id, name in db.session.execute(select(Card.id, Card.source_name))}
 
 
+def _true_orientation(card) -> dict:  # type: ignore[no-untyped-def]
+    """How a demo card was made: the upside-down card is the whole scan turned (its eyes are
+    in order once turned back), the inverted one a negative; none has its eyes swapped."""
+    return {"upside_down": bool(card.truth.get("upside_down")), "inverted": bool(card.truth.get("inverted")),
+            "swapped": False}
+
+
 def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     """A simulated crowd (noisy workers and a spammer) answers through the real task code: it
-    judges the cards the filter sent to people plus the upside-down and inverted cards, so their
-    corrections come from the crowd, and draws crop boxes on three stereo cards. Gold items
-    carry known answers. Leaves the aggregates approved or waiting for a curator."""
+    judges every card waiting for people (the filter's review band and the cards whose
+    orientation the orientation step could not decide, whatever their band) plus the
+    upside-down and inverted cards, so their corrections come from the crowd unless the step
+    decided them, and draws crop boxes on three stereo cards. Gold items carry known answers.
+    Leaves the aggregates approved or waiting for a curator."""
+    from annotation.aggregation import QUESTIONS
     from annotation.models import Batch
     from annotation.simulate import seed_simulated_crowd
 
     from .db import db
+    from .runs import waiting_for_people
 
     if db.session.scalar(select(Batch.id).limit(1)) is not None:
         return {"note": "crowd batches exist already: not seeded again"}
@@ -55,18 +66,24 @@ def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-un
     by_name = {card.name: card for card in cards if card.name in ids}
 
     def judgement(card) -> dict:  # type: ignore[no-untyped-def]
-        return {"is_stereo": card.kind in ("stereo", "upside_down", "inverted"),
-                "upside_down": bool(card.truth.get("upside_down")), "inverted": bool(card.truth.get("inverted"))}
+        truth = {"is_stereo": card.kind in ("stereo", "upside_down", "inverted"), **_true_orientation(card)}
+        return {question: truth[question] for question in QUESTIONS}  # the questions the judge task asks
 
-    to_judge = [c for c in by_name.values() if c.kind in ("back", "upside_down", "inverted")]
+    waiting = {card_id for ids_ in waiting_for_people().values() for card_id in ids_}
+    to_judge = [c for c in by_name.values() if c.kind in ("back", "upside_down", "inverted") or ids[c.name] in waiting]
     stereo = [c for c in by_name.values() if c.kind == "stereo"]
     # Gold covers the rarer answer too (a mono card is no stereo pair): Dawid-Skene learns each
     # worker's confusion from gold, and all-"yes" gold teaches it nothing about "no".
     mono = [c for c in by_name.values() if c.kind == "mono"]
+    known = [c for c in stereo if c not in to_judge][-2:]  # gold must not be a card being asked about
     judge = seed_simulated_crowd(
-        [ids[c.name] for c in to_judge], kind="judge", workers=6, seed=1,
+        # Five answers per card from seven workers: the gold can no longer cover the rare
+        # answers (the upside-down and inverted cards are asked about themselves), and with
+        # four answers half the judgements waited for a curator on "inverted" (posterior
+        # 0.54-0.94); with five all eight were approved (seeds 1-3 measured).
+        [ids[c.name] for c in to_judge], kind="judge", workers=7, n=5, seed=1,
         truth={ids[c.name]: judgement(c) for c in to_judge},
-        gold={ids[c.name]: judgement(c) for c in [*mono, *stereo[-2:]]})
+        gold={ids[c.name]: judgement(c) for c in [*mono, *known]})
     boxed = stereo[:3]
     crop = seed_simulated_crowd(
         [ids[c.name] for c in boxed], kind="crop", workers=6, seed=2,
@@ -78,7 +95,35 @@ def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-un
         echo(f"crowd {summary['kind']}: batch {summary['batch']}, {summary['answers']} answers, "
              f"approved {summary['approved']}, waiting for a curator {summary['needs_curator']}, "
              f"flagged workers {summary['flagged_workers']}")
-    return {"judge": judge, "crop": crop}
+    return {"judge": judge, "crop": crop, "waiting_before": sorted(waiting)}
+
+
+def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
+    """The demo curator decides one card's orientation on its page: the first stereo card the
+    orientation step and the crowd left undecided (whose judgement is not disputed: disputes
+    are left for you to try), else the last stereo card (confirming what is known)."""
+    from review.models import OrientationOverride
+    from review.orientation import override_orientation
+
+    from .db import db
+    from .models import Card, Person
+    from .runs import waiting_for_people
+
+    if db.session.scalar(select(OrientationOverride.id).limit(1)) is not None:
+        return {"note": "an orientation override exists already: not made again"}
+    ids = _card_ids_by_name()
+    by_id = {ids[c.name]: c for c in cards if c.name in ids}
+    stereo = [card_id for card_id, c in by_id.items() if c.kind in ("stereo", "upside_down", "inverted")]
+    undecided = [card_id for card_id in waiting_for_people()["orientation"] if card_id in stereo]
+    card_id = undecided[0] if undecided else max(stereo)
+    card = db.session.get(Card, card_id)
+    curator = db.session.scalar(select(Person).where(Person.username == "curator"))
+    after = override_orientation(card_id, _true_orientation(by_id[card_id]), curator=curator,
+                                 note="demo: the curator looked at the card")
+    echo(f"orientation: the demo curator decided card {card_id} ({card.source_name}): "
+         + ", ".join(f"{flag} {after[flag]}" for flag in ("upside_down", "inverted", "swapped"))
+         + f"; {len(undecided) - 1 if undecided else 0} other card(s) still wait for people")
+    return {"card": card_id, "orientation": after, "was_undecided": bool(undecided)}
 
 
 def _shrunk(box: list, margin: float = 0.03) -> list[float]:
@@ -92,6 +137,7 @@ def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     """The demo curator accepts the automatic grade of the cards the grader is surest of and
     leaves the rest (and any disputed crowd answer) in the review queue to try by hand."""
     from review.models import CardReview
+    from review.orientation import flow_blockers
     from review.tasks import decide, open_disputes, sync_reviews
 
     from .db import db
@@ -105,8 +151,10 @@ def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     already = db.session.scalar(select(CardReview.id).where(CardReview.decision != "pending").limit(1))
     accepted = []
     if already is None:
-        # A card whose crowd judgement or crop is disputed cannot be accepted: it waits for you.
-        undisputed = [review for review in pending if not open_disputes(review.card_id)]
+        # A card whose crowd judgement or crop is disputed, or whose orientation is undecided,
+        # cannot be accepted: it waits for you.
+        undisputed = [review for review in pending if not open_disputes(review.card_id)
+                      and not flow_blockers(review.card)]
         for review in undisputed[: max(1, len(pending) // 2)]:
             decide(review.id, "accept", expected_version=review.version, curator=curator,
                    note="demo: accepted by the demo script")
@@ -177,13 +225,15 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
         if db.session.scalar(select(Person).where(Person.username == role)) is None:
             create_person(role, logins[role], [role], display_name=f"Demo {role}")
 
-    stage_reports, crowd = [], {}
+    stage_reports, crowd, override = [], {}, {}
     with make_executor("local", workers, None) as executor:
         for name, spec in available_stages().items():
             if name == "rectify":
-                # Between the filter and rectification, as in production: the crowd judges the
-                # cards the filter was unsure of (and the broken ones) and draws boxes on a few.
+                # Between the orientation step and rectification, as in production: the crowd
+                # judges the cards waiting for people (and the broken ones) and draws boxes on a
+                # few; a curator decides one card's orientation on its page.
                 crowd = seed_demo_crowd(cards, echo)
+                override = override_demo_orientation(cards, echo)
             stage_report = run_stage(spec, data_dir=data_dir, executor=executor)
             stage_reports.append(stage_report.as_json())
             echo(f"{spec.name}: processed {stage_report.processed} in {stage_report.seconds:.1f} s, "
@@ -208,7 +258,8 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
         fraction = f"{100 * row['fraction']:.2f} %" if row["fraction"] is not None else "-"
         mark = "" if row["as_expected"] else "   <- unexpected"
         echo(f"{row['source']:<32} {str(row['outcome']):<8} {fraction:>9}  {'/'.join(row['expected'])}{mark}")
-    return {"cards": rows, "stages": stage_reports, "crowd": crowd, "review": review, "release": release,
+    return {"cards": rows, "stages": stage_reports, "crowd": crowd, "orientation_override": override,
+            "review": review, "release": release,
             "logins": logins, "seconds": time.perf_counter() - clock}
 
 

@@ -91,7 +91,8 @@ Motorcycle, true rho -0.31) turns it over, confidently.
 Degenerate inputs never get a silent guess: bad arrays, boxes and tiny photos raise
 :class:`OrientationInputError` (a numerical failure inside OpenCV raises
 :class:`OrientationFailedError`); blank photos, identical photos and a card with a third photo
-beside the boxes give a result with ``undecidable`` set and every flag undecided.
+beside the boxes, and two photos with no parallax at all once aligned (a copy of one photo
+shifted a few px) give a result with ``undecidable`` set and every flag undecided.
 
 Conventions: ``card`` is ``uint8`` or ``uint16`` ``(H, W)`` grey or ``(H, W, 3)`` RGB as scanned;
 boxes are ``(x0, y0, x1, y1)`` in card pixels, ``x1``/``y1`` exclusive, ``left_box`` the photo
@@ -159,6 +160,9 @@ class OrientationParams:
     identical_tolerance: float = 0.5
     """Grey levels: photos whose mean absolute difference is below this are the same image."""
     third_photo_ncc: float = 0.6
+    no_parallax_px: float = 0.3
+    """px (working scale): photos whose aligned horizontal flow spreads less than this, with no
+    occluded band at all, are copies of one image (no stereo evidence)."""
     """NCC above which a strip of the card beside the boxes counts as a third copy of the photo."""
     # Fitted on the tune half of the shared cards (benchmarks/orientation.py; L2 0.03, the
     # strongest within one standard error of the best leave-one-card-out log-loss within the tune
@@ -682,6 +686,11 @@ def estimate_orientation(
     except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
     details.update(stereo_details)
+    if (stereo_details["occlusion_bands_end"] + stereo_details["occlusion_bands_start"] == 0
+            and stereo_details["alignment"]["spread"] < params.no_parallax_px):
+        # Two copies of one photo a few px apart pass the pixel-identity check above.
+        return _undecidable(f"no parallax between the photos (flow spread {stereo_details['alignment']['spread']} px, "
+                            "no occluded band): copies of one image, no stereo", clock, details)
     values = {
         "occlusion_side": occlusion,
         "ground_plane": ground,

@@ -246,6 +246,7 @@ def card(card_id: int) -> Any:
                                  if r.stage == "grade" and r.param_hash == review.auto_param_hash), None)
         previous, following = queue_neighbours(card_id, filters)
         view = crowd_view(card_id)
+        orientation_panel = _orientation_panel(card)
         return render_template(
             "review/card.html", card=card, review=review, rectify=latest.get("rectify"),
             disparity=latest.get("disparity"), views_result=latest.get("views"), grade_result=grade_result, reasons=grade_reasons(grade_result),
@@ -254,7 +255,40 @@ def card(card_id: int) -> Any:
             kinds=SEND_BACK_KINDS, anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
             table=threshold_table(grade_result.metrics) if grade_result is not None else None,
             state_sentence=card_state_sentence(card, latest) if review is None else "",
+            orientation_panel=orientation_panel,
         )
+
+
+def _orientation_panel(card: Any) -> dict[str, Any]:
+    """What the card page's orientation form shows: the orientation in use, the step's
+    probabilities and evidence, and the curator's current override."""
+    from .models import OrientationOverride
+    from .orientation import current_orientation
+
+    step = card.latest_results().get("orientation")
+    override = db.session.scalar(select(OrientationOverride).where(OrientationOverride.card_id == card.id))
+    return {"orientation": current_orientation(card),
+            "step": step.metrics.get("flags") if step is not None and step.status == "done" else None,
+            "step_reason": step.reason if step is not None else None,
+            "override": {flag: getattr(override, flag) for flag in ("upside_down", "inverted", "swapped")}
+            if override is not None else {}}
+
+
+@bp.route("/cards/<int:card_id>/orientation", methods=["POST"])
+@role_required("curator")
+def orientation_card(card_id: int) -> Any:
+    """A curator's override of the card's orientation flags (yes / no / empty = leave it to the
+    step and the crowd); recorded with an audit event. Form POST with the CSRF token."""
+    from .orientation import override_orientation
+
+    flags = {flag: request.form.get(flag, "") for flag in ("upside_down", "inverted", "swapped")}
+    after = override_orientation(card_id, flags, curator=_curator(), note=str(request.form.get("note") or ""))
+    state = ", ".join(f"{flag} {'yes' if after[flag] else 'no' if after[flag] is False else '?'}"
+                      for flag in ("upside_down", "inverted", "swapped"))
+    flash(f"Card {card_id}: orientation {state}"
+          + (f" (decided by {after['decided_by']})" if after["decided_by"] else " (still undecided)")
+          + "; the next pipeline run redoes rectification with it.", "success")
+    return redirect(url_for("review.card", card_id=card_id, **_filters(request.args).query_args()), code=303)
 
 
 def _next_url(card_id: int, filters: QueueFilters) -> str:

@@ -51,7 +51,9 @@ class OrientationStageParams:
 
 
 def _flag_words(estimate: OrientationEstimate, flag: str) -> list[str]:
-    cues = [cue for cue in getattr(estimate, flag).evidence if cue.weight > 0 and cue.value != 0.0]
+    # Every weighted cue that sees the flag, the silent ones too ("greyscale scan: no colour
+    # evidence" says why a flag stayed doubtful).
+    cues = [cue for cue in getattr(estimate, flag).evidence if cue.weight > 0]
     cues.sort(key=lambda cue: -abs(cue.weight * cue.value))
     return [f"{cue.name}: {cue.meaning} ({cue.value:+.2f} x {cue.weight:g})" for cue in cues]
 

@@ -15,6 +15,7 @@ negative, halves swapped) with the originals sent to people; seconds per card. T
 ``held_out`` evaluates them, ``held_out_with_refitted_weights`` a fresh fit (should match).
 
     python -m benchmarks.orientation [--json] [--data DIR] [--rows]
+    python -m benchmarks.orientation --flow [--json] [--scans DIR [--truth CSV]] [--keep DIR]
 
 Truth. Every card is taken as correct as stored. The NYPL cards are mounted prints; the JPS
 pairs were checked parallel in PROVENANCE.md; for the two Keystone-Mast raw scans (one was said
@@ -277,7 +278,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--rows", action="store_true", help="include every variant's cue values")
+    parser.add_argument("--flow", action="store_true",
+                        help="measure the whole flow instead: four variants per card through keystone ingest/run "
+                             "on a fresh instance (benchmarks.orientation_flow)")
+    parser.add_argument("--scans", type=Path, help="with --flow: measure the images in this folder instead")
+    parser.add_argument("--truth", type=Path, help="with --scans: hand-drawn photo boxes (photo_area_truth.csv format)")
+    parser.add_argument("--keep", type=Path, help="with --flow: keep the instance in this folder")
     args = parser.parse_args(argv)
+    if args.flow:
+        from .orientation_flow import main_flow
+
+        return main_flow(args.data, args.scans, args.truth, args.json, args.keep)
     if not (args.data / "stereocards").is_dir():
         print(f"no shared data at {args.data}", file=sys.stderr)
         return 2

@@ -114,7 +114,7 @@ from scipy.stats import spearmanr
 
 from .disparity import DisparityParams, estimate_disparity
 from .errors import InvalidInputError, PipelineError
-from .photo_area import PhotoAreaParams, find_photo_areas
+from .photo_area import PhotoAreaParams, PhotoAreas, find_photo_areas
 
 Box = tuple[int, int, int, int]
 
@@ -248,6 +248,12 @@ class OrientationEstimate:
     tie_decided: bool = False  # that probability is confident: one answer settles both flags
     combination_probability: float = 0.0  # P of the most probable (upside_down, inverted, swapped)
     combination_decided: bool = False  # that probability is >= auto_probability
+    # The arched-top cue's photo areas (on the working copy, read as a positive when the tone
+    # cues call the card a negative), the working copy's scale to the scan (x, y), and whether
+    # it was inverted first; None when the cue did not run. Not part of as_dict().
+    photo_areas: PhotoAreas | None = field(default=None, repr=False, compare=False)
+    photo_areas_scale: tuple[float, float] = (1.0, 1.0)
+    photo_areas_inverted: bool = False
 
     def with_upside_down(self, upside_down: bool) -> dict[str, Any] | None:
         """The orientation once a person has said whether the card is upside down: ``swapped``
@@ -559,24 +565,25 @@ def _smooth_bright(left: np.ndarray, right: np.ndarray) -> float:
     return float((smooth.mean() - np.median(both)) / spread) if smooth.size else 0.0
 
 
-def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str]]:
+def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str], PhotoAreas | None]:
     """Arched (rounded) photo tops minus arched photo bottoms that
     :func:`pipeline.photo_area.find_photo_areas` reports on the card as scanned, over 2 (so in
     -1..1): mounts arch the photos' tops, never their feet. photo_area searches every card both
     ways up and says on which side an arch is, so one pass tells both. 0 when it shows none or
-    the photo areas cannot be read; the notes say what was found."""
+    the photo areas cannot be read; the notes say what was found. The photo areas come back
+    too (the orientation stage reuses them as the default crop instead of a second pass)."""
     if width == 0:
-        return 0.0, ["arched-top cue off"]
+        return 0.0, ["arched-top cue off"], None
     try:
         areas = find_photo_areas(card, PhotoAreaParams(working_width=width))
     except PipelineError as exc:  # a card photo_area cannot read: no arch evidence
-        return 0.0, [f"photo areas not found ({exc.code})"]
+        return 0.0, [f"photo areas not found ({exc.code})"], None
     except cv2.error as exc:  # a numerical corner case inside photo_area: no arch evidence, said
-        return 0.0, [f"photo areas failed (OpenCV: {str(exc).strip()[:80]})"]
+        return 0.0, [f"photo areas failed (OpenCV: {str(exc).strip()[:80]})"], None
     tops = sum("arched" in e and e.rstrip().endswith("top") for e in areas.evidence)
     bottoms = sum("arched" in e and e.rstrip().endswith("bottom") for e in areas.evidence)
     notes = [f"{count} arched {side}(s) as scanned" for count, side in ((tops, "top"), (bottoms, "bottom")) if count]
-    return float(np.clip(tops - bottoms, -2, 2)) / 2.0, notes
+    return float(np.clip(tops - bottoms, -2, 2)) / 2.0, notes, areas
 
 
 def _dark_detail(left: np.ndarray, right: np.ndarray) -> float:
@@ -660,6 +667,7 @@ def estimate_orientation(
     clock = time.perf_counter()
     card = _to_uint8(card)
     height, width = card.shape[:2]
+    scanned = (height, width)
     lb = _check_box(left_box, "left_box", width, height)
     rb = _check_box(right_box, "right_box", width, height)
     if (lb[0] + lb[2]) >= (rb[0] + rb[2]):
@@ -705,8 +713,8 @@ def estimate_orientation(
     # inverted first. Where that call is wrong, the inverted flag is wrong or doubtful anyway.
     weights = params.weights()
     tone = sum(weights[c] * values[c] for c in values if CUE_FLAGS[c] == ("inverted",))
-    values["arched_top"], details["arches"] = _arched_top(255 - card if tone < 0 else card,
-                                                          params.arch_working_width)
+    values["arched_top"], details["arches"], areas = _arched_top(255 - card if tone < 0 else card,
+                                                                 params.arch_working_width)
     cues = tuple(Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c],
                      meaning=_meaning(c, float(values[c]))) for c in CUE_FLAGS)
     probabilities = flag_probabilities(values, weights)
@@ -721,7 +729,9 @@ def estimate_orientation(
     best = max(hypothesis_probabilities(values, weights).values())
     return OrientationEstimate(estimates[0], estimates[1], estimates[2], cues=cues, seconds=time.perf_counter() - clock, details=details,
                                same_turn_and_swap=tie, tie_decided=tie_decided, combination_probability=best,
-                               combination_decided=best >= params.auto_probability)
+                               combination_decided=best >= params.auto_probability, photo_areas=areas,
+                               photo_areas_scale=(scanned[1] / card.shape[1], scanned[0] / card.shape[0]),
+                               photo_areas_inverted=bool(tone < 0))
 
 
 def orient_variant(card: np.ndarray, left_box: Box, right_box: Box, upside_down: bool, inverted: bool,

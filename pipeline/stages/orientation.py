@@ -28,8 +28,9 @@ typed ``failed`` record (the wrapper), a blank, identical or three-photo card is
 
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from ..errors import PipelineError
@@ -98,6 +99,20 @@ def _reason(metrics: dict[str, Any]) -> str:
     return f"{verdict}: " + ", ".join(words)
 
 
+def _scaled_areas(areas: PhotoAreas, scale: tuple[float, float], shape: tuple[int, int]) -> PhotoAreas:
+    """Photo areas found on the estimator's working copy, in the scan's pixels (rounded inwards)."""
+    sx, sy = scale
+    height, width = shape
+
+    def scaled(box: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+        x0, y0 = min(width - 1, math.ceil(box[0] * sx)), min(height - 1, math.ceil(box[1] * sy))
+        return (x0, y0, max(x0 + 1, min(width, math.floor(box[2] * sx))),
+                max(y0 + 1, min(height, math.floor(box[3] * sy))))
+
+    return replace(areas, left_box=scaled(areas.left_box), right_box=scaled(areas.right_box),
+                   gutter_x=int(round(areas.gutter_x * sx)))
+
+
 @stage_task("orientation")
 def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOutput:
     """Estimate the card's orientation on the filter's split boxes and find its photo areas.
@@ -110,8 +125,18 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
     card = read_image(task.image_path)
     estimate = estimate_orientation(card, tuple(boxes[0]), tuple(boxes[1]), params.orientation)
     clock = time.perf_counter()
-    areas = find_photo_areas(card, params.photo_area)
+    reused = (estimate.photo_areas is not None
+              and params.orientation.arch_working_width == params.photo_area.working_width
+              and params.photo_area == type(params.photo_area)(working_width=params.photo_area.working_width))
+    if reused:
+        # The estimator's arched-top cue found them already, on a negative read as a positive
+        # (measured: the photo-area finder misses more boxes on negatives as scanned).
+        areas = _scaled_areas(estimate.photo_areas, estimate.photo_areas_scale, card.shape[:2])
+    else:
+        areas = find_photo_areas(255 - card if estimate.inverted.value else card, params.photo_area)
     metrics = orientation_metrics(estimate, areas)
+    metrics["photo_area_read_as_positive"] = bool(estimate.photo_areas_inverted if reused
+                                                  else estimate.inverted.value)
     metrics["seconds_photo_area"] = round(time.perf_counter() - clock, 4)
     metrics["card_size"] = [int(card.shape[1]), int(card.shape[0])]
     return StageOutput(outcome=metrics["decision"], reason=_reason(metrics), metrics=metrics)

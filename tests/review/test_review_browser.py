@@ -14,7 +14,7 @@ from sqlalchemy import select
 
 
 @pytest.fixture
-def queue_cards(app, make_card, add_stage_result, card_image) -> list[int]:  # type: ignore[no-untyped-def]
+def queue_cards(app, make_card, add_stage_result, card_image, decide_orientation) -> list[int]:  # type: ignore[no-untyped-def]
     """Three graded cards in queue order (most uncertain first): auto grades some, few, failure."""
     from review.tasks import sync_reviews
 
@@ -24,6 +24,7 @@ def queue_cards(app, make_card, add_stage_result, card_image) -> list[int]:  # t
         add_stage_result(card_id, "grade", outcome=grade, reason=f"because {grade}",
                          metrics={"uncertainty": uncertainty, "reasons": [f"because {grade}"]})
         ids.append(card_id)
+    decide_orientation(ids)
     with app.app_context():
         sync_reviews()
     return ids

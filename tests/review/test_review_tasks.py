@@ -21,7 +21,7 @@ GRADED = [
 
 
 @pytest.fixture
-def graded(app, make_card, add_stage_result, card_image) -> list[int]:  # type: ignore[no-untyped-def]
+def graded(app, make_card, add_stage_result, card_image, decide_orientation) -> list[int]:  # type: ignore[no-untyped-def]
     ids = []
     for index, (grade, uncertainty, reasons) in enumerate(GRADED):
         collection = "east" if index % 2 == 0 else "west"
@@ -31,6 +31,7 @@ def graded(app, make_card, add_stage_result, card_image) -> list[int]:  # type: 
             metrics["uncertainty"] = uncertainty
         add_stage_result(card_id, "grade", outcome=grade, reason="; ".join(reasons), metrics=metrics)
         ids.append(card_id)
+    decide_orientation(ids)  # the flow rule: only cards whose orientation is decided can be accepted
     return ids
 
 
@@ -371,13 +372,14 @@ def test_card_history_is_oldest_first(app, synced, person) -> None:  # type: ign
 
 
 @pytest.fixture
-def disputed(app, make_card, card_image) -> dict[str, int]:  # type: ignore[no-untyped-def]
+def disputed(app, make_card, card_image, decide_orientation) -> dict[str, int]:  # type: ignore[no-untyped-def]
     """Two aggregates waiting for a curator: a judge one and a crop one."""
     from annotation.models import Aggregate
     from annotation.tasks import create_batch
     from app.db import db
 
     cards = [make_card(card_image()[:, 20 + i:], state="review") for i in range(2)]
+    decide_orientation(cards)
     with app.app_context():
         judge, crop = create_batch([cards[0]], "judge", 3, 0.0), create_batch([cards[1]], "crop", 3, 0.0)
         rows = {

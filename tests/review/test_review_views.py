@@ -13,8 +13,8 @@ from sqlalchemy import select
 
 
 @pytest.fixture
-def graded(app, make_card, add_stage_result, card_image) -> list[int]:  # type: ignore[no-untyped-def]
-    """Three graded, synced cards; the queue order is cards[1], cards[0], cards[2]."""
+def graded(app, make_card, add_stage_result, card_image, decide_orientation) -> list[int]:  # type: ignore[no-untyped-def]
+    """Three graded, synced cards (orientation decided); the queue order is cards[1], cards[0], cards[2]."""
     from review.tasks import sync_reviews
 
     ids = []
@@ -23,6 +23,7 @@ def graded(app, make_card, add_stage_result, card_image) -> list[int]:  # type: 
         add_stage_result(card_id, "grade", outcome=grade, reason=f"reason {grade}",
                          metrics={"uncertainty": uncertainty, "reasons": [f"reason {grade}"], "coverage": 0.91})
         ids.append(card_id)
+    decide_orientation(ids)
     with app.app_context():
         sync_reviews()
     return ids

@@ -99,15 +99,17 @@ def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-un
 
 
 def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
-    """The demo curator decides one card's orientation on its page: the first stereo card the
-    orientation step and the crowd left undecided (whose judgement is not disputed: disputes
-    are left for you to try), else the last stereo card (confirming what is known)."""
+    """The demo curator decides one card's orientation on its page: a card whose orientation the
+    step decided automatically and wrongly (the demo knows how its cards were made: the step's
+    ground-plane cue turns over on close-ups without ground), else the first stereo card the
+    step and the crowd left undecided (a disputed judgement is left for you to try), else the
+    last stereo card (confirming what is known)."""
     from review.models import OrientationOverride
     from review.orientation import override_orientation
 
     from .db import db
     from .models import Card, Person
-    from .runs import waiting_for_people
+    from .runs import approved_annotations, card_orientation, waiting_for_people
 
     if db.session.scalar(select(OrientationOverride.id).limit(1)) is not None:
         return {"note": "an orientation override exists already: not made again"}
@@ -115,7 +117,16 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     by_id = {ids[c.name]: c for c in cards if c.name in ids}
     stereo = [card_id for card_id, c in by_id.items() if c.kind in ("stereo", "upside_down", "inverted")]
     undecided = [card_id for card_id in waiting_for_people()["orientation"] if card_id in stereo]
-    card_id = undecided[0] if undecided else max(stereo)
+    approved = approved_annotations(stereo)
+    wrong = []
+    for candidate in sorted(stereo):
+        used = card_orientation(db.session.get(Card, candidate), approved.get(candidate, {}))
+        truth = _true_orientation(by_id[candidate])
+        if used["decided_by"] is not None and any(used[flag] != truth[flag] for flag in truth):
+            wrong.append(candidate)
+            echo(f"orientation: card {candidate} ({by_id[candidate].name}) was decided by {used['decided_by']} as "
+                 + ", ".join(f"{flag} {used[flag]}" for flag in truth) + ": wrong")
+    card_id = wrong[0] if wrong else undecided[0] if undecided else max(stereo)
     card = db.session.get(Card, card_id)
     curator = db.session.scalar(select(Person).where(Person.username == "curator"))
     after = override_orientation(card_id, _true_orientation(by_id[card_id]), curator=curator,
@@ -123,7 +134,23 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     echo(f"orientation: the demo curator decided card {card_id} ({card.source_name}): "
          + ", ".join(f"{flag} {after[flag]}" for flag in ("upside_down", "inverted", "swapped"))
          + f"; {len(undecided) - 1 if undecided else 0} other card(s) still wait for people")
-    return {"card": card_id, "orientation": after, "was_undecided": bool(undecided)}
+    # Until the judge task asks the eye order, a crowd judgement leaves ``swapped`` undecided
+    # where the step was not sure of it: the curator answers that one question on those cards
+    # (the crowd's upside-down and inverted answers stand).
+    eye_order = []
+    for candidate in waiting_for_people()["orientation"]:
+        if candidate not in stereo or candidate == card_id:
+            continue
+        used = card_orientation(db.session.get(Card, candidate), approved_annotations([candidate]).get(candidate, {}))
+        if used["upside_down"] is not None and used["inverted"] is not None and used["swapped"] is None:
+            override_orientation(candidate, {"swapped": False}, curator=curator,
+                                 note="demo: the curator compared the wiggles: eyes in order")
+            eye_order.append(candidate)
+    if eye_order:
+        echo(f"orientation: the demo curator gave the eye order of {len(eye_order)} card(s) the crowd was not asked "
+             "it for")
+    return {"card": card_id, "orientation": after, "was_undecided": card_id in undecided, "wrong_before": wrong,
+            "eye_order_by_curator": eye_order}
 
 
 def _shrunk(box: list, margin: float = 0.03) -> list[float]:

@@ -79,6 +79,11 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
             waiting_for = "the orientation step (not run yet)"
         elif step.status == "failed":
             waiting_for = f"people (the orientation step failed: {step.reason})"
+        elif judge is None and step.metrics.get("undecidable"):
+            waiting_for = f"people (the orientation step cannot tell: {step.metrics['undecidable']})"
+        elif judge is None:
+            unsure = [flag for flag in FLAGS if not (step_flags.get(flag) or {}).get("decided")]
+            waiting_for = f"people (the orientation step is not sure of {', '.join(unsure or FLAGS)})"
         else:
             waiting_for = f"people ({', '.join(undecided)} undecided)"
     return {

@@ -22,6 +22,14 @@ def test_judge_crop_and_review_statuses(app, runner, make_card, add_stage_result
 
     passed = make_card(card_image()[:, 1:])
     add_stage_result(passed, "filter", outcome="pass")
+    flags = {flag: {"p": 0.02, "decided": True, "value": False, "evidence": []}
+             for flag in ("upside_down", "inverted", "swapped")}
+    add_stage_result(passed, "orientation", outcome="auto", metrics={"flags": flags, "confidence": 0.98})
+    asked = make_card(card_image()[:, 5:])
+    add_stage_result(asked, "filter", outcome="pass")
+    add_stage_result(asked, "orientation", outcome="ask",
+                     metrics={"flags": {**flags, "swapped": {"p": 0.6, "decided": False, "value": None, "evidence": []}},
+                              "confidence": 0.6})
     add_stage_result(passed, "rectify", outcome=None, metrics={"box_source": "filter split (abc)"})
     disputed = make_card(card_image()[:, 2:])
     add_stage_result(disputed, "filter", outcome="review")
@@ -44,7 +52,12 @@ def test_judge_crop_and_review_statuses(app, runner, make_card, add_stage_result
 
     stages = _cards(runner)
     assert stages[passed]["judge"]["status"] == "skipped"
-    assert stages[passed]["judge"]["reason"] == "not needed: the filter passed the card as a stereo pair"
+    assert stages[passed]["judge"]["reason"] == ("not needed: the filter passed the card as a stereo pair and the "
+                                                 "orientation step decided it (confidence 0.98)")
+    # Passed by the filter, but the orientation step asked: it waits for the crowd's judgement.
+    assert stages[asked]["judge"] == {"status": "pending", "outcome": None, "metrics": {},
+                                      "reason": "waiting for people (the orientation step is not sure of swapped)"}
+    assert stages[asked]["rectify"]["status"] == "pending" and "undecided" in stages[asked]["rectify"]["reason"]
     assert stages[passed]["crop"] == {"status": "skipped", "outcome": None, "metrics": {},
                                       "reason": "not needed: rectified from filter split (abc)"}
     assert stages[passed]["review"]["status"] == "done" and stages[passed]["review"]["outcome"] == "changed"

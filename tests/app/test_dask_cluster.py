@@ -24,7 +24,7 @@ from PIL import Image
 
 pytest.importorskip("distributed", reason="the cluster path needs dask[distributed] (the 'cluster' extra)")
 
-STAGES = "filter,rectify,disparity,grade"
+STAGES = "filter,orientation,rectify,disparity,grade"
 SCHEDULER_AT = re.compile(r"Scheduler at:\s+(tcp://127\.0\.0\.1:\d+)")
 
 
@@ -123,6 +123,16 @@ def _keystone(instance: Path, *args: str, check: bool = True) -> subprocess.Comp
     return result
 
 
+def _decide_orientation(instance: Path) -> None:
+    """A curator's override on every card (upright, positive, eyes in order: how the test cards
+    were made), so the flow rule lets them through rectification whatever the step says."""
+    import sqlite3
+
+    with sqlite3.connect(instance / "keystone.sqlite3") as connection:
+        connection.execute("INSERT INTO orientation_overrides (card_id, upside_down, inverted, swapped, note, updated_at) "
+                           "SELECT id, 0, 0, 0, 'test: made upright', CURRENT_TIMESTAMP FROM cards")
+
+
 def _outcomes(instance: Path) -> dict[str, dict[str, tuple]]:
     """Per card file and stage: status, outcome, reason and the grade's measurements rounded."""
     cards = json.loads(_keystone(instance, "cards", "--json").stdout)["cards"]
@@ -142,6 +152,7 @@ def test_dask_cluster_gives_the_local_pools_outcomes(tmp_path, scans, cluster):
     local, remote = tmp_path / "local", tmp_path / "remote"
     for instance in (local, remote):
         _keystone(instance, "ingest", str(scans), "--json")
+        _decide_orientation(instance)
     _keystone(local, "run", "--stages", STAGES, "--workers", "2", "--json")
     report = json.loads(_keystone(remote, "run", "--stages", STAGES, "--executor", "dask",
                                   "--scheduler", cluster.address, "--json").stdout)
@@ -158,6 +169,7 @@ def test_a_worker_killed_mid_run_costs_only_its_cards_in_flight(tmp_path, scans,
 
     instance = tmp_path / "instance"
     _keystone(instance, "ingest", str(scans), "--json")
+    _decide_orientation(instance)
     env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(instance)}
     run = subprocess.Popen([sys.executable, "-m", "app", "run", "--stages", STAGES, "--executor", "dask",
                             "--scheduler", cluster.address, "--json"], env=env, stdout=subprocess.PIPE,

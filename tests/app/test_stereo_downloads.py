@@ -13,9 +13,10 @@ FORMATS = {"anaglyph": "image/jpeg", "wiggle_gif": "image/gif", "wiggle_webp": "
 
 
 @pytest.fixture
-def rectified_card(runner, make_card, add_stage_result) -> int:
+def rectified_card(runner, make_card, add_stage_result, decide_orientation) -> int:
     card_id = make_card(accession="1996.0009.17827", metadata={"title": "Motorcycle in the lab", "date": "2014"})
     add_stage_result(card_id, "filter")
+    decide_orientation([card_id])
     result = runner.invoke(args=["run", "--stages", "rectify,disparity", "--json"])
     assert result.exit_code == 0, result.output
     return card_id

@@ -168,7 +168,8 @@ def test_bad_pairs_get_a_reason_each_while_the_rest_goes_on(app, runner, tmp_pat
 
 
 def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(app, runner, client, login, tmp_path,
-                                                                              data_dir, shared_data) -> None:
+                                                                              data_dir, shared_data,
+                                                                              decide_orientation) -> None:
     """An MPO made from a real Keystone-Mast scan's halves, the depthy 7995 left/right pair (two
     files that used to be two culled cards) and a real JPS (stored parallel: the check says so)."""
     from pipeline.io import read_image
@@ -197,6 +198,7 @@ def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(ap
     page = client.get(f"/cards/{cards['8618s.jps'].id}").get_data(as_text=True)
     assert "<strong>disagrees</strong>: the halves look cross-eyed as stored" in page
 
+    decide_orientation()  # made from known eyes: a curator says so (undecided cards are not rectified)
     run = runner.invoke(args=["run", "--stages", "filter,rectify,disparity,grade", "--json"])
     assert run.exit_code in (0, 1), run.output
     listed = {c["source"]: c["stages"] for c in json.loads(runner.invoke(args=["cards", "--json"]).output)["cards"]}

@@ -15,9 +15,9 @@ def test_bench_pipeline_reports_cpu_seconds_for_every_stage_a_card_reached(runne
     (row,) = document["results"]
     assert row["card"] == "motorcycle_760px.jpg" and row["width"] == 760
     assert row["filter_outcome"] == "pass" and row["failed"] == {}
-    assert set(row["cpu_seconds"]) == {"filter", "rectify", "disparity", "grade", "views"}
+    assert set(row["cpu_seconds"]) == {"filter", "orientation", "rectify", "disparity", "grade", "views"}
     assert all(seconds > 0 for seconds in row["cpu_seconds"].values())
-    default = sum(row["cpu_seconds"][name] for name in ("filter", "rectify", "disparity", "grade"))
+    default = sum(row["cpu_seconds"][name] for name in ("filter", "orientation", "rectify", "disparity", "grade"))
     assert abs(row["pipeline_cpu_seconds"] - default) < 1e-3
     assert row["views_cpu_seconds"] == row["cpu_seconds"]["views"]
     summary = document["summary"]

@@ -34,8 +34,9 @@ def review_card(app) -> Callable[..., None]:  # type: ignore[no-untyped-def]
 
 
 @pytest.fixture
-def processed_cards(app, runner, make_card, add_stage_result) -> Callable[[int], list[int]]:  # type: ignore[no-untyped-def]
-    """``n`` ingested cards with filter, rectify and disparity results (the real pipeline)."""
+def processed_cards(app, runner, make_card, add_stage_result, decide_orientation) -> Callable[[int], list[int]]:  # type: ignore[no-untyped-def]
+    """``n`` ingested cards with filter, rectify and disparity results (the real pipeline), their
+    orientation decided by a curator (undecided cards are neither rectified nor released)."""
 
     def make(count: int) -> list[int]:
         ids = []
@@ -46,6 +47,7 @@ def processed_cards(app, runner, make_card, add_stage_result) -> Callable[[int],
                                 image=_variant(number))
             add_stage_result(card_id, "filter")
             ids.append(card_id)
+        decide_orientation(ids)
         result = runner.invoke(args=["run", "--stages", "rectify,disparity", "--json"])
         assert result.exit_code == 0, result.output
         return ids

@@ -41,11 +41,14 @@ def test_demo_builds_routes_and_is_rerunnable(tmp_path: Path, monkeypatch):
         releases = connection.execute("SELECT version, card_count FROM releases").fetchall()
         views = connection.execute("SELECT count(*) FROM stage_results WHERE stage = 'views' AND status = 'done'").fetchone()[0]
     assert batches == {"judge": 1, "crop": 1} and answers >= 20
-    assert sum(grades.values()) == 8 and set(grades) <= {"few", "some", "failure"}
+    # Only cards whose orientation is decided are graded: at most the 8 stereo cards.
+    assert 4 <= sum(grades.values()) <= 8 and set(grades) <= {"few", "some", "failure"}
     assert decisions["accepted"] >= 1 and decisions["pending"] >= 1
     assert releases == [("1.0.0", decisions["accepted"])]
     assert views >= 1
     assert "verify: ok" in result.output
+    seconds = float(result.output.split("demo built in ")[1].split(" s")[0])
+    assert seconds < 60, f"keystone demo took {seconds:.1f} s (must stay under a minute)"
     assert (folder / "releases" / "1.0.0" / "SHA256SUMS").is_file()
 
     again = runner.invoke(cli, ["demo", "--no-serve", "--dir", str(folder)])
@@ -58,4 +61,23 @@ def test_demo_builds_routes_and_is_rerunnable(tmp_path: Path, monkeypatch):
     listing = runner.invoke(cli, ["cards", "--json"], env={"KEYSTONE_DATABASE_URL": f"sqlite:///{folder / 'keystone.sqlite3'}",
                                                             "KEYSTONE_DATA_DIR": str(folder / "data")})
     assert listing.exit_code == 0, listing.output
-    assert len(json.loads(listing.stdout)["cards"]) == 11
+    cards = {card["source"]: card for card in json.loads(listing.stdout)["cards"]}
+    assert len(cards) == 11
+    # The flow rule: the upside-down and negative cards end up corrected (by the step or the
+    # simulated crowd, the eye order by the curator until the judge task asks it) ...
+    turned, negative = cards["demo_upside_down_01.jpg"], cards["demo_inverted_01.jpg"]
+    assert turned["orientation"]["upside_down"] is True and turned["orientation"]["inverted"] is False
+    assert turned["stages"]["rectify"]["metrics"]["orientation"]["applied"][0] == "rotated 180 deg"
+    assert negative["orientation"]["inverted"] is True and negative["orientation"]["upside_down"] is False
+    assert negative["stages"]["rectify"]["metrics"]["orientation"]["applied"][0] == "intensities inverted"
+    # ... one card's orientation is a curator's override, recorded in the audit trail ...
+    assert any(card["orientation"]["decided_by"] == "curator" for card in cards.values())
+    with sqlite3.connect(folder / "keystone.sqlite3") as connection:
+        assert connection.execute("SELECT count(*) FROM audit_events WHERE entity = 'orientation'").fetchone()[0] >= 1
+        released = [row[0] for row in connection.execute(
+            "SELECT card_id FROM card_reviews WHERE decision IN ('accepted', 'changed')")]
+    # ... and nothing undecided is graded, accepted or released.
+    for card in cards.values():
+        if card["orientation"]["decided_by"] is None:
+            assert card["stages"]["grade"]["status"] != "done", card["source"]
+            assert card["id"] not in released, card["source"]

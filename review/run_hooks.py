@@ -6,11 +6,10 @@ from typing import Any
 
 from flask import Flask
 from sqlalchemy import select
+from sqlalchemy.orm import selectinload
 
 from app.db import db
 from app.stage_hooks import stage_hooks
-
-from sqlalchemy.orm import selectinload
 
 from .models import CardReview, OrientationOverride
 

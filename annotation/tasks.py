@@ -139,7 +139,17 @@ def orientation_queue_card_ids() -> list[int]:
     for a judge batch (``keystone crowd create-batch --from-review`` includes them)."""
     from app.runs import waiting_for_people
 
-    return waiting_for_people()["orientation"]
+    waiting = waiting_for_people()["orientation"]
+    # A card already in a judge batch whose answers are not aggregated yet is on its way.
+    in_flight: set[int] = set()
+    for start in range(0, len(waiting), 500):
+        chunk = waiting[start:start + 500]
+        in_flight.update(db.session.scalars(
+            select(BatchItem.card_id).join(Batch, Batch.id == BatchItem.batch_id)
+            .where(Batch.kind == "judge", BatchItem.card_id.in_(chunk), ~BatchItem.is_gold,
+                   ~select(Aggregate.id).where(Aggregate.batch_id == BatchItem.batch_id,
+                                               Aggregate.card_id == BatchItem.card_id).exists())))
+    return [card_id for card_id in waiting if card_id not in in_flight]
 
 
 def get_or_create_worker(provider: str, external_id: str, person_id: int | None = None) -> Worker:

@@ -90,6 +90,8 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     assert batch.exit_code == 0, batch.output
     batch_doc = json.loads(batch.stdout)
     assert batch_doc["items"] == 3
+    again = runner.invoke(cli, ["crowd", "create-batch", "--from-review", "--n", "3", "--json"])
+    assert again.exit_code == 2 and "no cards" in again.output  # on their way already: not asked twice
     ids = {name: card["id"] for name, card in cards.items()}
     # The crowd: the turned card is upside down (the judge asked the eye order); the negative is
     # inverted, and the judge did not ask the eye order: the step's tie settles it.

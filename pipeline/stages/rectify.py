@@ -85,6 +85,14 @@ def oriented_boxes(shape: tuple[int, int], boxes: tuple, inputs: dict) -> tuple[
     return left, right
 
 
+def _as_scanned(shape: tuple[int, int], box: tuple | list, inputs: dict) -> list[int]:
+    """A box on the oriented card back in the scan's pixels (turning is its own inverse)."""
+    if not inputs.get("upside_down"):
+        return [int(v) for v in box]
+    height, width = shape
+    return [int(width - box[2]), int(height - box[3]), int(width - box[0]), int(height - box[1])]
+
+
 @stage_task("rectify")
 def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     """Rectify the card's two halves (Loop-Zhang with the paper's changes).
@@ -189,5 +197,8 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     # What this result was computed with: a later change (crowd, curator) makes it stale.
     metrics["orientation_used"] = {flag: task.inputs.get(flag) for flag in ("upside_down", "inverted", "swapped")}
     metrics["crop_alignment"] = crop_record
+    # The boxes cut, in the card's pixels as scanned (the boxes above are on the oriented card).
+    metrics["scanned_boxes"] = {eye: _as_scanned(card.shape[:2], box, task.inputs)
+                                for eye, box in (("left_eye", boxes[0]), ("right_eye", boxes[1]))}
     metrics["box_source"] = task.inputs.get("box_source", "filter split")
     return StageOutput(status=status, reason=reason, metrics=metrics, artifacts=artifacts)

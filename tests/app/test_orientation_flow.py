@@ -139,6 +139,10 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     turned = cards["turned.png"]["stages"]["rectify"]["metrics"]
     assert turned["orientation"]["applied"] == ["rotated 180 deg"]
     assert turned["orientation_used"] == {"upside_down": True, "inverted": False, "swapped": False}
+    # The turned card's boxes, back on the scan, are where the upright card's are, turned.
+    width = cards["turned.png"]["stages"]["filter"]["metrics"]["card_size"][0]
+    right_eye = turned["scanned_boxes"]["right_eye"]
+    assert right_eye[2] <= width // 2 + 12  # the right eye's photo is on the scan's left, turned
     assert cards["negative.png"]["stages"]["rectify"]["metrics"]["orientation"]["applied"] == ["intensities inverted"]
     # Corrected, the three are the same pair: the same disparity range within a few px.
     ranges = [cards[name]["stages"]["disparity"]["metrics"]["disparity_p95"] for name in cards]

@@ -69,6 +69,13 @@ def _variant_arrays(variant: int, view_size: tuple[int, int] = VIEW_SIZE,
             "disparity_left": small, "disparity_right": small, "depth_512": depth}
 
 
+SYNTHETIC_ORIENTATION = {
+    "decision": "auto", "confidence": 0.99,
+    "flags": {flag: {"p": 0.01, "decided": True, "value": False, "evidence": ["synthetic card"]}
+              for flag in ("upside_down", "inverted", "swapped")},
+}
+
+
 def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], None] = print,
                               map_size: int | None = None) -> None:
     """Insert ``count`` accepted, graded cards with stage results pointing at shared artifacts
@@ -121,8 +128,15 @@ def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], 
         results, reviews = [], []
         for number, card_id in zip(chunk, ids):
             work = shared[number % VARIANTS]["work"]
+            # The orientation step decided each synthetic card upright (the flow rule releases
+            # no card whose orientation is undecided).
+            results.append({"card_id": card_id, "stage": "orientation", "param_hash": "bench0orientati0",
+                            "status": "done", "outcome": "auto", "metrics": SYNTHETIC_ORIENTATION,
+                            "artifacts": {}, "code_version": "0.1.0"})
             results.append({"card_id": card_id, "stage": "rectify", "param_hash": "bench0rectify000", "status": "done",
-                            "metrics": {"orientation": {"applied": []}, "inputs_digest": "bench"},
+                            "metrics": {"orientation": {"applied": []}, "inputs_digest": "bench",
+                                        "orientation_used": {"upside_down": False, "inverted": False,
+                                                             "swapped": False}},
                             "artifacts": {"left": str(work / "left.png"), "right": str(work / "right.png"),
                                           "rectification": str(work / "rectification.json")},
                             "code_version": "0.1.0"})

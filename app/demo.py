@@ -129,6 +129,9 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     card_id = wrong[0] if wrong else undecided[0] if undecided else max(stereo)
     card = db.session.get(Card, card_id)
     curator = db.session.scalar(select(Person).where(Person.username == "curator"))
+    for other in wrong[1:]:  # every wrong decision is corrected before anything is rectified
+        override_orientation(other, _true_orientation(by_id[other]), curator=curator,
+                             note="demo: the curator corrected the orientation")
     after = override_orientation(card_id, _true_orientation(by_id[card_id]), curator=curator,
                                  note="demo: the curator looked at the card")
     echo(f"orientation: the demo curator decided card {card_id} ({card.source_name}): "
@@ -284,7 +287,7 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
     for row in rows:
         fraction = f"{100 * row['fraction']:.2f} %" if row["fraction"] is not None else "-"
         mark = "" if row["as_expected"] else "   <- unexpected"
-        echo(f"{row['source']:<32} {str(row['outcome']):<8} {fraction:>9}  {'/'.join(row['expected'])}{mark}")
+        echo(f"{row['source']:<32} {row['outcome']!s:<8} {fraction:>9}  {'/'.join(row['expected'])}{mark}")
     return {"cards": rows, "stages": stage_reports, "crowd": crowd, "orientation_override": override,
             "review": review, "release": release,
             "logins": logins, "seconds": time.perf_counter() - clock}

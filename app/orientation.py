@@ -5,8 +5,7 @@ Three sources, each flag taken from the strongest that speaks to it:
 1. a curator's override (``review.models.OrientationOverride``), flag by flag;
 2. the crowd's approved judge aggregate: ``upside_down`` and ``inverted`` always; ``swapped``
    when the judge task asked it (``label["swapped"]``), else the step's own value when the step
-   was confident on that flag, else the step's tie (P(upside_down == swapped) confident: the
-   crowd's answer about the turn settles the eye order), else undecided;
+   was confident on that flag, else undecided (a person answers it);
 3. the orientation stage's result, when it decided the card automatically (``outcome ==
    "auto"``); a step that asked contributes nothing on its own.
 
@@ -51,10 +50,9 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
             flags["swapped"] = bool(label["swapped"])
         elif (step_flags.get("swapped") or {}).get("decided"):
             flags["swapped"] = bool(step_flags["swapped"]["value"])
-        elif step_ok and step.metrics.get("tie_decided"):
-            same = float(step.metrics.get("same_turn_and_swap", 0.5)) >= 0.5
-            flags["swapped"] = flags["upside_down"] if same else not flags["upside_down"]
         elif decided_by != "auto":
+            # Not the step's tie P(upside_down == swapped) either: in the demo it turned a
+            # crowd's right "not upside down" into a wrong "swapped" on the negative card.
             flags["swapped"] = None
         decided_by = "crowd"
         # The aggregate's posterior is question -> P(its MAP answer); the least sure one counts.

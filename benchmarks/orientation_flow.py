@@ -101,7 +101,7 @@ def make_variants(cards: list[tuple[str, Path, tuple[Box, Box] | None]], out: Pa
 
 
 def _keystone(args: list[str], env: dict[str, str]) -> dict[str, Any]:
-    result = subprocess.run([sys.executable, "-m", "app", *args], env=env, capture_output=True, text=True)
+    result = subprocess.run([sys.executable, "-m", "app", *args], env=env, capture_output=True, text=True, check=False)
     if result.returncode not in (0, 1):
         raise RuntimeError(f"keystone {' '.join(args)} exited {result.returncode}: {result.stderr[-2000:]}")
     return json.loads(result.stdout)

@@ -35,7 +35,12 @@ from typing import Any
 
 from ..errors import PipelineError
 from ..io import read_image
-from ..orientation import FLAGS, OrientationEstimate, OrientationParams, estimate_orientation
+from ..orientation import (
+    FLAGS,
+    OrientationEstimate,
+    OrientationParams,
+    estimate_orientation,
+)
 from ..photo_area import PhotoAreaParams, PhotoAreas, find_photo_areas
 from ..records import CardTask
 from .base import StageOutput, stage_task
@@ -110,7 +115,7 @@ def _scaled_areas(areas: PhotoAreas, scale: tuple[float, float], shape: tuple[in
                 max(y0 + 1, min(height, math.floor(box[3] * sy))))
 
     return replace(areas, left_box=scaled(areas.left_box), right_box=scaled(areas.right_box),
-                   gutter_x=int(round(areas.gutter_x * sx)))
+                   gutter_x=round(areas.gutter_x * sx))
 
 
 @stage_task("orientation")

@@ -14,7 +14,6 @@ from sqlalchemy import select
 
 from app.cli import cli
 from app.db import db
-from app.models import Card
 
 pytestmark = pytest.mark.both_databases
 
@@ -94,7 +93,7 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     assert again.exit_code == 2 and "no cards" in again.output  # on their way already: not asked twice
     ids = {name: card["id"] for name, card in cards.items()}
     # The crowd: the turned card is upside down (the judge asked the eye order); the negative is
-    # inverted, and the judge did not ask the eye order: the step's tie settles it.
+    # inverted, and the judge did not ask the eye order: it stays undecided until a person says.
     _approve_judge(app, ids["turned.png"], batch_doc["batch"],
                    {"is_stereo": True, "upside_down": True, "inverted": False, "swapped": False})
     _approve_judge(app, ids["negative.png"], batch_doc["batch"],
@@ -116,17 +115,27 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     assert bad.status_code == 400 and "upside_down" in bad.get_data(as_text=True)
 
     cards = _cards(runner)
+    negative = cards["negative.png"]
+    assert negative["orientation"]["inverted"] is True and negative["orientation"]["swapped"] is None
+    assert negative["stages"]["judge"] == {"status": "pending", "outcome": None, "reason":
+                                           "waiting for people (swapped undecided)",
+                                           "metrics": negative["stages"]["judge"]["metrics"]}
+    token = csrf_token(f"/review/cards/{ids['negative.png']}")
+    assert client.post(f"/review/cards/{ids['negative.png']}/orientation",
+                       data={"swapped": "no", "csrf_token": token}).status_code == 303
+    cards = _cards(runner)
     assert cards["upright.png"]["orientation"] == {"upside_down": False, "inverted": False, "swapped": False,
                                                    "decided_by": "curator", "confidence": 1.0}
     assert cards["turned.png"]["orientation"]["decided_by"] == "crowd"
     assert cards["turned.png"]["orientation"]["upside_down"] is True
-    negative = cards["negative.png"]["orientation"]
-    assert negative["decided_by"] == "crowd" and negative["inverted"] is True and negative["swapped"] is False
+    negative = cards["negative.png"]["orientation"]  # the crowd's inverted, the curator's eye order
+    assert negative["decided_by"] == "curator" and negative["inverted"] is True and negative["swapped"] is False
     assert cards["turned.png"]["stages"]["judge"]["status"] == "done"
     with app.app_context():
         from review.models import AuditEvent
 
-        event = db.session.scalar(select(AuditEvent).where(AuditEvent.entity == "orientation"))
+        event = db.session.scalar(select(AuditEvent).where(AuditEvent.entity == "orientation")
+                                  .order_by(AuditEvent.id))
         assert event.card_id == ids["upright.png"] and event.actor == curator.username
         assert event.before["decided_by"] is None and event.after["decided_by"] == "curator"
         assert event.why == "looked at it"
@@ -150,9 +159,9 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
 
     # Accept and release: the curator accepts all three; then the upright card's override is
     # cleared (undecided again) and the turned card's judgement is disputed in a new batch.
+    from app.models import Person
     from review.models import CardReview
     from review.tasks import ReviewError, decide
-    from app.models import Person
 
     with app.app_context():
         person = db.session.get(Person, curator.id)

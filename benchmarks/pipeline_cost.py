@@ -162,6 +162,8 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
         rejected = [item for item in report.rejected]
         specs = available_stages()
         for name in stages:
+            if name == "rectify":
+                _decide_as_stored()  # with or without the orientation step in the run
             seconds: dict[int, float] = {}
             spec = specs[name]
             if params and name in params:
@@ -170,8 +172,6 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
             echo(f"{name}: running")
             run_stage(spec, data_dir=data_dir, executor=None)
             per_stage[name] = seconds
-            if name == "orientation":
-                _decide_as_stored()
         rows = []
         for card in db.session.scalars(select(Card).order_by(Card.id)):
             latest = card.latest_results()

@@ -97,7 +97,9 @@ class RectifyMetrics(TypedDict, total=False):
     implied_pose: dict[str, Any]
     orientation: dict[str, Any]  # the judged corrections applied (rotate 180, invert)
     crop_alignment: dict[str, Any]
-    box_source: str  # "filter split (...)" or "crowd consensus (batch N)"
+    box_source: str  # "filter split (...)", "photo area (...)" or "crowd consensus (batch N)"
+    orientation_used: dict[str, Any]  # {"upside_down", "inverted", "swapped"}: the inputs it ran with
+    scanned_boxes: dict[str, Any]  # {"left_eye", "right_eye"}: the boxes cut, in the scan's pixels
 
 
 class DisparityMetrics(TypedDict, total=False):
@@ -125,8 +127,10 @@ class RectifyInputs(TypedDict, total=False):
     right_box: Box
     box_source: str
     is_stereo: bool
-    upside_down: bool
-    inverted: bool
+    upside_down: bool | None  # app.orientation: null while undecided (the card is then not ready)
+    inverted: bool | None
+    swapped: bool | None
+    orientation_decided_by: str | None  # "auto" | "crowd" | "curator"
     orientation_source: str
 
 

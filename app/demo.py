@@ -141,17 +141,20 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     # where the step was not sure of it: the curator answers that one question on those cards
     # (the crowd's upside-down and inverted answers stand).
     eye_order = []
-    for candidate in waiting_for_people()["orientation"]:
-        if candidate not in stereo or candidate == card_id:
+    for candidate in sorted(stereo):
+        if candidate == card_id:
             continue
         used = card_orientation(db.session.get(Card, candidate), approved_annotations([candidate]).get(candidate, {}))
-        if used["upside_down"] is not None and used["inverted"] is not None and used["swapped"] is None:
-            override_orientation(candidate, {"swapped": False}, curator=curator,
-                                 note="demo: the curator compared the wiggles: eyes in order")
+        # Only the flags nobody decided (the eye order the judge did not ask; all three on a card
+        # whose judgement the crowd disputes): the curator's answer is the demo's truth.
+        missing = {flag: value for flag, value in _true_orientation(by_id[candidate]).items() if used[flag] is None}
+        if missing:
+            override_orientation(candidate, missing, curator=curator,
+                                 note="demo: the curator looked at the card and compared the wiggles")
             eye_order.append(candidate)
     if eye_order:
-        echo(f"orientation: the demo curator gave the eye order of {len(eye_order)} card(s) the crowd was not asked "
-             "it for")
+        echo(f"orientation: the demo curator decided what was left undecided on {len(eye_order)} card(s) (the eye "
+             "order the judge task does not ask yet, or a disputed judgement)")
     return {"card": card_id, "orientation": after, "was_undecided": card_id in undecided, "wrong_before": wrong,
             "eye_order_by_curator": eye_order}
 

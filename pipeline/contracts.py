@@ -67,6 +67,7 @@ class FilterMetrics(TypedDict, total=False):
     split_method: str
     split_confidence: float
     card_size: list[int]  # (W, H)
+    match_scale: float  # card px per px of the image the filter matched on (its saved matches are in card px)
 
 
 class RectifyMetrics(TypedDict, total=False):
@@ -75,7 +76,10 @@ class RectifyMetrics(TypedDict, total=False):
 
     H_l: list[list[float]]  # 3x3 homography of the left view, row = row of H
     H_r: list[list[float]]
-    size: list[int]  # (W, H) of the rectified views
+    size: list[int]  # (W, H) of the rectified views as stored (at most RectifyParams.work_side)
+    full_size: list[int]  # (W, H) the rectified views would have at the crops' full resolution
+    view_scale: float  # stored view px per full-resolution px (<= 1); H, K, dy are in stored px
+    dy_p95_full: float  # |dy| p95 in full-resolution px
     K: list[list[float]]  # 3x3 camera matrix; K[0][0] the focal length in px
     R: list[list[float]]
     t: list[float]
@@ -107,6 +111,8 @@ class DisparityMetrics(TypedDict, total=False):
 
     backend: str
     seconds_estimate: float
+    work_scale: float  # matched px per stored view px (<= 1); the maps are brought back to view px
+    work_size: list[int]  # (W, H) the pair was matched at
     coverage: float  # share of left-view pixels with a disparity
     confident_fraction: float
     disparity_p5: float | None  # px over covered pixels; None when none is covered
@@ -132,6 +138,8 @@ class RectifyInputs(TypedDict, total=False):
     swapped: bool | None
     orientation_decided_by: str | None  # "auto" | "crowd" | "curator"
     orientation_source: str
+    filter_matches: str | None  # the filter's good matches (.npy under the data dir, card px), reused by rectify
+    filter_match_scale: float | None  # the filter's match_scale
 
 
 class DisparityInputs(TypedDict, total=False):

@@ -130,13 +130,14 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
     card = read_image(task.image_path)
     estimate = estimate_orientation(card, tuple(boxes[0]), tuple(boxes[1]), params.orientation)
     clock = time.perf_counter()
-    reused = (estimate.photo_areas is not None
+    found = estimate.photo_areas
+    reused = (found is not None
               and params.orientation.arch_working_width == params.photo_area.working_width
               and params.photo_area == type(params.photo_area)(working_width=params.photo_area.working_width))
-    if reused:
+    if found is not None and reused:
         # The estimator's arched-top cue found them already, on a negative read as a positive
         # (measured: the photo-area finder misses more boxes on negatives as scanned).
-        areas = _scaled_areas(estimate.photo_areas, estimate.photo_areas_scale, card.shape[:2])
+        areas = _scaled_areas(found, estimate.photo_areas_scale, card.shape[:2])
     else:
         areas = find_photo_areas(255 - card if estimate.inverted.value else card, params.photo_area)
     metrics = orientation_metrics(estimate, areas)

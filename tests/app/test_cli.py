@@ -50,7 +50,8 @@ def test_every_command_has_help(runner):
 # registration must neither lose nor add a command.
 COMMAND_TREE = {
     "bench", "bench catalogue", "bench crowd", "bench disparity", "bench export", "bench filter", "bench grade",
-    "bench grade-real", "bench inpainting", "bench pipeline", "bench rectify", "cards", "check-homographies", "crowd",
+    "bench grade-real", "bench inpainting", "bench pipeline", "bench rectify", "bench views",
+    "bench workres", "cards", "check-homographies", "crowd",
     "crowd aggregate", "crowd create-batch", "crowd export", "crowd invite", "demo", "export", "grade",
     "grade fit", "grade show", "ingest", "init", "report", "run", "serve", "train-inpainting", "users",
     "users add", "users list", "verify",

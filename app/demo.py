@@ -145,16 +145,16 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
         if candidate == card_id:
             continue
         used = card_orientation(db.session.get(Card, candidate), approved_annotations([candidate]).get(candidate, {}))
-        # Only the flags nobody decided (the eye order the judge did not ask; all three on a card
+        # Only the flags nobody decided (one the crowd's answers left undecided; all three on a card
         # whose judgement the crowd disputes): the curator's answer is the demo's truth.
         missing = {flag: value for flag, value in _true_orientation(by_id[candidate]).items() if used[flag] is None}
         if missing:
             override_orientation(candidate, missing, curator=curator,
-                                 note="demo: the curator looked at the card and compared the wiggles")
+                                 note="demo: the curator looked at the card and its depth in colours")
             eye_order.append(candidate)
     if eye_order:
-        echo(f"orientation: the demo curator decided what was left undecided on {len(eye_order)} card(s) (the eye "
-             "order the judge task does not ask yet, or a disputed judgement)")
+        echo(f"orientation: the demo curator decided what was left undecided on {len(eye_order)} card(s) (a flag the "
+             "crowd left undecided, or a disputed judgement)")
     return {"card": card_id, "orientation": after, "was_undecided": card_id in undecided, "wrong_before": wrong,
             "eye_order_by_curator": eye_order}
 

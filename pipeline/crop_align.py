@@ -28,6 +28,7 @@ by less than 16 px in a dimension.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -156,10 +157,13 @@ def matches_in_boxes(card_matches: np.ndarray, left_box: Box, right_box: Box) ->
 
 
 def _check_box(box: object, name: str, width: int, height: int) -> Box:
+    expected = f"Expected {name} as four numbers (x0, y0, x1, y1), got {box!r}"
+    if not isinstance(box, Iterable):
+        raise InvalidInputError(expected)
     try:
-        values = [float(v) for v in box]  # type: ignore[union-attr]
+        values = [float(v) for v in box]
     except (TypeError, ValueError) as exc:
-        raise InvalidInputError(f"Expected {name} as four numbers (x0, y0, x1, y1), got {box!r}") from exc
+        raise InvalidInputError(expected) from exc
     if len(values) != 4 or not all(np.isfinite(values)) or any(v != round(v) for v in values):
         raise InvalidInputError(f"Expected {name} as four whole numbers (x0, y0, x1, y1), got {box!r}")
     x0, y0, x1, y1 = (int(v) for v in values)

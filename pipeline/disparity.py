@@ -155,11 +155,16 @@ def _prepare(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 # ------------------------------------------------------------------------------------------ flow
+# Every backend's (left disparity, right disparity, confidence, vertical model or None).
+_BackendOutput = tuple[np.ndarray, np.ndarray, np.ndarray, tuple[float, float, float] | None]
+
+
 def _flow(backend: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if backend == "deepflow":
-        return cv2.optflow.createOptFlow_DeepFlow().calc(a, b, None)
-    dis = cv2.DISOpticalFlow_create(_DIS_PRESETS[backend])
-    return dis.calc(a, b, None)
+        # cv2's stubs want a flow array; None (allocate it) is what the binding accepts and means
+        return np.asarray(cv2.optflow.createOptFlow_DeepFlow().calc(a, b, None), np.float32)  # type: ignore[call-overload]
+    dis = cv2.DISOpticalFlow_create(_DIS_PRESETS[backend])  # type: ignore[attr-defined]  # cv2's stubs lack the factory
+    return np.asarray(dis.calc(a, b, None), np.float32)
 
 
 def _fb_error(fwd: np.ndarray, bwd: np.ndarray) -> np.ndarray:
@@ -175,7 +180,7 @@ def _confidence(err: np.ndarray, tol: float) -> np.ndarray:
     return (1.0 / (1.0 + (err / tol) ** 2)).astype(np.float32)
 
 
-def _flow_backend(backend: str, L: np.ndarray, R: np.ndarray, params: DisparityParams):
+def _flow_backend(backend: str, L: np.ndarray, R: np.ndarray, params: DisparityParams) -> _BackendOutput:
     fwd = _flow(backend, L, R)
     bwd = _flow(backend, R, L)
     conf = _confidence(_fb_error(fwd, bwd), params.consistency_px)
@@ -228,7 +233,7 @@ def _sgbm_pair(
     reference side (and ``-min_d`` on the other side for negative disparities), the strip is
     matched for real, and only pixels whose match lands outside the other view are left empty."""
     P1, P2 = 8 * block * block, 32 * block * block  # OpenCV's guidance for one channel
-    matcher = cv2.StereoSGBM_create(
+    matcher = cv2.StereoSGBM_create(  # type: ignore[attr-defined]  # cv2's stubs lack the factory
         minDisparity=min_d, numDisparities=num, blockSize=block, P1=P1, P2=P2, disp12MaxDiff=-1,
         uniquenessRatio=10, speckleWindowSize=100, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
@@ -322,12 +327,12 @@ def _refine(guide: np.ndarray, d: np.ndarray, trusted: np.ndarray) -> np.ndarray
         return d
     g = cv2.resize(guide, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
     small = cv2.resize(d, (w // 2, h // 2), interpolation=cv2.INTER_NEAREST)
-    med = cv2.ximgproc.weightedMedianFilter(g, small, 4, 25.5)
+    med = cv2.ximgproc.weightedMedianFilter(g, small, 4, sigma=25.5)  # r = 4 px at half resolution
     med = cv2.resize(med, (w, h), interpolation=cv2.INTER_NEAREST)
     return np.where(trusted, d, med).astype(np.float32)
 
 
-def _sgbm_backend(L, R, params, width):
+def _sgbm_backend(L: np.ndarray, R: np.ndarray, params: DisparityParams, width: int) -> _BackendOutput:
     min_d, num = _search_range(params, None, width)
     d_left, d_right = _sgbm_pair(L, R, min_d, num, params.block_size)
     err = _lr_error(d_left, d_right)
@@ -350,7 +355,7 @@ def _fit_vertical(flow: np.ndarray) -> tuple[float, float, float] | None:
     if v.size < 3:
         return None
     keep = np.ones(v.size, bool)
-    c = np.zeros(3)
+    c: np.ndarray = np.zeros(3)
     for _ in range(3):
         c, *_ = np.linalg.lstsq(A[keep], v[keep], rcond=None)
         res = np.abs(A @ c - v)
@@ -361,9 +366,10 @@ def _fit_vertical(flow: np.ndarray) -> tuple[float, float, float] | None:
     return float(c[0]), float(c[1]), float(c[2])
 
 
-def _keystone_backend(L, R, params, width):
+def _keystone_backend(L: np.ndarray, R: np.ndarray, params: DisparityParams, width: int) -> _BackendOutput:
     h, w = L.shape
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST).calc(L, R, None)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_FAST)  # type: ignore[attr-defined]  # cv2's stubs lack the factory
+    flow = np.asarray(dis.calc(L, R, None), np.float32)
     model = _fit_vertical(flow)
     shift = _dominant_shift(L, R) if params.disparity_range is None or model is None else None
     if model is None and shift is not None and abs(shift[1]) <= 0.05 * h:

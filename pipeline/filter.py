@@ -245,7 +245,7 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
     grey_left, grey_right = _prepare(left, params.max_side), _prepare(right, params.max_side)
 
     clock = time.perf_counter()
-    sift = cv2.SIFT_create(nfeatures=params.max_keypoints)
+    sift = cv2.SIFT_create(nfeatures=params.max_keypoints)  # type: ignore[attr-defined]  # cv2's stubs lack the factory
     keypoints_l, descriptors_l = sift.detectAndCompute(grey_left, None)
     keypoints_r, descriptors_r = sift.detectAndCompute(grey_right, None)
     detect_seconds = time.perf_counter() - clock
@@ -280,7 +280,7 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
                np.array([right.shape[1] / grey_right.shape[1], right.shape[0] / grey_right.shape[0]])]
     points = tuple((np.array(pts, np.float64).reshape(-1, 2) + 0.5) * scale - 0.5 for pts, scale in zip((pts_l, pts_r), to_half))
     return FilterResult(
-        points=points, match_scale=float(max(to_half[0].max(), to_half[1].max())),  # type: ignore[arg-type]
+        points=points, match_scale=float(max(to_half[0].max(), to_half[1].max())),
         outcome=outcome, good_matches=good, keypoints_left=n_left, keypoints_right=n_right,
         denominator=DENOMINATOR, good_match_fraction=float(fraction), reason=reason,
         consistent_matches=-1 if consistent is None else consistent,

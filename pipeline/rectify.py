@@ -369,7 +369,7 @@ def match_features(
     _check_view(right, "the right view")
     grey_l, scale_l = _grey_scaled(left, params.max_side)
     grey_r, scale_r = _grey_scaled(right, params.max_side)
-    sift = cv2.SIFT_create(nfeatures=params.max_keypoints)
+    sift = cv2.SIFT_create(nfeatures=params.max_keypoints)  # type: ignore[attr-defined]  # cv2's stubs lack the factory
     kp_l, des_l = sift.detectAndCompute(grey_l, None)
     kp_r, des_r = sift.detectAndCompute(grey_r, None)
     empty = np.zeros((0, 2), np.float64)
@@ -795,10 +795,11 @@ def rectify_matches(
     sizes = [tuple(int(v) for v in size) for size in (left_size, right_size)]
     if any(len(size) != 2 or min(size) < MIN_SIDE for size in sizes):
         raise InvalidInputError(f"Expected view sizes (width, height) of at least {MIN_SIDE} px, got {sizes}")
+    left_wh, right_wh = ((size[0], size[1]) for size in sizes)  # both (width, height), checked above
     if not (math.isfinite(match_scale) and match_scale >= 1.0):
         raise InvalidInputError(f"Expected match_scale >= 1, got {match_scale}")
     try:
-        return _rectify_matches(pts_l, pts_r, sizes[0], sizes[1], params, principal_point, time.perf_counter(), match_scale)
+        return _rectify_matches(pts_l, pts_r, left_wh, right_wh, params, principal_point, time.perf_counter(), match_scale)
     except PipelineError:
         raise
     except (cv2.error, np.linalg.LinAlgError, ValueError, ZeroDivisionError, FloatingPointError) as exc:
@@ -1128,7 +1129,7 @@ def _finish(
     )
 
 
-def implied_pose(H_l: np.ndarray, H_r: np.ndarray, K: np.ndarray) -> dict[str, list]:
+def implied_pose(H_l: np.ndarray, H_r: np.ndarray, K: np.ndarray) -> dict[str, Any]:
     """The original cameras' relative pose implied by the rectification (an approximation).
 
     With both original cameras taken to share ``K`` (the paper's 45 deg field of view), a

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from ..crop_align import CropAlignParams, align_crops, matches_in_boxes
+from ..crop_align import Box, CropAlignParams, align_crops, matches_in_boxes
 from ..errors import PipelineError
 from ..io import read_image, write_jpeg, write_json, write_png
-from ..records import CardTask
+from ..records import CardTask, StageStatus
 from ..rectify import (
     RectifyParams,
     implied_pose,
@@ -26,7 +28,7 @@ from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
 __all__ = ["filter_matches", "orient_card", "oriented_boxes", "rectify_task"]
 
 
-def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
+def orient_card(card: np.ndarray, inputs: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any]]:
     """Apply the judged corrections to a derived copy of the card (the original never changes).
 
     ``inputs["upside_down"]`` rotates the card 180 deg, ``inputs["inverted"]`` inverts its
@@ -35,7 +37,7 @@ def orient_card(card: np.ndarray, inputs: dict) -> tuple[np.ndarray, dict]:
     positive and in eye order, or not judged at all, skips the step, and the returned record
     says so. Boxes stay in the scanned card's pixels; the caller turns them with the card.
     """
-    applied = []
+    applied: list[str] = []
     if inputs.get("upside_down"):
         card = np.ascontiguousarray(card[::-1, ::-1])
         applied.append("rotated 180 deg")
@@ -71,21 +73,34 @@ def filter_matches(task: CardTask, card_shape: tuple[int, ...]) -> tuple[np.ndar
     return matches, float(scale)
 
 
-def oriented_boxes(shape: tuple[int, int], boxes: tuple, inputs: dict) -> tuple[list, list]:
+def oriented_boxes(
+    shape: tuple[int, int], boxes: tuple[Sequence[int], Sequence[int]], inputs: dict[str, Any]
+) -> tuple[list[int], list[int]]:
     """The (left eye, right eye) boxes on the oriented card, from boxes drawn on the card as
     scanned (``shape`` = the card's (H, W)): turned 180 deg, the right photo's box becomes the
     left one; swapped, the two are exchanged after that."""
     left, right = list(boxes[0]), list(boxes[1])
     if inputs.get("upside_down"):
         height, width = shape
-        turn = lambda b: [width - b[2], height - b[3], width - b[0], height - b[1]]  # noqa: E731
+
+        def turn(b: Sequence[int]) -> list[int]:
+            return [width - b[2], height - b[3], width - b[0], height - b[1]]
+
         left, right = turn(right), turn(left)
     if inputs.get("swapped"):
         left, right = right, left
     return left, right
 
 
-def _as_scanned(shape: tuple[int, int], box: tuple | list, inputs: dict) -> list[int]:
+def _box(values: Sequence[int], name: str) -> Box:
+    """A recorded box as ``(x0, y0, x1, y1)`` card px; a typed error when it is not four values."""
+    if len(values) != 4:
+        raise PipelineError(f"Expected {name} as four numbers (x0, y0, x1, y1), got {list(values)!r}")
+    x0, y0, x1, y1 = values
+    return x0, y0, x1, y1
+
+
+def _as_scanned(shape: tuple[int, int], box: Sequence[int], inputs: dict[str, Any]) -> list[int]:
     """A box on the oriented card back in the scan's pixels (turning is its own inverse)."""
     if not inputs.get("upside_down"):
         return [int(v) for v in box]
@@ -102,10 +117,11 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     are stored unwarped so the disparity stage reads one place either way.
     """
     card, orientation = orient_card(read_image(task.image_path), task.inputs)
-    boxes = task.inputs.get("left_box"), task.inputs.get("right_box")
-    if boxes[0] is None or boxes[1] is None:
+    left_given, right_given = task.inputs.get("left_box"), task.inputs.get("right_box")
+    if left_given is None or right_given is None:
         raise PipelineError("no split boxes from the filter stage; run the filter first")
-    boxes = oriented_boxes(card.shape[:2], boxes, task.inputs)
+    oriented = oriented_boxes(card.shape[:2], (left_given, right_given), task.inputs)
+    boxes: tuple[Box, Box] = (_box(oriented[0], "left_box"), _box(oriented[1], "right_box"))
     boxes_before = boxes
     # The paper aligns the two crops by SIFT matches and cuts both to their intersection;
     # when that cannot be done the boxes go on as given and rectification decides.
@@ -117,15 +133,15 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     try:
         alignment = None
         if reused is not None:
-            box_matches = matches_in_boxes(reused[0], tuple(boxes[0]), tuple(boxes[1]))
+            box_matches = matches_in_boxes(reused[0], boxes[0], boxes[1])
             if len(box_matches[0]) >= params.min_matches:
                 try:
-                    alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]), matches=box_matches)
+                    alignment = align_crops(card, boxes[0], boxes[1], matches=box_matches)
                     match_scale, source = reused[1], "filter"
                 except PipelineError:
                     alignment = None
         if alignment is None:
-            alignment = align_crops(card, tuple(boxes[0]), tuple(boxes[1]),
+            alignment = align_crops(card, boxes[0], boxes[1],
                                     CropAlignParams(ratio=params.ratio, max_side=params.max_side,
                                                     max_keypoints=params.max_keypoints))
             before = (*alignment.left_box_before, *alignment.right_box_before)
@@ -137,7 +153,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     except PipelineError as exc:
         crop_record = {"status": "failed", "reason": exc.reason(), "left_box": list(boxes[0]),
                        "right_box": list(boxes[1])}
-    split = CardSplit(left_box=tuple(boxes[0]), right_box=tuple(boxes[1]), gutter_x=0, method="recorded",
+    split = CardSplit(left_box=boxes[0], right_box=boxes[1], gutter_x=0, method="recorded",
                       confidence=1.0)
     left, right = (np.ascontiguousarray(half) for half in crop_halves(card, split))
     # The paper puts the principal point at the centre of the full image where known: the
@@ -185,7 +201,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
         "implied_pose": implied_pose(rect_full.H_l, rect_full.H_r, rect_full.K),
     })
     artifacts["rectification"] = str(camera.relative_to(task.data_dir))
-    status = "done" if rect.warp_needed else "skipped"
+    status: StageStatus = "done" if rect.warp_needed else "skipped"
     reason = rect.reason if rect.warp_needed else f"not needed: {rect.reason}"
     if rect.swapped:
         reason = (reason + "; " if reason else "") + "eyes were swapped on the card: halves exchanged"

@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 __all__ = [
     "ALL_QUESTIONS",
+    "HALVES",
     "OPTIONAL_QUESTIONS",
     "QUESTIONS",
     "BoxConsensus",
@@ -62,6 +63,8 @@ QUESTIONS: tuple[str, ...] = ("is_stereo", "upside_down", "inverted")
 # right photos in the wrong order?". Aggregated like the others, over the answers that have it.
 OPTIONAL_QUESTIONS: tuple[str, ...] = ("swapped",)
 ALL_QUESTIONS: tuple[str, ...] = QUESTIONS + OPTIONAL_QUESTIONS
+# A crop answer: one box per half of the card.
+HALVES: tuple[str, ...] = ("left", "right")
 
 
 @dataclass(frozen=True)

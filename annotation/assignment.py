@@ -18,7 +18,7 @@ Conventions
 - Among equally complete items the highest :func:`item_rank` wins: one fixed pseudo-random
   rank per item (the batch's shuffle), the same for every worker. Why not a per-worker order: a
   database can walk one stored order with an index and stop at the first open item, so the
-  web app finds a task in time independent of the batch size (see :mod:`annotation.tasks`,
+  web app finds a task in time independent of the batch size (see :mod:`annotation.reservations`,
   which implements this rule in SQL and is tested against this function).
 """
 

@@ -14,6 +14,7 @@ from sqlalchemy import select
 
 from app.db import db
 
+from .batches import create_batch, orientation_queue_card_ids, review_queue_card_ids
 from .models import (
     TASK_KINDS,
     Aggregate,
@@ -23,15 +24,10 @@ from .models import (
     CrowdSession,
     Worker,
 )
+from .progress import batch_progress
 from .providers import InviteProvider
-from .tasks import (
-    TaskError,
-    aggregate_batch,
-    batch_progress,
-    create_batch,
-    orientation_queue_card_ids,
-    review_queue_card_ids,
-)
+from .results import aggregate_batch
+from .task_errors import TaskError
 
 
 def _ensure() -> None:

@@ -1,7 +1,8 @@
 """Crowd annotation rows: batches of items, workers, reservations, answers and aggregates.
 
 The pure strategy (:mod:`annotation.assignment`, :mod:`annotation.aggregation`) never sees
-these; :mod:`annotation.tasks` maps them onto its records and back.
+these; the use cases (:mod:`annotation.reservations`, :mod:`annotation.answers`,
+:mod:`annotation.results`) map them onto its records and back.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ class BatchItem(db.Model):
 
     ``answers`` (usable answers: not flagged) and ``taken`` (usable answers + open
     reservations) are a cache of counts over this item's rows, recounted from those rows by
-    :mod:`annotation.tasks` in the same transaction as every change to them. They let fetch-next
+    :func:`annotation.queries.recount_items` in the same transaction as every change to them. They let fetch-next
     walk ``ix_crowd_batch_items_open`` (most taken first, then ``rank``, the batch's shuffle:
     :func:`annotation.assignment.item_rank`) and stop at the first open item, whatever the
     batch's size.
@@ -145,7 +146,7 @@ class Reservation(db.Model):
 
     Kept after the answer (``answered_at`` set) so a late or replayed post gets an exact reason.
     ``released_at`` is set when a lapsed, unanswered reservation stopped counting toward its
-    item's ``taken`` (the sweep in :mod:`annotation.tasks`; renewing it clears it again).
+    item's ``taken`` (the sweep in :mod:`annotation.reservations`; renewing it clears it again).
     """
 
     __tablename__ = "crowd_reservations"

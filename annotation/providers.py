@@ -22,7 +22,8 @@ from app.db import db
 
 from .models import Answer, CrowdSession, Worker
 from .sessions import invite_session, open_session
-from .tasks import TaskError, get_or_create_worker
+from .task_errors import TaskError
+from .workers import get_or_create_worker
 
 TOKEN_SALT = "keystone-crowd-worker"
 PROLIFIC_COMPLETION_URL = "https://app.prolific.com/submissions/complete"

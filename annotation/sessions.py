@@ -33,7 +33,7 @@ from sqlalchemy.exc import IntegrityError
 from app.db import db, utcnow
 
 from .models import CrowdSession, Worker
-from .tasks import TaskError
+from .task_errors import TaskError
 
 DEFAULT_SESSIONS_PER_ADDRESS = 20
 DEFAULT_SESSIONS_PER_STUDY = 1000

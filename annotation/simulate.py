@@ -3,8 +3,8 @@
 The demo needs approved crowd annotations for the rest of the flow to consume, and a disputed
 one for the curators' review queue. This module makes them the way a real crowd would: a batch
 over the cards, invited workers, each fetching and submitting through
-:func:`annotation.tasks.next_tasks` and :func:`annotation.tasks.submit` (every rule of
-assignment, N, validation and idempotency applies), then :func:`annotation.tasks.aggregate_batch`.
+:func:`annotation.reservations.next_tasks` and :func:`annotation.answers.submit` (every rule of
+assignment, N, validation and idempotency applies), then :func:`annotation.results.aggregate_batch`.
 
 Noise model (all draws from one seeded generator, so a seed gives one outcome):
 - honest workers have an accuracy ``a`` (0.93-0.98): a judgement is right with probability
@@ -34,17 +34,14 @@ from sqlalchemy import select
 from app.db import db, read_only
 from app.models import Card, StageResult
 
-from .aggregation import ALL_QUESTIONS
-from .tasks import (
-    DEFAULT_MIN_BOX_PX,
-    HALVES,
-    TaskError,
-    aggregate_batch,
-    create_batch,
-    get_or_create_worker,
-    next_tasks,
-    submit,
-)
+from .aggregation import ALL_QUESTIONS, HALVES
+from .answers import submit
+from .batches import create_batch
+from .crowd_settings import DEFAULT_MIN_BOX_PX
+from .reservations import next_tasks
+from .results import aggregate_batch
+from .task_errors import TaskError
+from .workers import get_or_create_worker
 
 JUDGE_TRUTH: dict[str, bool] = {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": False}
 HONEST_ACCURACY = (0.98, 0.97, 0.96, 0.95, 0.93)

@@ -1,8 +1,8 @@
 """Crowd management for curators: batches, invite links, progress per batch and worker, flagging,
 Prolific submissions, answer exports.
 
-Every POST is a form with the cookie session's CSRF token (CSRFProtect), runs one use case from
-:mod:`annotation.tasks` and redirects back with a flash message saying what happened (or why
+Every POST is a form with the cookie session's CSRF token (CSRFProtect), runs one crowd use case
+(:mod:`annotation.batches`, :mod:`annotation.workers`, ...) and redirects back with a flash message saying what happened (or why
 nothing did: a TaskError's sentence, 4xx when the request itself was bad).
 """
 
@@ -20,19 +20,14 @@ from werkzeug.wrappers import Response
 from app.auth import role_required
 from app.db import db, read_only
 
+from .batches import create_batch, review_queue_card_ids
 from .cli import ANSWER_COLUMNS, answer_rows
 from .models import TASK_KINDS, Batch, CrowdSession, Worker
+from .progress import batch_progress, worker_progress
 from .providers import InviteProvider
-from .tasks import (
-    TaskError,
-    batch_progress,
-    check_prolific_submissions,
-    create_batch,
-    review_queue_card_ids,
-    set_worker_flag,
-    worker_progress,
-)
+from .task_errors import TaskError
 from .views import bp
+from .workers import check_prolific_submissions, set_worker_flag
 
 MAX_CARD_IDS = 10_000
 

@@ -38,6 +38,9 @@ from app.models import Card
 from app.security import frameable_by
 
 from . import run_hooks
+from .answers import submit, undo_last
+from .batches import preview_card
+from .crowd_settings import DEFAULT_MIN_BOX_PX, DEFAULT_RESERVATION_MINUTES
 from .models import TASK_KINDS, Worker
 from .pictures import (
     EXAMPLES,
@@ -46,6 +49,7 @@ from .pictures import (
     eye_order_wiggle,
     sample_card_picture,
 )
+from .progress import answer_count, batch_positions
 from .proposals import proposed_boxes
 from .providers import (
     MTURK_SUBMIT_ORIGINS,
@@ -55,23 +59,10 @@ from .providers import (
     load_signed_worker,
     sign_entry,
 )
+from .reservations import any_unfinished_batch, next_tasks, open_kinds, renew_reservation, reservation_by_token
 from .sessions import complete_session
-from .tasks import (
-    DEFAULT_MIN_BOX_PX,
-    DEFAULT_RESERVATION_MINUTES,
-    TaskError,
-    account_worker,
-    answer_count,
-    any_unfinished_batch,
-    batch_positions,
-    next_tasks,
-    open_kinds,
-    preview_card,
-    renew_reservation,
-    reservation_by_token,
-    submit,
-    undo_last,
-)
+from .task_errors import TaskError
+from .workers import account_worker
 
 bp = Blueprint("crowd", __name__, url_prefix="/crowd", template_folder="templates", static_folder="static")
 bp.record_once(lambda state: add_nav_link(state.app, "Crowd", "crowd.batches", "curator", order=40))

@@ -95,8 +95,8 @@ def build_instance(root: Path, *, annotators: int, tasks_per_annotator: int, n: 
     has answered ``tasks_per_annotator`` times; plus ``gold_cards`` gold items. ``database_url``
     (default: a SQLite file under ``root``) must name an empty database: the bench owns it.
     """
+    from annotation.batches import create_batch
     from annotation.providers import InviteProvider
-    from annotation.tasks import create_batch
     from app import create_app
     from app.db import db
     from app.ingest import ingest

@@ -50,7 +50,7 @@ def agreement(pairs: list[tuple[str, str]]) -> dict[str, Any]:
 def crowd_agreement() -> list[dict[str, Any]]:
     """Agreement figures per crowd batch (raw, Krippendorff's alpha, Gwet's AC1 where defined)."""
     from annotation.models import Answer, Batch, BatchItem
-    from annotation.tasks import batch_agreement
+    from annotation.results import batch_agreement
 
     batches = list(db.session.scalars(select(Batch).order_by(Batch.id)))
     out = []

@@ -386,7 +386,8 @@ def _conflict(review: CardReview, expected_version: int) -> ReviewConflict:
 def _gold_for_batch(kind: str, exclude: int) -> dict[int, dict[str, Any]]:
     """The newest curator-made gold answers of ``kind``; one that no longer fits its card is left out
     rather than blocking the send-back (create_batch refuses a batch with any invalid gold)."""
-    from annotation.tasks import TaskError, validate_payload
+    from annotation.answers import validate_payload
+    from annotation.task_errors import TaskError
 
     gold: dict[int, dict[str, Any]] = {}
     rows = db.session.execute(select(GoldAnswer, Card).join(Card, Card.id == GoldAnswer.card_id)
@@ -490,7 +491,8 @@ def decide(review_id: int, action: str, *, expected_version: int, curator: Perso
 
 
 def _send_back(outcome: Decided, kind: str, curator: Person, note: str) -> Decided:
-    from annotation.tasks import TaskError, create_batch
+    from annotation.batches import create_batch
+    from annotation.task_errors import TaskError
 
     gold = _gold_for_batch(kind, outcome.card_id)
     try:
@@ -669,7 +671,8 @@ def resolve_aggregate(aggregate_id: int, label: Any, *, curator: Person, make_go
     for later batches (replacing an older one of the same kind). Audit: entity ``aggregate``
     and, for gold, entity ``gold``; all in one transaction.
     """
-    from annotation.tasks import TaskError, validate_payload
+    from annotation.answers import validate_payload
+    from annotation.task_errors import TaskError
 
     note = (note or "").strip()
     if len(note) > MAX_NOTE_CHARS:

@@ -114,7 +114,7 @@ def test_judge_crowd_with_gold_approves_the_truth_and_refills_flagged_slots(app,
 
 def test_cards_without_a_split_are_skipped_and_unknown_cards_refused(app, split_cards, make_card):  # type: ignore[no-untyped-def]
     from annotation.simulate import seed_simulated_crowd
-    from annotation.tasks import TaskError
+    from annotation.task_errors import TaskError
 
     with app.app_context():
         unsplit = make_card(state="review")
@@ -161,7 +161,7 @@ def test_batches_page_shows_each_workers_answers_gold_and_flags(app, client, spl
     html = client.get("/crowd/batches").get_data(as_text=True)
     assert "<h2>Workers</h2>" in html
     with app.app_context():
-        from annotation.tasks import worker_progress
+        from annotation.progress import worker_progress
 
         rows = {row["name"]: row for row in worker_progress()}
     assert sum(row["answers"] for row in rows.values()) == summary["answers"]

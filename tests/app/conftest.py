@@ -65,9 +65,9 @@ def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, c
 
     from sqlalchemy import select
 
+    from annotation.batches import create_batch
     from annotation.models import Aggregate
     from annotation.providers import InviteProvider
-    from annotation.tasks import create_batch
     from app.db import db
     from review.models import CardReview
     from review.tasks import sync_reviews

@@ -27,7 +27,7 @@ def test_an_admin_deactivates_a_person_who_then_cannot_log_in(app, server, scree
 
 def test_staff_pages_fit_a_phone(app, server, screen_page, make_person, look, make_card, add_stage_result,
                                  card_image) -> None:  # type: ignore[no-untyped-def]
-    from annotation.tasks import create_batch
+    from annotation.batches import create_batch
     from review.tasks import sync_reviews
 
     card_id = make_card(card_image(), state="culled")

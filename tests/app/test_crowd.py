@@ -38,7 +38,7 @@ def cards(make_card, card_image):  # type: ignore[no-untyped-def]
 
 
 def new_batch(app, card_ids, kind="judge", n=3, gold_rate=0.0, gold=None) -> int:  # type: ignore[no-untyped-def]
-    from annotation.tasks import create_batch
+    from annotation.batches import create_batch
 
     with app.app_context():
         return create_batch(card_ids, kind, n, gold_rate, gold=gold).id
@@ -377,7 +377,7 @@ def test_judge_aggregation_stores_approved_and_needs_curator(app, client, cards)
     def choose(w, card):  # type: ignore[no-untyped-def]
         return {**JUDGE_OK, "upside_down": w != 0} if card == split else JUDGE_OK
     _answer_all(app, client, tokens, "judge", choose)
-    from annotation.tasks import aggregate_batch
+    from annotation.results import aggregate_batch
 
     with app.app_context():
         report = aggregate_batch(batch)
@@ -412,7 +412,7 @@ def test_crop_aggregation_consensus_within_pixels_and_disputes(app, client, card
             return {"left": [100.0 * w, 20.0, 100.0 * w + 60.0, 80.0], "right": truth["right"]}
         return {h: [v + jitter for v in box] for h, box in truth.items()}
     _answer_all(app, client, tokens, "crop", choose)
-    from annotation.tasks import aggregate_batch
+    from annotation.results import aggregate_batch
 
     with app.app_context():
         report = aggregate_batch(batch)
@@ -694,7 +694,7 @@ def test_a_flagged_participant_stays_flagged_in_new_sessions_and_new_ids_from_it
     with app.app_context():
         flags = dict(db.session.execute(select(Worker.external_id, Worker.flagged)).all())
     assert flags == {"spammer": True, "spammer-renamed": False, "next-door": False, "honest": False}
-    from annotation.tasks import worker_progress
+    from annotation.progress import worker_progress
 
     with app.app_context():
         staff = {row["name"]: row for row in worker_progress()}

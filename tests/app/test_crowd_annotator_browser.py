@@ -55,7 +55,7 @@ def pinch(cdp, centre: tuple[float, float], from_gap: float, to_gap: float, step
 
 @pytest.fixture
 def two_batches(app, make_card, card_image, add_stage_result):  # type: ignore[no-untyped-def]
-    from annotation.tasks import create_batch
+    from annotation.batches import create_batch
 
     base = card_image()
     judge_card = make_card(base, state="review")

@@ -24,7 +24,7 @@ def prolific_completion_code(app) -> None:  # type: ignore[no-untyped-def]
 
 @pytest.fixture
 def batch(app, make_card, card_image):  # type: ignore[no-untyped-def]
-    from annotation.tasks import create_batch
+    from annotation.batches import create_batch
 
     base = card_image()
     ids = []
@@ -151,7 +151,7 @@ def test_prolific_participants_are_redirected_with_the_completion_code(app, serv
 
 def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, server, browser, make_card, card_image,
                                                                     wait_until):
-    from annotation.tasks import create_batch
+    from annotation.batches import create_batch
 
     card_id = make_card(card_image(), state="pass")
     with app.app_context():

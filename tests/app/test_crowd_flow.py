@@ -44,7 +44,7 @@ def cards(make_card, card_image):  # type: ignore[no-untyped-def]
 
 
 def new_batch(app, card_ids, kind="judge", n=1):  # type: ignore[no-untyped-def]
-    from annotation.tasks import create_batch
+    from annotation.batches import create_batch
 
     with app.app_context():
         return create_batch(card_ids, kind, n, 0.0).id

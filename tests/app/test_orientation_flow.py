@@ -172,7 +172,7 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     client.post(f"/review/cards/{ids['upright.png']}/orientation",
                 data={"upside_down": "", "inverted": "", "swapped": "", "csrf_token": token})
     assert _cards(runner)["upright.png"]["orientation"]["decided_by"] is None
-    from annotation.tasks import create_batch
+    from annotation.batches import create_batch
 
     with app.app_context():
         dispute_batch = create_batch([ids["turned.png"]], "judge", 3, 0.0).id

@@ -233,8 +233,8 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
 
 
 def _approve(app, card_id: int, kind: str, label: dict) -> None:  # type: ignore[no-untyped-def]
+    from annotation.batches import create_batch
     from annotation.models import Aggregate
-    from annotation.tasks import create_batch
 
     with app.app_context():
         batch = create_batch([card_id], kind, 1, 0.0)

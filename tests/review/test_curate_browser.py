@@ -79,8 +79,9 @@ def test_a_curator_reads_the_nearest_threshold_accepts_and_undoes(app, server, s
 
 @pytest.fixture
 def crop_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped-def]
+    from annotation.batches import create_batch
     from annotation.models import Aggregate, Answer, BatchItem
-    from annotation.tasks import create_batch, get_or_create_worker
+    from annotation.workers import get_or_create_worker
     from app.db import db
 
     card_id = make_card(card_image(), state="review")  # 604 x 200 px

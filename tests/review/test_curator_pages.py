@@ -83,7 +83,7 @@ def test_a_send_back_names_its_batch_and_undo_removes_it(app, client, login, csr
 
 def test_undo_refuses_once_the_crowd_answered(app, client, login, csrf_token, two_graded) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Answer, BatchItem
-    from annotation.tasks import get_or_create_worker
+    from annotation.workers import get_or_create_worker
     from app.db import db
 
     card = two_graded[0]
@@ -154,8 +154,9 @@ def test_the_threshold_table_from_levels_and_from_a_recorded_nearest(app) -> Non
 
 @pytest.fixture
 def judge_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped-def]
+    from annotation.batches import create_batch
     from annotation.models import Aggregate, Answer, BatchItem
-    from annotation.tasks import create_batch, get_or_create_worker
+    from annotation.workers import get_or_create_worker
     from app.db import db
     from app.models import Person
 

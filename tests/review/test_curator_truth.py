@@ -8,8 +8,12 @@ import pytest
 
 @pytest.mark.both_databases
 def test_reaggregating_keeps_the_curators_label(app, make_card, make_person, card_image) -> None:  # type: ignore[no-untyped-def]
+    from annotation.answers import submit
+    from annotation.batches import create_batch
     from annotation.models import Aggregate
-    from annotation.tasks import aggregate_batch, create_batch, get_or_create_worker, next_tasks, submit
+    from annotation.reservations import next_tasks
+    from annotation.results import aggregate_batch
+    from annotation.workers import get_or_create_worker
     from app.db import db
     from app.models import Person
     from review.tasks import resolve_aggregate

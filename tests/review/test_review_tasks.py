@@ -374,8 +374,8 @@ def test_card_history_is_oldest_first(app, synced, person) -> None:  # type: ign
 @pytest.fixture
 def disputed(app, make_card, card_image, decide_orientation) -> dict[str, int]:  # type: ignore[no-untyped-def]
     """Two aggregates waiting for a curator: a judge one and a crop one."""
+    from annotation.batches import create_batch
     from annotation.models import Aggregate
-    from annotation.tasks import create_batch
     from app.db import db
 
     cards = [make_card(card_image()[:, 20 + i:], state="review") for i in range(2)]

@@ -208,8 +208,9 @@ def test_the_history_page_lists_every_change(app, client, login, csrf_token, gra
 
 @pytest.fixture
 def crop_dispute(app, make_card, card_image) -> tuple[int, int]:  # type: ignore[no-untyped-def]
+    from annotation.batches import create_batch
     from annotation.models import Aggregate, Answer, BatchItem
-    from annotation.tasks import create_batch, get_or_create_worker
+    from annotation.workers import get_or_create_worker
     from app.db import db
 
     card_id = make_card(card_image()[:, 30:], state="review")  # 574 x 200 px

@@ -1,8 +1,8 @@
 """crowd slot counters: answers, taken and rank on batch items; released_at on reservations
 
 Fetch-next used to load every item, reservation and answer of a batch to choose one task;
-these columns let it walk an index instead (see annotation.tasks). Existing rows are counted
-here exactly as annotation.tasks.recount_items counts them.
+these columns let it walk an index instead (see annotation.reservations). Existing rows are counted
+here exactly as annotation.queries.recount_items counts them.
 
 Revision ID: 0004
 Revises: 0003

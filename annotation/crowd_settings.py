@@ -1,0 +1,36 @@
+"""The crowd's settings: the app's ``KEYSTONE_CROWD_*`` config values, with their defaults.
+
+Read inside an app context, at each use (tests and the benchmark change them per app).
+"""
+
+from __future__ import annotations
+
+from datetime import timedelta
+
+from flask import current_app
+
+DEFAULT_RESERVATION_MINUTES = 10
+DEFAULT_MIN_BOX_PX = 16
+DEFAULT_GOLD_THRESHOLD = 0.7
+DEFAULT_MIN_GOLD = 3
+
+
+def reservation_ttl() -> timedelta:
+    """How long a fetched task stays reserved for its worker."""
+    minutes = current_app.config.get("KEYSTONE_CROWD_RESERVATION_MINUTES", DEFAULT_RESERVATION_MINUTES)
+    return timedelta(minutes=float(minutes))
+
+
+def min_box_px() -> int:
+    """The smallest width and height, in original pixels, of a crop box an answer may give."""
+    return int(current_app.config.get("KEYSTONE_CROWD_MIN_BOX_PX", DEFAULT_MIN_BOX_PX))
+
+
+def gold_threshold() -> float:
+    """The gold accuracy below which a worker is flagged."""
+    return float(current_app.config.get("KEYSTONE_CROWD_GOLD_THRESHOLD", DEFAULT_GOLD_THRESHOLD))
+
+
+def min_gold() -> int:
+    """How many gold answers a worker gives before their accuracy can flag them."""
+    return int(current_app.config.get("KEYSTONE_CROWD_MIN_GOLD", DEFAULT_MIN_GOLD))

@@ -1,0 +1,155 @@
+"""Results: a batch's answers aggregated (Dawid-Skene per question, box consensus) and its agreement figures."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select
+
+from app.db import db
+
+from .aggregation import (
+    ALL_QUESTIONS,
+    HALVES,
+    OPTIONAL_QUESTIONS,
+    QUESTIONS,
+    ConfidenceRules,
+    Judgement,
+    JudgementAnswer,
+    aggregate_judgements,
+    consensus_box,
+    unconfident_reasons,
+)
+from .agreement import gwet_ac1, krippendorff_alpha_boxes, krippendorff_alpha_nominal, percent_agreement
+from .models import Aggregate, Answer, Batch
+from .task_errors import TaskError
+from .workers import update_worker_quality
+
+
+@dataclass(frozen=True)
+class AggregationReport:
+    batch_id: int
+    approved: int
+    needs_curator: int
+    pending: int  # items with fewer than N usable answers
+    flagged_workers: int
+    agreement: dict[str, dict[str, float | None]] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        return {"batch": self.batch_id, "approved": self.approved, "needs_curator": self.needs_curator,
+                "pending": self.pending, "flagged_workers": self.flagged_workers, "agreement": self.agreement}
+
+
+def _figure(compute: Any, *args: Any, **kwargs: Any) -> float | None:
+    """An agreement figure, or None where it is undefined (too few units, one category only)."""
+    try:
+        value = float(compute(*args, **kwargs))
+    except (ValueError, ZeroDivisionError, FloatingPointError):
+        return None
+    return round(value, 6) if math.isfinite(value) else None
+
+
+def batch_agreement(kind: str, answers: Sequence[Answer], items: Iterable[int]) -> dict[str, dict[str, float | None]]:
+    """Raw agreement, Krippendorff's alpha and Gwet's AC1 per judge question (non-gold items);
+    alpha with 1 - IoU distance per crop half. Why all three: see :mod:`annotation.agreement`.
+    """
+    item_ids = sorted(set(items))
+    if kind == "judge":
+        workers = sorted({a.worker_id for a in answers})
+        column, row = {it: j for j, it in enumerate(item_ids)}, {w: i for i, w in enumerate(workers)}
+        out: dict[str, dict[str, float | None]] = {}
+        asked = [q for q in ALL_QUESTIONS if q in QUESTIONS or any(q in a.payload for a in answers)]
+        for q in asked:
+            R = np.full((len(workers), len(item_ids)), np.nan)
+            for a in answers:
+                if a.item_id in column and q in a.payload:
+                    R[row[a.worker_id], column[a.item_id]] = float(bool(a.payload[q]))
+            out[q] = {"percent_agreement": _figure(percent_agreement, R),
+                      "krippendorff_alpha": _figure(krippendorff_alpha_nominal, R),
+                      "gwet_ac1": _figure(gwet_ac1, R, n_categories=2)}
+        return out
+    wanted = set(item_ids)
+    units: dict[str, dict[int, list[list[float]]]] = {h: {} for h in HALVES}
+    for a in answers:
+        if a.item_id in wanted:
+            for h in HALVES:
+                units[h].setdefault(a.item_id, []).append(a.payload[h])
+    return {h: {"krippendorff_alpha": _figure(krippendorff_alpha_boxes, [np.array(u) for u in units[h].values()])}
+            for h in HALVES}
+
+
+def _judgement(payload: Mapping[str, Any]) -> Judgement:
+    """A stored judge answer (or gold answer) as a :class:`Judgement`; a question not asked is None."""
+    return Judgement(**{q: bool(payload[q]) for q in QUESTIONS},
+                     **{q: bool(payload[q]) for q in OPTIONAL_QUESTIONS if q in payload})
+
+
+def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> AggregationReport:
+    """Flag workers on gold, then aggregate every finished item and store approved / needs_curator.
+
+    Judge: one binary Dawid-Skene per question seeded with the batch's gold; when the crowd
+    says "not a stereo pair", orientation and inversion are moot and do not block approval.
+    Crop: :func:`consensus_box` per half in original pixels.
+    """
+    rules = rules or ConfidenceRules()
+    batch = db.session.get(Batch, batch_id)
+    if batch is None:
+        raise TaskError(f"No batch {batch_id}", 404)
+    quality = update_worker_quality()
+    items = {it.id: it for it in batch.items}
+    answers = list(db.session.scalars(select(Answer).where(Answer.item_id.in_(list(items)),
+                                                           Answer.flagged.is_(False))))
+    by_item: dict[int, list[Answer]] = {}
+    for answer in answers:
+        by_item.setdefault(answer.item_id, []).append(answer)
+    finished = [it for it in items.values()
+                if not it.is_gold and len(by_item.get(it.id, [])) >= batch.answers_per_item]
+    pending = sum(1 for it in items.values() if not it.is_gold) - len(finished)
+    results: dict[int, tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]] = {}
+    if batch.kind == "judge" and finished:
+        judged = [JudgementAnswer(a.item_id, a.worker_id, _judgement(a.payload)) for a in answers]
+        gold = {it.id: _judgement(it.gold_answer) for it in items.values() if it.is_gold and it.gold_answer}
+        ds = aggregate_judgements(judged, gold)
+        for it in finished:
+            # swapped: only where this card's answers asked it (older pages did not).
+            here = [q for q in ALL_QUESTIONS if q in QUESTIONS or any(q in a.payload for a in by_item[it.id])]
+            label = {q: bool(ds[q].label_of(it.id)) for q in here}
+            posterior = {q: [round(float(p), 6) for p in ds[q].posterior(it.id)] for q in here}
+            asked = here if label["is_stereo"] else ["is_stereo"]
+            reasons = unconfident_reasons({q: float(ds[q].posterior(it.id)[int(label[q])]) for q in asked},
+                                          rules=rules)
+            results[it.id] = (posterior, label, reasons)
+    elif batch.kind == "crop":
+        for it in finished:
+            card = it.card
+            consensus = {h: consensus_box([a.payload[h] for a in by_item[it.id]], image_size=(card.width, card.height))
+                         for h in HALVES}
+            label = {h: [round(v, 2) for v in c.box] for h, c in consensus.items()}
+            posterior = {h: {"kept": c.kept, "dropped": c.dropped, "mad": list(c.mad), "mean_iou": c.mean_iou}
+                         for h, c in consensus.items()}
+            results[it.id] = (posterior, label, unconfident_reasons(boxes=consensus, rules=rules))
+    approved = needs = 0
+    for item_id, (posterior, label, reasons) in results.items():
+        it = items[item_id]
+        row = db.session.scalar(select(Aggregate).where(Aggregate.batch_id == batch.id,
+                                                        Aggregate.card_id == it.card_id))
+        if row is not None and row.resolved_by is not None:
+            # A curator's decision is the card's truth: re-aggregating never overwrites it.
+            approved += 1
+            continue
+        if row is None:
+            row = Aggregate(batch_id=batch.id, card_id=it.card_id, kind=batch.kind)
+            db.session.add(row)
+        row.posterior, row.label, row.confident = posterior, label, not reasons
+        row.state = "approved" if not reasons else "needs_curator"
+        row.reasons, row.answers = "; ".join(reasons), len(by_item[item_id])
+        approved += not reasons
+        needs += bool(reasons)
+    db.session.commit()
+    regular = [it.id for it in items.values() if not it.is_gold]
+    return AggregationReport(batch.id, approved, needs, pending, sum(1 for q in quality.values() if q["flagged"]),
+                             batch_agreement(batch.kind, answers, regular))

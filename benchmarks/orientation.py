@@ -57,14 +57,10 @@ from pipeline.orientation import (
 )
 from pipeline.split import split_card
 
+from .orientation_split import TUNE
+
 DEFAULT_DATA = Path(os.environ.get("KEYSTONE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
-# Tuned on these; every other card is held out (chosen before any measurement: alternate kinds).
-TUNE = {
-    "nypl_stereogranimator_demo1", "nypl_stereogranimator_demo3", "nypl_stereogranimator_demo5",
-    "nypl_000206_pima_indians_of_arizona", "nypl_f0bf5ba0_ostrich_farm_columbian_exposition_front",
-    "09995", "8618s",
-}
 
 
 def load_cards(data: Path) -> list[tuple[str, np.ndarray]]:

@@ -41,7 +41,7 @@ from pipeline.io import read_image
 from pipeline.orientation import orient_variant
 from pipeline.split import split_card
 
-from .orientation import TUNE
+from .orientation_split import TUNE
 from .photo_area import TRUTH, inside, iou, read_truth
 
 Box = tuple[int, int, int, int]

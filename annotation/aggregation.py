@@ -310,7 +310,8 @@ def aggregate_judgements(
     for q in ALL_QUESTIONS:
         labelled = [
             LabelAnswer(a.item_id, a.worker_id, int(getattr(a.judgement, q)))
-            for a in answers if getattr(a.judgement, q) is not None
+            for a in answers
+            if getattr(a.judgement, q) is not None
         ]
         if not labelled and q in OPTIONAL_QUESTIONS:
             continue
@@ -334,9 +335,7 @@ class GoldScore:
         return self.correct / self.total if self.total else 0.0
 
 
-def gold_accuracy(
-    answers: Iterable[LabelAnswer], gold: Mapping[Hashable, int]
-) -> dict[Hashable, GoldScore]:
+def gold_accuracy(answers: Iterable[LabelAnswer], gold: Mapping[Hashable, int]) -> dict[Hashable, GoldScore]:
     """Per worker: how many gold answers were right, out of how many. Non-gold answers ignored.
 
     For judge tasks pass per-question labels, or encode a whole judgement as one label
@@ -352,9 +351,7 @@ def gold_accuracy(
     return {w: GoldScore(c, n) for w, (c, n) in tally.items()}
 
 
-def flag_workers(
-    accuracies: Mapping[Hashable, GoldScore], threshold: float, min_gold: int
-) -> frozenset[Hashable]:
+def flag_workers(accuracies: Mapping[Hashable, GoldScore], threshold: float, min_gold: int) -> frozenset[Hashable]:
     """Workers to stop serving: gold accuracy below ``threshold`` on at least ``min_gold`` golds.
 
     ``min_gold`` exists because one unlucky gold answer is 0 % accuracy: nobody is flagged
@@ -364,9 +361,7 @@ def flag_workers(
         raise ValueError(f"Expected 0 <= threshold <= 1, got {threshold}")
     if min_gold < 1:
         raise ValueError(f"Expected min_gold >= 1, got {min_gold}")
-    return frozenset(
-        w for w, s in accuracies.items() if s.total >= min_gold and s.accuracy < threshold
-    )
+    return frozenset(w for w, s in accuracies.items() if s.total >= min_gold and s.accuracy < threshold)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -402,15 +397,11 @@ def validate_box(box: Sequence[float], image_size: tuple[int, int] | None = None
         raise InvalidBoxError(f"Expected finite coordinates, got {tuple(b.tolist())}")
     x0, y0, x1, y1 = (float(v) for v in b)
     if x1 <= x0 or y1 <= y0:
-        raise InvalidBoxError(
-            f"Expected x0 < x1 and y0 < y1 (positive width and height), got {(x0, y0, x1, y1)}"
-        )
+        raise InvalidBoxError(f"Expected x0 < x1 and y0 < y1 (positive width and height), got {(x0, y0, x1, y1)}")
     if image_size is not None:
         w, h = image_size
         if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
-            raise InvalidBoxError(
-                f"Expected a box inside the {w}x{h} image, got {(x0, y0, x1, y1)}"
-            )
+            raise InvalidBoxError(f"Expected a box inside the {w}x{h} image, got {(x0, y0, x1, y1)}")
     return (x0, y0, x1, y1)
 
 
@@ -418,12 +409,8 @@ def box_iou(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float6
     """Pairwise intersection over union. ``a`` (N, 4), ``b`` (M, 4) -> (N, M) in [0, 1]."""
     a = np.asarray(a, dtype=np.float64).reshape(-1, 4)
     b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
-    ix = np.clip(
-        np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None
-    )
-    iy = np.clip(
-        np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None
-    )
+    ix = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
+    iy = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
     inter = ix * iy
     area_a = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
     area_b = (b[:, 2] - b[:, 0]) * (b[:, 3] - b[:, 1])
@@ -441,7 +428,6 @@ class BoxConsensus:
     kept_mask: tuple[bool, ...]  # in input order
     mad: Box  # median absolute deviation of the kept boxes from ``box``
     mean_iou: float  # mean IoU of the kept boxes to ``box``; 0.0 when none kept
-
 
 
 def _as_box(values: NDArray[np.float64]) -> Box:

@@ -122,9 +122,7 @@ def percent_agreement(reliability: ArrayLike) -> float:
     multi = r_i >= 2
     if not multi.any():
         raise ValueError("Expected at least one unit with two or more answers, got none")
-    return float(
-        ((r_ik[multi] * (r_ik[multi] - 1)).sum(axis=1) / (r_i[multi] * (r_i[multi] - 1))).mean()
-    )
+    return float(((r_ik[multi] * (r_ik[multi] - 1)).sum(axis=1) / (r_i[multi] * (r_i[multi] - 1))).mean())
 
 
 def gwet_ac1(reliability: ArrayLike, n_categories: int | None = None) -> float:

@@ -61,8 +61,11 @@ def _as_bool(payload: Mapping[str, Any], key: str) -> bool:
 
 
 def _as_box(value: Any, half: str, card: Card | CardSize) -> list[float]:
-    if not isinstance(value, list) or len(value) != 4 or not all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+    if (
+        not isinstance(value, list)
+        or len(value) != 4
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    ):
         raise TaskError(f"Expected the {half} box as four numbers [x0, y0, x1, y1], got {value!r}")
     try:
         box = validate_box(value, (card.width, card.height))
@@ -70,8 +73,10 @@ def _as_box(value: Any, half: str, card: Card | CardSize) -> list[float]:
         raise TaskError(f"The {half} box is refused: {exc}") from exc
     minimum = min_box_px()
     if box[2] - box[0] < minimum or box[3] - box[1] < minimum:
-        raise TaskError(f"The {half} box is refused: it must be at least {minimum} x {minimum} pixels, "
-                        f"got {box[2] - box[0]:g} x {box[3] - box[1]:g}")
+        raise TaskError(
+            f"The {half} box is refused: it must be at least {minimum} x {minimum} pixels, "
+            f"got {box[2] - box[0]:g} x {box[3] - box[1]:g}"
+        )
     return [round(v, 2) for v in box]
 
 
@@ -102,8 +107,14 @@ class Submitted:
     duplicate: bool  # True when this post repeated an answer already stored
 
 
-def submit(worker: Worker | int, reservation_token: str, payload: Any, idempotency_key: str,
-           now: datetime | None = None, session: int | None = None) -> Submitted:
+def submit(
+    worker: Worker | int,
+    reservation_token: str,
+    payload: Any,
+    idempotency_key: str,
+    now: datetime | None = None,
+    session: int | None = None,
+) -> Submitted:
     """Store one answer for an open reservation of ``worker`` in ``session``; replays return the stored one.
 
     Checks and validation run in a read transaction; the write transaction only claims the
@@ -118,8 +129,11 @@ def submit(worker: Worker | int, reservation_token: str, payload: Any, idempoten
         earlier = _answer_by_key(idempotency_key, worker_id, session)
         if earlier is not None:
             return earlier
-        held = run_prebuilt(RESERVATION_TO_ANSWER, {"token": reservation_token}).first() \
-            if isinstance(reservation_token, str) else None
+        held = (
+            run_prebuilt(RESERVATION_TO_ANSWER, {"token": reservation_token}).first()
+            if isinstance(reservation_token, str)
+            else None
+        )
         _check_reservation(held, worker_id, session, now)
         answer = validate_payload(held.kind, payload, CardSize(held.width, held.height))
         flagged = bool(run_prebuilt(WORKER_FLAGGED, {"worker_id": worker_id, "session_id": session}).scalar())
@@ -127,13 +141,22 @@ def submit(worker: Worker | int, reservation_token: str, payload: Any, idempoten
         with one_writer():
             if not on_sqlite():
                 run_prebuilt(LOCK_ITEMS, {"item_ids": [held.item_id]})
-            claimed = run_prebuilt(CLAIM_RESERVATION, {"reservation_id": held.id, "claimant": worker_id,
-                                                       "claimant_session": session, "at": now})
+            claimed = run_prebuilt(
+                CLAIM_RESERVATION, {"reservation_id": held.id, "claimant": worker_id, "claimant_session": session, "at": now}
+            )
             if claimed.rowcount == 1:
-                answer_id = run_prebuilt(INSERT_ANSWER, {
-                    "item_id": held.item_id, "worker_id": worker_id, "session_id": session, "payload": answer,
-                    "submitted_at": now,
-                    "idempotency_key": idempotency_key, "flagged": flagged}).inserted_primary_key[0]
+                answer_id = run_prebuilt(
+                    INSERT_ANSWER,
+                    {
+                        "item_id": held.item_id,
+                        "worker_id": worker_id,
+                        "session_id": session,
+                        "payload": answer,
+                        "submitted_at": now,
+                        "idempotency_key": idempotency_key,
+                        "flagged": flagged,
+                    },
+                ).inserted_primary_key[0]
                 recount_items([held.item_id], locked=True)
                 db.session.commit()
             else:
@@ -142,8 +165,7 @@ def submit(worker: Worker | int, reservation_token: str, payload: Any, idempoten
         # A replay that raced past the checks: the unique key and (item, worker) keep one answer.
         db.session.rollback()
         with read_only():
-            stored = db.session.scalar(select(Answer.id).where(Answer.item_id == held.item_id,
-                                                               Answer.worker_id == worker_id))
+            stored = db.session.scalar(select(Answer.id).where(Answer.item_id == held.item_id, Answer.worker_id == worker_id))
         if stored is None:
             raise
         return Submitted(stored, True)
@@ -154,8 +176,7 @@ def submit(worker: Worker | int, reservation_token: str, payload: Any, idempoten
             earlier = _answer_by_key(idempotency_key, worker_id, session)
             if earlier is not None:
                 return earlier
-            _check_reservation(run_prebuilt(RESERVATION_STATE, {"reservation_id": held.id}).first(),
-                               worker_id, session, now)
+            _check_reservation(run_prebuilt(RESERVATION_STATE, {"reservation_id": held.id}).first(), worker_id, session, now)
         raise TaskError("This task changed while you answered; fetch a new one", 409)
     if held.is_gold:
         update_worker_quality([worker_id])
@@ -182,8 +203,7 @@ def _check_reservation(held: Any, worker_id: int, session: int | None, now: date
     if held.answered_at is not None:
         raise TaskError("You already answered this task", 409)
     if as_utc(held.expires_at) <= now or held.released_at is not None:
-        raise TaskError(f"Your reservation of this task expired at {as_utc(held.expires_at):%H:%M:%S} UTC; "
-                        "fetch a new task", 409)
+        raise TaskError(f"Your reservation of this task expired at {as_utc(held.expires_at):%H:%M:%S} UTC; fetch a new task", 409)
 
 
 def undo_last(worker: Worker | int, now: datetime | None = None, session: int | None = None) -> Task:
@@ -194,13 +214,19 @@ def undo_last(worker: Worker | int, now: datetime | None = None, session: int | 
     """
     now = now or utcnow()
     worker_id = worker_id_of(worker)
-    last = db.session.scalar(select(Answer).where(Answer.worker_id == worker_id,
-                                                  Answer.session_id.is_not_distinct_from(session))
-                             .order_by(Answer.submitted_at.desc(), Answer.id.desc()).limit(1))
+    last = db.session.scalar(
+        select(Answer)
+        .where(Answer.worker_id == worker_id, Answer.session_id.is_not_distinct_from(session))
+        .order_by(Answer.submitted_at.desc(), Answer.id.desc())
+        .limit(1)
+    )
     if last is None:
         raise TaskError("There is no answer to undo", 409)
-    aggregated = db.session.scalar(select(func.count()).select_from(Aggregate).where(
-        Aggregate.batch_id == last.item.batch_id, Aggregate.card_id == last.item.card_id))
+    aggregated = db.session.scalar(
+        select(func.count())
+        .select_from(Aggregate)
+        .where(Aggregate.batch_id == last.item.batch_id, Aggregate.card_id == last.item.card_id)
+    )
     if aggregated:
         raise TaskError("That answer was already counted in the results and cannot be undone", 409)
     item_id = last.item_id

@@ -213,8 +213,7 @@ def next_assignment(
     regular_open = [
         it
         for it in regular
-        if available_to_worker(it)
-        and it.answer_count + open_holds.get(it.item_id, 0) < policy.answers_per_item
+        if available_to_worker(it) and it.answer_count + open_holds.get(it.item_id, 0) < policy.answers_per_item
     ]
     gold_open = [it for it in items if it.item_id in gold and available_to_worker(it)]
 
@@ -235,11 +234,7 @@ def next_assignment(
     if all(it.answer_count >= policy.answers_per_item for it in regular):
         return NoTask(NoTaskReason.BATCH_COMPLETE)
     # Some items still need answers. Are they blocked only by other workers' holds?
-    blocked = [
-        it
-        for it in regular
-        if available_to_worker(it) and it.answer_count < policy.answers_per_item
-    ]
+    blocked = [it for it in regular if available_to_worker(it) and it.answer_count < policy.answers_per_item]
     if blocked:
         retry = min(expiry_by_item[it.item_id] for it in blocked if it.item_id in expiry_by_item)
         return NoTask(NoTaskReason.ALL_RESERVED, retry_after=retry)

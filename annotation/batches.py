@@ -17,8 +17,15 @@ from .models import TASK_KINDS, Aggregate, Batch, BatchItem
 from .task_errors import TaskError
 
 
-def create_batch(card_ids: Sequence[int], kind: str = "judge", n: int = 3, gold_rate: float = 0.1, *,
-                 gold: Mapping[int, dict[str, Any]] | None = None, created_by: int | None = None) -> Batch:
+def create_batch(
+    card_ids: Sequence[int],
+    kind: str = "judge",
+    n: int = 3,
+    gold_rate: float = 0.1,
+    *,
+    gold: Mapping[int, dict[str, Any]] | None = None,
+    created_by: int | None = None,
+) -> Batch:
     """A batch over ``card_ids`` plus the gold cards in ``gold`` (card id -> known answer)."""
     if kind not in TASK_KINDS:
         raise TaskError(f"Expected kind judge or crop, got {kind!r}")
@@ -63,18 +70,31 @@ def orientation_queue_card_ids() -> list[int]:
     # A card already in a judge batch whose answers are not aggregated yet is on its way.
     in_flight: set[int] = set()
     for start in range(0, len(waiting), 500):
-        chunk = waiting[start:start + 500]
-        in_flight.update(db.session.scalars(
-            select(BatchItem.card_id).join(Batch, Batch.id == BatchItem.batch_id)
-            .where(Batch.kind == "judge", BatchItem.card_id.in_(chunk), ~BatchItem.is_gold,
-                   ~select(Aggregate.id).where(Aggregate.batch_id == BatchItem.batch_id,
-                                               Aggregate.card_id == BatchItem.card_id).exists())))
+        chunk = waiting[start : start + 500]
+        in_flight.update(
+            db.session.scalars(
+                select(BatchItem.card_id)
+                .join(Batch, Batch.id == BatchItem.batch_id)
+                .where(
+                    Batch.kind == "judge",
+                    BatchItem.card_id.in_(chunk),
+                    ~BatchItem.is_gold,
+                    ~select(Aggregate.id)
+                    .where(Aggregate.batch_id == BatchItem.batch_id, Aggregate.card_id == BatchItem.card_id)
+                    .exists(),
+                )
+            )
+        )
     return [card_id for card_id in waiting if card_id not in in_flight]
 
 
 def preview_card() -> Card | None:
     """The card an MTurk preview shows: the first regular item of the oldest judge batch still open."""
     return db.session.scalar(
-        select(Card).join(BatchItem, BatchItem.card_id == Card.id).join(Batch, Batch.id == BatchItem.batch_id)
+        select(Card)
+        .join(BatchItem, BatchItem.card_id == Card.id)
+        .join(Batch, Batch.id == BatchItem.batch_id)
         .where(Batch.kind == "judge", BatchItem.is_gold.is_(False), BatchItem.answers < Batch.answers_per_item)
-        .order_by(Batch.id, BatchItem.id).limit(1))
+        .order_by(Batch.id, BatchItem.id)
+        .limit(1)
+    )

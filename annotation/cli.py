@@ -58,21 +58,37 @@ def crowd_group() -> None:
 
 
 @crowd_group.command("create-batch")
-@click.option("--from-review", is_flag=True,
-              help="Add the cards waiting for people: those the filter sent to review and those whose "
-                   "orientation the orientation step could not decide (whatever their filter band).")
-@click.option("--from-orientation", is_flag=True,
-              help="Add only the cards whose orientation the orientation step could not decide.")
+@click.option(
+    "--from-review",
+    is_flag=True,
+    help="Add the cards waiting for people: those the filter sent to review and those whose "
+    "orientation the orientation step could not decide (whatever their filter band).",
+)
+@click.option(
+    "--from-orientation", is_flag=True, help="Add only the cards whose orientation the orientation step could not decide."
+)
 @click.option("--cards", "cards", default="", help="Comma-separated card ids.")
 @click.option("--kind", type=click.Choice(TASK_KINDS), default="judge", show_default=True)
 @click.option("--n", "n", type=click.IntRange(min=1), default=3, show_default=True, help="Answers per item.")
 @click.option("--gold-rate", type=click.FloatRange(0.0, 1.0), default=0.1, show_default=True)
-@click.option("--gold", "gold_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help='JSON file {"<card id>": <known answer>} of gold items made by curators.')
+@click.option(
+    "--gold",
+    "gold_file",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help='JSON file {"<card id>": <known answer>} of gold items made by curators.',
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
 @with_appcontext
-def create_batch_command(from_review: bool, from_orientation: bool, cards: str, kind: str, n: int,
-                         gold_rate: float, gold_file: Path | None, as_json: bool) -> None:
+def create_batch_command(
+    from_review: bool,
+    from_orientation: bool,
+    cards: str,
+    kind: str,
+    n: int,
+    gold_rate: float,
+    gold_file: Path | None,
+    as_json: bool,
+) -> None:
     """Create a batch of KIND tasks over the chosen cards."""
     _ensure()
     ids = _card_ids(cards) + (review_queue_card_ids() if from_review else [])
@@ -85,8 +101,9 @@ def create_batch_command(from_review: bool, from_orientation: bool, cards: str, 
         except (ValueError, AttributeError) as exc:
             raise click.BadParameter(f"expected a JSON object of card id -> answer: {exc}", param_hint="--gold") from exc
     if not ids and not gold:
-        raise click.UsageError("no cards: give --cards IDS, --from-review or --from-orientation (and some card must be "
-                               "waiting for people)")
+        raise click.UsageError(
+            "no cards: give --cards IDS, --from-review or --from-orientation (and some card must be waiting for people)"
+        )
     try:
         batch = create_batch(ids, kind, n, gold_rate, gold=gold)
     except TaskError as exc:
@@ -124,34 +141,81 @@ def aggregate_command(batch_id: int, as_json: bool) -> None:
     except TaskError as exc:
         raise click.ClickException(exc.message) from exc
     doc = report.as_json()
-    _emit(doc, as_json, f"batch {batch_id}: {doc['approved']} approved, {doc['needs_curator']} for a curator, "
-                        f"{doc['pending']} unfinished, {doc['flagged_workers']} workers flagged")
+    _emit(
+        doc,
+        as_json,
+        f"batch {batch_id}: {doc['approved']} approved, {doc['needs_curator']} for a curator, "
+        f"{doc['pending']} unfinished, {doc['flagged_workers']} workers flagged",
+    )
 
 
-ANSWER_COLUMNS: tuple[str, ...] = ("answer_id", "batch", "card_id", "is_gold", "worker", "session", "flagged",
-                                   "submitted_at", "payload")
-AGGREGATE_COLUMNS: tuple[str, ...] = ("batch", "card_id", "kind", "state", "confident", "answers", "label",
-                                      "posterior", "reasons")
+ANSWER_COLUMNS: tuple[str, ...] = (
+    "answer_id",
+    "batch",
+    "card_id",
+    "is_gold",
+    "worker",
+    "session",
+    "flagged",
+    "submitted_at",
+    "payload",
+)
+AGGREGATE_COLUMNS: tuple[str, ...] = (
+    "batch",
+    "card_id",
+    "kind",
+    "state",
+    "confident",
+    "answers",
+    "label",
+    "posterior",
+    "reasons",
+)
 
 
 def answer_rows(batch: Batch) -> list[dict[str, Any]]:
     """One row per answer; ``session`` is the provider's session key (Prolific SESSION_ID, MTurk
     assignmentId) the answer was given in, what a researcher approves submissions by."""
     rows = db.session.execute(
-        select(Answer, BatchItem, Worker, CrowdSession.external_id).join(BatchItem, Answer.item_id == BatchItem.id)
-        .join(Worker, Answer.worker_id == Worker.id).outerjoin(CrowdSession, CrowdSession.id == Answer.session_id)
-        .where(BatchItem.batch_id == batch.id).order_by(Answer.id))
-    return [{"answer_id": a.id, "batch": batch.id, "card_id": it.card_id, "is_gold": it.is_gold,
-             "worker": f"{w.provider}:{w.external_id}", "session": session or "", "flagged": a.flagged,
-             "submitted_at": a.submitted_at.isoformat(), "payload": json.dumps(a.payload, sort_keys=True)}
-            for a, it, w, session in rows]
+        select(Answer, BatchItem, Worker, CrowdSession.external_id)
+        .join(BatchItem, Answer.item_id == BatchItem.id)
+        .join(Worker, Answer.worker_id == Worker.id)
+        .outerjoin(CrowdSession, CrowdSession.id == Answer.session_id)
+        .where(BatchItem.batch_id == batch.id)
+        .order_by(Answer.id)
+    )
+    return [
+        {
+            "answer_id": a.id,
+            "batch": batch.id,
+            "card_id": it.card_id,
+            "is_gold": it.is_gold,
+            "worker": f"{w.provider}:{w.external_id}",
+            "session": session or "",
+            "flagged": a.flagged,
+            "submitted_at": a.submitted_at.isoformat(),
+            "payload": json.dumps(a.payload, sort_keys=True),
+        }
+        for a, it, w, session in rows
+    ]
 
 
 def aggregate_rows(batch: Batch) -> list[dict[str, Any]]:
     rows = db.session.scalars(select(Aggregate).where(Aggregate.batch_id == batch.id).order_by(Aggregate.card_id))
-    return [{"batch": batch.id, "card_id": a.card_id, "kind": a.kind, "state": a.state, "confident": a.confident,
-             "answers": a.answers, "label": json.dumps(a.label, sort_keys=True),
-             "posterior": json.dumps(a.posterior, sort_keys=True), "reasons": a.reasons} for a in rows]
+    return [
+        {
+            "batch": batch.id,
+            "card_id": a.card_id,
+            "kind": a.kind,
+            "state": a.state,
+            "confident": a.confident,
+            "answers": a.answers,
+            "label": json.dumps(a.label, sort_keys=True),
+            "posterior": json.dumps(a.posterior, sort_keys=True),
+            "reasons": a.reasons,
+        }
+        for a in rows
+    ]
 
 
 def _write_table(rows: list[dict[str, Any]], columns: list[str], out: Path, stem: str) -> list[str]:
@@ -162,18 +226,26 @@ def _write_table(rows: list[dict[str, Any]], columns: list[str], out: Path, stem
         writer = csv.DictWriter(handle, fieldnames=columns)
         writer.writeheader()
         writer.writerows(rows)
-    pq.write_table(pa.Table.from_pylist(rows, schema=None) if rows else
-                   pa.table({c: pa.array([], pa.string()) for c in columns}), out / f"{stem}.parquet")
+    pq.write_table(
+        pa.Table.from_pylist(rows, schema=None) if rows else pa.table({c: pa.array([], pa.string()) for c in columns}),
+        out / f"{stem}.parquet",
+    )
     return [f"{stem}.csv", f"{stem}.parquet"]
 
 
 def _box_formats(batch: Batch, out: Path) -> list[str]:
     """Approved crop consensus boxes as COCO and Label Studio JSON (original image pixels)."""
-    aggregates = list(db.session.scalars(select(Aggregate).where(Aggregate.batch_id == batch.id,
-                                                                 Aggregate.kind == "crop").order_by(Aggregate.card_id)))
+    aggregates = list(
+        db.session.scalars(
+            select(Aggregate).where(Aggregate.batch_id == batch.id, Aggregate.kind == "crop").order_by(Aggregate.card_id)
+        )
+    )
     items = {it.card_id: it.card for it in batch.items}
-    coco: dict[str, Any] = {"images": [], "annotations": [],
-                            "categories": [{"id": 1, "name": "left"}, {"id": 2, "name": "right"}]}
+    coco: dict[str, Any] = {
+        "images": [],
+        "annotations": [],
+        "categories": [{"id": 1, "name": "left"}, {"id": 2, "name": "right"}],
+    }
     studio: list[dict[str, Any]] = []
     for agg in aggregates:
         card = items[agg.card_id]
@@ -181,17 +253,42 @@ def _box_formats(batch: Batch, out: Path) -> list[str]:
         results = []
         for category, half in ((1, "left"), (2, "right")):
             x0, y0, x1, y1 = agg.label[half]
-            coco["annotations"].append({"id": len(coco["annotations"]) + 1, "image_id": card.id, "category_id": category,
-                                        "bbox": [x0, y0, x1 - x0, y1 - y0], "area": (x1 - x0) * (y1 - y0),
-                                        "iscrowd": 0, "keystone_state": agg.state})
+            coco["annotations"].append(
+                {
+                    "id": len(coco["annotations"]) + 1,
+                    "image_id": card.id,
+                    "category_id": category,
+                    "bbox": [x0, y0, x1 - x0, y1 - y0],
+                    "area": (x1 - x0) * (y1 - y0),
+                    "iscrowd": 0,
+                    "keystone_state": agg.state,
+                }
+            )
             # Label Studio stores rectangles in percent of the image size.
-            results.append({"from_name": "box", "to_name": "image", "type": "rectanglelabels",
-                            "original_width": card.width, "original_height": card.height,
-                            "value": {"x": 100 * x0 / card.width, "y": 100 * y0 / card.height,
-                                      "width": 100 * (x1 - x0) / card.width, "height": 100 * (y1 - y0) / card.height,
-                                      "rotation": 0, "rectanglelabels": [half]}})
-        studio.append({"data": {"image": card.source_name, "card_id": card.id},
-                       "annotations": [{"result": results}], "meta": {"state": agg.state}})
+            results.append(
+                {
+                    "from_name": "box",
+                    "to_name": "image",
+                    "type": "rectanglelabels",
+                    "original_width": card.width,
+                    "original_height": card.height,
+                    "value": {
+                        "x": 100 * x0 / card.width,
+                        "y": 100 * y0 / card.height,
+                        "width": 100 * (x1 - x0) / card.width,
+                        "height": 100 * (y1 - y0) / card.height,
+                        "rotation": 0,
+                        "rectanglelabels": [half],
+                    },
+                }
+            )
+        studio.append(
+            {
+                "data": {"image": card.source_name, "card_id": card.id},
+                "annotations": [{"result": results}],
+                "meta": {"state": agg.state},
+            }
+        )
     (out / "boxes.coco.json").write_text(json.dumps(coco, indent=2))
     (out / "boxes.label-studio.json").write_text(json.dumps(studio, indent=2))
     return ["boxes.coco.json", "boxes.label-studio.json"]

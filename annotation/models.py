@@ -52,8 +52,7 @@ class Batch(db.Model):
     created_by: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
-    items: Mapped[list[BatchItem]] = relationship(back_populates="batch", cascade="all, delete-orphan",
-                                                  order_by="BatchItem.id")
+    items: Mapped[list[BatchItem]] = relationship(back_populates="batch", cascade="all, delete-orphan", order_by="BatchItem.id")
 
 
 class BatchItem(db.Model):
@@ -153,12 +152,19 @@ class Reservation(db.Model):
     __table_args__ = (
         UniqueConstraint("item_id", "worker_id", name="crowd_reservation_item_worker"),
         # Counted holds only: a worker's open tasks, and the holds due to lapse.
-        Index("ix_crowd_reservations_held", "worker_id", "expires_at",
-              sqlite_where=text("answered_at IS NULL AND released_at IS NULL"),
-              postgresql_where=text("answered_at IS NULL AND released_at IS NULL")),
-        Index("ix_crowd_reservations_lapsing", "expires_at",
-              sqlite_where=text("answered_at IS NULL AND released_at IS NULL"),
-              postgresql_where=text("answered_at IS NULL AND released_at IS NULL")),
+        Index(
+            "ix_crowd_reservations_held",
+            "worker_id",
+            "expires_at",
+            sqlite_where=text("answered_at IS NULL AND released_at IS NULL"),
+            postgresql_where=text("answered_at IS NULL AND released_at IS NULL"),
+        ),
+        Index(
+            "ix_crowd_reservations_lapsing",
+            "expires_at",
+            sqlite_where=text("answered_at IS NULL AND released_at IS NULL"),
+            postgresql_where=text("answered_at IS NULL AND released_at IS NULL"),
+        ),
     )
 
     id: Mapped[int] = mapped_column(primary_key=True)

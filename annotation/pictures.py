@@ -94,8 +94,9 @@ _wiggle_lock = threading.Lock()
 _WIGGLE_CACHE = 256
 
 
-def wiggle_frames(card: np.ndarray, left_box: list[float], right_box: list[float], order: str,
-                  width: int = WIGGLE_WIDTH) -> list[np.ndarray]:
+def wiggle_frames(
+    card: np.ndarray, left_box: list[float], right_box: list[float], order: str, width: int = WIGGLE_WIDTH
+) -> list[np.ndarray]:
     """The frames of one eye-order wiggle: the left photo, then the right (``as-is``) or the other way round.
 
     ``card``: ``(H, W, 3)`` or ``(H, W)`` uint8 as scanned; boxes ``[x0, y0, x1, y1]`` in its
@@ -110,7 +111,7 @@ def wiggle_frames(card: np.ndarray, left_box: list[float], right_box: list[float
     w, h = min(lx1 - lx0, rx1 - rx0), min(ly1 - ly0, ry1 - ry0)
     if w < 2 or h < 2:
         raise ValueError(f"Expected photo boxes of at least 2 x 2 px, got {left_box} and {right_box}")
-    first, second = rgb[ly0:ly0 + h, lx0:lx0 + w], rgb[ry0:ry0 + h, rx0:rx0 + w]
+    first, second = rgb[ly0 : ly0 + h, lx0 : lx0 + w], rgb[ry0 : ry0 + h, rx0 : rx0 + w]
     if order == "swapped":
         first, second = second, first
     first, second = _resize(np.ascontiguousarray(first), width), _resize(np.ascontiguousarray(second), width)
@@ -128,9 +129,17 @@ def signed_disparity(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     grey = [cv2.cvtColor(view, cv2.COLOR_RGB2GRAY) if view.ndim == 3 else view for view in (first, second)]
     reach = 16 * max(1, round(first.shape[1] * 0.15 / 16))  # +-15 % of the width, in SGBM's steps of 16
     block = 5
-    matcher = cv2.StereoSGBM_create(minDisparity=-reach, numDisparities=2 * reach, blockSize=block,
-                                    P1=8 * block * block, P2=32 * block * block, uniquenessRatio=10,
-                                    speckleWindowSize=50, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+    matcher = cv2.StereoSGBM_create(
+        minDisparity=-reach,
+        numDisparities=2 * reach,
+        blockSize=block,
+        P1=8 * block * block,
+        P2=32 * block * block,
+        uniquenessRatio=10,
+        speckleWindowSize=50,
+        speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
     disparity = matcher.compute(grey[0], grey[1]).astype(np.float32) / 16.0
     disparity[disparity < -reach + 0.5] = np.nan  # SGBM marks "no match" with minDisparity - 1
     return disparity
@@ -153,8 +162,7 @@ def depth_colours(disparity: np.ndarray) -> np.ndarray:
     return picture
 
 
-def eye_order_wiggle(key: tuple[Any, ...], card: Any, left_box: list[float], right_box: list[float],
-                     order: str) -> bytes:
+def eye_order_wiggle(key: tuple[Any, ...], card: Any, left_box: list[float], right_box: list[float], order: str) -> bytes:
     """An animated GIF of :func:`wiggle_frames` (the export's wiggle writer), cached under ``key``.
 
     ``card`` is the image or a callable returning it (so a cached wiggle never decodes the original).
@@ -167,8 +175,7 @@ def eye_order_wiggle(key: tuple[Any, ...], card: Any, left_box: list[float], rig
     from exports.stereo import CardCaption, encode_wiggle
 
     image = card() if callable(card) else card
-    data = encode_wiggle(wiggle_frames(image, left_box, right_box, order),
-                         CardCaption.of({}, None, "eye-order check"), "gif")
+    data = encode_wiggle(wiggle_frames(image, left_box, right_box, order), CardCaption.of({}, None, "eye-order check"), "gif")
     with _wiggle_lock:
         _wiggles[cache_key] = data
         while len(_wiggles) > _WIGGLE_CACHE:

@@ -29,18 +29,35 @@ def batch_positions(worker: Worker | int, batch_ids: Iterable[int]) -> dict[int,
     worker_id, ids = worker_id_of(worker), sorted(set(batch_ids))
     if not ids:
         return {}
-    done = dict(db.session.execute(
-        select(BatchItem.batch_id, func.count()).join(Answer, Answer.item_id == BatchItem.id)
-        .where(Answer.worker_id == worker_id, BatchItem.batch_id.in_(ids)).group_by(BatchItem.batch_id)).all())
+    done = dict(
+        db.session.execute(
+            select(BatchItem.batch_id, func.count())
+            .join(Answer, Answer.item_id == BatchItem.id)
+            .where(Answer.worker_id == worker_id, BatchItem.batch_id.in_(ids))
+            .group_by(BatchItem.batch_id)
+        ).all()
+    )
     answered = select(Answer.id).where(Answer.item_id == BatchItem.id, Answer.worker_id == worker_id).exists()
-    holds = select(Reservation.id).where(Reservation.item_id == BatchItem.id, Reservation.worker_id == worker_id,
-                                         Reservation.answered_at.is_(None)).exists()
-    open_ = dict(db.session.execute(
-        select(BatchItem.batch_id, func.count()).join(Batch, Batch.id == BatchItem.batch_id)
-        .where(BatchItem.batch_id.in_(ids), ~answered,
-               or_(and_(BatchItem.is_gold.is_(False), BatchItem.answers < Batch.answers_per_item),
-                   and_(BatchItem.is_gold.is_(True), holds)))
-        .group_by(BatchItem.batch_id)).all())
+    holds = (
+        select(Reservation.id)
+        .where(Reservation.item_id == BatchItem.id, Reservation.worker_id == worker_id, Reservation.answered_at.is_(None))
+        .exists()
+    )
+    open_ = dict(
+        db.session.execute(
+            select(BatchItem.batch_id, func.count())
+            .join(Batch, Batch.id == BatchItem.batch_id)
+            .where(
+                BatchItem.batch_id.in_(ids),
+                ~answered,
+                or_(
+                    and_(BatchItem.is_gold.is_(False), BatchItem.answers < Batch.answers_per_item),
+                    and_(BatchItem.is_gold.is_(True), holds),
+                ),
+            )
+            .group_by(BatchItem.batch_id)
+        ).all()
+    )
     return {b: {"done": int(done.get(b, 0)), "total": int(done.get(b, 0)) + int(open_.get(b, 0))} for b in ids}
 
 
@@ -54,15 +71,24 @@ def batch_progress(batch: Batch, now: datetime | None = None) -> dict[str, Any]:
     now = now or utcnow()
     items = {it.id: it for it in batch.items}
     regular = sum(1 for it in items.values() if not it.is_gold)
-    answers = list(db.session.execute(select(Answer.item_id, Answer.worker_id, Answer.payload, Answer.flagged)
-                                      .where(Answer.item_id.in_(list(items)))))
-    reservations = list(db.session.execute(select(Reservation.worker_id, Reservation.expires_at).where(
-        Reservation.item_id.in_(list(items)), Reservation.answered_at.is_(None))))
+    answers = list(
+        db.session.execute(
+            select(Answer.item_id, Answer.worker_id, Answer.payload, Answer.flagged).where(Answer.item_id.in_(list(items)))
+        )
+    )
+    reservations = list(
+        db.session.execute(
+            select(Reservation.worker_id, Reservation.expires_at).where(
+                Reservation.item_id.in_(list(items)), Reservation.answered_at.is_(None)
+            )
+        )
+    )
     per_worker: dict[int, dict[str, int]] = {}
 
     def row(worker_id: int) -> dict[str, int]:
-        return per_worker.setdefault(worker_id, {"done": 0, "reserved": 0, "expired": 0, "gold_correct": 0,
-                                                 "gold_total": 0, "flagged": 0})
+        return per_worker.setdefault(
+            worker_id, {"done": 0, "reserved": 0, "expired": 0, "gold_correct": 0, "gold_total": 0, "flagged": 0}
+        )
 
     for item_id, worker_id, payload, flagged in answers:
         counts = row(worker_id)
@@ -85,14 +111,22 @@ def batch_progress(batch: Batch, now: datetime | None = None) -> dict[str, Any]:
         if not flagged and not items[item_id].is_gold:
             usable[item_id] = usable.get(item_id, 0) + 1
     n = batch.answers_per_item
-    return {"batch": batch.id, "kind": batch.kind, "items": regular, "gold_items": len(items) - regular,
-            "answers_per_item": n, "answers": len(answers),
-            "regular_answers": sum(min(c, n) for c in usable.values()),
-            "gold_answers": sum(1 for a in answers if items[a[0]].is_gold),
-            "flagged_answers": sum(1 for a in answers if a[3]),
-            "items_done": sum(1 for c in usable.values() if c >= n),
-            "answers_needed": regular * batch.answers_per_item, "reserved": reserved, "expired": expired,
-            "workers": {str(w): counts for w, counts in sorted(per_worker.items())}}
+    return {
+        "batch": batch.id,
+        "kind": batch.kind,
+        "items": regular,
+        "gold_items": len(items) - regular,
+        "answers_per_item": n,
+        "answers": len(answers),
+        "regular_answers": sum(min(c, n) for c in usable.values()),
+        "gold_answers": sum(1 for a in answers if items[a[0]].is_gold),
+        "flagged_answers": sum(1 for a in answers if a[3]),
+        "items_done": sum(1 for c in usable.values() if c >= n),
+        "answers_needed": regular * batch.answers_per_item,
+        "reserved": reserved,
+        "expired": expired,
+        "workers": {str(w): counts for w, counts in sorted(per_worker.items())},
+    }
 
 
 def worker_progress() -> list[dict[str, Any]]:
@@ -104,20 +138,30 @@ def worker_progress() -> list[dict[str, Any]]:
     the completion step, ``refused_sessions`` how many got no work from the start (opened where
     a worker flagged in the same study came from; :mod:`annotation.sessions`).
     """
-    sessions = {worker_id: (total, completed or 0, refused or 0)
-                for worker_id, total, completed, refused in db.session.execute(
-                    select(CrowdSession.worker_id, func.count(),
-                           func.sum(case((CrowdSession.completed_at.is_not(None), 1), else_=0)),
-                           func.sum(case((CrowdSession.flagged, 1), else_=0)))
-                    .group_by(CrowdSession.worker_id))}
-    counts = {worker_id: (total, flagged or 0) for worker_id, total, flagged in db.session.execute(
-        select(Answer.worker_id, func.count(), func.sum(case((Answer.flagged, 1), else_=0)))
-        .group_by(Answer.worker_id))}
+    sessions = {
+        worker_id: (total, completed or 0, refused or 0)
+        for worker_id, total, completed, refused in db.session.execute(
+            select(
+                CrowdSession.worker_id,
+                func.count(),
+                func.sum(case((CrowdSession.completed_at.is_not(None), 1), else_=0)),
+                func.sum(case((CrowdSession.flagged, 1), else_=0)),
+            ).group_by(CrowdSession.worker_id)
+        )
+    }
+    counts = {
+        worker_id: (total, flagged or 0)
+        for worker_id, total, flagged in db.session.execute(
+            select(Answer.worker_id, func.count(), func.sum(case((Answer.flagged, 1), else_=0))).group_by(Answer.worker_id)
+        )
+    }
     gold: dict[int, list[int]] = {}
     for worker_id, payload, gold_answer, kind in db.session.execute(
-            select(Answer.worker_id, Answer.payload, BatchItem.gold_answer, Batch.kind)
-            .join(BatchItem, Answer.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id)
-            .where(BatchItem.is_gold.is_(True))):
+        select(Answer.worker_id, Answer.payload, BatchItem.gold_answer, Batch.kind)
+        .join(BatchItem, Answer.item_id == BatchItem.id)
+        .join(Batch, BatchItem.batch_id == Batch.id)
+        .where(BatchItem.is_gold.is_(True))
+    ):
         if gold_answer:
             gold.setdefault(worker_id, []).append(gold_label(kind, payload, gold_answer))
     rows = []
@@ -125,10 +169,20 @@ def worker_progress() -> list[dict[str, Any]]:
         total, flagged = counts.get(worker.id, (0, 0))
         opened, completed, refused = sessions.get(worker.id, (0, 0, 0))
         labels = gold.get(worker.id, [])
-        rows.append({"worker": worker.id, "provider": worker.provider, "name": worker.external_id,
-                     "answers": int(total), "flagged_answers": int(flagged), "gold_correct": sum(labels),
-                     "gold_total": len(labels),
-                     "gold_accuracy": round(sum(labels) / len(labels), 4) if labels else None,
-                     "served": not worker.flagged, "sessions": int(opened),
-                     "completed_sessions": int(completed), "refused_sessions": int(refused)})
+        rows.append(
+            {
+                "worker": worker.id,
+                "provider": worker.provider,
+                "name": worker.external_id,
+                "answers": int(total),
+                "flagged_answers": int(flagged),
+                "gold_correct": sum(labels),
+                "gold_total": len(labels),
+                "gold_accuracy": round(sum(labels) / len(labels), 4) if labels else None,
+                "served": not worker.flagged,
+                "sessions": int(opened),
+                "completed_sessions": int(completed),
+                "refused_sessions": int(refused),
+            }
+        )
     return rows

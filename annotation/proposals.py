@@ -75,9 +75,11 @@ def _pair(metrics: dict[str, Any] | None, left: str, right: str, card: Card) -> 
 
 def _latest_metrics(card_id: int, stage: str) -> dict[str, Any] | None:
     return db.session.scalar(
-        select(StageResult.metrics).where(StageResult.card_id == card_id, StageResult.stage == stage,
-                                          StageResult.status == "done")
-        .order_by(StageResult.created_at.desc(), StageResult.id.desc()).limit(1))
+        select(StageResult.metrics)
+        .where(StageResult.card_id == card_id, StageResult.stage == stage, StageResult.status == "done")
+        .order_by(StageResult.created_at.desc(), StageResult.id.desc())
+        .limit(1)
+    )
 
 
 def photo_area_boxes(card: Card) -> tuple[list[float], list[float]] | None:
@@ -95,7 +97,8 @@ def photo_area_boxes(card: Card) -> tuple[list[float], list[float]] | None:
     try:
         areas = find_photo_areas(read_image(path))
         found: tuple[list[float], list[float]] | None = _pair(
-            {"l": list(areas.left_box), "r": list(areas.right_box)}, "l", "r", card)
+            {"l": list(areas.left_box), "r": list(areas.right_box)}, "l", "r", card
+        )
     except (OSError, ValueError, PipelineError) as exc:  # a missing or unreadable original
         log.warning("no photo areas for card %s: %s", card.id, exc)
         found = None

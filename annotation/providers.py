@@ -128,8 +128,7 @@ class MTurkProvider:
         assignment, hit, worker_id, submit_to = _required(args, "assignmentId", "hitId", "workerId", "turkSubmitTo")
         submit_url = mturk_submit_url(submit_to)
         session = open_session(self.name, worker_id, assignment, hit)
-        return Entry(self.name, session.worker, {"assignment": assignment, "hit": hit, "submit_url": submit_url},
-                     session)
+        return Entry(self.name, session.worker, {"assignment": assignment, "hit": hit, "submit_url": submit_url}, session)
 
     def finish(self, context: dict[str, str]) -> dict[str, Any]:
         return {"post": {"url": context["submit_url"], "fields": {"assignmentId": context["assignment"]}}}
@@ -153,8 +152,9 @@ def sign_entry(entry: Entry) -> str:
     that; it keeps tokens from being guessable from the worker id even if the key leaked partly).
     """
     assert entry.worker is not None and entry.session is not None
-    return _serializer().dumps({"w": entry.worker.id, "s": entry.session.id, "p": entry.provider,
-                                "c": entry.context, "n": secrets.token_hex(4)})
+    return _serializer().dumps(
+        {"w": entry.worker.id, "s": entry.session.id, "p": entry.provider, "c": entry.context, "n": secrets.token_hex(4)}
+    )
 
 
 @dataclass(frozen=True)
@@ -168,12 +168,18 @@ class SignedWorker:
     answered: int  # answers this session stored so far: the progress the page shows
 
 
-_SESSION_STATE = (select(Worker.provider, CrowdSession.worker_id,
-                         select(func.count()).select_from(Answer)
-                         .where(Answer.worker_id == CrowdSession.worker_id, Answer.session_id == CrowdSession.id)
-                         .scalar_subquery())
-                  .join(Worker, Worker.id == CrowdSession.worker_id)
-                  .where(CrowdSession.id == bindparam("session_id")))
+_SESSION_STATE = (
+    select(
+        Worker.provider,
+        CrowdSession.worker_id,
+        select(func.count())
+        .select_from(Answer)
+        .where(Answer.worker_id == CrowdSession.worker_id, Answer.session_id == CrowdSession.id)
+        .scalar_subquery(),
+    )
+    .join(Worker, Worker.id == CrowdSession.worker_id)
+    .where(CrowdSession.id == bindparam("session_id"))
+)
 
 
 def load_signed_worker(token: str | None) -> SignedWorker:

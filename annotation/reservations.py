@@ -78,15 +78,21 @@ class Task:
     expires_at: datetime
 
     def as_json(self) -> dict[str, Any]:
-        return {"token": self.reservation_token, "batch": self.batch_id, "kind": self.kind,
-                "card_width": self.card_size[0], "card_height": self.card_size[1],
-                "expires_at": self.expires_at.isoformat()}
+        return {
+            "token": self.reservation_token,
+            "batch": self.batch_id,
+            "kind": self.kind,
+            "card_width": self.card_size[0],
+            "card_height": self.card_size[1],
+            "expires_at": self.expires_at.isoformat(),
+        }
 
 
 def task_of(reservation: Reservation) -> Task:
     item, card = reservation.item, reservation.item.card
-    return Task(reservation.token, item.batch_id, item.batch.kind, card.id, (card.width, card.height),
-                as_utc(reservation.expires_at))
+    return Task(
+        reservation.token, item.batch_id, item.batch.kind, card.id, (card.width, card.height), as_utc(reservation.expires_at)
+    )
 
 
 def release_lapsed_holds(now: datetime) -> int:
@@ -118,8 +124,7 @@ def open_tasks(worker: Worker | int, kind: str, now: datetime, session: int | No
     return [Task(r.token, r.batch_id, r.kind, r.card_id, (r.width, r.height), as_utc(r.expires_at)) for r in rows]
 
 
-def _hold(row: Any, worker_id: int, session: int | None, batch_id: int, kind: str, now: datetime,
-          expires_at: datetime) -> Task:
+def _hold(row: Any, worker_id: int, session: int | None, batch_id: int, kind: str, now: datetime, expires_at: datetime) -> Task:
     """Reserve the item of a walk row for the worker's session: renew their lapsed reservation or insert one.
 
     A lapsed reservation of another session of the same worker gets a new token: the old
@@ -127,17 +132,29 @@ def _hold(row: Any, worker_id: int, session: int | None, batch_id: int, kind: st
     """
     if row.mine is not None:
         token = row.mine_token if row.mine_session == session else secrets.token_urlsafe(24)
-        run_prebuilt(RENEW_RESERVATION, {"reservation_id": row.mine, "expires": expires_at, "created": now,
-                                         "holder": session, "new_token": token})
+        run_prebuilt(
+            RENEW_RESERVATION,
+            {"reservation_id": row.mine, "expires": expires_at, "created": now, "holder": session, "new_token": token},
+        )
     else:
         token = secrets.token_urlsafe(24)
-        run_prebuilt(INSERT_RESERVATION, {"item_id": row.id, "worker_id": worker_id, "session_id": session, "token": token,
-                                          "created_at": now, "expires_at": expires_at})
+        run_prebuilt(
+            INSERT_RESERVATION,
+            {
+                "item_id": row.id,
+                "worker_id": worker_id,
+                "session_id": session,
+                "token": token,
+                "created_at": now,
+                "expires_at": expires_at,
+            },
+        )
     return Task(token, batch_id, kind, row.card_id, (row.width, row.height), as_utc(expires_at))
 
 
-def _reserve_in_batch(batch: Any, worker_id: int, session: int | None, kind: str, wanted: int,
-                      now: datetime) -> tuple[list[Task], strategy.NoTask | None]:
+def _reserve_in_batch(
+    batch: Any, worker_id: int, session: int | None, kind: str, wanted: int, now: datetime
+) -> tuple[list[Task], strategy.NoTask | None]:
     """Inside the write transaction: up to ``wanted`` tasks of one batch for the worker, and why no more.
 
     The same rules as :func:`annotation.assignment.next_assignment` (a test holds the two to
@@ -148,8 +165,7 @@ def _reserve_in_batch(batch: Any, worker_id: int, session: int | None, kind: str
     regular = list(run_prebuilt(OPEN_ITEMS if on_sqlite() else OPEN_ITEMS_LOCKED, params))
     if not regular:
         return [], _why_nothing(batch_id, n, worker_id)
-    policy = strategy.AssignmentPolicy(answers_per_item=n, gold_rate=gold_rate, reservation_ttl=reservation_ttl(),
-                                       seed=batch_id)
+    policy = strategy.AssignmentPolicy(answers_per_item=n, gold_rate=gold_rate, reservation_ttl=reservation_ttl(), seed=batch_id)
     expires_at = now + policy.reservation_ttl
     served = run_prebuilt(SERVED, params).scalar() if gold_rate > 0 else 0
     gold: dict[int, Any] | None = None  # read on the first gold draw only (one draw in ten by default)
@@ -159,8 +175,7 @@ def _reserve_in_batch(batch: Any, worker_id: int, session: int | None, kind: str
             if gold is None:
                 gold = {row.id: row for row in run_prebuilt(OPEN_GOLD, params)}
             if gold:  # none left unseen by this worker: regular work, as the pure strategy does
-                pick = strategy.least_seen_gold({item_id: row.answers for item_id, row in gold.items()},
-                                                worker_id, policy)
+                pick = strategy.least_seen_gold({item_id: row.answers for item_id, row in gold.items()}, worker_id, policy)
                 taken.append(gold.pop(int(pick)))
                 served += 1
                 continue
@@ -182,8 +197,9 @@ def _why_nothing(batch_id: int, n: int, worker_id: int) -> strategy.NoTask:
     return strategy.NoTask(strategy.NoTaskReason.NOTHING_LEFT_FOR_WORKER)
 
 
-def next_tasks(worker: Worker | int, kind: str = "judge", hold: int = 2, now: datetime | None = None,
-               session: int | None = None) -> tuple[list[Task], strategy.NoTask | None]:
+def next_tasks(
+    worker: Worker | int, kind: str = "judge", hold: int = 2, now: datetime | None = None, session: int | None = None
+) -> tuple[list[Task], strategy.NoTask | None]:
     """The open tasks of the worker's ``session``, topping up to ``hold`` of them (the page preloads the second).
 
     The N-answers rule is the worker's, across sessions: no session gets an item the worker
@@ -209,8 +225,9 @@ def next_tasks(worker: Worker | int, kind: str = "judge", hold: int = 2, now: da
     return tasks, why
 
 
-def _top_up(worker_id: int, session: int | None, kind: str, hold: int,
-            now: datetime) -> tuple[list[Task], strategy.NoTask | None]:
+def _top_up(
+    worker_id: int, session: int | None, kind: str, hold: int, now: datetime
+) -> tuple[list[Task], strategy.NoTask | None]:
     """:func:`next_tasks` inside its write transaction.
 
     Why one transaction and not a read first: in the steady state the worker holds one task
@@ -240,11 +257,11 @@ def _top_up(worker_id: int, session: int | None, kind: str, hold: int,
 
 def store_reservation(item_id: int, worker_id: int, session: int | None, expires_at: datetime) -> Reservation:
     # A lapsed reservation of the same worker on the same item is renewed, not duplicated.
-    row = db.session.scalar(select(Reservation).where(Reservation.item_id == item_id,
-                                                      Reservation.worker_id == worker_id))
+    row = db.session.scalar(select(Reservation).where(Reservation.item_id == item_id, Reservation.worker_id == worker_id))
     if row is None:
-        row = Reservation(item_id=item_id, worker_id=worker_id, session_id=session, token=secrets.token_urlsafe(24),
-                          expires_at=expires_at)
+        row = Reservation(
+            item_id=item_id, worker_id=worker_id, session_id=session, token=secrets.token_urlsafe(24), expires_at=expires_at
+        )
         db.session.add(row)
     else:
         if row.session_id != session:
@@ -259,8 +276,7 @@ def reservation_by_token(token: str) -> Reservation | None:
     return db.session.scalar(select(Reservation).where(Reservation.token == token))
 
 
-def renew_reservation(worker: Worker | int, token: Any, now: datetime | None = None,
-                      session: int | None = None) -> Task:
+def renew_reservation(worker: Worker | int, token: Any, now: datetime | None = None, session: int | None = None) -> Task:
     """Extend the worker's reservation ``token`` (open or lapsed) by the reservation time, if it still can be held.
 
     It can while it is unanswered and the item has a free slot or this reservation still

@@ -40,8 +40,14 @@ class AggregationReport:
     agreement: dict[str, dict[str, float | None]] = field(default_factory=dict)
 
     def as_json(self) -> dict[str, Any]:
-        return {"batch": self.batch_id, "approved": self.approved, "needs_curator": self.needs_curator,
-                "pending": self.pending, "flagged_workers": self.flagged_workers, "agreement": self.agreement}
+        return {
+            "batch": self.batch_id,
+            "approved": self.approved,
+            "needs_curator": self.needs_curator,
+            "pending": self.pending,
+            "flagged_workers": self.flagged_workers,
+            "agreement": self.agreement,
+        }
 
 
 def _figure(compute: Any, *args: Any, **kwargs: Any) -> float | None:
@@ -68,9 +74,11 @@ def batch_agreement(kind: str, answers: Sequence[Answer], items: Iterable[int]) 
             for a in answers:
                 if a.item_id in column and q in a.payload:
                     R[row[a.worker_id], column[a.item_id]] = float(bool(a.payload[q]))
-            out[q] = {"percent_agreement": _figure(percent_agreement, R),
-                      "krippendorff_alpha": _figure(krippendorff_alpha_nominal, R),
-                      "gwet_ac1": _figure(gwet_ac1, R, n_categories=2)}
+            out[q] = {
+                "percent_agreement": _figure(percent_agreement, R),
+                "krippendorff_alpha": _figure(krippendorff_alpha_nominal, R),
+                "gwet_ac1": _figure(gwet_ac1, R, n_categories=2),
+            }
         return out
     wanted = set(item_ids)
     units: dict[str, dict[int, list[list[float]]]] = {h: {} for h in HALVES}
@@ -78,14 +86,16 @@ def batch_agreement(kind: str, answers: Sequence[Answer], items: Iterable[int]) 
         if a.item_id in wanted:
             for h in HALVES:
                 units[h].setdefault(a.item_id, []).append(a.payload[h])
-    return {h: {"krippendorff_alpha": _figure(krippendorff_alpha_boxes, [np.array(u) for u in units[h].values()])}
-            for h in HALVES}
+    return {
+        h: {"krippendorff_alpha": _figure(krippendorff_alpha_boxes, [np.array(u) for u in units[h].values()])} for h in HALVES
+    }
 
 
 def _judgement(payload: Mapping[str, Any]) -> Judgement:
     """A stored judge answer (or gold answer) as a :class:`Judgement`; a question not asked is None."""
-    return Judgement(**{q: bool(payload[q]) for q in QUESTIONS},
-                     **{q: bool(payload[q]) for q in OPTIONAL_QUESTIONS if q in payload})
+    return Judgement(
+        **{q: bool(payload[q]) for q in QUESTIONS}, **{q: bool(payload[q]) for q in OPTIONAL_QUESTIONS if q in payload}
+    )
 
 
 def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> AggregationReport:
@@ -101,13 +111,11 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
         raise TaskError(f"No batch {batch_id}", 404)
     quality = update_worker_quality()
     items = {it.id: it for it in batch.items}
-    answers = list(db.session.scalars(select(Answer).where(Answer.item_id.in_(list(items)),
-                                                           Answer.flagged.is_(False))))
+    answers = list(db.session.scalars(select(Answer).where(Answer.item_id.in_(list(items)), Answer.flagged.is_(False))))
     by_item: dict[int, list[Answer]] = {}
     for answer in answers:
         by_item.setdefault(answer.item_id, []).append(answer)
-    finished = [it for it in items.values()
-                if not it.is_gold and len(by_item.get(it.id, [])) >= batch.answers_per_item]
+    finished = [it for it in items.values() if not it.is_gold and len(by_item.get(it.id, [])) >= batch.answers_per_item]
     pending = sum(1 for it in items.values() if not it.is_gold) - len(finished)
     results: dict[int, tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]] = {}
     if batch.kind == "judge" and finished:
@@ -120,23 +128,24 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
             label = {q: bool(ds[q].label_of(it.id)) for q in here}
             posterior = {q: [round(float(p), 6) for p in ds[q].posterior(it.id)] for q in here}
             asked = here if label["is_stereo"] else ["is_stereo"]
-            reasons = unconfident_reasons({q: float(ds[q].posterior(it.id)[int(label[q])]) for q in asked},
-                                          rules=rules)
+            reasons = unconfident_reasons({q: float(ds[q].posterior(it.id)[int(label[q])]) for q in asked}, rules=rules)
             results[it.id] = (posterior, label, reasons)
     elif batch.kind == "crop":
         for it in finished:
             card = it.card
-            consensus = {h: consensus_box([a.payload[h] for a in by_item[it.id]], image_size=(card.width, card.height))
-                         for h in HALVES}
+            consensus = {
+                h: consensus_box([a.payload[h] for a in by_item[it.id]], image_size=(card.width, card.height)) for h in HALVES
+            }
             label = {h: [round(v, 2) for v in c.box] for h, c in consensus.items()}
-            posterior = {h: {"kept": c.kept, "dropped": c.dropped, "mad": list(c.mad), "mean_iou": c.mean_iou}
-                         for h, c in consensus.items()}
+            posterior = {
+                h: {"kept": c.kept, "dropped": c.dropped, "mad": list(c.mad), "mean_iou": c.mean_iou}
+                for h, c in consensus.items()
+            }
             results[it.id] = (posterior, label, unconfident_reasons(boxes=consensus, rules=rules))
     approved = needs = 0
     for item_id, (posterior, label, reasons) in results.items():
         it = items[item_id]
-        row = db.session.scalar(select(Aggregate).where(Aggregate.batch_id == batch.id,
-                                                        Aggregate.card_id == it.card_id))
+        row = db.session.scalar(select(Aggregate).where(Aggregate.batch_id == batch.id, Aggregate.card_id == it.card_id))
         if row is not None and row.resolved_by is not None:
             # A curator's decision is the card's truth: re-aggregating never overwrites it.
             approved += 1
@@ -151,5 +160,11 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
         needs += bool(reasons)
     db.session.commit()
     regular = [it.id for it in items.values() if not it.is_gold]
-    return AggregationReport(batch.id, approved, needs, pending, sum(1 for q in quality.values() if q["flagged"]),
-                             batch_agreement(batch.kind, answers, regular))
+    return AggregationReport(
+        batch.id,
+        approved,
+        needs,
+        pending,
+        sum(1 for q in quality.values() if q["flagged"]),
+        batch_agreement(batch.kind, answers, regular),
+    )

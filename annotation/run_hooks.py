@@ -19,7 +19,7 @@ def _aggregates(card_ids: list[int], approved_only: bool) -> dict[int, dict[str,
     """The latest aggregate per card and task kind: ``{card: {"judge": Aggregate, "crop": Aggregate}}``."""
     found: dict[int, dict[str, Any]] = {}
     for start in range(0, len(card_ids), CHUNK):
-        query = select(Aggregate).where(Aggregate.card_id.in_(card_ids[start:start + CHUNK]))
+        query = select(Aggregate).where(Aggregate.card_id.in_(card_ids[start : start + CHUNK]))
         if approved_only:
             query = query.where(Aggregate.state == "approved")
         for row in db.session.scalars(query.order_by(Aggregate.id)):

@@ -106,36 +106,59 @@ def _check_limit(where: object, limit: int, window: timedelta, now: datetime, wh
     ).one()
     if count >= limit:
         retry = max(1, math.ceil((_as_utc(oldest) + window - now).total_seconds()))
-        raise TaskError(f"Too many new sessions {what} ({count} in the last {int(window.total_seconds())} s); "
-                        f"try again in {retry} s", 429, retry_after=retry)
+        raise TaskError(
+            f"Too many new sessions {what} ({count} in the last {int(window.total_seconds())} s); try again in {retry} s",
+            429,
+            retry_after=retry,
+        )
 
 
 def check_session_limits(provider: str, study: str, address: str, now: datetime) -> None:
     """TaskError 429 when opening one more session would pass the per-address or per-study limit."""
     window = timedelta(seconds=_limit("KEYSTONE_CROWD_SESSION_WINDOW_S", DEFAULT_SESSION_WINDOW_S))
-    _check_limit(CrowdSession.address == address,
-                 _limit("KEYSTONE_CROWD_SESSIONS_PER_ADDRESS", DEFAULT_SESSIONS_PER_ADDRESS), window, now,
-                 "from your network address")
-    _check_limit((CrowdSession.provider == provider) & (CrowdSession.study == study),
-                 _limit("KEYSTONE_CROWD_SESSIONS_PER_STUDY", DEFAULT_SESSIONS_PER_STUDY), window, now,
-                 "in this study")
+    _check_limit(
+        CrowdSession.address == address,
+        _limit("KEYSTONE_CROWD_SESSIONS_PER_ADDRESS", DEFAULT_SESSIONS_PER_ADDRESS),
+        window,
+        now,
+        "from your network address",
+    )
+    _check_limit(
+        (CrowdSession.provider == provider) & (CrowdSession.study == study),
+        _limit("KEYSTONE_CROWD_SESSIONS_PER_STUDY", DEFAULT_SESSIONS_PER_STUDY),
+        window,
+        now,
+        "in this study",
+    )
 
 
 def _address_flagged_in_study(provider: str, study: str, address: str) -> bool:
     """Whether a worker flagged on gold opened a session of this study from this address."""
     if not current_app.config.get("KEYSTONE_CROWD_FLAG_SHARED_ADDRESS", DEFAULT_FLAG_SHARED_ADDRESS):
         return False
-    return db.session.scalar(
-        select(CrowdSession.id).join(Worker, Worker.id == CrowdSession.worker_id)
-        .where(CrowdSession.provider == provider, CrowdSession.study == study, CrowdSession.address == address,
-               Worker.flagged.is_(True)).limit(1)) is not None
+    return (
+        db.session.scalar(
+            select(CrowdSession.id)
+            .join(Worker, Worker.id == CrowdSession.worker_id)
+            .where(
+                CrowdSession.provider == provider,
+                CrowdSession.study == study,
+                CrowdSession.address == address,
+                Worker.flagged.is_(True),
+            )
+            .limit(1)
+        )
+        is not None
+    )
 
 
 def _existing(provider: str, participant: str, session_key: str, study: str) -> CrowdSession | None:
     """The session with this key, if it is this participant's in this study; 409 if it is not."""
-    row = db.session.execute(select(CrowdSession, Worker.external_id).join(Worker, Worker.id == CrowdSession.worker_id)
-                             .where(CrowdSession.provider == provider,
-                                    CrowdSession.external_id == session_key)).first()
+    row = db.session.execute(
+        select(CrowdSession, Worker.external_id)
+        .join(Worker, Worker.id == CrowdSession.worker_id)
+        .where(CrowdSession.provider == provider, CrowdSession.external_id == session_key)
+    ).first()
     if row is None:
         return None
     session, owner = row
@@ -158,8 +181,7 @@ def _serialize_openings(provider: str, study: str, address: str) -> None:
         db.session.execute(text("SELECT pg_advisory_xact_lock(hashtext(:key))"), {"key": key})
 
 
-def open_session(provider: str, participant: str, session_key: str, study: str, *,
-                 _retry: bool = True) -> CrowdSession:
+def open_session(provider: str, participant: str, session_key: str, study: str, *, _retry: bool = True) -> CrowdSession:
     """The participant's session ``session_key``: the one they opened before, or a new one.
 
     A new one passes the creation limits first (429 over them), then finds or makes the worker,
@@ -179,9 +201,15 @@ def open_session(provider: str, participant: str, session_key: str, study: str, 
     if worker is None:
         worker = Worker(provider=provider, external_id=participant, token=secrets.token_urlsafe(24))
         db.session.add(worker)
-    session = CrowdSession(worker=worker, provider=provider, external_id=session_key, study=study,
-                           address=address, flagged=_address_flagged_in_study(provider, study, address),
-                           created_at=now)
+    session = CrowdSession(
+        worker=worker,
+        provider=provider,
+        external_id=session_key,
+        study=study,
+        address=address,
+        flagged=_address_flagged_in_study(provider, study, address),
+        created_at=now,
+    )
     db.session.add(session)
     try:
         db.session.commit()
@@ -205,8 +233,7 @@ def invite_session(worker: Worker) -> CrowdSession:
     session = db.session.scalar(query)
     if session is not None:
         return session
-    session = CrowdSession(worker_id=worker.id, provider="invite", external_id=key, study="",
-                           address="", flagged=False)
+    session = CrowdSession(worker_id=worker.id, provider="invite", external_id=key, study="", address="", flagged=False)
     db.session.add(session)
     try:
         db.session.commit()

@@ -66,9 +66,11 @@ def crop_truth_from_filter(card_id: int) -> dict[str, list[float]] | None:
     mount's edge out of the crop, as an annotator asked for the artifact-free part would.
     """
     metrics = db.session.scalar(
-        select(StageResult.metrics).where(StageResult.card_id == card_id, StageResult.stage == "filter",
-                                          StageResult.status == "done")
-        .order_by(StageResult.created_at.desc(), StageResult.id.desc()).limit(1))
+        select(StageResult.metrics)
+        .where(StageResult.card_id == card_id, StageResult.stage == "filter", StageResult.status == "done")
+        .order_by(StageResult.created_at.desc(), StageResult.id.desc())
+        .limit(1)
+    )
     if not metrics or "left_box" not in metrics or "right_box" not in metrics:
         return None
     truth = {}
@@ -89,8 +91,16 @@ def _clamp_box(box: Sequence[float], size: tuple[int, int], minimum: float) -> l
     return [round(v, 1) for v in (x0, y0, x1, y1)]
 
 
-def simulated_answer(kind: str, truth: Mapping[str, Any], worker: SimulatedWorker, size: tuple[int, int],
-                     rng: np.random.Generator, *, hard: bool = False, min_box: float = DEFAULT_MIN_BOX_PX) -> dict[str, Any]:
+def simulated_answer(
+    kind: str,
+    truth: Mapping[str, Any],
+    worker: SimulatedWorker,
+    size: tuple[int, int],
+    rng: np.random.Generator,
+    *,
+    hard: bool = False,
+    min_box: float = DEFAULT_MIN_BOX_PX,
+) -> dict[str, Any]:
     """One worker's answer for one card, by the noise model in the module docstring."""
     if kind == "judge":
         if worker.spammer:
@@ -119,8 +129,9 @@ def simulated_answer(kind: str, truth: Mapping[str, Any], worker: SimulatedWorke
     return answer
 
 
-def _truths(card_ids: Sequence[int], kind: str,
-            given: Mapping[int, Mapping[str, Any]]) -> tuple[dict[int, dict[str, Any]], list[dict[str, Any]]]:
+def _truths(
+    card_ids: Sequence[int], kind: str, given: Mapping[int, Mapping[str, Any]]
+) -> tuple[dict[int, dict[str, Any]], list[dict[str, Any]]]:
     truths: dict[int, dict[str, Any]] = {}
     skipped: list[dict[str, Any]] = []
     for card_id in dict.fromkeys(card_ids):
@@ -140,9 +151,17 @@ def _truths(card_ids: Sequence[int], kind: str,
     return truths, skipped
 
 
-def seed_simulated_crowd(card_ids: Sequence[int], *, kind: str, workers: int = 6, seed: int = 0,
-                         truth: dict[int, dict[str, Any]] | None = None, n: int | None = None,
-                         gold: Mapping[int, dict[str, Any]] | None = None, gold_rate: float = 0.3) -> dict[str, Any]:
+def seed_simulated_crowd(
+    card_ids: Sequence[int],
+    *,
+    kind: str,
+    workers: int = 6,
+    seed: int = 0,
+    truth: dict[int, dict[str, Any]] | None = None,
+    n: int | None = None,
+    gold: Mapping[int, dict[str, Any]] | None = None,
+    gold_rate: float = 0.3,
+) -> dict[str, Any]:
     """Create a batch over ``card_ids``, let ``workers`` simulated workers answer it, aggregate it.
 
     Args:
@@ -187,19 +206,35 @@ def seed_simulated_crowd(card_ids: Sequence[int], *, kind: str, workers: int = 6
         if missing:
             raise TaskError(f"No card with id {', '.join(map(str, missing))}", 404)
         truths, skipped = _truths(card_ids, kind, truth or {})
-        sizes = {c.id: (c.width, c.height)
-                 for c in db.session.scalars(select(Card).where(Card.id.in_([*truths, *gold])))}
-    summary: dict[str, Any] = {"batch": None, "kind": kind, "cards": sorted(truths), "gold_cards": sorted(gold),
-                               "hard_card": None,
-                               "skipped": skipped, "workers": [], "answers": 0, "approved": 0, "needs_curator": 0,
-                               "pending": 0, "flagged_workers": 0, "agreement": {}}
+        sizes = {c.id: (c.width, c.height) for c in db.session.scalars(select(Card).where(Card.id.in_([*truths, *gold])))}
+    summary: dict[str, Any] = {
+        "batch": None,
+        "kind": kind,
+        "cards": sorted(truths),
+        "gold_cards": sorted(gold),
+        "hard_card": None,
+        "skipped": skipped,
+        "workers": [],
+        "answers": 0,
+        "approved": 0,
+        "needs_curator": 0,
+        "pending": 0,
+        "flagged_workers": 0,
+        "agreement": {},
+    }
     if not truths:
         return summary
     hard = int(rng.choice(sorted(truths))) if len(truths) >= 3 else None
     min_box = float(current_app.config.get("KEYSTONE_CROWD_MIN_BOX_PX", DEFAULT_MIN_BOX_PX))
-    crowd = [SimulatedWorker(get_or_create_worker("invite", f"sim-{seed}-{i}").id, f"sim-{seed}-{i}",
-                             HONEST_ACCURACY[i % len(HONEST_ACCURACY)] if i < workers - 1 else 0.5, i == workers - 1)
-             for i in range(workers)]
+    crowd = [
+        SimulatedWorker(
+            get_or_create_worker("invite", f"sim-{seed}-{i}").id,
+            f"sim-{seed}-{i}",
+            HONEST_ACCURACY[i % len(HONEST_ACCURACY)] if i < workers - 1 else 0.5,
+            i == workers - 1,
+        )
+        for i in range(workers)
+    ]
     batch_id = create_batch(sorted(truths), kind, n, gold_rate if gold else 0.0, gold=gold).id
     known = {**truths, **gold}
     answers, step, progress = 0, 0, True
@@ -210,16 +245,25 @@ def seed_simulated_crowd(card_ids: Sequence[int], *, kind: str, workers: int = 6
             if not tasks:
                 continue
             task = tasks[0]
-            answer = simulated_answer(kind, known[task.card_id], worker, sizes[task.card_id], rng,
-                                      hard=task.card_id == hard, min_box=min_box)
+            answer = simulated_answer(
+                kind, known[task.card_id], worker, sizes[task.card_id], rng, hard=task.card_id == hard, min_box=min_box
+            )
             step += 1
             result = submit(worker.worker_id, task.reservation_token, answer, f"sim-{seed}-{batch_id}-{step:06d}")
             answers += not result.duplicate
             progress = True
     report = aggregate_batch(batch_id)
-    summary.update({"batch": batch_id, "hard_card": hard, "answers": answers, "approved": report.approved,
-                    "needs_curator": report.needs_curator, "pending": report.pending,
-                    "flagged_workers": report.flagged_workers, "agreement": report.agreement,
-                    "workers": [{"worker": w.worker_id, "name": w.name, "accuracy": w.accuracy, "spammer": w.spammer}
-                                for w in crowd]})
+    summary.update(
+        {
+            "batch": batch_id,
+            "hard_card": hard,
+            "answers": answers,
+            "approved": report.approved,
+            "needs_curator": report.needs_curator,
+            "pending": report.pending,
+            "flagged_workers": report.flagged_workers,
+            "agreement": report.agreement,
+            "workers": [{"worker": w.worker_id, "name": w.name, "accuracy": w.accuracy, "spammer": w.spammer} for w in crowd],
+        }
+    )
     return summary

@@ -63,16 +63,25 @@ def batches() -> str:
     with read_only():
         rows = [batch_progress(b) for b in db.session.scalars(select(Batch).order_by(Batch.id.desc()))]
         workers = {w.id: w for w in db.session.scalars(select(Worker))}
-        invited = [w for w in workers.values() if w.provider == "invite" and w.person_id is None
-                   and not w.external_id.startswith("sim-")]
+        invited = [
+            w for w in workers.values() if w.provider == "invite" and w.person_id is None and not w.external_id.startswith("sim-")
+        ]
         review_queue = len(review_queue_card_ids())
-        prolific = db.session.scalar(select(func.count()).select_from(CrowdSession)
-                                     .where(CrowdSession.provider == "prolific")) or 0
-        return render_template("annotation/batches.html", batches=rows, workers=workers, crowd=worker_progress(),
-                               invited=sorted(invited, key=lambda w: w.id), review_queue=review_queue,
-                               prolific_sessions=prolific, kinds=TASK_KINDS,
-                               configured=bool(current_app.config.get("KEYSTONE_PROLIFIC_COMPLETION_CODE")),
-                               submission_checks=None)
+        prolific = (
+            db.session.scalar(select(func.count()).select_from(CrowdSession).where(CrowdSession.provider == "prolific")) or 0
+        )
+        return render_template(
+            "annotation/batches.html",
+            batches=rows,
+            workers=workers,
+            crowd=worker_progress(),
+            invited=sorted(invited, key=lambda w: w.id),
+            review_queue=review_queue,
+            prolific_sessions=prolific,
+            kinds=TASK_KINDS,
+            configured=bool(current_app.config.get("KEYSTONE_PROLIFIC_COMPLETION_CODE")),
+            submission_checks=None,
+        )
 
 
 @bp.route("/batches/new", methods=["POST"])
@@ -91,9 +100,11 @@ def new_batch() -> Response:
         raise TaskError("No cards: tick 'the review queue' (it must not be empty) or list card ids")
     batch = create_batch(ids, kind, n, gold_rate, created_by=current_user.id)
     progress = batch_progress(batch)
-    flash(f"Batch {batch.id} created: {progress['items']} {kind} cards, {n} answers each "
-          f"({progress['answers_needed']} answers needed). Annotators with an invite link get it on their next visit.",
-          "success")
+    flash(
+        f"Batch {batch.id} created: {progress['items']} {kind} cards, {n} answers each "
+        f"({progress['answers_needed']} answers needed). Annotators with an invite link get it on their next visit.",
+        "success",
+    )
     return _back()
 
 
@@ -115,8 +126,12 @@ def flag_worker(worker_id: int) -> Response:
     flagged = request.form.get("flagged") == "1"
     worker = set_worker_flag(worker_id, flagged)
     name = f"{worker.provider}:{worker.external_id}"
-    flash(f"Flagged {name}: their answers leave the results and they get no more cards." if flagged else
-          f"Cleared {name}: their answers count again and they are served again.", "success")
+    flash(
+        f"Flagged {name}: their answers leave the results and they get no more cards."
+        if flagged
+        else f"Cleared {name}: their answers count again and they are served again.",
+        "success",
+    )
     return _back()
 
 
@@ -134,9 +149,12 @@ def check_submissions() -> str:
     with read_only():
         checks = check_prolific_submissions(participants, study)
     approve = [c.participant for c in checks if c.decision == "approve"]
-    flash(f"Checked {len(checks)} submissions: {len(approve)} to approve, "
-          f"{sum(c.decision == 'reject' for c in checks)} to reject, "
-          f"{sum(c.decision == 'unknown' for c in checks)} unknown.", "success")
+    flash(
+        f"Checked {len(checks)} submissions: {len(approve)} to approve, "
+        f"{sum(c.decision == 'reject' for c in checks)} to reject, "
+        f"{sum(c.decision == 'unknown' for c in checks)} unknown.",
+        "success",
+    )
     return render_template("annotation/submissions.html", checks=checks, approve=approve, study=study)
 
 

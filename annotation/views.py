@@ -71,8 +71,9 @@ bp.record_once(lambda state: add_nav_link(state.app, "My tasks", "crowd.mine", "
 
 TOKEN_HEADER = "X-Crowd-Token"
 # Curators' pages (annotation.staff_views): their errors render in the staff layout.
-STAFF_ENDPOINTS = frozenset({"crowd.batches", "crowd.new_batch", "crowd.new_invite", "crowd.flag_worker",
-                             "crowd.check_submissions", "crowd.answers_csv"})
+STAFF_ENDPOINTS = frozenset(
+    {"crowd.batches", "crowd.new_batch", "crowd.new_invite", "crowd.flag_worker", "crowd.check_submissions", "crowd.answers_csv"}
+)
 
 
 @bp.errorhandler(TaskError)
@@ -83,8 +84,11 @@ def task_error(error: TaskError) -> Any:
         return jsonify({"error": {"code": error.status, "message": error.message}}), error.status, headers
     if request.endpoint in STAFF_ENDPOINTS:
         return render_template("annotation/staff_message.html", message=error.message), error.status, headers
-    return (render_template("annotation/message.html", title="Cannot open this task", message=error.message),
-            error.status, headers)
+    return (
+        render_template("annotation/message.html", title="Cannot open this task", message=error.message),
+        error.status,
+        headers,
+    )
 
 
 def _answered(worker: Worker | int, session: int) -> int:
@@ -99,12 +103,17 @@ def _finished_words(entry: Entry) -> tuple[str, str]:
         return "Thank you", "Thank you for your work; there are no more tasks for you."
     minutes = int(float(current_app.config.get("KEYSTONE_CROWD_RESERVATION_MINUTES", DEFAULT_RESERVATION_MINUTES)))
     if any_unfinished_batch():
-        return ("Nothing for you right now",
-                (f"Other people hold the remaining cards. Come back in about {minutes} minutes with this same link: "
-                 "cards they do not finish come back to you."))
-    return ("All done, thank you!",
-            ("You have answered every card open to you. New cards may open later: keep this link, it brings you "
-             "back to your place."))
+        return (
+            "Nothing for you right now",
+            (
+                f"Other people hold the remaining cards. Come back in about {minutes} minutes with this same link: "
+                "cards they do not finish come back to you."
+            ),
+        )
+    return (
+        "All done, thank you!",
+        ("You have answered every card open to you. New cards may open later: keep this link, it brings you back to your place."),
+    )
 
 
 def _task_page(entry: Entry) -> str:
@@ -127,13 +136,22 @@ def _task_page(entry: Entry) -> str:
     finished = entry.worker is not None and not forced and not kinds
     title, message = _finished_words(entry) if finished else ("", "")
     answered = _answered(entry.worker, entry.session.id) if entry.worker is not None and entry.session else 0
-    here = url_for(request.endpoint or "crowd.invite", **(request.view_args or {}),
-                   **{k: v for k, v in request.args.items() if k != "kind"})
-    return render_template(f"annotation/{kind}.html", entry=entry, worker_token=worker_token, answered=answered,
-                           min_box=current_app.config.get("KEYSTONE_CROWD_MIN_BOX_PX", DEFAULT_MIN_BOX_PX),
-                           finished=finished, finished_title=title, finished_message=message,
-                           next_kind_url=(here + ("&" if "?" in here else "?") + f"kind={later[0]}") if later else "",
-                           entry_url=here, examples=EXAMPLES)
+    here = url_for(
+        request.endpoint or "crowd.invite", **(request.view_args or {}), **{k: v for k, v in request.args.items() if k != "kind"}
+    )
+    return render_template(
+        f"annotation/{kind}.html",
+        entry=entry,
+        worker_token=worker_token,
+        answered=answered,
+        min_box=current_app.config.get("KEYSTONE_CROWD_MIN_BOX_PX", DEFAULT_MIN_BOX_PX),
+        finished=finished,
+        finished_title=title,
+        finished_message=message,
+        next_kind_url=(here + ("&" if "?" in here else "?") + f"kind={later[0]}") if later else "",
+        entry_url=here,
+        examples=EXAMPLES,
+    )
 
 
 @bp.route("/invite/<token>")
@@ -208,8 +226,9 @@ def _api_entry() -> tuple[SignedWorker, dict[str, Any]]:
 def _task_json(task: Any) -> dict[str, Any]:
     document = {**task.as_json(), "image_url": url_for("crowd.task_image", token=task.reservation_token)}
     if task.kind == "judge":
-        document["wiggle_urls"] = {order: url_for("crowd.task_wiggle", token=task.reservation_token, order=order)
-                                   for order in WIGGLE_ORDERS}
+        document["wiggle_urls"] = {
+            order: url_for("crowd.task_wiggle", token=task.reservation_token, order=order) for order in WIGGLE_ORDERS
+        }
     else:
         with read_only():
             card = db.session.get(Card, task.card_id)
@@ -231,10 +250,15 @@ def api_next() -> Any:
     if kind not in TASK_KINDS:
         raise TaskError(f"Expected kind judge or crop, got {kind!r}")
     tasks, why = next_tasks(caller.worker_id, kind, session=caller.session_id)
-    return jsonify({"tasks": [_task_json(t) for t in tasks], "answered": caller.answered,
-                    "positions": _positions(caller.worker_id, tasks),
-                    "reason": why.reason.value if why else None,
-                    "retry_after": why.retry_after.isoformat() if why and why.retry_after else None})
+    return jsonify(
+        {
+            "tasks": [_task_json(t) for t in tasks],
+            "answered": caller.answered,
+            "positions": _positions(caller.worker_id, tasks),
+            "reason": why.reason.value if why else None,
+            "retry_after": why.retry_after.isoformat() if why and why.retry_after else None,
+        }
+    )
 
 
 @csrf.exempt
@@ -242,8 +266,7 @@ def api_next() -> Any:
 def api_submit() -> Any:
     caller, body = _api_entry()
     result = submit(caller.worker_id, body.get("token"), body.get("answer"), body.get("key"), session=caller.session_id)
-    document = {"answer": result.answer_id, "duplicate": result.duplicate,
-                "answered": caller.answered + (not result.duplicate)}
+    document = {"answer": result.answer_id, "duplicate": result.duplicate, "answered": caller.answered + (not result.duplicate)}
     if caller.provider == "mturk":
         document["finish"] = PROVIDERS["mturk"].finish(caller.context)
     return jsonify(document), 200 if result.duplicate else 201
@@ -280,14 +303,21 @@ def finish() -> Response:
     except TaskError:
         # Prolific with no completion code configured: the answers are saved and the session is
         # complete; say so, and what to tell the researcher, rather than fail the participant.
-        outcome = {"message": "Your answers are saved and your session is recorded as complete. This study "
-                              "has no completion code set up here, so you cannot be sent back to Prolific "
-                              "automatically: return to Prolific and message the researcher, quoting your "
-                              f"session {caller.context.get('session', '')}."}
+        outcome = {
+            "message": "Your answers are saved and your session is recorded as complete. This study "
+            "has no completion code set up here, so you cannot be sent back to Prolific "
+            "automatically: return to Prolific and message the researcher, quoting your "
+            f"session {caller.context.get('session', '')}."
+        }
     complete_session(caller.session_id)
     if "redirect" not in outcome:
-        return Response(render_template("annotation/message.html", title="Thank you",
-                                        message=outcome.get("message", "Your answers are saved. You can close this page.")))
+        return Response(
+            render_template(
+                "annotation/message.html",
+                title="Thank you",
+                message=outcome.get("message", "Your answers are saved. You can close this page."),
+            )
+        )
     return redirect(outcome["redirect"], code=303)
 
 
@@ -328,8 +358,11 @@ def task_wiggle(token: str, order: str) -> Response:
         proposal = proposed_boxes(card)
         key, width, height = (card.id, card.content_hash), card.width, card.height
         path = Path(current_app.config["KEYSTONE_DATA_DIR"]).resolve() / card.stored_path
-    left, right = ((proposal.left, proposal.right) if proposal is not None
-                   else ([0, 0, width // 2, height], [width - width // 2, 0, width, height]))
+    left, right = (
+        (proposal.left, proposal.right)
+        if proposal is not None
+        else ([0, 0, width // 2, height], [width - width // 2, 0, width, height])
+    )
     try:
         data = eye_order_wiggle(key, lambda: read_image(path), left, right, order)
     except (OSError, ValueError, PipelineError) as exc:  # a missing or unreadable original

@@ -35,8 +35,7 @@ def get_or_create_worker(provider: str, external_id: str, person_id: int | None 
     worker = db.session.scalar(query)
     if worker is not None:
         return worker
-    worker = Worker(provider=provider, external_id=external_id, person_id=person_id,
-                    token=secrets.token_urlsafe(24))
+    worker = Worker(provider=provider, external_id=external_id, person_id=person_id, token=secrets.token_urlsafe(24))
     db.session.add(worker)
     try:
         db.session.commit()
@@ -49,8 +48,9 @@ def get_or_create_worker(provider: str, external_id: str, person_id: int | None 
 
 def account_worker(person_id: int, username: str) -> Worker:
     """The invited worker of a logged-in account (``account:<username>``), made on first use."""
-    worker = db.session.scalar(select(Worker).where(Worker.provider == "invite", Worker.person_id == person_id)
-                               .order_by(Worker.id).limit(1))
+    worker = db.session.scalar(
+        select(Worker).where(Worker.provider == "invite", Worker.person_id == person_id).order_by(Worker.id).limit(1)
+    )
     return worker or get_or_create_worker("invite", f"account:{username}", person_id=person_id)
 
 
@@ -67,41 +67,58 @@ def update_worker_quality(worker_ids: Iterable[int] | None = None) -> dict[int, 
     Scores are read in a read transaction; the write lock is taken only when a worker must be
     newly flagged (every gold submit calls this, and almost all of them change nothing).
     """
-    query = select(Answer.item_id, Answer.worker_id, Answer.payload, BatchItem.gold_answer, Batch.kind).join(
-        BatchItem, Answer.item_id == BatchItem.id).join(Batch, BatchItem.batch_id == Batch.id).where(
-        BatchItem.is_gold.is_(True))
+    query = (
+        select(Answer.item_id, Answer.worker_id, Answer.payload, BatchItem.gold_answer, Batch.kind)
+        .join(BatchItem, Answer.item_id == BatchItem.id)
+        .join(Batch, BatchItem.batch_id == Batch.id)
+        .where(BatchItem.is_gold.is_(True))
+    )
     if worker_ids is not None:
         query = query.where(Answer.worker_id.in_(list(worker_ids)))
     threshold = gold_threshold()
     with read_only():
-        labels = [LabelAnswer(item_id, worker_id, gold_label(kind, payload, gold_answer or {}))
-                  for item_id, worker_id, payload, gold_answer, kind in db.session.execute(query)]
+        labels = [
+            LabelAnswer(item_id, worker_id, gold_label(kind, payload, gold_answer or {}))
+            for item_id, worker_id, payload, gold_answer, kind in db.session.execute(query)
+        ]
         scores = gold_accuracy(labels, {a.item_id: 1 for a in labels})
         flagged = flag_workers(scores, threshold, min_gold())
-        newly = list(db.session.scalars(select(Worker.id).where(Worker.id.in_(list(flagged)),
-                                                                Worker.flagged.is_(False)))) if flagged else []
+        newly = (
+            list(db.session.scalars(select(Worker.id).where(Worker.id.in_(list(flagged)), Worker.flagged.is_(False))))
+            if flagged
+            else []
+        )
     if newly:
         no_sync = {"synchronize_session": False}  # the commit below expires whatever the session holds
         with one_writer():
             # Their answers stop filling slots and their open reservations go back to the pool
             # at once: every item they touched is recounted (locked first on PostgreSQL, so a
             # submit holding one of those items cannot wait on these rows while we wait on it).
-            touched = sorted(set(db.session.scalars(select(Answer.item_id).where(Answer.worker_id.in_(newly))))
-                             | set(db.session.scalars(select(Reservation.item_id).where(
-                                 Reservation.worker_id.in_(newly), Reservation.answered_at.is_(None)))))
+            touched = sorted(
+                set(db.session.scalars(select(Answer.item_id).where(Answer.worker_id.in_(newly))))
+                | set(
+                    db.session.scalars(
+                        select(Reservation.item_id).where(Reservation.worker_id.in_(newly), Reservation.answered_at.is_(None))
+                    )
+                )
+            )
             if touched and not on_sqlite():
                 run_prebuilt(LOCK_ITEMS, {"item_ids": touched})
-            db.session.execute(update(Worker).where(Worker.id.in_(newly)).values(flagged=True)
-                               .execution_options(**no_sync))
-            db.session.execute(update(Answer).where(Answer.worker_id.in_(newly)).values(flagged=True)
-                               .execution_options(**no_sync))
-            db.session.execute(delete(Reservation).where(Reservation.worker_id.in_(newly),
-                                                         Reservation.answered_at.is_(None))
-                               .execution_options(**no_sync))
+            db.session.execute(update(Worker).where(Worker.id.in_(newly)).values(flagged=True).execution_options(**no_sync))
+            db.session.execute(
+                update(Answer).where(Answer.worker_id.in_(newly)).values(flagged=True).execution_options(**no_sync)
+            )
+            db.session.execute(
+                delete(Reservation)
+                .where(Reservation.worker_id.in_(newly), Reservation.answered_at.is_(None))
+                .execution_options(**no_sync)
+            )
             recount_items(touched, locked=True)
             db.session.commit()
-    return {int(w): {"correct": s.correct, "total": s.total, "accuracy": s.accuracy, "flagged": w in flagged}
-            for w, s in scores.items()}
+    return {
+        int(w): {"correct": s.correct, "total": s.total, "accuracy": s.accuracy, "flagged": w in flagged}
+        for w, s in scores.items()
+    }
 
 
 def set_worker_flag(worker_id: int, flagged: bool) -> Worker:
@@ -116,17 +133,26 @@ def set_worker_flag(worker_id: int, flagged: bool) -> Worker:
         raise TaskError(f"No worker {worker_id}", 404)
     no_sync = {"synchronize_session": False}
     with one_writer():
-        touched = sorted(set(db.session.scalars(select(Answer.item_id).where(Answer.worker_id == worker_id)))
-                         | set(db.session.scalars(select(Reservation.item_id).where(
-                             Reservation.worker_id == worker_id, Reservation.answered_at.is_(None)))))
+        touched = sorted(
+            set(db.session.scalars(select(Answer.item_id).where(Answer.worker_id == worker_id)))
+            | set(
+                db.session.scalars(
+                    select(Reservation.item_id).where(Reservation.worker_id == worker_id, Reservation.answered_at.is_(None))
+                )
+            )
+        )
         if touched and not on_sqlite():
             run_prebuilt(LOCK_ITEMS, {"item_ids": touched})
         db.session.execute(update(Worker).where(Worker.id == worker_id).values(flagged=flagged).execution_options(**no_sync))
-        db.session.execute(update(Answer).where(Answer.worker_id == worker_id).values(flagged=flagged)
-                           .execution_options(**no_sync))
+        db.session.execute(
+            update(Answer).where(Answer.worker_id == worker_id).values(flagged=flagged).execution_options(**no_sync)
+        )
         if flagged:
-            db.session.execute(delete(Reservation).where(Reservation.worker_id == worker_id,
-                                                         Reservation.answered_at.is_(None)).execution_options(**no_sync))
+            db.session.execute(
+                delete(Reservation)
+                .where(Reservation.worker_id == worker_id, Reservation.answered_at.is_(None))
+                .execution_options(**no_sync)
+            )
         recount_items(touched, locked=True)
         db.session.commit()
     db.session.refresh(worker)
@@ -145,8 +171,14 @@ class SubmissionCheck:
     answers: int
 
     def as_json(self) -> dict[str, Any]:
-        return {"participant": self.participant, "decision": self.decision, "reason": self.reason,
-                "sessions": self.sessions, "completed": self.completed, "answers": self.answers}
+        return {
+            "participant": self.participant,
+            "decision": self.decision,
+            "reason": self.reason,
+            "sessions": self.sessions,
+            "completed": self.completed,
+            "answers": self.answers,
+        }
 
 
 def check_prolific_submissions(participants: Sequence[str], study: str | None = None) -> list[SubmissionCheck]:
@@ -166,8 +198,13 @@ def check_prolific_submissions(participants: Sequence[str], study: str | None = 
             query = query.where(CrowdSession.study == study)
         sessions = list(db.session.scalars(query))
         ids = [s.id for s in sessions]
-        answers = db.session.scalar(select(func.count()).select_from(Answer).where(
-            Answer.worker_id == worker.id, Answer.session_id.in_(ids))) if ids else 0
+        answers = (
+            db.session.scalar(
+                select(func.count()).select_from(Answer).where(Answer.worker_id == worker.id, Answer.session_id.in_(ids))
+            )
+            if ids
+            else 0
+        )
         completed = sum(s.completed_at is not None for s in sessions)
         if worker.flagged or any(s.flagged for s in sessions):
             decision, reason = "reject", "flagged: failed the known-answer (gold) cards"

@@ -91,8 +91,7 @@ SESSION_EXPIRED_MESSAGE = "Your session expired: log in again."
 SESSION_ENDED_MESSAGE = "Your session has ended (logged out, or the password changed): log in again."
 
 
-def session_refusal(person: Person, version: object, login_at: object, now: datetime,
-                    lifetime: timedelta) -> str | None:
+def session_refusal(person: Person, version: object, login_at: object, now: datetime, lifetime: timedelta) -> str | None:
     """Why the session holding ``version`` and ``login_at`` may not act as ``person``, or None."""
     if not person.active:
         return "account disabled"
@@ -108,11 +107,13 @@ def _forget_login() -> None:
         session.pop(key, None)
 
 
-def record_auth_event(action: str, username: str, *, person_id: int | None = None, address: str = "",
-                      reason: str = "", at: datetime | None = None) -> AuthEvent:
+def record_auth_event(
+    action: str, username: str, *, person_id: int | None = None, address: str = "", reason: str = "", at: datetime | None = None
+) -> AuthEvent:
     """Add a sign-in event to the current session (committed with the change it describes)."""
-    event_row = AuthEvent(action=action, username=username[:120], person_id=person_id, address=address,
-                          reason=reason, at=at or clock())
+    event_row = AuthEvent(
+        action=action, username=username[:120], person_id=person_id, address=address, reason=reason, at=at or clock()
+    )
     db.session.add(event_row)
     return event_row
 
@@ -134,8 +135,9 @@ def load_person(person_id: str) -> Person | None:
     if person is None:
         return None
     now = clock()
-    refusal = session_refusal(person, session.get(SESSION_VERSION_KEY), session.get(LOGIN_AT_KEY), now,
-                              current_app.permanent_session_lifetime)
+    refusal = session_refusal(
+        person, session.get(SESSION_VERSION_KEY), session.get(LOGIN_AT_KEY), now, current_app.permanent_session_lifetime
+    )
     if refusal is None:
         return person
     _forget_login()
@@ -145,8 +147,9 @@ def load_person(person_id: str) -> Person | None:
     # replayed after logout looks like.
     if not in_transaction:
         with one_writer():
-            record_auth_event("session_refused", person.username, person_id=person.id, address=client_address(),
-                              reason=refusal, at=now)
+            record_auth_event(
+                "session_refused", person.username, person_id=person.id, address=client_address(), reason=refusal, at=now
+            )
             db.session.commit()
     return None
 
@@ -158,7 +161,8 @@ def unauthorized() -> Any:
     ended = request.environ.get(SESSION_ENDED_ENVIRON_KEY)
     if request.accept_mimetypes.accept_html:  # not for <img> fetches: they would pile up messages
         message = {"session expired": SESSION_EXPIRED_MESSAGE, "session ended": SESSION_ENDED_MESSAGE}.get(
-            ended or "", login_manager.login_message)
+            ended or "", login_manager.login_message
+        )
         flash(message, "info")
     return redirect(url_for("auth.login", next=request.full_path.rstrip("?")))
 
@@ -268,8 +272,7 @@ class PersonForm(FlaskForm):
         "Password",
         validators=[DataRequired(), Length(min=MIN_PASSWORD_LENGTH, message=f"Use at least {MIN_PASSWORD_LENGTH} characters.")],
     )
-    roles = MultiCheckboxField("Roles", choices=list(ROLES),
-                               validators=[DataRequired(message="Choose at least one role.")])
+    roles = MultiCheckboxField("Roles", choices=list(ROLES), validators=[DataRequired(message="Choose at least one role.")])
     submit = SubmitField("Add person")
 
 
@@ -313,9 +316,14 @@ def login() -> Any:
     with one_writer():
         lockout = reserve_attempt(username, address, policy, now)
         if lockout is not None:
-            record_auth_event("login_throttled", username, address=address, at=now,
-                              reason=f"{lockout.scope}: {lockout.failures} wrong passwords in the window; "
-                                     f"retry after {lockout.retry_after_s} s")
+            record_auth_event(
+                "login_throttled",
+                username,
+                address=address,
+                at=now,
+                reason=f"{lockout.scope}: {lockout.failures} wrong passwords in the window; "
+                f"retry after {lockout.retry_after_s} s",
+            )
         db.session.commit()
     if lockout is not None:
         return _locked_out(form, lockout)
@@ -334,8 +342,9 @@ def login() -> Any:
         _log_in(person, username, address, policy, now)
         return redirect(safe_next(form.next.data) or home_url())
     with one_writer():
-        record_auth_event("login_failed", username, person_id=person.id if person else None, address=address,
-                          reason=failure, at=now)
+        record_auth_event(
+            "login_failed", username, person_id=person.id if person else None, address=address, reason=failure, at=now
+        )
         db.session.commit()
     if failure == "account disabled":
         form.form_errors.append("This account is disabled; ask an admin.")
@@ -353,8 +362,7 @@ def logout() -> Response:
         with one_writer():
             # Raising the version ends this session on the server: a copy of the cookie made
             # before now is refused by the loader. (It ends the person's other sessions too.)
-            db.session.execute(update(Person).where(Person.id == person_id)
-                               .values(session_version=Person.session_version + 1))
+            db.session.execute(update(Person).where(Person.id == person_id).values(session_version=Person.session_version + 1))
             record_auth_event("logout", username, person_id=person_id, address=client_address())
             db.session.commit()
     logout_user()
@@ -370,8 +378,9 @@ def people() -> Any:
     status = 200
     if form.validate_on_submit():
         try:
-            person = create_person(form.username.data.strip(), form.password.data, list(form.roles.data),
-                                   (form.display_name.data or "").strip())
+            person = create_person(
+                form.username.data.strip(), form.password.data, list(form.roles.data), (form.display_name.data or "").strip()
+            )
         except IntegrityError:
             db.session.rollback()
             form.username.errors.append(f"A person called {form.username.data.strip()!r} already exists.")
@@ -384,14 +393,22 @@ def people() -> Any:
     return _people_page(form, status)
 
 
-def _people_page(form: PersonForm | None = None, status: int = 200, *, error: str | None = None,
-                 one_time: tuple[str, str] | None = None) -> Any:
+def _people_page(
+    form: PersonForm | None = None, status: int = 200, *, error: str | None = None, one_time: tuple[str, str] | None = None
+) -> Any:
     with read_only():
         everyone = list(db.session.scalars(select(Person).order_by(Person.username)))
         history = {person.id: person_history(person.id, limit=5) for person in everyone}
-        return render_template("auth/people.html", form=form or PersonForm(formdata=None), people=everyone,
-                               roles=ROLES, history=history, error=error, one_time=one_time,
-                               min_password=MIN_PASSWORD_LENGTH), status
+        return render_template(
+            "auth/people.html",
+            form=form or PersonForm(formdata=None),
+            people=everyone,
+            roles=ROLES,
+            history=history,
+            error=error,
+            one_time=one_time,
+            min_password=MIN_PASSWORD_LENGTH,
+        ), status
 
 
 def _admin() -> Person:
@@ -411,8 +428,10 @@ def person_active(person_id: int) -> Response:
     if wanted not in ("0", "1"):
         raise PeopleError(f"Expected active=0 or active=1, got {wanted[:20]!r}")
     person = set_active(person_id, wanted == "1", actor=_admin())
-    flash(f"{person.username} is {'active again' if person.active else 'deactivated: their sessions ended and they cannot log in'}.",
-          "success")
+    flash(
+        f"{person.username} is {'active again' if person.active else 'deactivated: their sessions ended and they cannot log in'}.",
+        "success",
+    )
     return redirect(url_for("auth.people"), code=303)
 
 
@@ -420,8 +439,7 @@ def person_active(person_id: int) -> Response:
 @role_required("admin")
 def person_password(person_id: int) -> Any:
     typed = request.form.get("password") or ""
-    person, generated = reset_password(person_id, actor=_admin(), password=typed or None,
-                                       min_length=MIN_PASSWORD_LENGTH)
+    person, generated = reset_password(person_id, actor=_admin(), password=typed or None, min_length=MIN_PASSWORD_LENGTH)
     if generated is None:
         flash(f"New password set for {person.username}; their sessions ended.", "success")
         return redirect(url_for("auth.people"), code=303)

@@ -41,7 +41,8 @@ class BenchGroup(click.Group):
             except ImportError as exc:
                 raise click.ClickException(
                     f"the {cmd_name!r} benchmark lives in the source checkout's benchmarks/ folder, "
-                    f"which this install does not have ({exc})") from exc
+                    f"which this install does not have ({exc})"
+                ) from exc
             self.add_command(getattr(module, attribute), cmd_name)
         return super().get_command(ctx, cmd_name)
 

@@ -43,8 +43,13 @@ DISPLAY_MAX_SIDE = 1600
 THUMB_MAX_SIDE = 320
 # Bump when the way previews are made changes: it is part of their ETag and URL version.
 PREVIEW_VERSION = "1"
-ARTIFACT_IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg",
-                        ".webp": "image/webp", ".gif": "image/gif"}
+ARTIFACT_IMAGE_TYPES = {
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".webp": "image/webp",
+    ".gif": "image/gif",
+}
 
 bp.record_once(lambda state: add_nav_link(state.app, "Cards", "catalog.cards", *STAFF_ROLES, order=10))
 
@@ -100,8 +105,13 @@ class CardFilters:
 
     def query_args(self, **changes: Any) -> dict[str, Any]:
         """Query-string arguments for a link to these filters with ``changes`` applied."""
-        args = {"collection": self.collection_id, "state": self.state, "stage": self.stage,
-                "status": self.status, "page": self.page}
+        args = {
+            "collection": self.collection_id,
+            "state": self.state,
+            "stage": self.stage,
+            "status": self.status,
+            "page": self.page,
+        }
         args.update(changes)
         return {key: value for key, value in args.items() if value not in (None, "") and (key, value) != ("page", 1)}
 
@@ -127,8 +137,13 @@ def parse_filters(args: Any) -> CardFilters:
     stage, status = choice("stage", FILTERABLE_STAGES), choice("status", STAGE_FILTER_STATUSES)
     if status and not stage:
         abort(400, "A status filter needs a stage too, e.g. ?stage=filter&status=done.")
-    return CardFilters(collection_id=positive_int("collection"), state=choice("state", CARD_STATES),
-                       stage=stage, status=status, page=positive_int("page") or 1)
+    return CardFilters(
+        collection_id=positive_int("collection"),
+        state=choice("state", CARD_STATES),
+        stage=stage,
+        status=status,
+        page=positive_int("page") or 1,
+    )
 
 
 def stage_status_condition(stage: str, status: str) -> ColumnElement[bool]:
@@ -201,20 +216,36 @@ def cards() -> Any:
         pages = max(1, math.ceil(total / per_page))
         if filters.page > pages:
             abort(404, f"Page {filters.page} is past the last page ({pages}).")
-        page_cards = list(db.session.scalars(
-            select(Card).where(*conditions).order_by(Card.id)
-            .offset((filters.page - 1) * per_page).limit(per_page)
-            .options(selectinload(Card.stage_results), selectinload(Card.collection))
-        ))
-        state_counts = dict(db.session.execute(
-            select(Card.state, func.count()).where(*filter_conditions(filters, with_state=False)).group_by(Card.state)
-        ).all())
+        page_cards = list(
+            db.session.scalars(
+                select(Card)
+                .where(*conditions)
+                .order_by(Card.id)
+                .offset((filters.page - 1) * per_page)
+                .limit(per_page)
+                .options(selectinload(Card.stage_results), selectinload(Card.collection))
+            )
+        )
+        state_counts = dict(
+            db.session.execute(
+                select(Card.state, func.count()).where(*filter_conditions(filters, with_state=False)).group_by(Card.state)
+            ).all()
+        )
         collections = list(db.session.scalars(select(Collection).order_by(Collection.name)))
         return render_template(
-            "catalog/cards.html", cards=page_cards, filters=filters, total=total, page=filters.page, pages=pages,
-            per_page=per_page, collection=collection, collections=collections, states=CARD_STATES,
+            "catalog/cards.html",
+            cards=page_cards,
+            filters=filters,
+            total=total,
+            page=filters.page,
+            pages=pages,
+            per_page=per_page,
+            collection=collection,
+            collections=collections,
+            states=CARD_STATES,
             state_counts={state: state_counts.get(state, 0) for state in CARD_STATES},
-            stages=FILTERABLE_STAGES, statuses=STAGE_FILTER_STATUSES,
+            stages=FILTERABLE_STAGES,
+            statuses=STAGE_FILTER_STATUSES,
         )
 
 
@@ -229,15 +260,22 @@ def card_page(card_id: int) -> Any:
         filter_result = latest.get("filter")
         rectify_result = latest.get("rectify")
         disparity_result = latest.get("disparity")
-        records = list(db.session.scalars(
-            select(MetadataRecord).where(MetadataRecord.card_id == card.id).order_by(MetadataRecord.id)
-        ))
+        records = list(
+            db.session.scalars(select(MetadataRecord).where(MetadataRecord.card_id == card.id).order_by(MetadataRecord.id))
+        )
         return render_template(
-            "catalog/card.html", card=card, filter_result=filter_result, rectify_result=rectify_result,
-            disparity_result=disparity_result, grade_result=latest.get("grade"), views_result=latest.get("views"),
+            "catalog/card.html",
+            card=card,
+            filter_result=filter_result,
+            rectify_result=rectify_result,
+            disparity_result=disparity_result,
+            grade_result=latest.get("grade"),
+            views_result=latest.get("views"),
             stereo_downloads=stereo_downloads(card, rectify_result, disparity_result),
             filter_view=FilterView.of(card, filter_result) if filter_result is not None else None,
-            statuses=card_stage_statuses(card), history=list(reversed(card.stage_results)), records=records,
+            statuses=card_stage_statuses(card),
+            history=list(reversed(card.stage_results)),
+            records=records,
         )
 
 
@@ -275,8 +313,14 @@ class FilterView:
         thresholds = filter_thresholds(result)
         shown = used | set(thresholds or ())
         other = {key: value for key, value in metrics.items() if key not in shown}
-        return cls(canvas=canvas, left_box=_box(metrics.get("left_box")), right_box=_box(metrics.get("right_box")),
-                   rows=rows, thresholds=thresholds, other=other)
+        return cls(
+            canvas=canvas,
+            left_box=_box(metrics.get("left_box")),
+            right_box=_box(metrics.get("right_box")),
+            rows=rows,
+            thresholds=thresholds,
+            other=other,
+        )
 
 
 def _number(value: Any, digits: int = 0) -> str:
@@ -315,11 +359,26 @@ def filter_metric_rows(metrics: dict[str, Any], total_seconds: float | None) -> 
     rows.append(("Detection time", _duration(metrics.get("detect_seconds"))))
     rows.append(("Matching time", _duration(metrics.get("match_seconds"))))
     rows.append(("Total time for the card", _duration(total_seconds)))
-    used.update({"good_match_fraction", "denominator", "good_matches", "keypoints_left", "keypoints_right",
-                 "detect_seconds", "match_seconds", "thresholds", "left_box", "right_box", "card_size"})
+    used.update(
+        {
+            "good_match_fraction",
+            "denominator",
+            "good_matches",
+            "keypoints_left",
+            "keypoints_right",
+            "detect_seconds",
+            "match_seconds",
+            "thresholds",
+            "left_box",
+            "right_box",
+            "card_size",
+        }
+    )
     for key, label in (("left_box", "Left box [x0, y0, x1, y1]"), ("right_box", "Right box [x0, y0, x1, y1]")):
         if key in metrics:
-            rows.append((label, ", ".join(_number(v) for v in metrics[key]) if isinstance(metrics[key], list) else str(metrics[key])))
+            rows.append(
+                (label, ", ".join(_number(v) for v in metrics[key]) if isinstance(metrics[key], list) else str(metrics[key]))
+            )
     return rows, used
 
 
@@ -382,8 +441,9 @@ def card_image_url(card: Card, variant: str = "original") -> str:
 
 @bp.app_template_global()
 def artifact_image_url(card: Card, result: StageResult, name: str) -> str:
-    return url_for("catalog.artifact_image", card_id=card.id, stage=result.stage, name=name,
-                   v=url_version(artifact_etag(card, result, name)))
+    return url_for(
+        "catalog.artifact_image", card_id=card.id, stage=result.stage, name=name, v=url_version(artifact_etag(card, result, name))
+    )
 
 
 _UNWRITABLE_PREVIEW_FOLDERS: set[str] = set()
@@ -397,8 +457,7 @@ def ensure_previews(content_hash: str, stored_path: str) -> dict[str, Path | byt
     folder is writable (a warning in the log says why).
     """
     folder = data_dir() / "previews"
-    targets: dict[str, Path | bytes] = {"display": folder / f"{content_hash}.jpg",
-                                        "thumb": folder / f"{content_hash}.thumb.jpg"}
+    targets: dict[str, Path | bytes] = {"display": folder / f"{content_hash}.jpg", "thumb": folder / f"{content_hash}.thumb.jpg"}
     missing = {variant: path for variant, path in targets.items() if isinstance(path, Path) and not path.exists()}
     if missing:
         original = inside_data_dir(stored_path)
@@ -416,8 +475,7 @@ def ensure_previews(content_hash: str, stored_path: str) -> dict[str, Path | byt
             except OSError as exc:
                 if str(folder) not in _UNWRITABLE_PREVIEW_FOLDERS:  # once per folder, not per image
                     _UNWRITABLE_PREVIEW_FOLDERS.add(str(folder))
-                    current_app.logger.warning("Serving card previews without their cache: cannot write %s (%s)",
-                                               path, exc)
+                    current_app.logger.warning("Serving card previews without their cache: cannot write %s (%s)", path, exc)
                 targets[variant] = payload
     return targets
 
@@ -479,8 +537,11 @@ def _stereo_inputs(rectify: StageResult | None, disparity: StageResult | None) -
     card has no finished rectified pair with a disparity."""
     if rectify is None or rectify.status not in ("done", "skipped") or disparity is None or disparity.status != "done":
         return None
-    paths = ((rectify.artifacts or {}).get("left"), (rectify.artifacts or {}).get("right"),
-             (disparity.artifacts or {}).get("disparity_left"))
+    paths = (
+        (rectify.artifacts or {}).get("left"),
+        (rectify.artifacts or {}).get("right"),
+        (disparity.artifacts or {}).get("disparity_left"),
+    )
     if not all(isinstance(path, str) and path for path in paths):
         return None
     return paths  # type: ignore[return-value]
@@ -490,8 +551,17 @@ def _stereo_etag(card: Card, inputs: tuple[str, str, str], rectify: StageResult,
     from exports.stereo import CardCaption
 
     caption = CardCaption.of(card.source_metadata or {}, card.accession, card.source_name)
-    detail = "\0".join([*inputs, rectify.param_hash, rectify.code_version, disparity.param_hash,
-                        disparity.code_version, repr(caption), STEREO_DOWNLOAD_VERSION])
+    detail = "\0".join(
+        [
+            *inputs,
+            rectify.param_hash,
+            rectify.code_version,
+            disparity.param_hash,
+            disparity.code_version,
+            repr(caption),
+            STEREO_DOWNLOAD_VERSION,
+        ]
+    )
     return f"{card.content_hash[:16]}-stereo-{hashlib.sha256(detail.encode()).hexdigest()[:16]}"
 
 
@@ -507,9 +577,15 @@ def stereo_downloads(card: Card, rectify: StageResult | None, disparity: StageRe
     if inputs is None or rectify is None or disparity is None:
         return []
     version = url_version(_stereo_etag(card, inputs, rectify, disparity))
-    return [{"name": name, "file": file_name, "what": what,
-             "url": url_for("catalog.stereo_download", card_id=card.id, fmt=name, v=version)}
-            for name, (file_name, _mime, what) in STEREO_FORMATS.items()]
+    return [
+        {
+            "name": name,
+            "file": file_name,
+            "what": what,
+            "url": url_for("catalog.stereo_download", card_id=card.id, fmt=name, v=version),
+        }
+        for name, (file_name, _mime, what) in STEREO_FORMATS.items()
+    ]
 
 
 @bp.route("/cards/<int:card_id>/stereo/<fmt>")

@@ -159,7 +159,8 @@ class Driver:
         mine = select(StageClaim.id).where(StageClaim.driver == self.id).with_for_update(skip_locked=True)
         with self.engine.begin() as connection:
             renewed = connection.execute(
-                update(StageClaim).where(StageClaim.id.in_(mine.scalar_subquery()))
+                update(StageClaim)
+                .where(StageClaim.id.in_(mine.scalar_subquery()))
                 .values(heartbeat_at=now, expires_at=self.expiry(now))
                 .execution_options(synchronize_session=False)
             ).rowcount
@@ -168,11 +169,12 @@ class Driver:
 
     def release_statement(self, stage: str, card_ids: Iterable[int]) -> Delete:
         """Delete this driver's claims on these cards (run it in the transaction that writes their results)."""
-        mine = (select(StageClaim.id)
-                .where(StageClaim.driver == self.id, StageClaim.stage == stage, StageClaim.card_id.in_(list(card_ids)))
-                .with_for_update(skip_locked=True))
-        return delete(StageClaim).where(StageClaim.id.in_(mine.scalar_subquery())).execution_options(
-            synchronize_session=False)
+        mine = (
+            select(StageClaim.id)
+            .where(StageClaim.driver == self.id, StageClaim.stage == stage, StageClaim.card_id.in_(list(card_ids)))
+            .with_for_update(skip_locked=True)
+        )
+        return delete(StageClaim).where(StageClaim.id.in_(mine.scalar_subquery())).execution_options(synchronize_session=False)
 
     def release_all(self) -> None:
         try:
@@ -181,8 +183,7 @@ class Driver:
         except SQLAlchemyError as exc:  # the claims lapse on their own after ttl_s
             log.warning("could not release the claims of %s: %s", self.id, exc)
 
-    def claim(self, stage: str, param_hash: str, card_ids: list[int],
-              seen: dict[int, ResultFingerprint]) -> ClaimRound:
+    def claim(self, stage: str, param_hash: str, card_ids: list[int], seen: dict[int, ResultFingerprint]) -> ClaimRound:
         """Claim ``card_ids`` for ``stage`` in one short write transaction.
 
         ``seen`` is each card's result fingerprint (for this stage and parameters) when the
@@ -199,30 +200,55 @@ class Driver:
             now = utcnow()
             dialect = connection.dialect.name
             # Lapsed claims of other drivers first: take them over in place.
-            lapsed = (select(StageClaim.id)
-                      .where(StageClaim.stage == stage, StageClaim.card_id.in_(ids),
-                             StageClaim.driver != self.id, StageClaim.expires_at < now)
-                      .with_for_update(skip_locked=True))
-            taken = connection.execute(
-                update(StageClaim).where(StageClaim.id.in_(lapsed.scalar_subquery()))
-                .values(driver=self.id, param_hash=param_hash, claimed_at=now, heartbeat_at=now,
-                        expires_at=self.expiry(now))
-                .returning(StageClaim.card_id)
-                .execution_options(synchronize_session=False)
-            ).scalars().all()
-            rows = [{"card_id": card_id, "stage": stage, "param_hash": param_hash, "driver": self.id,
-                     "claimed_at": now, "heartbeat_at": now, "expires_at": self.expiry(now)} for card_id in ids]
+            lapsed = (
+                select(StageClaim.id)
+                .where(
+                    StageClaim.stage == stage,
+                    StageClaim.card_id.in_(ids),
+                    StageClaim.driver != self.id,
+                    StageClaim.expires_at < now,
+                )
+                .with_for_update(skip_locked=True)
+            )
+            taken = (
+                connection.execute(
+                    update(StageClaim)
+                    .where(StageClaim.id.in_(lapsed.scalar_subquery()))
+                    .values(driver=self.id, param_hash=param_hash, claimed_at=now, heartbeat_at=now, expires_at=self.expiry(now))
+                    .returning(StageClaim.card_id)
+                    .execution_options(synchronize_session=False)
+                )
+                .scalars()
+                .all()
+            )
+            rows = [
+                {
+                    "card_id": card_id,
+                    "stage": stage,
+                    "param_hash": param_hash,
+                    "driver": self.id,
+                    "claimed_at": now,
+                    "heartbeat_at": now,
+                    "expires_at": self.expiry(now),
+                }
+                for card_id in ids
+            ]
             connection.execute(
                 _insert(dialect)(StageClaim).values(rows).on_conflict_do_nothing(index_elements=["card_id", "stage"])
             )
-            holders = dict(connection.execute(
-                select(StageClaim.card_id, StageClaim.driver).where(StageClaim.stage == stage, StageClaim.card_id.in_(ids))
-            ).all())
+            holders = dict(
+                connection.execute(
+                    select(StageClaim.card_id, StageClaim.driver).where(StageClaim.stage == stage, StageClaim.card_id.in_(ids))
+                ).all()
+            )
             mine = [card_id for card_id in ids if holders.get(card_id) == self.id]
             # A card with no claim at all lost it between the insert and this read (PostgreSQL):
             # its holder just released it. Treat it as held; the next round sees why.
-            result.held = {card_id: holders.get(card_id, "another run (released while claiming)")
-                           for card_id in ids if holders.get(card_id) != self.id}
+            result.held = {
+                card_id: holders.get(card_id, "another run (released while claiming)")
+                for card_id in ids
+                if holders.get(card_id) != self.id
+            }
             changed = self._finished_since(connection, stage, param_hash, mine, seen)
             if changed:
                 connection.execute(self.release_statement(stage, changed))
@@ -233,16 +259,21 @@ class Driver:
         return result
 
     @staticmethod
-    def _finished_since(connection: Connection, stage: str, param_hash: str, card_ids: list[int],
-                        seen: dict[int, ResultFingerprint]) -> set[int]:
+    def _finished_since(
+        connection: Connection, stage: str, param_hash: str, card_ids: list[int], seen: dict[int, ResultFingerprint]
+    ) -> set[int]:
         from .models import StageResult
 
         if not card_ids:
             return set()
-        now = {card_id: (status, started) for card_id, status, started in connection.execute(
-            select(StageResult.card_id, StageResult.status, StageResult.started_at)
-            .where(StageResult.stage == stage, StageResult.param_hash == param_hash, StageResult.card_id.in_(card_ids))
-        )}
+        now = {
+            card_id: (status, started)
+            for card_id, status, started in connection.execute(
+                select(StageResult.card_id, StageResult.status, StageResult.started_at).where(
+                    StageResult.stage == stage, StageResult.param_hash == param_hash, StageResult.card_id.in_(card_ids)
+                )
+            )
+        }
         return {card_id for card_id in card_ids if now.get(card_id) != seen.get(card_id)}
 
 

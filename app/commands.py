@@ -36,19 +36,31 @@ def init_command(as_json: bool) -> None:
 @click.command("serve")
 @click.option("--host", default="127.0.0.1", show_default=True, help="Interface to listen on.")
 @click.option("--port", default=5000, show_default=True, type=int, help="Port to listen on.")
-@click.option("--processes", type=click.IntRange(1, 64), default=None,
-              help="Server processes [default: one per core on Linux and macOS (gunicorn), 1 elsewhere]. "
-                   "1 runs waitress.")
-@click.option("--threads", type=click.IntRange(1, 256), default=None,
-              help="Threads per process [default: 1 with several processes, 8 with one].")
+@click.option(
+    "--processes",
+    type=click.IntRange(1, 64),
+    default=None,
+    help="Server processes [default: one per core on Linux and macOS (gunicorn), 1 elsewhere]. 1 runs waitress.",
+)
+@click.option(
+    "--threads",
+    type=click.IntRange(1, 256),
+    default=None,
+    help="Threads per process [default: 1 with several processes, 8 with one].",
+)
 @with_appcontext
 def serve_command(host: str, port: int, threads: int | None, processes: int | None) -> None:
     """Serve the web app with a production WSGI server: gunicorn's pre-forked workers, or waitress."""
     from .serving import serve
 
     ensure_database()
-    serve(current_app._get_current_object(), host=host, port=port, threads=threads,  # type: ignore[attr-defined]
-          processes=processes)
+    serve(
+        current_app._get_current_object(),
+        host=host,
+        port=port,
+        threads=threads,  # type: ignore[attr-defined]
+        processes=processes,
+    )
 
 
 def register_cli(group: click.Group) -> None:
@@ -60,6 +72,15 @@ def register_cli(group: click.Group) -> None:
     from .people import users_group
     from .runs import cards_command, run_command
 
-    for command in (init_command, serve_command, ingest_command, run_command, cards_command, demo_command,
-                    users_group, check_homographies_command, train_inpainting_command):
+    for command in (
+        init_command,
+        serve_command,
+        ingest_command,
+        run_command,
+        cards_command,
+        demo_command,
+        users_group,
+        check_homographies_command,
+        train_inpainting_command,
+    ):
         group.add_command(command)

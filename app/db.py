@@ -145,8 +145,9 @@ def one_writer(session: Session | None = None) -> Iterator[None]:
     """
     session = session or db.session()
     bind = session.get_bind()
-    if bind.dialect.name != "sqlite" or (session.in_transaction() and not
-                                          session.connection().get_execution_options().get(READ_ONLY_OPTION)):
+    if bind.dialect.name != "sqlite" or (
+        session.in_transaction() and not session.connection().get_execution_options().get(READ_ONLY_OPTION)
+    ):
         yield
         return
     acquired = _THREAD_GATE.acquire(timeout=THREAD_GATE_TIMEOUT_S)

@@ -42,8 +42,7 @@ def _card_ids_by_name() -> dict[str, int]:
 def _true_orientation(card) -> dict:  # type: ignore[no-untyped-def]
     """How a demo card was made: the upside-down card is the whole scan turned (its eyes are
     in order once turned back), the inverted one a negative; none has its eyes swapped."""
-    return {"upside_down": bool(card.truth.get("upside_down")), "inverted": bool(card.truth.get("inverted")),
-            "swapped": False}
+    return {"upside_down": bool(card.truth.get("upside_down")), "inverted": bool(card.truth.get("inverted")), "swapped": False}
 
 
 def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
@@ -81,20 +80,29 @@ def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-un
         # answers (the upside-down and inverted cards are asked about themselves), and with
         # four answers half the judgements waited for a curator on "inverted" (posterior
         # 0.54-0.94); with five all eight were approved (seeds 1-3 measured).
-        [ids[c.name] for c in to_judge], kind="judge", workers=7, n=5, seed=1,
+        [ids[c.name] for c in to_judge],
+        kind="judge",
+        workers=7,
+        n=5,
+        seed=1,
         truth={ids[c.name]: judgement(c) for c in to_judge},
-        gold={ids[c.name]: judgement(c) for c in [*mono, *known]})
+        gold={ids[c.name]: judgement(c) for c in [*mono, *known]},
+    )
     boxed = stereo[:3]
     crop = seed_simulated_crowd(
-        [ids[c.name] for c in boxed], kind="crop", workers=6, seed=2,
-        truth={ids[c.name]: {"left": _shrunk(c.truth["left_box"]), "right": _shrunk(c.truth["right_box"])}
-               for c in boxed},
-        gold={ids[c.name]: {"left": _shrunk(c.truth["left_box"]), "right": _shrunk(c.truth["right_box"])}
-              for c in stereo[3:5]})
+        [ids[c.name] for c in boxed],
+        kind="crop",
+        workers=6,
+        seed=2,
+        truth={ids[c.name]: {"left": _shrunk(c.truth["left_box"]), "right": _shrunk(c.truth["right_box"])} for c in boxed},
+        gold={ids[c.name]: {"left": _shrunk(c.truth["left_box"]), "right": _shrunk(c.truth["right_box"])} for c in stereo[3:5]},
+    )
     for summary in (judge, crop):
-        echo(f"crowd {summary['kind']}: batch {summary['batch']}, {summary['answers']} answers, "
-             f"approved {summary['approved']}, waiting for a curator {summary['needs_curator']}, "
-             f"flagged workers {summary['flagged_workers']}")
+        echo(
+            f"crowd {summary['kind']}: batch {summary['batch']}, {summary['answers']} answers, "
+            f"approved {summary['approved']}, waiting for a curator {summary['needs_curator']}, "
+            f"flagged workers {summary['flagged_workers']}"
+        )
     return {"judge": judge, "crop": crop, "waiting_before": sorted(waiting)}
 
 
@@ -124,19 +132,26 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
         truth = _true_orientation(by_id[candidate])
         if used["decided_by"] is not None and any(used[flag] != truth[flag] for flag in truth):
             wrong.append(candidate)
-            echo(f"orientation: card {candidate} ({by_id[candidate].name}) was decided by {used['decided_by']} as "
-                 + ", ".join(f"{flag} {used[flag]}" for flag in truth) + ": wrong")
+            echo(
+                f"orientation: card {candidate} ({by_id[candidate].name}) was decided by {used['decided_by']} as "
+                + ", ".join(f"{flag} {used[flag]}" for flag in truth)
+                + ": wrong"
+            )
     card_id = wrong[0] if wrong else undecided[0] if undecided else max(stereo)
     card = db.session.get(Card, card_id)
     curator = db.session.scalar(select(Person).where(Person.username == "curator"))
     for other in wrong[1:]:  # every wrong decision is corrected before anything is rectified
-        override_orientation(other, _true_orientation(by_id[other]), curator=curator,
-                             note="demo: the curator corrected the orientation")
-    after = override_orientation(card_id, _true_orientation(by_id[card_id]), curator=curator,
-                                 note="demo: the curator looked at the card")
-    echo(f"orientation: the demo curator decided card {card_id} ({card.source_name}): "
-         + ", ".join(f"{flag} {after[flag]}" for flag in ("upside_down", "inverted", "swapped"))
-         + f"; {len(undecided) - 1 if undecided else 0} other card(s) still wait for people")
+        override_orientation(
+            other, _true_orientation(by_id[other]), curator=curator, note="demo: the curator corrected the orientation"
+        )
+    after = override_orientation(
+        card_id, _true_orientation(by_id[card_id]), curator=curator, note="demo: the curator looked at the card"
+    )
+    echo(
+        f"orientation: the demo curator decided card {card_id} ({card.source_name}): "
+        + ", ".join(f"{flag} {after[flag]}" for flag in ("upside_down", "inverted", "swapped"))
+        + f"; {len(undecided) - 1 if undecided else 0} other card(s) still wait for people"
+    )
     # Until the judge task asks the eye order, a crowd judgement leaves ``swapped`` undecided
     # where the step was not sure of it: the curator answers that one question on those cards
     # (the crowd's upside-down and inverted answers stand).
@@ -149,14 +164,22 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
         # whose judgement the crowd disputes): the curator's answer is the demo's truth.
         missing = {flag: value for flag, value in _true_orientation(by_id[candidate]).items() if used[flag] is None}
         if missing:
-            override_orientation(candidate, missing, curator=curator,
-                                 note="demo: the curator looked at the card and its depth in colours")
+            override_orientation(
+                candidate, missing, curator=curator, note="demo: the curator looked at the card and its depth in colours"
+            )
             eye_order.append(candidate)
     if eye_order:
-        echo(f"orientation: the demo curator decided what was left undecided on {len(eye_order)} card(s) (a flag the "
-             "crowd left undecided, or a disputed judgement)")
-    return {"card": card_id, "orientation": after, "was_undecided": card_id in undecided, "wrong_before": wrong,
-            "eye_order_by_curator": eye_order}
+        echo(
+            f"orientation: the demo curator decided what was left undecided on {len(eye_order)} card(s) (a flag the "
+            "crowd left undecided, or a disputed judgement)"
+        )
+    return {
+        "card": card_id,
+        "orientation": after,
+        "was_undecided": card_id in undecided,
+        "wrong_before": wrong,
+        "eye_order_by_curator": eye_order,
+    }
 
 
 def _shrunk(box: list, margin: float = 0.03) -> list[float]:
@@ -178,19 +201,23 @@ def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
 
     sync_reviews()
     curator = db.session.scalar(select(Person).where(Person.username == "curator"))
-    pending = list(db.session.scalars(
-        select(CardReview).where(CardReview.decision == "pending", CardReview.auto_grade.in_(("few", "some")))
-        .order_by(CardReview.uncertainty.asc(), CardReview.card_id)))
+    pending = list(
+        db.session.scalars(
+            select(CardReview)
+            .where(CardReview.decision == "pending", CardReview.auto_grade.in_(("few", "some")))
+            .order_by(CardReview.uncertainty.asc(), CardReview.card_id)
+        )
+    )
     already = db.session.scalar(select(CardReview.id).where(CardReview.decision != "pending").limit(1))
     accepted = []
     if already is None:
         # A card whose crowd judgement or crop is disputed, or whose orientation is undecided,
         # cannot be accepted: it waits for you.
-        undisputed = [review for review in pending if not open_disputes(review.card_id)
-                      and not flow_blockers(review.card)]
+        undisputed = [review for review in pending if not open_disputes(review.card_id) and not flow_blockers(review.card)]
         for review in undisputed[: max(1, len(pending) // 2)]:
-            decide(review.id, "accept", expected_version=review.version, curator=curator,
-                   note="demo: accepted by the demo script")
+            decide(
+                review.id, "accept", expected_version=review.version, curator=curator, note="demo: accepted by the demo script"
+            )
             accepted.append(review.card_id)
     left = db.session.scalar(select(db.func.count()).select_from(CardReview).where(CardReview.decision == "pending"))
     echo(f"review: the demo curator accepted {len(accepted)} grade(s); {left} card(s) wait in /review")
@@ -215,16 +242,22 @@ def release_demo(folder: Path, echo=click.echo) -> dict:  # type: ignore[no-unty
         echo(f"release: the same data as release {plan.changes.get('previous_version')}; not published again")
         return {"version": plan.changes.get("previous_version"), "verified": None}
     try:
-        report = publish_release(releases, min_grade="some", notes="Demo collection", actor=exporter,
-                                 actor_label="keystone demo")
+        report = publish_release(releases, min_grade="some", notes="Demo collection", actor=exporter, actor_label="keystone demo")
     except ReleaseError as exc:
         echo(f"release: not published: {exc}")
         return {"version": None, "error": str(exc)}
     verified = verify_release(report.path)
-    echo(f"release {report.version}: {report.cards} cards, {report.files} files in {report.path}; "
-         f"verify: {'ok' if verified.ok else verified.problems}")
-    return {"version": report.version, "path": report.path, "cards": report.cards, "verified": verified.ok,
-            "problems": verified.problems}
+    echo(
+        f"release {report.version}: {report.cards} cards, {report.files} files in {report.path}; "
+        f"verify: {'ok' if verified.ok else verified.problems}"
+    )
+    return {
+        "version": report.version,
+        "path": report.path,
+        "cards": report.cards,
+        "verified": verified.ok,
+        "problems": verified.problems,
+    }
 
 
 def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
@@ -247,8 +280,9 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
     data_dir = folder / "data"
     data_dir.mkdir(parents=True, exist_ok=True)
     ensure_schema(db.engine)
-    report = ingest([scans], data_dir=data_dir, collection_name="demo", metadata_csv=scans / "metadata.csv",
-                    max_pixels=10_000_000)
+    report = ingest(
+        [scans], data_dir=data_dir, collection_name="demo", metadata_csv=scans / "metadata.csv", max_pixels=10_000_000
+    )
     echo(f"ingested {len(report.ingested)} (duplicates {len(report.duplicates)}, rejected {len(report.rejected)})")
     for entry in report.rejected:
         echo(f"  rejected {entry['path']}: {entry['reason']}")
@@ -269,8 +303,10 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
                 override = override_demo_orientation(cards, echo)
             stage_report = run_stage(spec, data_dir=data_dir, executor=executor)
             stage_reports.append(stage_report.as_json())
-            echo(f"{spec.name}: processed {stage_report.processed} in {stage_report.seconds:.1f} s, "
-                 f"outcomes {stage_report.outcomes}, failed {stage_report.failed}")
+            echo(
+                f"{spec.name}: processed {stage_report.processed} in {stage_report.seconds:.1f} s, "
+                f"outcomes {stage_report.outcomes}, failed {stage_report.failed}"
+            )
 
     review = curate_demo(echo)
     release = release_demo(folder, echo)
@@ -281,25 +317,43 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
         stem = Path(card.source_name).stem
         filter_result = card.latest_results().get("filter")
         outcome = filter_result.outcome if filter_result else None
-        rows.append({
-            "id": card.id, "source": card.source_name, "outcome": outcome,
-            "fraction": filter_result.metrics.get("good_match_fraction") if filter_result else None,
-            "expected": list(expected.get(stem, ())), "as_expected": outcome in expected.get(stem, (outcome,)),
-        })
+        rows.append(
+            {
+                "id": card.id,
+                "source": card.source_name,
+                "outcome": outcome,
+                "fraction": filter_result.metrics.get("good_match_fraction") if filter_result else None,
+                "expected": list(expected.get(stem, ())),
+                "as_expected": outcome in expected.get(stem, (outcome,)),
+            }
+        )
     echo(f"{'card':<32} {'filter':<8} {'fraction':>9}  expected")
     for row in rows:
         fraction = f"{100 * row['fraction']:.2f} %" if row["fraction"] is not None else "-"
         mark = "" if row["as_expected"] else "   <- unexpected"
         echo(f"{row['source']:<32} {row['outcome']!s:<8} {fraction:>9}  {'/'.join(row['expected'])}{mark}")
-    return {"cards": rows, "stages": stage_reports, "crowd": crowd, "orientation_override": override,
-            "review": review, "release": release,
-            "logins": logins, "seconds": time.perf_counter() - clock}
+    return {
+        "cards": rows,
+        "stages": stage_reports,
+        "crowd": crowd,
+        "orientation_override": override,
+        "review": review,
+        "release": release,
+        "logins": logins,
+        "seconds": time.perf_counter() - clock,
+    }
 
 
 @click.command("demo")
 @click.option("--no-serve", is_flag=True, help="Stop after building and processing the demo collection.")
-@click.option("--dir", "folder", type=click.Path(path_type=Path, file_okay=False), default=Path("keystone-demo"),
-              show_default=True, help="Folder for the demo's catalogue, store and scans.")
+@click.option(
+    "--dir",
+    "folder",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=Path("keystone-demo"),
+    show_default=True,
+    help="Folder for the demo's catalogue, store and scans.",
+)
 @click.option("--host", default="127.0.0.1", show_default=True)
 @click.option("--port", default=5000, show_default=True, type=int)
 @click.option("--workers", default=2, show_default=True, type=click.IntRange(1, 64))
@@ -311,8 +365,11 @@ def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: in
     folder = folder.resolve()
     folder.mkdir(parents=True, exist_ok=True)
     app = create_app(
-        {"SQLALCHEMY_DATABASE_URI": f"sqlite:///{folder / 'keystone.sqlite3'}", "KEYSTONE_DATA_DIR": str(folder / "data"),
-         "KEYSTONE_RELEASES_DIR": str(folder / "releases")},
+        {
+            "SQLALCHEMY_DATABASE_URI": f"sqlite:///{folder / 'keystone.sqlite3'}",
+            "KEYSTONE_DATA_DIR": str(folder / "data"),
+            "KEYSTONE_RELEASES_DIR": str(folder / "releases"),
+        },
         instance_path=folder / "instance",
     )
     with app.app_context():

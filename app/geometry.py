@@ -49,24 +49,18 @@ def check_paths(
                 if in_folder:
                     skipped.append({"path": str(path), "reason": exc.reason})
                     continue
-                results.append(
-                    {"id": hq.parse_id(path), "path": str(path), "error": exc.reason}
-                )
+                results.append({"id": hq.parse_id(path), "path": str(path), "error": exc.reason})
                 failed = True
                 continue
             except hq.HomographyReadError as exc:
-                results.append(
-                    {"id": hq.parse_id(path), "path": str(path), "error": exc.reason}
-                )
+                results.append({"id": hq.parse_id(path), "path": str(path), "error": exc.reason})
                 failed = True
                 continue
             for pair in pairs:
                 try:
                     result = hq.assess(pair, size=size)
                 except ValueError as exc:  # e.g. a matrix the metrics refuse
-                    results.append(
-                        {"id": pair.id, "path": str(path), "error": str(exc)}
-                    )
+                    results.append({"id": pair.id, "path": str(path), "error": str(exc)})
                     failed = True
                     continue
                 result["metrics"]["source"] = str(path)
@@ -89,9 +83,7 @@ def _fmt(v: Any, spec: str) -> str:
     f"(default: {hq.DEFAULT_SIZE[0]}x{hq.DEFAULT_SIZE[1]}, a typical KeystoneDepth crop).",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
-def check_homographies_command(
-    paths: tuple[str, ...], size_text: str | None, as_json: bool
-) -> None:
+def check_homographies_command(paths: tuple[str, ...], size_text: str | None, as_json: bool) -> None:
     """Distortion metrics and a good / border / bad verdict per rectifying homography pair.
 
     PATH is a KeystoneDepth <id>_rectification_mats.mat (tl, tr; row vectors), their
@@ -115,8 +107,7 @@ def check_homographies_command(
         click.echo(json.dumps(document, indent=2, allow_nan=False))
     else:
         click.echo(
-            f"{'id':<8} {'verdict':<7} {'corner':>7} {'midline':>8} {'aspect':>7} {'proj':>5} "
-            f"{'rot':>5} {'lr_dy':>6}  bounded"
+            f"{'id':<8} {'verdict':<7} {'corner':>7} {'midline':>8} {'aspect':>7} {'proj':>5} {'rot':>5} {'lr_dy':>6}  bounded"
         )
         for r in results:
             if "error" in r:
@@ -129,9 +120,7 @@ def check_homographies_command(
                 f"{_fmt(m['min_projective_log10'], '5.2f')} {_fmt(m['max_rotation_deg'], '5.2f')} "
                 f"{_fmt(m['lr_row_spread'], '6.4f')}  {'yes' if m['bounded'] else 'NO'}"
             )
-        counts = {
-            v: sum(1 for r in results if r.get("verdict") == v) for v in hq.VERDICTS
-        }
+        counts = {v: sum(1 for r in results if r.get("verdict") == v) for v in hq.VERDICTS}
         errors = sum(1 for r in results if "error" in r)
         click.echo(
             f"{len(results)} item(s): {counts['good']} good, {counts['border']} border, "

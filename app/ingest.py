@@ -66,9 +66,13 @@ def sha256_file(path: Path) -> str:
 
 
 def _file_kind(mode: int) -> str:
-    for test, name in ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"),
-                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
-                       (stat.S_ISBLK, "a block device")):
+    for test, name in (
+        (stat.S_ISDIR, "a folder"),
+        (stat.S_ISFIFO, "a named pipe (FIFO)"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+    ):
         if test(mode):
             return name
     return "not a regular file"
@@ -131,8 +135,11 @@ def discover_files(paths: Iterable[str | Path], report: IngestReport) -> Iterato
             yield from _walk_folder(path, report)
         elif path.suffix.lower() not in IMAGE_SUFFIXES:
             report.rejected.append(
-                {"path": str(path), "reason": f"unsupported file type {path.suffix or '(none)'!r}; expected one of "
-                 + ", ".join(sorted(IMAGE_SUFFIXES))}
+                {
+                    "path": str(path),
+                    "reason": f"unsupported file type {path.suffix or '(none)'!r}; expected one of "
+                    + ", ".join(sorted(IMAGE_SUFFIXES)),
+                }
             )
         else:
             yield path
@@ -151,8 +158,9 @@ def _walk_folder(root: Path, report: IngestReport) -> list[Path]:
             with os.scandir(folder) as listing:
                 entries = list(listing)
         except OSError as exc:
-            report.rejected.append({"path": str(folder),
-                                    "reason": f"cannot list folder: {_os_reason(exc)}; nothing under it was ingested"})
+            report.rejected.append(
+                {"path": str(folder), "reason": f"cannot list folder: {_os_reason(exc)}; nothing under it was ingested"}
+            )
             continue
         for entry in entries:
             child = Path(entry.path)
@@ -164,8 +172,13 @@ def _walk_folder(root: Path, report: IngestReport) -> list[Path]:
             if is_folder:
                 pending.append(child)
             elif linked_folder:
-                report.rejected.append({"path": str(child), "reason": "a symbolic link to a folder: links are not "
-                                        "followed inside folders; name it on the command line to ingest it"})
+                report.rejected.append(
+                    {
+                        "path": str(child),
+                        "reason": "a symbolic link to a folder: links are not "
+                        "followed inside folders; name it on the command line to ingest it",
+                    }
+                )
             elif child.suffix.lower() in IMAGE_SUFFIXES:
                 found.append(child)
     return sorted(found)
@@ -281,8 +294,12 @@ def ingest(
         db.session.commit()
     except SQLAlchemyError as exc:
         db.session.rollback()
-        report.rejected.append({"path": _database_label(), "reason": "cannot write the catalogue database "
-                                f"({database_reason(exc)}): nothing was ingested"})
+        report.rejected.append(
+            {
+                "path": _database_label(),
+                "reason": f"cannot write the catalogue database ({database_reason(exc)}): nothing was ingested",
+            }
+        )
         return report
 
     metadata_ids: list[int] = []
@@ -306,14 +323,20 @@ def ingest(
     try:
         _link_metadata(collection_id)
         db.session.commit()
-        records = (db.session.scalars(select(MetadataRecord).where(MetadataRecord.id.in_(metadata_ids))).all()
-                   if metadata_ids else [])
+        records = (
+            db.session.scalars(select(MetadataRecord).where(MetadataRecord.id.in_(metadata_ids))).all() if metadata_ids else []
+        )
     except SQLAlchemyError as exc:
         db.session.rollback()
         if metadata_csv is not None:
-            report.rejected.append({"path": str(metadata_csv), "reason": "metadata not attached to the new cards: "
-                                    f"the catalogue database refused the write ({database_reason(exc)}); "
-                                    "ingest the CSV again"})
+            report.rejected.append(
+                {
+                    "path": str(metadata_csv),
+                    "reason": "metadata not attached to the new cards: "
+                    f"the catalogue database refused the write ({database_reason(exc)}); "
+                    "ingest the CSV again",
+                }
+            )
         return report
     if metadata_ids:
         report.metadata["matched"] = sum(1 for r in records if r.card_id is not None)
@@ -352,9 +375,14 @@ def _ingest_metadata(collection_id: int, metadata_csv: Path, report: IngestRepor
         db.session.commit()
     except SQLAlchemyError as exc:
         db.session.rollback()
-        report.rejected.append({"path": str(metadata_csv), "reason": f"metadata not recorded: the catalogue "
-                                f"database refused the write ({database_reason(exc)}); none of its "
-                                f"{len(parsed.rows)} rows was stored"})
+        report.rejected.append(
+            {
+                "path": str(metadata_csv),
+                "reason": f"metadata not recorded: the catalogue "
+                f"database refused the write ({database_reason(exc)}); none of its "
+                f"{len(parsed.rows)} rows was stored",
+            }
+        )
         report.metadata["rows"] = 0
         return []
     return ids
@@ -374,8 +402,9 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
     except SQLAlchemyError as exc:
         db.session.rollback()
-        report.rejected.append({"path": str(path), "reason": "not ingested: the catalogue database cannot be read "
-                                f"({database_reason(exc)})"})
+        report.rejected.append(
+            {"path": str(path), "reason": f"not ingested: the catalogue database cannot be read ({database_reason(exc)})"}
+        )
         return
     if existing is not None:
         report.duplicates.append(_duplicate_entry(path, existing))
@@ -423,10 +452,14 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
             report.duplicates.append(_duplicate_entry(path, existing))
             return
         removed = _discard_original(data_dir / relative)
-        report.rejected.append({"path": str(path), "reason": "not recorded: the catalogue database refused the "
-                                f"write ({database_reason(exc)}); "
-                                + ("the stored copy was removed" if removed else
-                                   f"the stored copy {relative} could not be removed")})
+        report.rejected.append(
+            {
+                "path": str(path),
+                "reason": "not recorded: the catalogue database refused the "
+                f"write ({database_reason(exc)}); "
+                + ("the stored copy was removed" if removed else f"the stored copy {relative} could not be removed"),
+            }
+        )
         return
     report.ingested.append({"id": card.id, "path": str(path), "content_hash": content_hash})
 
@@ -459,20 +492,41 @@ def _duplicate_entry(path: Path, existing: Card) -> dict[str, Any]:
 # readable=False: click would end the whole command (exit 2) on one unreadable path; ingest
 # rejects that path alone, with its reason, and goes on with the others.
 @click.argument("paths", nargs=-1, type=click.Path(path_type=Path, readable=False))
-@click.option("--metadata", "metadata_csv", type=click.Path(path_type=Path, readable=False),
-              help="Museum metadata CSV (eMuseum export, tidy or transposed, or a plain CSV keyed by "
-                   "file_name or accession).")
-@click.option("--collection", "collection_name", default=DEFAULT_COLLECTION, show_default=True,
-              help="Collection the cards belong to (created if new).")
-@click.option("--pairs", "pairs_csv", type=click.Path(path_type=Path),
-              help="CSV with 'left' and 'right' columns: each row's two files become one card.")
-@click.option("--sbs-order", type=click.Choice(["cross", "parallel"]),
-              help="Eye order of side-by-side files: cross (right view on the left) or parallel. "
-                   "JPS files default to cross; giving it treats every plain file as side by side.")
+@click.option(
+    "--metadata",
+    "metadata_csv",
+    type=click.Path(path_type=Path, readable=False),
+    help="Museum metadata CSV (eMuseum export, tidy or transposed, or a plain CSV keyed by file_name or accession).",
+)
+@click.option(
+    "--collection",
+    "collection_name",
+    default=DEFAULT_COLLECTION,
+    show_default=True,
+    help="Collection the cards belong to (created if new).",
+)
+@click.option(
+    "--pairs",
+    "pairs_csv",
+    type=click.Path(path_type=Path),
+    help="CSV with 'left' and 'right' columns: each row's two files become one card.",
+)
+@click.option(
+    "--sbs-order",
+    type=click.Choice(["cross", "parallel"]),
+    help="Eye order of side-by-side files: cross (right view on the left) or parallel. "
+    "JPS files default to cross; giving it treats every plain file as side by side.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the report as one JSON document.")
 @with_appcontext
-def ingest_command(paths: tuple[Path, ...], metadata_csv: Path | None, collection_name: str,
-                   pairs_csv: Path | None, sbs_order: str | None, as_json: bool) -> None:
+def ingest_command(
+    paths: tuple[Path, ...],
+    metadata_csv: Path | None,
+    collection_name: str,
+    pairs_csv: Path | None,
+    sbs_order: str | None,
+    as_json: bool,
+) -> None:
     """Copy scans (files or folders, recursively: jpg, png, tif, jps, mpo) into the catalogue.
 
     An MPO's two frames, and a left/right pair (named <stem>_L/_R, <stem>L/R, -left/-right, or
@@ -490,16 +544,19 @@ def ingest_command(paths: tuple[Path, ...], metadata_csv: Path | None, collectio
     ensure_database()
     with progress_bar("ingest", enabled=not as_json) as progress:
         report = ingest(
-            paths, data_dir=data_dir(), collection_name=collection_name, metadata_csv=metadata_csv,
+            paths,
+            data_dir=data_dir(),
+            collection_name=collection_name,
+            metadata_csv=metadata_csv,
             max_pixels=int(current_app.config["KEYSTONE_MAX_PIXELS"]),
-            on_start=progress.start, on_file=progress.advance,
+            on_start=progress.start,
+            on_file=progress.advance,
             stereo=_StereoOptions(pairs_csv=pairs_csv, sbs_order=sbs_order),
         )
     if as_json:
         emit_json(report.as_json())
     else:
-        say(f"ingested {len(report.ingested)}, duplicates {len(report.duplicates)}, "
-            f"rejected {len(report.rejected)}", as_json)
+        say(f"ingested {len(report.ingested)}, duplicates {len(report.duplicates)}, rejected {len(report.rejected)}", as_json)
         for entry in report.duplicates:
             say(f"  duplicate  {entry['path']}: {entry['reason']}", as_json)
         for entry in report.rejected:

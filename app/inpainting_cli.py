@@ -31,8 +31,7 @@ def catalogue_gd_images() -> list:
     data_dir = Path(current_app.config["KEYSTONE_DATA_DIR"])
     latest: dict[int, StageResult] = {}
     with read_only():
-        for result in db.session.scalars(select(StageResult).where(StageResult.stage == "views")
-                                         .order_by(StageResult.id)):
+        for result in db.session.scalars(select(StageResult).where(StageResult.stage == "views").order_by(StageResult.id)):
             latest[result.card_id] = result
         done = [r for r in latest.values() if r.status == "done"]
     images = []
@@ -49,21 +48,36 @@ def catalogue_gd_images() -> list:
 
 
 @click.command("train-inpainting")
-@click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path, file_okay=False),
-              help="Folder for checkpoint.pt (model + optimiser + step + config) and config.json.")
-@click.option("--steps", default=300, show_default=True, type=click.IntRange(1, 10_000_000),
-              help="Total training steps (a resumed run continues up to this step).")
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Folder for checkpoint.pt (model + optimiser + step + config) and config.json.",
+)
+@click.option(
+    "--steps",
+    default=300,
+    show_default=True,
+    type=click.IntRange(1, 10_000_000),
+    help="Total training steps (a resumed run continues up to this step).",
+)
 @click.option("--size", default=64, show_default=True, type=click.IntRange(16, 1024), help="Crop side in px.")
 @click.option("--batch-size", default=8, show_default=True, type=click.IntRange(1, 4096))
 @click.option("--checkpoint-every", default=50, show_default=True, type=click.IntRange(1, 10_000_000))
-@click.option("--resume/--no-resume", default=True, show_default=True,
-              help="Continue from OUT/checkpoint.pt when it exists.")
-@click.option("--source", type=click.Choice(["builtin", "catalogue"]), default="builtin", show_default=True,
-              help="builtin: scikit-image's Motorcycle; catalogue: the v0 GD images of every card whose "
-                   "views stage is done (keystone run --stages views).")
+@click.option("--resume/--no-resume", default=True, show_default=True, help="Continue from OUT/checkpoint.pt when it exists.")
+@click.option(
+    "--source",
+    type=click.Choice(["builtin", "catalogue"]),
+    default="builtin",
+    show_default=True,
+    help="builtin: scikit-image's Motorcycle; catalogue: the v0 GD images of every card whose "
+    "views stage is done (keystone run --stages views).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
-def train_inpainting_command(out_dir: Path, steps: int, size: int, batch_size: int, checkpoint_every: int,
-                             resume: bool, source: str, as_json: bool) -> None:
+def train_inpainting_command(
+    out_dir: Path, steps: int, size: int, batch_size: int, checkpoint_every: int, resume: bool, source: str, as_json: bool
+) -> None:
     """Train the intensity and depth partial-convolution networks on double-reprojection holes of
     GD images, with atomic checkpoints and resume: the built-in ones (scikit-image's Motorcycle
     crops) or the catalogue's own (--source catalogue). The networks refine a classical fill
@@ -80,8 +94,7 @@ def train_inpainting_command(out_dir: Path, steps: int, size: int, batch_size: i
         train,
     )
 
-    config = InpaintConfig(steps=steps, batch_size=batch_size, checkpoint_every=checkpoint_every,
-                           depth=3 if size >= 32 else 2)
+    config = InpaintConfig(steps=steps, batch_size=batch_size, checkpoint_every=checkpoint_every, depth=3 if size >= 32 else 2)
     try:
         if source == "catalogue":
             from flask.cli import ScriptInfo
@@ -90,20 +103,30 @@ def train_inpainting_command(out_dir: Path, steps: int, size: int, batch_size: i
             with click.get_current_context().ensure_object(ScriptInfo).load_app().app_context():
                 train_gd = crop_gd_images(catalogue_gd_images(), size)
             if not train_gd:
-                raise click.ClickException("no usable GD images in the catalogue: run `keystone run --stages views` "
-                                           "first (cards graded failure get none)")
+                raise click.ClickException(
+                    "no usable GD images in the catalogue: run `keystone run --stages views` "
+                    "first (cards graded failure get none)"
+                )
         else:
             train_gd, _ = builtin_gd_images(size)
         result = train(make_samples(train_gd), config, out_dir, resume=resume)
     except PipelineError as exc:
         raise click.ClickException(exc.reason()) from exc
     losses = result["losses"]
-    document = {"step": result["step"], "start_step": result["start_step"], "seconds": round(result["seconds"], 3),
-                "source": source, "gd_crops": len(train_gd),
-                "checkpoint": result["checkpoint"], "config": asdict(config),
-                "last_loss": losses[-1] if losses else None}
+    document = {
+        "step": result["step"],
+        "start_step": result["start_step"],
+        "seconds": round(result["seconds"], 3),
+        "source": source,
+        "gd_crops": len(train_gd),
+        "checkpoint": result["checkpoint"],
+        "config": asdict(config),
+        "last_loss": losses[-1] if losses else None,
+    }
     if as_json:
         click.echo(json.dumps(document, indent=2, allow_nan=False))
         return
-    click.echo(f"trained steps {result['start_step']}..{result['step']} in {result['seconds']:.1f} s; "
-               f"checkpoint {result['checkpoint']}; last loss (intensity, depth) {document['last_loss']}")
+    click.echo(
+        f"trained steps {result['start_step']}..{result['step']} in {result['seconds']:.1f} s; "
+        f"checkpoint {result['checkpoint']}; last loss (intensity, depth) {document['last_loss']}"
+    )

@@ -56,8 +56,7 @@ def _bounded_int(text: str) -> int:
     # The length check comes first: int() of a 5,000-digit string is a ValueError, of a
     # 4,000-digit one a waste of time.
     if len(text.lstrip("-")) > len(str(MAX_SAFE_INTEGER)) or abs(value := int(text)) > MAX_SAFE_INTEGER:
-        raise JSONBodyError(f"Expected whole numbers within +-2**53 in the JSON body, "
-                            f"got one of {len(text.lstrip('-'))} digits.")
+        raise JSONBodyError(f"Expected whole numbers within +-2**53 in the JSON body, got one of {len(text.lstrip('-'))} digits.")
     return value
 
 
@@ -66,15 +65,13 @@ def parse_json(raw: bytes, *, max_depth: int = MAX_DEPTH) -> Any:
     try:
         # UTF-8 only (RFC 8259 for JSON between systems); json.loads would also guess UTF-16/32.
         text = raw.decode("utf-8")
-        document = json.loads(text, parse_constant=_refuse_constant, parse_float=_bounded_float,
-                              parse_int=_bounded_int)
+        document = json.loads(text, parse_constant=_refuse_constant, parse_float=_bounded_float, parse_int=_bounded_int)
     except JSONBodyError:
         raise
     except RecursionError:
         # The C parser recurses once per level and stops cleanly at the interpreter's limit
         # (about 1,000): far past max_depth, and long before a 64 KiB body of "[" ends.
-        raise JSONBodyError(f"Expected JSON nested at most {max_depth} levels deep, "
-                            "got one nested too deep to parse.") from None
+        raise JSONBodyError(f"Expected JSON nested at most {max_depth} levels deep, got one nested too deep to parse.") from None
     except ValueError as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
         if isinstance(exc, json.JSONDecodeError):
             reason = f"{exc.msg} at character {exc.pos}"
@@ -112,8 +109,9 @@ def check_document(document: Any, *, max_depth: int | None = MAX_DEPTH, check_te
                 try:
                     value.encode("utf-8")
                 except UnicodeEncodeError:
-                    raise JSONBodyError("Text in the JSON body may not contain lone surrogates "
-                                        "(\\ud800-\\udfff without their pair).") from None
+                    raise JSONBodyError(
+                        "Text in the JSON body may not contain lone surrogates (\\ud800-\\udfff without their pair)."
+                    ) from None
         elif isinstance(value, (dict, list)):
             if max_depth is not None and depth + 1 > max_depth:
                 raise JSONBodyError(f"Expected JSON nested at most {max_depth} levels deep, got deeper.")

@@ -29,12 +29,12 @@ class LeftoversReport:
     paths: list[str] = field(default_factory=list)
 
     def as_json(self) -> dict[str, Any]:
-        return {"temp_files": self.temp_files, "staging_folders": self.staging_folders, "bytes": self.bytes,
-                "paths": self.paths}
+        return {"temp_files": self.temp_files, "staging_folders": self.staging_folders, "bytes": self.bytes, "paths": self.paths}
 
 
-def remove_leftovers(data_dir: Path, releases_dir: Path | None = None, *,
-                     stale_temp_seconds: float = STALE_TEMP_SECONDS) -> LeftoversReport:
+def remove_leftovers(
+    data_dir: Path, releases_dir: Path | None = None, *, stale_temp_seconds: float = STALE_TEMP_SECONDS
+) -> LeftoversReport:
     """Remove stale temporary files in the originals store and dead exports' staging folders in
     ``releases_dir`` (default ``<data dir>/releases``)."""
     from exports.staging import remove_stale_partials
@@ -62,6 +62,9 @@ def clear_leftovers(as_json: bool) -> LeftoversReport:
     configured = current_app.config.get("KEYSTONE_RELEASES_DIR")
     report = remove_leftovers(data_dir(), Path(configured) if configured else None)
     if report.paths:
-        say(f"removed {report.temp_files} temporary file(s) and {report.staging_folders} export staging folder(s) "
-            f"({report.bytes / 1e6:.1f} MB) left by interrupted commands", as_json)
+        say(
+            f"removed {report.temp_files} temporary file(s) and {report.staging_folders} export staging folder(s) "
+            f"({report.bytes / 1e6:.1f} MB) left by interrupted commands",
+            as_json,
+        )
     return report

@@ -42,12 +42,17 @@ class DatabaseIdConverter(IntegerConverter):
     Explicit ``min``/``max`` arguments may narrow the range, never widen it.
     """
 
-    def __init__(self, map: Map, fixed_digits: int = 0, min: int | None = None, max: int | None = None,
-                 signed: bool = False) -> None:
+    def __init__(
+        self, map: Map, fixed_digits: int = 0, min: int | None = None, max: int | None = None, signed: bool = False
+    ) -> None:
         if signed:
             raise ValueError("Database ids are never negative: use <int:...> without signed=True")
-        super().__init__(map, fixed_digits=fixed_digits, min=builtins.max(1, min or 1),
-                         max=builtins.min(DATABASE_ID_MAX, max or DATABASE_ID_MAX))
+        super().__init__(
+            map,
+            fixed_digits=fixed_digits,
+            min=builtins.max(1, min or 1),
+            max=builtins.min(DATABASE_ID_MAX, max or DATABASE_ID_MAX),
+        )
 
     def to_python(self, value: str) -> Any:
         if len(value.lstrip("0")) > DATABASE_ID_DIGITS:
@@ -62,8 +67,7 @@ def parse_positive_int(value: str, name: str, *, maximum: int = DATABASE_ID_MAX)
     true for "²", which ``int()`` refuses, so only ASCII digits are accepted.
     """
     text = value.strip()
-    if not (text.isascii() and text.isdigit()) or len(text.lstrip("0")) > len(str(maximum)) \
-            or not 1 <= int(text) <= maximum:
+    if not (text.isascii() and text.isdigit()) or len(text.lstrip("0")) > len(str(maximum)) or not 1 <= int(text) <= maximum:
         raise ValueError(f"Expected {name} to be a positive whole number (at most {maximum}), got {text[:40]!r}.")
     return int(text)
 
@@ -88,8 +92,7 @@ def refuse_large_bodies() -> None:
         return
     request.max_content_length = limit
     if request.content_length is not None and request.content_length > limit:
-        abort(413, f"This request's body is {request.content_length:,} bytes; "
-                   f"the limit here is {limit:,} bytes.")
+        abort(413, f"This request's body is {request.content_length:,} bytes; the limit here is {limit:,} bytes.")
 
 
 def refuse_nul_characters() -> None:

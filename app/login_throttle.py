@@ -50,9 +50,11 @@ class ThrottlePolicy:
 
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> ThrottlePolicy:
-        return cls(window=config["KEYSTONE_LOGIN_WINDOW"],
-                   per_account=config["KEYSTONE_LOGIN_FAILURES_PER_ACCOUNT"],
-                   per_address=config["KEYSTONE_LOGIN_FAILURES_PER_ADDRESS"])
+        return cls(
+            window=config["KEYSTONE_LOGIN_WINDOW"],
+            per_account=config["KEYSTONE_LOGIN_FAILURES_PER_ACCOUNT"],
+            per_address=config["KEYSTONE_LOGIN_FAILURES_PER_ADDRESS"],
+        )
 
     def budget(self, scope: str) -> int:
         if scope not in THROTTLE_SCOPES:
@@ -83,8 +85,7 @@ def counted_failures(failures: int, window_started_at: datetime, now: datetime, 
     return failures if now < as_utc(window_started_at) + window else 0
 
 
-def lockout_of(scope: str, failures: int, window_started_at: datetime, now: datetime,
-               policy: ThrottlePolicy) -> Lockout | None:
+def lockout_of(scope: str, failures: int, window_started_at: datetime, now: datetime, policy: ThrottlePolicy) -> Lockout | None:
     """The lockout a throttle row imposes at ``now``, or None while its budget lasts."""
     counted = counted_failures(failures, window_started_at, now, policy.window)
     if counted < policy.budget(scope):
@@ -127,20 +128,27 @@ def _keys(username: str, address: str) -> list[tuple[str, str]]:
 
 def _locked_rows(session: Session, keys: list[tuple[str, str]], now: datetime) -> list[LoginThrottle]:
     insert = postgresql.insert if session.get_bind().dialect.name == "postgresql" else sqlite.insert
-    session.execute(insert(LoginThrottle)
-                    .values([{"scope": scope, "subject": subject, "window_started_at": now, "failures": 0}
-                             for scope, subject in keys])
-                    .on_conflict_do_nothing())
+    session.execute(
+        insert(LoginThrottle)
+        .values([{"scope": scope, "subject": subject, "window_started_at": now, "failures": 0} for scope, subject in keys])
+        .on_conflict_do_nothing()
+    )
     rows = []
     for scope, subject in keys:
-        rows.append(session.execute(
-            select(LoginThrottle).where(LoginThrottle.scope == scope, LoginThrottle.subject == subject)
-            .with_for_update().execution_options(populate_existing=True)).scalar_one())
+        rows.append(
+            session.execute(
+                select(LoginThrottle)
+                .where(LoginThrottle.scope == scope, LoginThrottle.subject == subject)
+                .with_for_update()
+                .execution_options(populate_existing=True)
+            ).scalar_one()
+        )
     return rows
 
 
-def reserve_attempt(username: str, address: str, policy: ThrottlePolicy, now: datetime,
-                    session: Session | None = None) -> Lockout | None:
+def reserve_attempt(
+    username: str, address: str, policy: ThrottlePolicy, now: datetime, session: Session | None = None
+) -> Lockout | None:
     """Count one attempt against the account's and the address's budgets, or say which is spent.
 
     Runs in the caller's write transaction (begin it with :func:`app.db.one_writer`, commit it
@@ -148,8 +156,7 @@ def reserve_attempt(username: str, address: str, policy: ThrottlePolicy, now: da
     """
     session = session or db.session()
     rows = _locked_rows(session, _keys(username, address), now)
-    lockouts = [lockout for row in rows
-                if (lockout := lockout_of(row.scope, row.failures, row.window_started_at, now, policy))]
+    lockouts = [lockout for row in rows if (lockout := lockout_of(row.scope, row.failures, row.window_started_at, now, policy))]
     if lockouts:
         return max(lockouts, key=lambda lockout: lockout.retry_after_s)
     for row in rows:
@@ -159,8 +166,7 @@ def reserve_attempt(username: str, address: str, policy: ThrottlePolicy, now: da
     return None
 
 
-def give_back_attempt(username: str, address: str, policy: ThrottlePolicy, now: datetime,
-                      session: Session | None = None) -> None:
+def give_back_attempt(username: str, address: str, policy: ThrottlePolicy, now: datetime, session: Session | None = None) -> None:
     """The password was right: clear the account's count and return the address's reservation.
 
     Also drops rows whose window has ended (rows that others hold locked are left for later), so
@@ -171,9 +177,11 @@ def give_back_attempt(username: str, address: str, policy: ThrottlePolicy, now: 
     keys = _keys(username, address)
     for row in _locked_rows(session, keys, now):
         row.failures = 0 if row.scope == "account" else max(0, row.failures - 1)
-    ended = (select(LoginThrottle.scope, LoginThrottle.subject)
-             .where(LoginThrottle.window_started_at <= now - policy.window)
-             .with_for_update(skip_locked=True))
+    ended = (
+        select(LoginThrottle.scope, LoginThrottle.subject)
+        .where(LoginThrottle.window_started_at <= now - policy.window)
+        .with_for_update(skip_locked=True)
+    )
     stale = [(scope, subject) for scope, subject in session.execute(ended) if (scope, subject) not in keys]
     if stale:
         session.execute(delete(LoginThrottle).where(tuple_(LoginThrottle.scope, LoginThrottle.subject).in_(stale)))

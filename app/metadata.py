@@ -154,8 +154,9 @@ def _parse_record(lines: list[str], start: int) -> tuple[list[str], int]:
     except csv.Error as exc:
         text = str(exc)
         if "field larger than field limit" in text:
-            raise _RecordError(f"a field is longer than {csv.field_size_limit():,} characters "
-                               "(the CSV field size limit)") from exc
+            raise _RecordError(
+                f"a field is longer than {csv.field_size_limit():,} characters (the CSV field size limit)"
+            ) from exc
         if used > 1 or "unexpected end of data" in text:
             # The parser left this line inside a quoted field: the quote opened here never closes
             # where it should, and reading on would swallow the rows after it.
@@ -188,9 +189,16 @@ def read_csv_records(path: Path) -> list[CsvRecord]:
             index += 1
             continue
         if used > 1 and width is not None and len(cells) != width:
-            records.append(CsvRecord(line_number, None, (
-                f"a quoted field opened on this line runs over {used} lines and leaves {len(cells)} fields "
-                f"instead of {width}: probably an unterminated quote")))
+            records.append(
+                CsvRecord(
+                    line_number,
+                    None,
+                    (
+                        f"a quoted field opened on this line runs over {used} lines and leaves {len(cells)} fields "
+                        f"instead of {width}: probably an unterminated quote"
+                    ),
+                )
+            )
             index += 1
             continue
         if any(cell.strip() for cell in cells):
@@ -210,9 +218,10 @@ def read_metadata(path: str | Path) -> MetadataFile:
     records = read_csv_records(path)
     good = [record for record in records if record.cells is not None]
     if not good:
-        raise MetadataFormatError("the file has no rows" + (
-            f" that parse ({len(records)} malformed line(s); line {records[0].line}: {records[0].problem})"
-            if records else ""))
+        raise MetadataFormatError(
+            "the file has no rows"
+            + (f" that parse ({len(records)} malformed line(s); line {records[0].line}: {records[0].problem})" if records else "")
+        )
     if records[0].cells is None:
         raise MetadataFormatError(f"the header (line {records[0].line}) is malformed: {records[0].problem}")
     table = [record.cells for record in good if record.cells is not None]
@@ -220,9 +229,12 @@ def read_metadata(path: str | Path) -> MetadataFile:
     first_column = {_norm(row[0]) for row in table if row}
     if "accession number" in first_column and _norm(table[0][0]) != "accession number":
         result = _transposed(path, records, labelled=True)
-    elif len(table) == len(EMUSEUM_ROW_ORDER) and len(table[1]) > 0 and all(
-        ACCESSION_PATTERN.match(cell.strip()) or not cell.strip() for cell in table[1]
-    ) and any(ACCESSION_PATTERN.match(cell.strip()) for cell in table[1]):
+    elif (
+        len(table) == len(EMUSEUM_ROW_ORDER)
+        and len(table[1]) > 0
+        and all(ACCESSION_PATTERN.match(cell.strip()) or not cell.strip() for cell in table[1])
+        and any(ACCESSION_PATTERN.match(cell.strip()) for cell in table[1])
+    ):
         result = _transposed(path, records, labelled=False)
     else:
         result = _tidy(path, records)
@@ -234,8 +246,9 @@ def _transposed(path: Path, records: list[CsvRecord], labelled: bool) -> Metadat
     result = MetadataFile(path=path, layout="emuseum-transposed")
     for record in records:
         if record.cells is None:
-            result.problems.append(f"line {record.line} is malformed ({record.problem}): the field on that line "
-                                   "is missing from every record")
+            result.problems.append(
+                f"line {record.line} is malformed ({record.problem}): the field on that line is missing from every record"
+            )
     table = [record.cells for record in records if record.cells is not None]
     if labelled:
         names = [row[0].strip() or "emuseum_key" for row in table]
@@ -276,12 +289,16 @@ def _unique_names(names: list[str], kind: str, result: MetadataFile) -> list[boo
         places = " and ".join(str(i + 1) for i in where)
         spelled = " / ".join(sorted({names[i].strip() for i in where}))
         if normalised in FILE_COLUMNS or normalised in ACCESSION_COLUMNS:
-            raise MetadataFormatError(f"key {kind} {spelled!r} appears {len(where)} times ({kind}s {places}): "
-                                      "cannot tell which one names each record; remove or rename the copies")
+            raise MetadataFormatError(
+                f"key {kind} {spelled!r} appears {len(where)} times ({kind}s {places}): "
+                "cannot tell which one names each record; remove or rename the copies"
+            )
         for i in where:
             keep[i] = False
-        result.problems.append(f"{kind} {spelled!r} appears {len(where)} times ({kind}s {places}): none of its "
-                               "values is loaded; rename or remove the copies and ingest the file again")
+        result.problems.append(
+            f"{kind} {spelled!r} appears {len(where)} times ({kind}s {places}): none of its "
+            "values is loaded; rename or remove the copies and ingest the file again"
+        )
     return keep
 
 
@@ -291,9 +308,7 @@ def _tidy(path: Path, records: list[CsvRecord]) -> MetadataFile:
     normalised = [_norm(h) for h in header]
     has_key = any(n in FILE_COLUMNS or n in ACCESSION_COLUMNS for n in normalised)
     if not has_key:
-        raise MetadataFormatError(
-            "no key column: expected one of " + ", ".join(FILE_COLUMNS + ("Accession Number",))
-        )
+        raise MetadataFormatError("no key column: expected one of " + ", ".join(FILE_COLUMNS + ("Accession Number",)))
     layout = "emuseum-tidy" if "accession number" in normalised else "plain"
     result = MetadataFile(path=path, layout=layout)
     keep = _unique_names(header, "column", result)
@@ -332,13 +347,17 @@ def _reject_duplicate_keys(result: MetadataFile) -> None:
         first = rows[0]
         if all(row.fields == first.fields for row in rows[1:]):
             for row in rows[1:]:
-                repeats.setdefault(row.row_number, f"row {row.row_number} repeats row {first.row_number} ({label}) "
-                                   "word for word: the first is loaded")
+                repeats.setdefault(
+                    row.row_number,
+                    f"row {row.row_number} repeats row {first.row_number} ({label}) word for word: the first is loaded",
+                )
             continue
         numbers = ", ".join(str(row.row_number) for row in rows)
         for row in rows:
-            reasons[row.row_number] = (f"rows {numbers} all describe {label} with different values: none of them "
-                                       "is loaded (which one is right cannot be told); fix the file and ingest it again")
+            reasons[row.row_number] = (
+                f"rows {numbers} all describe {label} with different values: none of them "
+                "is loaded (which one is right cannot be told); fix the file and ingest it again"
+            )
     for number, reason in repeats.items():
         reasons.setdefault(number, reason)
     if not reasons:
@@ -356,9 +375,7 @@ def _append(result: MetadataFile, number: int, fields: dict[str, Any]) -> None:
         return
     if file_name is not None:
         file_name = Path(file_name).name
-    result.rows.append(
-        MetadataRow(row_number=number, accession=accession, file_name=file_name, fields=_canonical_fields(fields))
-    )
+    result.rows.append(MetadataRow(row_number=number, accession=accession, file_name=file_name, fields=_canonical_fields(fields)))
 
 
 def card_keys(source_name: str) -> list[str]:

@@ -155,9 +155,7 @@ class Person(UserMixin, db.Model):
     # a new password and deactivation raise it, which ends every session the person holds.
     session_version: Mapped[int] = mapped_column(Integer, default=1, server_default="1")
 
-    role_rows: Mapped[list[PersonRole]] = relationship(
-        back_populates="person", cascade="all, delete-orphan", lazy="selectin"
-    )
+    role_rows: Mapped[list[PersonRole]] = relationship(back_populates="person", cascade="all, delete-orphan", lazy="selectin")
 
     @property
     def roles(self) -> set[str]:

@@ -56,15 +56,19 @@ def _get_person(person_id: int) -> Person:
 
 
 def _other_active_admins(person_id: int) -> int:
-    return sum(1 for other in db.session.scalars(select(Person).where(Person.active.is_(True), Person.id != person_id))
-               if "admin" in other.roles)
+    return sum(
+        1
+        for other in db.session.scalars(select(Person).where(Person.active.is_(True), Person.id != person_id))
+        if "admin" in other.roles
+    )
 
 
 def _record(actor: Person, person: Person, action: str, before: dict[str, Any], why: str) -> None:
     from review.models import record_event
 
-    record_event(entity="person", action=action, entity_id=person.id, actor=actor, before=before,
-                 after=_person_snapshot(person), why=why)
+    record_event(
+        entity="person", action=action, entity_id=person.id, actor=actor, before=before, after=_person_snapshot(person), why=why
+    )
 
 
 def set_active(person_id: int, active: bool, *, actor: Person) -> Person:
@@ -82,14 +86,20 @@ def set_active(person_id: int, active: bool, *, actor: Person) -> Person:
     before = _person_snapshot(person)
     person.active = active
     db.session.flush()
-    _record(actor, person, "reactivated" if active else "deactivated", before,
-            f"{actor.username} {'reactivated' if active else 'deactivated'} {person.username}")
+    _record(
+        actor,
+        person,
+        "reactivated" if active else "deactivated",
+        before,
+        f"{actor.username} {'reactivated' if active else 'deactivated'} {person.username}",
+    )
     db.session.commit()
     return person
 
 
-def reset_password(person_id: int, *, actor: Person, password: str | None = None,
-                   min_length: int = 8) -> tuple[Person, str | None]:
+def reset_password(
+    person_id: int, *, actor: Person, password: str | None = None, min_length: int = 8
+) -> tuple[Person, str | None]:
     """Set a new password (the admin's, or a generated one returned once to be shown and never
     stored in clear); the person's sessions end. Returns (person, the generated password or None)."""
     if password is not None and len(password) < min_length:
@@ -99,9 +109,13 @@ def reset_password(person_id: int, *, actor: Person, password: str | None = None
     before = _person_snapshot(person)
     person.set_password(password if password is not None else generated or "")
     db.session.flush()
-    _record(actor, person, "password_reset", before,
-            f"{actor.username} {'generated a one-time password for' if generated else 'set a new password for'} "
-            f"{person.username}")
+    _record(
+        actor,
+        person,
+        "password_reset",
+        before,
+        f"{actor.username} {'generated a one-time password for' if generated else 'set a new password for'} {person.username}",
+    )
     db.session.commit()
     return person, generated
 
@@ -129,9 +143,13 @@ def set_roles(person_id: int, roles: list[str], *, actor: Person) -> Person:
     for role in wanted:
         person.grant(role)
     db.session.flush()
-    _record(actor, person, "roles_changed", before,
-            f"{actor.username} changed the roles of {person.username}: {', '.join(before['roles']) or 'none'} -> "
-            f"{', '.join(wanted)}")
+    _record(
+        actor,
+        person,
+        "roles_changed",
+        before,
+        f"{actor.username} changed the roles of {person.username}: {', '.join(before['roles']) or 'none'} -> {', '.join(wanted)}",
+    )
     db.session.commit()
     return person
 
@@ -140,9 +158,14 @@ def person_history(person_id: int, limit: int = 20) -> list[Any]:
     """The newest admin changes to a person, newest first."""
     from review.models import AuditEvent
 
-    return list(db.session.scalars(select(AuditEvent).where(AuditEvent.entity == "person",
-                                                            AuditEvent.entity_id == person_id)
-                                   .order_by(AuditEvent.id.desc()).limit(limit)))
+    return list(
+        db.session.scalars(
+            select(AuditEvent)
+            .where(AuditEvent.entity == "person", AuditEvent.entity_id == person_id)
+            .order_by(AuditEvent.id.desc())
+            .limit(limit)
+        )
+    )
 
 
 @click.group("users")
@@ -153,8 +176,7 @@ def users_group() -> None:
 @users_group.command("add")
 @click.argument("username")
 @click.option("--role", "roles", multiple=True, required=True, type=click.Choice(ROLES), help="Repeatable.")
-@click.option("--password", prompt=True, hide_input=True, confirmation_prompt=True,
-              help="Prompted for when not given.")
+@click.option("--password", prompt=True, hide_input=True, confirmation_prompt=True, help="Prompted for when not given.")
 @click.option("--name", "display_name", default="", help="Display name.")
 @with_appcontext
 def add_user(username: str, roles: tuple[str, ...], password: str, display_name: str) -> None:

@@ -71,10 +71,14 @@ def filter_boxes(card: Card) -> dict[str, Any]:
     result = card.latest_results().get("filter")
     if result is None or result.status != "done":
         return {}
-    return {"left_box": result.metrics.get("left_box"), "right_box": result.metrics.get("right_box"),
-            "box_source": f"filter split ({result.param_hash})",
-            # The filter's SIFT matches, reused by rectification (card px, and card px per SIFT px).
-            "filter_matches": result.artifacts.get("matches"), "filter_match_scale": result.metrics.get("match_scale")}
+    return {
+        "left_box": result.metrics.get("left_box"),
+        "right_box": result.metrics.get("right_box"),
+        "box_source": f"filter split ({result.param_hash})",
+        # The filter's SIFT matches, reused by rectification (card px, and card px per SIFT px).
+        "filter_matches": result.artifacts.get("matches"),
+        "filter_match_scale": result.metrics.get("match_scale"),
+    }
 
 
 def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
@@ -87,8 +91,9 @@ def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
 def card_orientation(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     """The orientation the pipeline uses for ``card`` (:func:`app.orientation.resolve_orientation`)
     from its latest orientation result, approved judgement and curator override."""
-    return resolve_orientation(card.latest_results().get("orientation"), approved.get("judge"),
-                               approved.get("orientation_override"))
+    return resolve_orientation(
+        card.latest_results().get("orientation"), approved.get("judge"), approved.get("orientation_override")
+    )
 
 
 def orientation_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
@@ -106,8 +111,11 @@ def photo_area_boxes(card: Card) -> dict[str, Any]:
     metrics = result.metrics
     if metrics.get("photo_area_fallback") or not metrics.get("photo_left_box") or not metrics.get("photo_right_box"):
         return {}
-    return {"left_box": metrics["photo_left_box"], "right_box": metrics["photo_right_box"],
-            "box_source": f"photo area ({result.param_hash}, confidence {metrics.get('photo_area_confidence')})"}
+    return {
+        "left_box": metrics["photo_left_box"],
+        "right_box": metrics["photo_right_box"],
+        "box_source": f"photo area ({result.param_hash}, confidence {metrics.get('photo_area_confidence')})",
+    }
 
 
 def rectify_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
@@ -118,16 +126,20 @@ def rectify_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     inputs.update(photo_area_boxes(card))
     crop = approved.get("crop")
     if crop is not None and crop.label.get("left") and crop.label.get("right"):
-        inputs.update(left_box=[int(round(v)) for v in crop.label["left"]],
-                      right_box=[int(round(v)) for v in crop.label["right"]],
-                      box_source=f"crowd consensus (batch {crop.batch_id})")
+        inputs.update(
+            left_box=[int(round(v)) for v in crop.label["left"]],
+            right_box=[int(round(v)) for v in crop.label["right"]],
+            box_source=f"crowd consensus (batch {crop.batch_id})",
+        )
     judge = approved.get("judge")
     if judge is not None:
         inputs["is_stereo"] = bool(judge.label.get("is_stereo", True))
     orientation = card_orientation(card, approved)
-    inputs.update({flag: orientation[flag] for flag in ("upside_down", "inverted", "swapped")},
-                  orientation_decided_by=orientation["decided_by"],
-                  orientation_source=orientation["source"] or "undecided")
+    inputs.update(
+        {flag: orientation[flag] for flag in ("upside_down", "inverted", "swapped")},
+        orientation_decided_by=orientation["decided_by"],
+        orientation_source=orientation["source"] or "undecided",
+    )
     return inputs
 
 
@@ -151,9 +163,11 @@ def rectified_pair(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     metrics = result.metrics
     camera = metrics.get("K") or [[None]]
     return {
-        "left": result.artifacts.get("left"), "right": result.artifacts.get("right"),
+        "left": result.artifacts.get("left"),
+        "right": result.artifacts.get("right"),
         "disparity_range": [metrics.get("disparity_min"), metrics.get("disparity_max")],
-        "focal_px": camera[0][0], "rectify_param_hash": result.param_hash,
+        "focal_px": camera[0][0],
+        "rectify_param_hash": result.param_hash,
     }
 
 
@@ -165,12 +179,16 @@ def grade_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     if rectify is None or disparity is None or disparity.status != "done" or rectify.status == "failed":
         return {}
     return {
-        "left": rectify.artifacts.get("left"), "right": rectify.artifacts.get("right"),
+        "left": rectify.artifacts.get("left"),
+        "right": rectify.artifacts.get("right"),
         "disparity_left": disparity.artifacts.get("disparity_left"),
         "disparity_right": disparity.artifacts.get("disparity_right"),
         "confidence": disparity.artifacts.get("confidence"),
-        "metrics": {name: {k: v for k, v in result.metrics.items() if k != "inputs_digest"}
-                    for name, result in latest.items() if name in ("filter", "rectify", "disparity")},
+        "metrics": {
+            name: {k: v for k, v in result.metrics.items() if k != "inputs_digest"}
+            for name, result in latest.items()
+            if name in ("filter", "rectify", "disparity")
+        },
         "disparity_param_hash": disparity.param_hash,
     }
 
@@ -183,7 +201,8 @@ def views_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     if rectify is None or disparity is None or disparity.status != "done" or grade is None:
         return {}
     return {
-        "left": rectify.artifacts.get("left"), "disparity_left": disparity.artifacts.get("disparity_left"),
+        "left": rectify.artifacts.get("left"),
+        "disparity_left": disparity.artifacts.get("disparity_left"),
         "focal_px": disparity.metrics.get("focal_px"),
         "grade": grade.outcome if grade.status == "done" else None,
         "grade_param_hash": grade.param_hash,
@@ -322,9 +341,7 @@ def make_executor(kind: str, workers: int, scheduler: str | None) -> Iterator[Ex
         try:
             from distributed import Client
         except ImportError as exc:
-            raise RuntimeError(
-                "the dask executor needs dask.distributed: pip install 'dask[distributed]'"
-            ) from exc
+            raise RuntimeError("the dask executor needs dask.distributed: pip install 'dask[distributed]'") from exc
         client = Client(scheduler) if scheduler else Client(n_workers=workers, threads_per_worker=1, processes=True)
         try:
             yield client.get_executor()
@@ -379,8 +396,12 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
         )
     already = 0
     if spec.inputs is None:
-        finished = exists().where(StageResult.card_id == Card.id, StageResult.stage == spec.name,
-                                  StageResult.param_hash == phash, StageResult.status.in_(("done", "skipped")))
+        finished = exists().where(
+            StageResult.card_id == Card.id,
+            StageResult.stage == spec.name,
+            StageResult.param_hash == phash,
+            StageResult.status.in_(("done", "skipped")),
+        )
         already = db.session.scalar(select(func.count()).select_from(Card).where(eligible, finished)) or 0
         eligible = eligible & ~finished
         if spec.ready is None:
@@ -390,10 +411,15 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
             rows = db.session.execute(
                 select(Card.id, Card.content_hash, Card.stored_path, own.c.status, own.c.started_at)
                 .outerjoin(own, (own.c.card_id == Card.id) & (own.c.stage == spec.name) & (own.c.param_hash == phash))
-                .where(eligible).order_by(Card.id))
-            return [PlannedCard(card_id, content_hash, stored_path, {},
-                                None if status is None else result_fingerprint(status, started_at))
-                    for card_id, content_hash, stored_path, status, started_at in rows], already
+                .where(eligible)
+                .order_by(Card.id)
+            )
+            return [
+                PlannedCard(
+                    card_id, content_hash, stored_path, {}, None if status is None else result_fingerprint(status, started_at)
+                )
+                for card_id, content_hash, stored_path, status, started_at in rows
+            ], already
     todo: list[PlannedCard] = []
     # The eligible ids in one query (a few MB at 250,000 cards), then the cards chunk by chunk
     # by id. Paging the eligible query itself (``id > after LIMIT chunk``) let PostgreSQL
@@ -401,22 +427,36 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
     # grew with the square of the catalogue.
     eligible_ids = list(db.session.scalars(select(Card.id).where(eligible).order_by(Card.id)))
     for start in range(0, len(eligible_ids), chunk):
-        cards = list(db.session.scalars(
-            select(Card).where(Card.id.in_(eligible_ids[start:start + chunk])).order_by(Card.id)
-            .options(selectinload(Card.stage_results))
-        ))
+        cards = list(
+            db.session.scalars(
+                select(Card)
+                .where(Card.id.in_(eligible_ids[start : start + chunk]))
+                .order_by(Card.id)
+                .options(selectinload(Card.stage_results))
+            )
+        )
         approved = approved_decisions([card.id for card in cards]) if spec.inputs is not None else {}
         for card in cards:
             inputs = spec.inputs(card, approved.get(card.id, {})) if spec.inputs is not None else {}
             if spec.ready is not None and not spec.ready(card, inputs):
                 continue
             own = next((r for r in card.stage_results if r.stage == spec.name and r.param_hash == phash), None)
-            if (own is not None and own.status in ("done", "skipped")
-                    and (spec.inputs is None or own.metrics.get("inputs_digest") == inputs_digest(inputs))):
+            if (
+                own is not None
+                and own.status in ("done", "skipped")
+                and (spec.inputs is None or own.metrics.get("inputs_digest") == inputs_digest(inputs))
+            ):
                 already += 1
                 continue
-            todo.append(PlannedCard(card.id, card.content_hash, card.stored_path, inputs,
-                                    None if own is None else result_fingerprint(own.status, own.started_at)))
+            todo.append(
+                PlannedCard(
+                    card.id,
+                    card.content_hash,
+                    card.stored_path,
+                    inputs,
+                    None if own is None else result_fingerprint(own.status, own.started_at),
+                )
+            )
         db.session.expunge_all()  # this chunk is planned: let its cards and results go
     return todo, already
 
@@ -443,8 +483,17 @@ def run_stage(
     """
     if driver is None:
         with Driver(db.engine).running() as own:
-            return run_stage(spec, data_dir=data_dir, executor=executor, on_start=on_start, on_record=on_record,
-                             driver=own, wait_for_held=wait_for_held, claim_batch=claim_batch, on_wait=on_wait)
+            return run_stage(
+                spec,
+                data_dir=data_dir,
+                executor=executor,
+                on_start=on_start,
+                on_record=on_record,
+                driver=own,
+                wait_for_held=wait_for_held,
+                claim_batch=claim_batch,
+                on_wait=on_wait,
+            )
     phash = param_hash(spec.params)
     report = StageReport(stage=spec.name, param_hash=phash)
     cards, report.skipped_existing = pending_cards(spec, phash)
@@ -474,7 +523,7 @@ def run_stage(
         # Claimed a batch at a time, just before the executor wants them, so a second run
         # finds the cards this one has not reached yet.
         for start in range(0, len(card_ids), claim_batch):
-            batch_ids = card_ids[start:start + claim_batch]
+            batch_ids = card_ids[start : start + claim_batch]
             claim = driver.claim(spec.name, phash, batch_ids, seen)
             report.taken_over += len(claim.taken_over)
             report.done_by_other_run += len(claim.finished_elsewhere)
@@ -525,9 +574,15 @@ def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:
     waiting: dict[str, list[int]] = {"orientation": [], "filter_review": []}
     after = 0
     while True:
-        cards = list(db.session.scalars(
-            select(Card).where(Card.state.in_(("pass", "review")), Card.id > after).order_by(Card.id).limit(chunk)
-            .options(selectinload(Card.stage_results))))
+        cards = list(
+            db.session.scalars(
+                select(Card)
+                .where(Card.state.in_(("pass", "review")), Card.id > after)
+                .order_by(Card.id)
+                .limit(chunk)
+                .options(selectinload(Card.stage_results))
+            )
+        )
         if not cards:
             return waiting
         work = people_and_decisions([card.id for card in cards])
@@ -556,8 +611,7 @@ def _count(report: StageReport, record: StageRecord) -> None:
             report.outcomes[record.outcome] = report.outcomes.get(record.outcome, 0) + 1
 
 
-def write_records(records: list[StageRecord], digests: dict[int, str] | None = None,
-                  driver: Driver | None = None) -> None:
+def write_records(records: list[StageRecord], digests: dict[int, str] | None = None, driver: Driver | None = None) -> None:
     """Upsert results (one row per card, stage and parameters), update card states and release
     the driver's claims on these cards, in one transaction.
 
@@ -573,23 +627,31 @@ def write_records(records: list[StageRecord], digests: dict[int, str] | None = N
         now = utcnow()
         rows = [
             {
-                "card_id": record.card_id, "stage": record.stage, "param_hash": record.param_hash,
-                "status": record.status, "outcome": record.outcome, "reason": record.reason,
+                "card_id": record.card_id,
+                "stage": record.stage,
+                "param_hash": record.param_hash,
+                "status": record.status,
+                "outcome": record.outcome,
+                "reason": record.reason,
                 "metrics": {**record.metrics, "inputs_digest": digests[record.card_id]} if digests else record.metrics,
                 "artifacts": record.artifacts,
                 "started_at": datetime.fromtimestamp(record.started_at, tz=timezone.utc) if record.started_at else None,
-                "seconds": record.seconds, "code_version": record.code_version, "created_at": now,
+                "seconds": record.seconds,
+                "code_version": record.code_version,
+                "created_at": now,
             }
             # One row per key and statement (PostgreSQL refuses to upsert a row twice in one
             # command); the latest record of a card wins, as it would row by row. Key order is
             # the lock order, so two writers of the same rows queue instead of deadlocking.
             for _, record in sorted({(r.card_id, r.stage, r.param_hash): r for r in records}.items())
         ]
-        updated = {column: getattr(insert.excluded, column)
-                   for column in ("status", "outcome", "reason", "metrics", "artifacts", "started_at", "seconds",
-                                  "code_version")}
-        connection.execute(insert.values(rows).on_conflict_do_update(
-            index_elements=["card_id", "stage", "param_hash"], set_=updated))
+        updated = {
+            column: getattr(insert.excluded, column)
+            for column in ("status", "outcome", "reason", "metrics", "artifacts", "started_at", "seconds", "code_version")
+        }
+        connection.execute(
+            insert.values(rows).on_conflict_do_update(index_elements=["card_id", "stage", "param_hash"], set_=updated)
+        )
         cards = {card.id: card for card in session.scalars(select(Card).where(Card.id.in_({r.card_id for r in records})))}
         for record in records:
             card = cards.get(record.card_id)
@@ -615,19 +677,24 @@ def people_and_decisions(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     return work
 
 
-def _status(status: str, reason: str | None = None, outcome: str | None = None,
-            metrics: dict[str, Any] | None = None) -> dict[str, Any]:
+def _status(
+    status: str, reason: str | None = None, outcome: str | None = None, metrics: dict[str, Any] | None = None
+) -> dict[str, Any]:
     return {"status": status, "outcome": outcome, "reason": reason, "metrics": metrics or {}}
 
 
-def _crowd_status(stage: str, card: Card, aggregate: Any, latest: dict[str, StageResult],
-                  orientation: dict[str, Any] | None = None) -> dict[str, Any]:
+def _crowd_status(
+    stage: str, card: Card, aggregate: Any, latest: dict[str, StageResult], orientation: dict[str, Any] | None = None
+) -> dict[str, Any]:
     if aggregate is not None:
         metrics = {"label": aggregate.label, "batch": aggregate.batch_id, "answers": aggregate.answers}
         if aggregate.state == "needs_curator":
             return _status("pending", f"waiting for a curator: {aggregate.reasons}", metrics=metrics)
-        who = f"curator decision (batch {aggregate.batch_id})" if aggregate.resolved_by else \
-            f"crowd consensus (batch {aggregate.batch_id})"
+        who = (
+            f"curator decision (batch {aggregate.batch_id})"
+            if aggregate.resolved_by
+            else f"crowd consensus (batch {aggregate.batch_id})"
+        )
         outcome = None
         if stage == "judge":
             outcome = "stereo" if aggregate.label.get("is_stereo", True) else "not_stereo"
@@ -635,8 +702,11 @@ def _crowd_status(stage: str, card: Card, aggregate: Any, latest: dict[str, Stag
     if stage == "judge" and card.state == "pass":
         orientation = orientation or card_orientation(card, {})
         if orientation["decided_by"] == "auto":
-            return _status("skipped", "not needed: the filter passed the card as a stereo pair and the orientation "
-                                      f"step decided it (confidence {orientation['confidence']})")
+            return _status(
+                "skipped",
+                "not needed: the filter passed the card as a stereo pair and the orientation "
+                f"step decided it (confidence {orientation['confidence']})",
+            )
         if orientation["decided_by"] == "curator":
             return _status("skipped", f"not needed: {orientation['source']}")
         return _status("pending", f"waiting for {orientation['waiting_for']}" if orientation["waiting_for"] else None)
@@ -668,8 +738,9 @@ def card_orientation_field(card: Card, work: dict[str, Any]) -> dict[str, Any]:
     return public_orientation(card_orientation(card, work.get("approved", {})))
 
 
-def card_stage_statuses(card: Card, only_stage: str | None = None,
-                        work: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+def card_stage_statuses(
+    card: Card, only_stage: str | None = None, work: dict[str, Any] | None = None
+) -> dict[str, dict[str, Any]]:
     """The stage status map of ``keystone cards --json``: every stage, ``pending`` if not run.
 
     ``work`` is the card's entry of :func:`people_work` (crowd aggregates and the review); it is
@@ -682,15 +753,30 @@ def card_stage_statuses(card: Card, only_stage: str | None = None,
     orientation = card_orientation(card, work.get("approved", {}))
     for stage in STAGES if only_stage is None else (only_stage,):
         result = latest.get(stage)
-        if stage == "judge" and card.state in ("pass", "review") and not is_decided(orientation) \
-                and "orientation" in latest and not _judged_not_stereo(work):
+        if (
+            stage == "judge"
+            and card.state in ("pass", "review")
+            and not is_decided(orientation)
+            and "orientation" in latest
+            and not _judged_not_stereo(work)
+        ):
             # The flow rule: an undecided card waits for people, whatever its filter band.
             status = _crowd_status(stage, card, work.get(stage), latest, orientation)
-            statuses[stage] = status if status["status"] == "pending" else \
-                _status("pending", f"waiting for {orientation['waiting_for']}", metrics=status["metrics"])
-        elif stage == "rectify" and result is None and card.state in ("pass", "review") \
-                and not is_decided(orientation) and not _judged_not_stereo(work):
-            statuses[stage] = _status("pending", f"not run: the orientation is undecided, waiting for {orientation['waiting_for']}")
+            statuses[stage] = (
+                status
+                if status["status"] == "pending"
+                else _status("pending", f"waiting for {orientation['waiting_for']}", metrics=status["metrics"])
+            )
+        elif (
+            stage == "rectify"
+            and result is None
+            and card.state in ("pass", "review")
+            and not is_decided(orientation)
+            and not _judged_not_stereo(work)
+        ):
+            statuses[stage] = _status(
+                "pending", f"not run: the orientation is undecided, waiting for {orientation['waiting_for']}"
+            )
         elif card.state == "culled" and stage in DOWNSTREAM_OF_CULL and result is None:
             filter_reason = latest["filter"].reason if "filter" in latest else "culled"
             statuses[stage] = _status("skipped", f"not needed: the card was culled by the filter ({filter_reason})")
@@ -710,27 +796,61 @@ def card_stage_statuses(card: Card, only_stage: str | None = None,
 
 
 @click.command("run")
-@click.option("--stages", default="filter,orientation,rectify,disparity,grade", show_default=True,
-              help="Comma-separated stages to run, in order: filter, orientation, rectify, disparity, grade, "
-                   "views (views is optional per scene and not in the default).")
-@click.option("--workers", default=1, show_default=True, type=click.IntRange(1, 256),
-              help="Worker processes (1 runs inline on one core).")
-@click.option("--executor", "executor_kind", type=click.Choice(["local", "dask"]), default="local",
-              show_default=True, help="Where per-card work runs: a local process pool or a dask cluster.")
+@click.option(
+    "--stages",
+    default="filter,orientation,rectify,disparity,grade",
+    show_default=True,
+    help="Comma-separated stages to run, in order: filter, orientation, rectify, disparity, grade, "
+    "views (views is optional per scene and not in the default).",
+)
+@click.option(
+    "--workers", default=1, show_default=True, type=click.IntRange(1, 256), help="Worker processes (1 runs inline on one core)."
+)
+@click.option(
+    "--executor",
+    "executor_kind",
+    type=click.Choice(["local", "dask"]),
+    default="local",
+    show_default=True,
+    help="Where per-card work runs: a local process pool or a dask cluster.",
+)
 @click.option("--scheduler", help="dask scheduler address (with --executor dask); default a local cluster.")
-@click.option("--wait/--no-wait", "wait_for_held", default=True, show_default=True,
-              help="When the only cards left are held by another run: wait for it to finish them (or for "
-                   "its claims to lapse, then take them over), or leave them and exit with status 3.")
-@click.option("--claim-ttl-s", type=click.FloatRange(min=1.0), default=DEFAULT_CLAIM_TTL_S, show_default=True,
-              envvar="KEYSTONE_CLAIM_TTL_S",
-              help="Seconds a claim on a card outlives this run's last heartbeat (it beats every quarter of "
-                   "that): how long a killed run keeps others off its cards. Env: KEYSTONE_CLAIM_TTL_S.")
-@click.option("--claim-batch", type=click.IntRange(1, 1000), default=DEFAULT_CLAIM_BATCH, show_default=True,
-              help="Cards claimed per database transaction.")
+@click.option(
+    "--wait/--no-wait",
+    "wait_for_held",
+    default=True,
+    show_default=True,
+    help="When the only cards left are held by another run: wait for it to finish them (or for "
+    "its claims to lapse, then take them over), or leave them and exit with status 3.",
+)
+@click.option(
+    "--claim-ttl-s",
+    type=click.FloatRange(min=1.0),
+    default=DEFAULT_CLAIM_TTL_S,
+    show_default=True,
+    envvar="KEYSTONE_CLAIM_TTL_S",
+    help="Seconds a claim on a card outlives this run's last heartbeat (it beats every quarter of "
+    "that): how long a killed run keeps others off its cards. Env: KEYSTONE_CLAIM_TTL_S.",
+)
+@click.option(
+    "--claim-batch",
+    type=click.IntRange(1, 1000),
+    default=DEFAULT_CLAIM_BATCH,
+    show_default=True,
+    help="Cards claimed per database transaction.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the run report as one JSON document.")
 @with_appcontext
-def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | None, wait_for_held: bool,
-                claim_ttl_s: float, claim_batch: int, as_json: bool) -> None:
+def run_command(
+    stages: str,
+    workers: int,
+    executor_kind: str,
+    scheduler: str | None,
+    wait_for_held: bool,
+    claim_ttl_s: float,
+    claim_batch: int,
+    as_json: bool,
+) -> None:
     """Run pipeline stages over the catalogue, skipping cards already done with the same parameters.
 
     Resumable: interrupt it at any time and run it again; only unfinished cards are processed.
@@ -753,8 +873,7 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
     unknown = [name for name in names if name not in RUNNABLE_STAGES]
     if unknown or not names:
         raise click.BadParameter(
-            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; "
-            f"available: {', '.join(RUNNABLE_STAGES)}",
+            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(RUNNABLE_STAGES)}",
             param_hint="--stages",
         )
     ensure_database()
@@ -769,6 +888,7 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
             if (stage, count) not in waiting_said:
                 waiting_said.add((stage, count))
                 say(f"{stage}: waiting for {count} card(s) held by another run ({', '.join(sorted(holders))})", True)
+
         return said
 
     try:
@@ -776,36 +896,63 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
             for name in names:
                 with progress_bar(name, enabled=not as_json) as progress:
                     spec = specs[name]
-                    report = run_stage(spec, data_dir=data_dir(), executor=executor,
-                                       on_start=progress.start, on_record=progress.advance, driver=driver,
-                                       wait_for_held=wait_for_held, claim_batch=claim_batch,
-                                       on_wait=say_waiting(name))
+                    report = run_stage(
+                        spec,
+                        data_dir=data_dir(),
+                        executor=executor,
+                        on_start=progress.start,
+                        on_record=progress.advance,
+                        driver=driver,
+                        wait_for_held=wait_for_held,
+                        claim_batch=claim_batch,
+                        on_wait=say_waiting(name),
+                    )
                 reports.append(report)
                 if not as_json:
                     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(report.outcomes.items())) or "-"
-                    elsewhere = (f"; done by another run {report.done_by_other_run}"
-                                 if report.held_by_other_run or report.done_by_other_run else "")
-                    say(f"{name}: processed {report.processed} in {report.seconds:.1f} s "
+                    elsewhere = (
+                        f"; done by another run {report.done_by_other_run}"
+                        if report.held_by_other_run or report.done_by_other_run
+                        else ""
+                    )
+                    say(
+                        f"{name}: processed {report.processed} in {report.seconds:.1f} s "
                         f"(already done {report.skipped_existing}{elsewhere}; outcomes: {outcomes}; "
-                        f"failed {report.failed})", as_json)
+                        f"failed {report.failed})",
+                        as_json,
+                    )
                     for failure in report.failures:
                         say(f"  card {failure['card_id']}: {failure['reason']}", as_json)
                 if report.still_held:
-                    say(f"{name}: left {report.still_held} card(s) that another run holds "
+                    say(
+                        f"{name}: left {report.still_held} card(s) that another run holds "
                         f"({', '.join(sorted(report.held_by))}); rerun when it is done, or without --no-wait "
-                        "to wait for it", True)
+                        "to wait for it",
+                        True,
+                    )
     except RuntimeError as exc:
         raise click.ClickException(str(exc)) from exc
     waiting = waiting_for_people()
     counts = {reason: len(ids) for reason, ids in waiting.items()}
     if sum(counts.values()):
-        say(f"waiting for people: {counts['orientation']} card(s) whose orientation the step could not decide, "
+        say(
+            f"waiting for people: {counts['orientation']} card(s) whose orientation the step could not decide, "
             f"{counts['filter_review']} the filter sent to review (`keystone crowd create-batch --from-review` "
-            "makes a judge batch of them)", as_json)
+            "makes a judge batch of them)",
+            as_json,
+        )
     if as_json:
-        emit_json({"stages": [report.as_json() for report in reports], "waiting_for_people": counts,
-                   "workers": workers, "executor": executor_kind, "driver": driver.id,
-                   "claim_ttl_s": driver.ttl_s, "heartbeats": driver.heartbeats})
+        emit_json(
+            {
+                "stages": [report.as_json() for report in reports],
+                "waiting_for_people": counts,
+                "workers": workers,
+                "executor": executor_kind,
+                "driver": driver.id,
+                "claim_ttl_s": driver.ttl_s,
+                "heartbeats": driver.heartbeats,
+            }
+        )
     if any(report.failed for report in reports):
         raise SystemExit(1)
     if any(report.still_held for report in reports):
@@ -815,8 +962,9 @@ def run_command(stages: str, workers: int, executor_kind: str, scheduler: str | 
 CARDS_CHUNK = 1000  # cards read, described and written per step of `keystone cards`
 
 
-def card_rows(stage: str | None = None, state: str | None = None, collection_name: str | None = None,
-              chunk: int = CARDS_CHUNK) -> Iterator[dict[str, Any]]:
+def card_rows(
+    stage: str | None = None, state: str | None = None, collection_name: str | None = None, chunk: int = CARDS_CHUNK
+) -> Iterator[dict[str, Any]]:
     """The rows of ``keystone cards``, in id order, read a chunk at a time (keyset paging on the
     id, each chunk's results and people's work loaded together), so memory does not grow with
     the catalogue. Call inside :func:`app.db.read_only`."""
@@ -824,8 +972,7 @@ def card_rows(stage: str | None = None, state: str | None = None, collection_nam
 
     after = 0
     while True:
-        query = (select(Card).where(Card.id > after).order_by(Card.id).limit(chunk)
-                 .options(selectinload(Card.stage_results)))
+        query = select(Card).where(Card.id > after).order_by(Card.id).limit(chunk).options(selectinload(Card.stage_results))
         if state:
             query = query.where(Card.state == state)
         if collection_name:
@@ -848,8 +995,7 @@ def card_rows(stage: str | None = None, state: str | None = None, collection_nam
 
 
 @click.command("cards")
-@click.option("--stage", type=click.Choice(list(STAGES)),
-              help="Show only this stage's status.")
+@click.option("--stage", type=click.Choice(list(STAGES)), help="Show only this stage's status.")
 @click.option("--state", type=click.Choice(list(CARD_STATES)), help="Only cards in this state.")
 @click.option("--collection", "collection_name", help="Only cards of this collection.")
 @click.option("--json", "as_json", is_flag=True, help="Print the cards as one JSON document.")
@@ -877,7 +1023,8 @@ def cards_command(stage: str | None, state: str | None, collection_name: str | N
             return
         for row in rows:
             summary = "  ".join(
-                f"{name}={info['outcome'] or info['status']}" for name, info in row["stages"].items()
+                f"{name}={info['outcome'] or info['status']}"
+                for name, info in row["stages"].items()
                 if info["status"] != "pending"
             )
             click.echo(f"{row['id']:>6}  {row['state']:<8}  {row['source']:<48}  {summary}")

@@ -172,8 +172,7 @@ def render_csrf_error(error: CSRFError) -> tuple[Any, int]:
     if prefers_json():
         body = {"error": {"code": 400, "name": "Session Expired", "message": SESSION_EXPIRED, "login_url": login_url}}
         return jsonify(body), 400
-    return render_template("errors.html", code=400, name="Session expired", description=SESSION_EXPIRED,
-                           login_url=login_url), 400
+    return render_template("errors.html", code=400, name="Session expired", description=SESSION_EXPIRED, login_url=login_url), 400
 
 
 def init_app(app: Flask) -> None:

@@ -70,8 +70,9 @@ def one_context_per_request(app: WSGIApp) -> WSGIApp:
     return isolated
 
 
-def serve(app: WSGIApp, host: str, port: int, threads: int | None = None, processes: int | None = None,
-          on_ready: Ready | None = None) -> None:
+def serve(
+    app: WSGIApp, host: str, port: int, threads: int | None = None, processes: int | None = None, on_ready: Ready | None = None
+) -> None:
     """Serve until interrupted; ``on_ready(port)`` is called once listening (port 0 picks a free one).
 
     ``processes`` and ``threads`` default to :func:`default_processes` and :func:`default_threads`.
@@ -81,8 +82,11 @@ def serve(app: WSGIApp, host: str, port: int, threads: int | None = None, proces
     if processes < 1 or threads < 1:
         raise click.UsageError(f"Expected at least one process and one thread, got {processes} and {threads}")
     wsgi = one_context_per_request(app)
-    on_ready = on_ready or (lambda bound: click.echo(
-        f"Keystone is serving on http://{host}:{bound}/ ({describe(processes, threads)}; Ctrl+C to stop)", err=True))
+    on_ready = on_ready or (
+        lambda bound: click.echo(
+            f"Keystone is serving on http://{host}:{bound}/ ({describe(processes, threads)}; Ctrl+C to stop)", err=True
+        )
+    )
     if processes == 1:
         _serve_waitress(wsgi, host, port, threads, on_ready)
     else:
@@ -114,8 +118,7 @@ def _serve_waitress(app: WSGIApp, host: str, port: int, threads: int, on_ready: 
     server.run()
 
 
-def _serve_gunicorn(app: WSGIApp, wsgi: WSGIApp, host: str, port: int, threads: int, processes: int,
-                    on_ready: Ready) -> None:
+def _serve_gunicorn(app: WSGIApp, wsgi: WSGIApp, host: str, port: int, threads: int, processes: int, on_ready: Ready) -> None:
     if os.name != "posix":
         raise click.UsageError("--processes above 1 needs gunicorn, which runs on Linux and macOS only")
     from gunicorn.app.base import BaseApplication
@@ -133,12 +136,20 @@ def _serve_gunicorn(app: WSGIApp, wsgi: WSGIApp, host: str, port: int, threads: 
         def load_config(self) -> None:
             settings = {
                 "bind": f"[{host}]:{port}" if ":" in host else f"{host}:{port}",
-                "workers": processes, "worker_class": "sync" if threads == 1 else "gthread", "threads": threads,
-                "preload_app": True, "when_ready": when_ready,
+                "workers": processes,
+                "worker_class": "sync" if threads == 1 else "gthread",
+                "threads": threads,
+                "preload_app": True,
+                "when_ready": when_ready,
                 # A worker busy longer than this is killed and replaced; publishing a release
                 # from the web takes minutes at 10,000 cards.
-                "timeout": 600, "graceful_timeout": 30, "keepalive": 5,
-                "accesslog": None, "errorlog": "-", "loglevel": "warning", "proc_name": "keystone",
+                "timeout": 600,
+                "graceful_timeout": 30,
+                "keepalive": 5,
+                "accesslog": None,
+                "errorlog": "-",
+                "loglevel": "warning",
+                "proc_name": "keystone",
             }
             for key, value in settings.items():
                 self.cfg.set(key, value)

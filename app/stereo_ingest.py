@@ -95,13 +95,13 @@ def eye_markers(path: Path) -> list[tuple[str, str, bool]]:
         token = parts[index]
         eye = _EXPLICIT_EYES.get(token.lower())
         if eye is not None and len(parts) > 1:
-            key = "".join(parts[:index] + ["*"] + parts[index + 1:]).lower()
+            key = "".join(parts[:index] + ["*"] + parts[index + 1 :]).lower()
             found.append((f"{key}{suffix}", eye, index == len(parts) - 1))
             continue
         bare = re.fullmatch(r"(.*\d)([lLrR])", token) or re.fullmatch(r"(.*[a-z0-9])([LR])", token)
         if bare is not None:
             eye = "left" if bare.group(2).lower() == "l" else "right"
-            key = "".join(parts[:index] + [bare.group(1) + "*"] + parts[index + 1:]).lower()
+            key = "".join(parts[:index] + [bare.group(1) + "*"] + parts[index + 1 :]).lower()
             found.append((f"{key}{suffix}", eye, False))
     return found
 
@@ -126,8 +126,12 @@ def read_pairs_csv(path: Path) -> tuple[list[tuple[Path, Path, int]], list[dict[
         resolved = [Path(value) if Path(value).is_absolute() else path.parent / value for value in (left, right)]
         missing = [str(p) for p in resolved if not p.is_file()]
         if missing:
-            rejected.append({"path": f"{path}:{number}",
-                             "reason": f"pairs row {number}: one view of the pair is missing ({', '.join(missing)})"})
+            rejected.append(
+                {
+                    "path": f"{path}:{number}",
+                    "reason": f"pairs row {number}: one view of the pair is missing ({', '.join(missing)})",
+                }
+            )
             continue
         rows.append((resolved[0], resolved[1], number))
     return rows, rejected
@@ -175,8 +179,13 @@ def plan_stereo(files: list[Path], options: StereoOptions) -> StereoPlan:
         elif explicit.get(path):
             eye = next(e for _k, e, x in eye_markers(path) if x)
             other = "right" if eye == "left" else "left"
-            plan.rejected.append({"path": str(path), "reason": f"named as the {eye} view of a pair, but no {other} view "
-                                  "with the same name was given (give both files, or list them in --pairs)"})
+            plan.rejected.append(
+                {
+                    "path": str(path),
+                    "reason": f"named as the {eye} view of a pair, but no {other} view "
+                    "with the same name was given (give both files, or list them in --pairs)",
+                }
+            )
         elif suffix == ".jps":
             order = options.sbs_order or JPS_DEFAULT_ORDER
             plan.side_by_side.append((path, order, "--sbs-order" if options.sbs_order else "JPS convention (default)"))
@@ -225,8 +234,9 @@ def read_mpo_views(path: Path, max_pixels: int) -> tuple[np.ndarray, np.ndarray,
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as exc:
         raise ImageReadError(f"cannot read the MPO's frames: {exc}") from exc
     if left.shape != right.shape:
-        raise ImageReadError(f"the MPO's two frames differ in size: {left.shape[1]} x {left.shape[0]} and "
-                             f"{right.shape[1]} x {right.shape[0]}")
+        raise ImageReadError(
+            f"the MPO's two frames differ in size: {left.shape[1]} x {left.shape[0]} and {right.shape[1]} x {right.shape[0]}"
+        )
     return left, right, frames
 
 
@@ -266,8 +276,14 @@ def _original_entry(role: str, path: Path, data_dir: Path) -> dict[str, Any]:
 
     content_hash = sha256_file(path)
     relative = store_original(path, content_hash, data_dir)
-    return {"role": role, "source_name": path.name, "source_path": str(path.resolve()), "sha256": content_hash,
-            "stored_path": str(relative), "bytes": path.stat().st_size}
+    return {
+        "role": role,
+        "source_name": path.name,
+        "source_path": str(path.resolve()),
+        "sha256": content_hash,
+        "stored_path": str(relative),
+        "bytes": path.stat().st_size,
+    }
 
 
 def _eye_check(left: np.ndarray, right: np.ndarray, stored_order: str) -> dict[str, Any]:
@@ -284,8 +300,18 @@ def _eye_check(left: np.ndarray, right: np.ndarray, stored_order: str) -> dict[s
     return evidence
 
 
-def _add_card(collection_id: int, *, image: np.ndarray | None, stored: dict[str, Any] | None, data_dir: Path,
-              source_name: str, source_path: str, stereo: dict[str, Any], report: Any, report_path: str) -> None:
+def _add_card(
+    collection_id: int,
+    *,
+    image: np.ndarray | None,
+    stored: dict[str, Any] | None,
+    data_dir: Path,
+    source_name: str,
+    source_path: str,
+    stereo: dict[str, Any],
+    report: Any,
+    report_path: str,
+) -> None:
     """Store the card image (derived PNG from ``image``, or an original ``stored`` as it is) and
     add the card; a duplicate by content is reported as one, like any ingest."""
     from .ingest import _card_with_hash, _discard_original, _duplicate_entry, database_reason
@@ -307,9 +333,19 @@ def _add_card(collection_id: int, *, image: np.ndarray | None, stored: dict[str,
             report.duplicates.append(_duplicate_entry(Path(report_path), existing))
             return
         width, height, image_format, byte_size = stored["width"], stored["height"], stored["format"], stored["bytes"]
-    card = Card(collection_id=collection_id, content_hash=content_hash, stored_path=str(relative),
-                source_name=source_name, source_path=source_path, width=int(width), height=int(height),
-                image_format=image_format, byte_size=int(byte_size), source_metadata={}, stereo_source=stereo)
+    card = Card(
+        collection_id=collection_id,
+        content_hash=content_hash,
+        stored_path=str(relative),
+        source_name=source_name,
+        source_path=source_path,
+        width=int(width),
+        height=int(height),
+        image_format=image_format,
+        byte_size=int(byte_size),
+        source_metadata={},
+        stereo_source=stereo,
+    )
     db.session.add(card)
     try:
         db.session.commit()
@@ -323,22 +359,35 @@ def _add_card(collection_id: int, *, image: np.ndarray | None, stored: dict[str,
             return
         # The card image and the originals stored for it: no card points at them now (an
         # original that is some card's own image stays).
-        stored_here = {str(relative)} | {entry["stored_path"] for entry in stereo.get("originals", [])
-                                         if _card_with_hash(entry["sha256"]) is None}
+        stored_here = {str(relative)} | {
+            entry["stored_path"] for entry in stereo.get("originals", []) if _card_with_hash(entry["sha256"]) is None
+        }
         removed = all([_discard_original(data_dir / path) for path in sorted(stored_here)])
-        report.rejected.append({"path": report_path, "reason": "not recorded: the catalogue database refused the "
-                                f"write ({database_reason(exc)}); "
-                                + ("the stored copy was removed" if removed else
-                                   f"the stored copy {relative} could not be removed")})
+        report.rejected.append(
+            {
+                "path": report_path,
+                "reason": "not recorded: the catalogue database refused the "
+                f"write ({database_reason(exc)}); "
+                + ("the stored copy was removed" if removed else f"the stored copy {relative} could not be removed"),
+            }
+        )
         return
-    entry: dict[str, Any] = {"id": card.id, "path": report_path, "content_hash": content_hash,
-                             "stereo": {"kind": stereo["kind"], "eye_order": stereo.get("eye_order"),
-                                        "eye_order_check": stereo.get("eye_order_check")}}
+    entry: dict[str, Any] = {
+        "id": card.id,
+        "path": report_path,
+        "content_hash": content_hash,
+        "stereo": {
+            "kind": stereo["kind"],
+            "eye_order": stereo.get("eye_order"),
+            "eye_order_check": stereo.get("eye_order_check"),
+        },
+    }
     report.ingested.append(entry)
 
 
-def _ingest_pair(left_path: Path, right_path: Path, how: str, collection_id: int, data_dir: Path, max_pixels: int,
-                 report: Any) -> None:
+def _ingest_pair(
+    left_path: Path, right_path: Path, how: str, collection_id: int, data_dir: Path, max_pixels: int, report: Any
+) -> None:
     from pipeline.io import read_image
 
     label = f"{left_path} + {right_path}"
@@ -352,11 +401,25 @@ def _ingest_pair(left_path: Path, right_path: Path, how: str, collection_id: int
     except OSError as exc:
         report.rejected.append({"path": label, "reason": f"pair not ingested: cannot store: {exc.strerror or exc}"})
         return
-    stereo = {"kind": "pair", "matched_by": how, "eye_order": "parallel", "originals": originals,
-              "view_sizes": [[int(v.shape[1]), int(v.shape[0])] for v in (left, right)],
-              "eye_order_check": _eye_check(left, right, "parallel")}
-    _add_card(collection_id, image=image, stored=None, data_dir=data_dir, source_name=left_path.name,
-              source_path=str(left_path.resolve()), stereo=stereo, report=report, report_path=label)
+    stereo = {
+        "kind": "pair",
+        "matched_by": how,
+        "eye_order": "parallel",
+        "originals": originals,
+        "view_sizes": [[int(v.shape[1]), int(v.shape[0])] for v in (left, right)],
+        "eye_order_check": _eye_check(left, right, "parallel"),
+    }
+    _add_card(
+        collection_id,
+        image=image,
+        stored=None,
+        data_dir=data_dir,
+        source_name=left_path.name,
+        source_path=str(left_path.resolve()),
+        stereo=stereo,
+        report=report,
+        report_path=label,
+    )
 
 
 def _ingest_mpo(path: Path, collection_id: int, data_dir: Path, max_pixels: int, report: Any) -> None:
@@ -369,15 +432,30 @@ def _ingest_mpo(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
     except OSError as exc:
         report.rejected.append({"path": str(path), "reason": f"cannot store: {exc.strerror or exc}"})
         return
-    stereo = {"kind": "mpo", "frames": frames, "frames_used": [0, 1], "eye_order": "parallel",
-              "originals": originals, "eye_order_check": _eye_check(left, right, "parallel")}
-    _add_card(collection_id, image=pair_side_by_side(left, right), stored=None, data_dir=data_dir,
-              source_name=path.name, source_path=str(path.resolve()), stereo=stereo, report=report,
-              report_path=str(path))
+    stereo = {
+        "kind": "mpo",
+        "frames": frames,
+        "frames_used": [0, 1],
+        "eye_order": "parallel",
+        "originals": originals,
+        "eye_order_check": _eye_check(left, right, "parallel"),
+    }
+    _add_card(
+        collection_id,
+        image=pair_side_by_side(left, right),
+        stored=None,
+        data_dir=data_dir,
+        source_name=path.name,
+        source_path=str(path.resolve()),
+        stereo=stereo,
+        report=report,
+        report_path=str(path),
+    )
 
 
-def _ingest_side_by_side(path: Path, order: str, why: str, collection_id: int, data_dir: Path, max_pixels: int,
-                         report: Any) -> None:
+def _ingest_side_by_side(
+    path: Path, order: str, why: str, collection_id: int, data_dir: Path, max_pixels: int, report: Any
+) -> None:
     from pipeline.io import probe_image, read_image
     from pipeline.stereo_formats import StereoFormatError, split_side_by_side
 
@@ -392,20 +470,44 @@ def _ingest_side_by_side(path: Path, order: str, why: str, collection_id: int, d
     except OSError as exc:
         report.rejected.append({"path": str(path), "reason": f"cannot store: {exc.strerror or exc}"})
         return
-    stereo = {"kind": "side_by_side", "eye_order": order, "eye_order_from": why, "originals": [original],
-              "eye_order_check": _eye_check(left, right, order)}
+    stereo = {
+        "kind": "side_by_side",
+        "eye_order": order,
+        "eye_order_from": why,
+        "originals": [original],
+        "eye_order_check": _eye_check(left, right, order),
+    }
     if order == "parallel":  # the file is already what the pipeline reads: no derived copy
         stored = {**original, "width": info.width, "height": info.height, "format": info.format}
-        _add_card(collection_id, image=None, stored=stored, data_dir=data_dir, source_name=path.name,
-                  source_path=str(path.resolve()), stereo=stereo, report=report, report_path=str(path))
+        _add_card(
+            collection_id,
+            image=None,
+            stored=stored,
+            data_dir=data_dir,
+            source_name=path.name,
+            source_path=str(path.resolve()),
+            stereo=stereo,
+            report=report,
+            report_path=str(path),
+        )
     else:
         swapped = np.ascontiguousarray(np.concatenate([left, right], axis=1))
-        _add_card(collection_id, image=swapped, stored=None, data_dir=data_dir, source_name=path.name,
-                  source_path=str(path.resolve()), stereo=stereo, report=report, report_path=str(path))
+        _add_card(
+            collection_id,
+            image=swapped,
+            stored=None,
+            data_dir=data_dir,
+            source_name=path.name,
+            source_path=str(path.resolve()),
+            stereo=stereo,
+            report=report,
+            report_path=str(path),
+        )
 
 
-def ingest_stereo_inputs(files: list[Path], options: StereoOptions, collection_id: int, data_dir: Path,
-                         max_pixels: int, report: Any) -> list[Path]:
+def ingest_stereo_inputs(
+    files: list[Path], options: StereoOptions, collection_id: int, data_dir: Path, max_pixels: int, report: Any
+) -> list[Path]:
     """Ingest the stereo inputs among ``files`` (see the module docstring), adding to ``report``
     (``ingested``, ``duplicates``, ``rejected``); return the files left for the ordinary ingest."""
     plan = plan_stereo(files, options)

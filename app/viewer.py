@@ -81,24 +81,49 @@ def card_view(card_id: int) -> Any:
             abort(404, "The views are recorded but their files are missing; rerun the views stage.")
         scene = json.loads(path.read_text())
         files = {name: view_file_url(card, result, name) for name in VIEW_FILES if name in (result.artifacts or {})}
-        missing = [name for name in (*(f"{n}_web" for n in VIEW_NAMES), *(f"{n}_mesh" for n in VIEW_NAMES))
-                   if name not in files]
+        missing = [name for name in (*(f"{n}_web" for n in VIEW_NAMES), *(f"{n}_mesh" for n in VIEW_NAMES)) if name not in files]
         if missing or not isinstance(scene.get("mesh"), dict):
-            abort(404, f"The views of card {card_id} were made before the viewer's compact files "
-                       f"({', '.join(missing) or 'mesh grid'} missing); rerun `keystone run --stages views`.")
+            abort(
+                404,
+                f"The views of card {card_id} were made before the viewer's compact files "
+                f"({', '.join(missing) or 'mesh grid'} missing); rerun `keystone run --stages views`.",
+            )
         config = {
-            "width": scene["width"], "height": scene["height"], "sceneCentre": scene["scene_centre"],
-            "quadRadius": scene["quad_radius"], "depthRange": scene["depth_range"],
-            "maxRelativeStep": scene.get("max_relative_step", 0.1), "maxStretchPx": scene.get("max_stretch_px"),
+            "width": scene["width"],
+            "height": scene["height"],
+            "sceneCentre": scene["scene_centre"],
+            "quadRadius": scene["quad_radius"],
+            "depthRange": scene["depth_range"],
+            "maxRelativeStep": scene.get("max_relative_step", 0.1),
+            "maxStretchPx": scene.get("max_stretch_px"),
             "colour": bool(scene.get("colour")),
-            "mesh": {"step": scene["mesh"]["step"], "columns": scene["mesh"]["columns"], "rows": scene["mesh"]["rows"],
-                     "inverseDepthRange": scene["mesh"]["inverse_depth_range"]},
-            "views": [{"name": view["name"], "rotation": view["rotation"], "translation": view["translation"],
-                       "centre": view["centre"], "focal": view["focal_px"], "image": files[f"{view['name']}_web"],
-                       "mesh": files[f"{view['name']}_mesh"]} for view in scene["views"]],
+            "mesh": {
+                "step": scene["mesh"]["step"],
+                "columns": scene["mesh"]["columns"],
+                "rows": scene["mesh"]["rows"],
+                "inverseDepthRange": scene["mesh"]["inverse_depth_range"],
+            },
+            "views": [
+                {
+                    "name": view["name"],
+                    "rotation": view["rotation"],
+                    "translation": view["translation"],
+                    "centre": view["centre"],
+                    "focal": view["focal_px"],
+                    "image": files[f"{view['name']}_web"],
+                    "mesh": files[f"{view['name']}_mesh"],
+                }
+                for view in scene["views"]
+            ],
         }
-        return render_template("viewer/card.html", card=card, result=result, config=config,
-                               preview_url=files.get("preview"), metrics=result.metrics or {})
+        return render_template(
+            "viewer/card.html",
+            card=card,
+            result=result,
+            config=config,
+            preview_url=files.get("preview"),
+            metrics=result.metrics or {},
+        )
 
 
 @bp.route("/cards/<int:card_id>/files/<name>")

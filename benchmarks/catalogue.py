@@ -51,11 +51,13 @@ def _state(number: int) -> str:
 
 def _grade_metrics(number: int) -> dict[str, Any]:
     """Measurements the size of a real grade record (14 values, reasons, levels)."""
-    values = {f"measurement_{index:02d}": round(((number * 7919 + index * 104729) % 1000) / 1000, 3)
-              for index in range(14)}
-    return {"measurements": values, "uncertainty": values["measurement_00"],
-            "reasons": [f"some: measurement {index} near its threshold" for index in range(2)],
-            "inputs_digest": "bench"}
+    values = {f"measurement_{index:02d}": round(((number * 7919 + index * 104729) % 1000) / 1000, 3) for index in range(14)}
+    return {
+        "measurements": values,
+        "uncertainty": values["measurement_00"],
+        "reasons": [f"some: measurement {index} near its threshold" for index in range(2)],
+        "inputs_digest": "bench",
+    }
 
 
 def build_catalogue(count: int, echo: Callable[[str], None]) -> float:
@@ -76,43 +78,104 @@ def build_catalogue(count: int, echo: Callable[[str], None]) -> float:
     db.session.commit()
     for start in range(0, count, CHUNK):
         numbers = range(start, min(count, start + CHUNK))
-        cards = [{
-            "collection_id": collection_ids[number % COLLECTIONS],
-            "content_hash": hashlib.sha256(f"bench-catalogue-{number}".encode()).hexdigest(),
-            "stored_path": f"originals/bench/{number:07d}.jpg", "source_name": f"bench-{number:07d}.jpg",
-            "source_path": "(synthetic)", "accession": f"2026.0002.{number:06d}", "width": 1400, "height": 700,
-            "image_format": "JPEG", "byte_size": 350_000, "state": _state(number),
-            "source_metadata": {"title": f"Synthetic card {number}", "date": "1898", "creator": "Keystone View Co."},
-        } for number in numbers]
+        cards = [
+            {
+                "collection_id": collection_ids[number % COLLECTIONS],
+                "content_hash": hashlib.sha256(f"bench-catalogue-{number}".encode()).hexdigest(),
+                "stored_path": f"originals/bench/{number:07d}.jpg",
+                "source_name": f"bench-{number:07d}.jpg",
+                "source_path": "(synthetic)",
+                "accession": f"2026.0002.{number:06d}",
+                "width": 1400,
+                "height": 700,
+                "image_format": "JPEG",
+                "byte_size": 350_000,
+                "state": _state(number),
+                "source_metadata": {"title": f"Synthetic card {number}", "date": "1898", "creator": "Keystone View Co."},
+            }
+            for number in numbers
+        ]
         db.session.execute(insert(Card), cards)
-        ids = dict(db.session.execute(
-            select(Card.content_hash, Card.id).where(Card.content_hash.in_([c["content_hash"] for c in cards]))).all())
+        ids = dict(
+            db.session.execute(
+                select(Card.content_hash, Card.id).where(Card.content_hash.in_([c["content_hash"] for c in cards]))
+            ).all()
+        )
         results, reviews = [], []
         for number, card in zip(numbers, cards):
             card_id = ids[card["content_hash"]]
             state = card["state"]
             fraction = 0.004 if state == "culled" else 0.01 if state == "review" else 0.25
-            results.append({"card_id": card_id, "stage": "filter", "param_hash": BENCH_PARAM_HASH, "status": "done",
-                            "outcome": state, "metrics": {"good_match_fraction": fraction, "matches": 400,
-                                                          "denominator": "keypoints in the smaller half"},
-                            "artifacts": {}, "seconds": 0.2, "code_version": "bench"})
+            results.append(
+                {
+                    "card_id": card_id,
+                    "stage": "filter",
+                    "param_hash": BENCH_PARAM_HASH,
+                    "status": "done",
+                    "outcome": state,
+                    "metrics": {"good_match_fraction": fraction, "matches": 400, "denominator": "keypoints in the smaller half"},
+                    "artifacts": {},
+                    "seconds": 0.2,
+                    "code_version": "bench",
+                }
+            )
             if state != "pass":
                 continue
-            results.append({"card_id": card_id, "stage": "rectify", "param_hash": BENCH_PARAM_HASH, "status": "done",
-                            "metrics": {"dy_p95": 0.8, "left_box": [20, 30, 690, 670],
-                                        "right_box": [710, 30, 1380, 670], "inputs_digest": "bench"},
-                            "artifacts": {}, "seconds": 0.4, "code_version": "bench"})
-            results.append({"card_id": card_id, "stage": "disparity", "param_hash": BENCH_PARAM_HASH,
-                            "status": "done", "metrics": {"coverage": 0.97, "lr_consistency": 0.88},
-                            "artifacts": {}, "seconds": 0.3, "code_version": "bench"})
+            results.append(
+                {
+                    "card_id": card_id,
+                    "stage": "rectify",
+                    "param_hash": BENCH_PARAM_HASH,
+                    "status": "done",
+                    "metrics": {
+                        "dy_p95": 0.8,
+                        "left_box": [20, 30, 690, 670],
+                        "right_box": [710, 30, 1380, 670],
+                        "inputs_digest": "bench",
+                    },
+                    "artifacts": {},
+                    "seconds": 0.4,
+                    "code_version": "bench",
+                }
+            )
+            results.append(
+                {
+                    "card_id": card_id,
+                    "stage": "disparity",
+                    "param_hash": BENCH_PARAM_HASH,
+                    "status": "done",
+                    "metrics": {"coverage": 0.97, "lr_consistency": 0.88},
+                    "artifacts": {},
+                    "seconds": 0.3,
+                    "code_version": "bench",
+                }
+            )
             grade = GRADES[number % len(GRADES)]
-            results.append({"card_id": card_id, "stage": "grade", "param_hash": BENCH_PARAM_HASH, "status": "done",
-                            "outcome": grade, "metrics": _grade_metrics(number), "artifacts": {}, "seconds": 0.05,
-                            "code_version": "bench"})
+            results.append(
+                {
+                    "card_id": card_id,
+                    "stage": "grade",
+                    "param_hash": BENCH_PARAM_HASH,
+                    "status": "done",
+                    "outcome": grade,
+                    "metrics": _grade_metrics(number),
+                    "artifacts": {},
+                    "seconds": 0.05,
+                    "code_version": "bench",
+                }
+            )
             decision = DECISIONS[number % len(DECISIONS)]
-            reviews.append({"card_id": card_id, "auto_grade": grade, "auto_param_hash": BENCH_PARAM_HASH,
-                            "uncertainty": _grade_metrics(number)["uncertainty"], "note": "",
-                            "grade": grade if decision == "accepted" else None, "decision": decision})
+            reviews.append(
+                {
+                    "card_id": card_id,
+                    "auto_grade": grade,
+                    "auto_param_hash": BENCH_PARAM_HASH,
+                    "uncertainty": _grade_metrics(number)["uncertainty"],
+                    "note": "",
+                    "grade": grade if decision == "accepted" else None,
+                    "decision": decision,
+                }
+            )
         db.session.execute(insert(StageResult), results)
         if reviews:
             db.session.execute(insert(CardReview), reviews)
@@ -163,8 +226,14 @@ def _cards_json_child(collection: str, env: dict[str, str]) -> tuple[float, floa
     """Seconds and peak MB of ``keystone cards --json --collection C`` in its own process."""
     clock = time.perf_counter()
     with open(os.devnull, "w") as sink:
-        done = subprocess.run([sys.executable, "-c", _CARDS_CHILD, "cards", "--json", "--collection", collection],
-                              stdout=sink, stderr=subprocess.PIPE, text=True, env=env, check=False)
+        done = subprocess.run(
+            [sys.executable, "-c", _CARDS_CHILD, "cards", "--json", "--collection", collection],
+            stdout=sink,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+            check=False,
+        )
     seconds = time.perf_counter() - clock
     if done.returncode != 0:
         raise click.ClickException(f"keystone cards failed: {done.stderr.strip()[-2000:]}")
@@ -207,8 +276,15 @@ def time_operations(app: Any, count: int, repeats: int, child_env: dict[str, str
     # A session as the login form makes one, without going through it: a login would leave
     # rows in the append-only sign-in trail of a database the bench must leave as it found it.
     with client.session_transaction() as session:
-        session.update({"_user_id": str(person.id), "_fresh": True, "_permanent": True,
-                        SESSION_VERSION_KEY: person.session_version, LOGIN_AT_KEY: int(time.time())})
+        session.update(
+            {
+                "_user_id": str(person.id),
+                "_fresh": True,
+                "_permanent": True,
+                SESSION_VERSION_KEY: person.session_version,
+                LOGIN_AT_KEY: int(time.time()),
+            }
+        )
     if client.get("/cards").status_code != 200:
         raise click.ClickException("the bench curator's session was refused")
     per_page = int(app.config.get("CATALOG_PAGE_SIZE", 48))
@@ -219,6 +295,7 @@ def time_operations(app: Any, count: int, repeats: int, child_env: dict[str, str
             answer = client.get(url)
             if answer.status_code != 200:
                 raise click.ClickException(f"GET {url} answered {answer.status_code}")
+
         return get
 
     figures["catalogue_page_seconds"] = _median_seconds(page("/cards"), repeats)
@@ -240,8 +317,9 @@ def time_operations(app: Any, count: int, repeats: int, child_env: dict[str, str
     return figures
 
 
-def benchmark_catalogue(count: int, *, repeats: int = 3, keep: bool = False,
-                        echo: Callable[[str], None] = lambda _m: None) -> dict[str, Any]:
+def benchmark_catalogue(
+    count: int, *, repeats: int = 3, keep: bool = False, echo: Callable[[str], None] = lambda _m: None
+) -> dict[str, Any]:
     """Build, time, clean up; one JSON-able document (runs inside the app context)."""
     from flask import current_app
     from sqlalchemy import func, select
@@ -255,11 +333,15 @@ def benchmark_catalogue(count: int, *, repeats: int = 3, keep: bool = False,
     if existing:
         raise click.ClickException(
             f"the configured database already holds {existing} cards; point KEYSTONE_DATABASE_URL at an empty "
-            "database for the bench (it builds and then deletes its own catalogue)")
+            "database for the bench (it builds and then deletes its own catalogue)"
+        )
     app = current_app._get_current_object()  # type: ignore[attr-defined]
-    child_env = {**os.environ, "KEYSTONE_DATABASE_URL": app.config["SQLALCHEMY_DATABASE_URI"],
-                 "KEYSTONE_DATA_DIR": str(app.config["KEYSTONE_DATA_DIR"]),
-                 "KEYSTONE_INSTANCE_PATH": app.instance_path}
+    child_env = {
+        **os.environ,
+        "KEYSTONE_DATABASE_URL": app.config["SQLALCHEMY_DATABASE_URI"],
+        "KEYSTONE_DATA_DIR": str(app.config["KEYSTONE_DATA_DIR"]),
+        "KEYSTONE_INSTANCE_PATH": app.instance_path,
+    }
     echo(f"building a synthetic catalogue of {count} cards")
     try:
         build_seconds = build_catalogue(count, echo)
@@ -274,28 +356,39 @@ def benchmark_catalogue(count: int, *, repeats: int = 3, keep: bool = False,
 
             db.session.execute(Person.__table__.delete().where(Person.username == "bench-curator"))
             db.session.commit()
-    return {"cards": count, "database": db.engine.dialect.name, "repeats": repeats,
-            "build_seconds": round(build_seconds, 2), **figures}
+    return {
+        "cards": count,
+        "database": db.engine.dialect.name,
+        "repeats": repeats,
+        "build_seconds": round(build_seconds, 2),
+        **figures,
+    }
 
 
 @click.command("catalogue")
-@click.option("--cards", "count", default=25_000, show_default=True, type=click.IntRange(1, 5_000_000),
-              help="Cards in the synthetic catalogue.")
-@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 50),
-              help="Runs of each operation; the median is reported.")
+@click.option(
+    "--cards",
+    "count",
+    default=25_000,
+    show_default=True,
+    type=click.IntRange(1, 5_000_000),
+    help="Cards in the synthetic catalogue.",
+)
+@click.option(
+    "--repeats", default=3, show_default=True, type=click.IntRange(1, 50), help="Runs of each operation; the median is reported."
+)
 @click.option("--keep", is_flag=True, help="Leave the synthetic catalogue in the database afterwards.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
 @with_appcontext
 def bench_catalogue_command(count: int, repeats: int, keep: bool, as_json: bool) -> None:
     """Time planning a run, listing cards, the catalogue and review pages, the report and planning
     an export on a synthetic catalogue of N cards in the configured (empty) database."""
-    document = benchmark_catalogue(count, repeats=repeats, keep=keep,
-                                   echo=lambda message: click.echo(message, err=True))
+    document = benchmark_catalogue(count, repeats=repeats, keep=keep, echo=lambda message: click.echo(message, err=True))
     if as_json:
         click.echo(json.dumps(document, indent=2))
         return
     click.echo(f"{document['cards']} cards on {document['database']}: built in {document['build_seconds']} s")
     for key, value in document.items():
         if key.endswith("_seconds") and key != "build_seconds":
-            click.echo(f"  {key[:-len('_seconds')]:<28} {value:8.3f} s")
+            click.echo(f"  {key[: -len('_seconds')]:<28} {value:8.3f} s")
     click.echo(f"  peak memory {document['peak_rss_mb']} MB (cards --json child {document['cards_json_peak_rss_mb']} MB)")

@@ -82,13 +82,26 @@ def _generated_cards(folder: Path, count: int, seed: int) -> list[Path]:
 def _app_config(root: Path, database_url: str | None = None) -> dict[str, Any]:
     import secrets
 
-    return {"SQLALCHEMY_DATABASE_URI": database_url or f"sqlite:///{root / 'keystone.sqlite3'}",
-            "KEYSTONE_DATA_DIR": str(root / "data"), "SECRET_KEY": secrets.token_hex(16)}
+    return {
+        "SQLALCHEMY_DATABASE_URI": database_url or f"sqlite:///{root / 'keystone.sqlite3'}",
+        "KEYSTONE_DATA_DIR": str(root / "data"),
+        "SECRET_KEY": secrets.token_hex(16),
+    }
 
 
-def build_instance(root: Path, *, annotators: int, tasks_per_annotator: int, n: int = 3, kind: str = "judge",
-                   hold: int = 2, gold_cards: int = 5, gold_rate: float = 0.1, seed: int = 0,
-                   database_url: str | None = None) -> CrowdInstance:
+def build_instance(
+    root: Path,
+    *,
+    annotators: int,
+    tasks_per_annotator: int,
+    n: int = 3,
+    kind: str = "judge",
+    hold: int = 2,
+    gold_cards: int = 5,
+    gold_rate: float = 0.1,
+    seed: int = 0,
+    database_url: str | None = None,
+) -> CrowdInstance:
     """Ingest enough generated cards for the load (every worker can finish, holding ``hold``), batch, invite.
 
     Items: ceil(annotators * (tasks + hold) / n), so slots never run out before every annotator
@@ -110,12 +123,17 @@ def build_instance(root: Path, *, annotators: int, tasks_per_annotator: int, n: 
         from sqlalchemy import inspect
 
         if inspect(db.engine).get_table_names():
-            raise click.ClickException(f"the bench needs an empty database; "
-                                       f"{db.engine.url.render_as_string(hide_password=True)} has tables")
+            raise click.ClickException(
+                f"the bench needs an empty database; {db.engine.url.render_as_string(hide_password=True)} has tables"
+            )
         upgrade(db.engine)
         paths = _generated_cards(root / "scans", items + gold_cards, seed)
-        report = ingest(paths, data_dir=Path(config["KEYSTONE_DATA_DIR"]), collection_name="bench",
-                        max_pixels=app.config["KEYSTONE_MAX_PIXELS"])
+        report = ingest(
+            paths,
+            data_dir=Path(config["KEYSTONE_DATA_DIR"]),
+            collection_name="bench",
+            max_pixels=app.config["KEYSTONE_MAX_PIXELS"],
+        )
         if report.rejected:
             raise click.ClickException(f"bench cards were rejected at ingest: {report.rejected[:3]}")
         from sqlalchemy import select
@@ -151,8 +169,9 @@ def _serve_child() -> None:
 
     setup = json.loads(sys.stdin.readline())
     app = _noop_app if setup.get("noop") else create_app(setup["config"], instance_path=setup["instance_path"])
-    serve(app, "127.0.0.1", 0, threads=setup["threads"], processes=setup["processes"],
-          on_ready=lambda port: print(port, flush=True))
+    serve(
+        app, "127.0.0.1", 0, threads=setup["threads"], processes=setup["processes"], on_ready=lambda port: print(port, flush=True)
+    )
 
 
 def _noop_app(environ: dict[str, Any], start_response: Callable[..., Any]) -> list[bytes]:
@@ -174,8 +193,7 @@ def harness_burst(clients: int, threads: int | None = None, processes: int | Non
             try:
                 client.request("GET", "/")  # connect, as the invite page does
                 barrier.wait(timeout=60)
-                latencies.append(client.request("POST", "/crowd/api/next", {"kind": "judge"},
-                                                {"X-Crowd-Token": "x" * 120})[2])
+                latencies.append(client.request("POST", "/crowd/api/next", {"kind": "judge"}, {"X-Crowd-Token": "x" * 120})[2])
             finally:
                 client.close()
 
@@ -199,8 +217,13 @@ class ServedApp:
         self.port = 0
 
     def __enter__(self) -> Self:
-        self._process = subprocess.Popen([sys.executable, "-m", "benchmarks.crowd"], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, text=True, start_new_session=True)
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "benchmarks.crowd"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
         assert self._process.stdin is not None and self._process.stdout is not None
         setup: dict[str, Any] = {"threads": self._threads, "processes": self._processes}
         if self._instance is None:
@@ -273,8 +296,9 @@ class _Client:
         self.port = port
         self.connection = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
 
-    def request(self, method: str, path: str, body: Any = None,
-                headers: dict[str, str] | None = None) -> tuple[int, bytes, float]:
+    def request(
+        self, method: str, path: str, body: Any = None, headers: dict[str, str] | None = None
+    ) -> tuple[int, bytes, float]:
         data = json.dumps(body).encode() if body is not None else None
         headers = {**(headers or {}), **({"Content-Type": "application/json"} if data is not None else {})}
         for attempt in (0, 1):
@@ -311,9 +335,17 @@ def _answer_for(kind: str, task: dict[str, Any], rng: random.Random) -> dict[str
     return {"left": jitter([2, 2, half - 2, height - 2]), "right": jitter([half + 10, 2, width - 2, height - 2])}
 
 
-def run_annotator(port: int, invite_token: str, kind: str, tasks: int, think_s: tuple[float, float],
-                  seed: int, start: threading.Barrier | None = None, replay_every: int = REPLAY_EVERY,
-                  arrive_after_s: float = 0.0) -> AnnotatorLog:
+def run_annotator(
+    port: int,
+    invite_token: str,
+    kind: str,
+    tasks: int,
+    think_s: tuple[float, float],
+    seed: int,
+    start: threading.Barrier | None = None,
+    replay_every: int = REPLAY_EVERY,
+    arrive_after_s: float = 0.0,
+) -> AnnotatorLog:
     """Open the invite page, wait for the start line and ``arrive_after_s`` more, then fetch-next /
     think / submit until ``tasks`` answers are acknowledged."""
     log = AnnotatorLog()
@@ -348,8 +380,11 @@ def run_annotator(port: int, invite_token: str, kind: str, tasks: int, think_s: 
                 return log
             task = document["tasks"][0]
             time.sleep(rng.uniform(*think_s))
-            submission = {"token": task["token"], "answer": _answer_for(kind, task, rng),
-                          "key": f"bench-{seed}-{len(log.acknowledged):05d}-{rng.getrandbits(48):012x}"}
+            submission = {
+                "token": task["token"],
+                "answer": _answer_for(kind, task, rng),
+                "key": f"bench-{seed}-{len(log.acknowledged):05d}-{rng.getrandbits(48):012x}",
+            }
             status, body, ms = client.request("POST", "/crowd/api/submit", submission, headers)
             log.submit_ms.append(ms)
             log.statuses.append(status)
@@ -378,8 +413,12 @@ def latency_summary(values_ms: Sequence[float]) -> dict[str, float | int | None]
     if not values_ms:
         return {"count": 0, "p50_ms": None, "p95_ms": None, "max_ms": None}
     values = np.asarray(values_ms, dtype=float)
-    return {"count": int(values.size), "p50_ms": round(float(np.percentile(values, 50)), 2),
-            "p95_ms": round(float(np.percentile(values, 95)), 2), "max_ms": round(float(values.max()), 2)}
+    return {
+        "count": int(values.size),
+        "p50_ms": round(float(np.percentile(values, 50)), 2),
+        "p95_ms": round(float(np.percentile(values, 95)), 2),
+        "max_ms": round(float(values.max()), 2),
+    }
 
 
 def _stored_figures(instance: CrowdInstance, acknowledged: set[int]) -> dict[str, int]:
@@ -394,14 +433,20 @@ def _stored_figures(instance: CrowdInstance, acknowledged: set[int]) -> dict[str
     with app.app_context():
         batch = db.session.get(Batch, instance.batch_id)
         assert batch is not None
-        rows = db.session.execute(select(Answer.id, Answer.item_id, Answer.worker_id, BatchItem.is_gold)
-                                  .join(BatchItem, Answer.item_id == BatchItem.id)
-                                  .where(BatchItem.batch_id == instance.batch_id)).all()
+        rows = db.session.execute(
+            select(Answer.id, Answer.item_id, Answer.worker_id, BatchItem.is_gold)
+            .join(BatchItem, Answer.item_id == BatchItem.id)
+            .where(BatchItem.batch_id == instance.batch_id)
+        ).all()
         now = utcnow()
-        held = dict(db.session.execute(
-            select(Reservation.item_id, func.count()).join(BatchItem, Reservation.item_id == BatchItem.id)
-            .where(BatchItem.batch_id == instance.batch_id, Reservation.answered_at.is_(None),
-                   Reservation.expires_at > now).group_by(Reservation.item_id)).all())
+        held = dict(
+            db.session.execute(
+                select(Reservation.item_id, func.count())
+                .join(BatchItem, Reservation.item_id == BatchItem.id)
+                .where(BatchItem.batch_id == instance.batch_id, Reservation.answered_at.is_(None), Reservation.expires_at > now)
+                .group_by(Reservation.item_id)
+            ).all()
+        )
         n = batch.answers_per_item
         db.session.remove()
         db.engine.dispose()
@@ -411,16 +456,31 @@ def _stored_figures(instance: CrowdInstance, acknowledged: set[int]) -> dict[str
     for r in rows:
         if not r.is_gold:  # gold is deliberately not capped at N
             per_item[r.item_id] = per_item.get(r.item_id, 0) + 1
-    return {"answers_stored": len(stored), "lost": len(acknowledged - stored),
-            "unacknowledged": len(stored - acknowledged), "duplicates": len(pairs) - len(set(pairs)),
-            "over_capacity_items": sum(1 for item, count in per_item.items() if count + held.get(item, 0) > n)}
+    return {
+        "answers_stored": len(stored),
+        "lost": len(acknowledged - stored),
+        "unacknowledged": len(stored - acknowledged),
+        "duplicates": len(pairs) - len(set(pairs)),
+        "over_capacity_items": sum(1 for item, count in per_item.items() if count + held.get(item, 0) > n),
+    }
 
 
-def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind: str = "judge", n: int = 3,
-                    think_ms: tuple[float, float] = (250.0, 750.0), ramp_s: float = DEFAULT_RAMP_S,
-                    server_threads: int | None = None, server_processes: int | None = None, seed: int = 0,
-                    replay_every: int = REPLAY_EVERY, root: Path | None = None, database_url: str | None = None,
-                    on_progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+def run_crowd_bench(
+    annotators: int = 50,
+    tasks_per_annotator: int = 10,
+    *,
+    kind: str = "judge",
+    n: int = 3,
+    think_ms: tuple[float, float] = (250.0, 750.0),
+    ramp_s: float = DEFAULT_RAMP_S,
+    server_threads: int | None = None,
+    server_processes: int | None = None,
+    seed: int = 0,
+    replay_every: int = REPLAY_EVERY,
+    root: Path | None = None,
+    database_url: str | None = None,
+    on_progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
     """Set up, serve, run ``annotators`` concurrent annotators, check the database; one JSON-able report.
 
     ``think_ms`` is the (min, max) of the uniform time an annotator looks at a task before
@@ -442,8 +502,15 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
     root = Path(tempfile.mkdtemp(prefix="keystone-bench-crowd-")) if root is None else root
     try:
         say(f"setting up {annotators} annotators x {tasks_per_annotator} tasks in {root}")
-        instance = build_instance(root, annotators=annotators, tasks_per_annotator=tasks_per_annotator, n=n,
-                                  kind=kind, seed=seed, database_url=database_url)
+        instance = build_instance(
+            root,
+            annotators=annotators,
+            tasks_per_annotator=tasks_per_annotator,
+            n=n,
+            kind=kind,
+            seed=seed,
+            database_url=database_url,
+        )
         logs: list[AnnotatorLog] = [AnnotatorLog() for _ in range(annotators)]
         think_s = (think_ms[0] / 1000.0, think_ms[1] / 1000.0)
         with ServedApp(instance, threads=server_threads, processes=server_processes) as served:
@@ -451,9 +518,17 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
             barrier = threading.Barrier(annotators + 1)
 
             def work(index: int) -> None:
-                logs[index] = run_annotator(served.port, instance.invite_tokens[index], kind, tasks_per_annotator,
-                                            think_s, seed * 100_003 + index, barrier, replay_every,
-                                            arrive_after_s=ramp_s * index / max(1, annotators - 1))
+                logs[index] = run_annotator(
+                    served.port,
+                    instance.invite_tokens[index],
+                    kind,
+                    tasks_per_annotator,
+                    think_s,
+                    seed * 100_003 + index,
+                    barrier,
+                    replay_every,
+                    arrive_after_s=ramp_s * index / max(1, annotators - 1),
+                )
 
             threads = [threading.Thread(target=work, args=(i,), daemon=True) for i in range(annotators)]
             for thread in threads:
@@ -485,26 +560,40 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
     first = [log.fetch_ms[0] for log in logs if log.fetch_ms]
     steady = [ms for log in logs for ms in log.fetch_ms[1:]]
     report: dict[str, Any] = {
-        "annotators": annotators, "tasks_per_annotator": tasks_per_annotator, "kind": kind,
-        "answers_per_item": n, "items": instance.items, "think_ms": list(think_ms), "ramp_s": ramp_s,
-        "server": describe(server_processes, server_threads), "server_processes": server_processes,
+        "annotators": annotators,
+        "tasks_per_annotator": tasks_per_annotator,
+        "kind": kind,
+        "answers_per_item": n,
+        "items": instance.items,
+        "think_ms": list(think_ms),
+        "ramp_s": ramp_s,
+        "server": describe(server_processes, server_threads),
+        "server_processes": server_processes,
         "server_threads": server_threads,
         "database": (database_url or "sqlite").split(":", 1)[0].split("+", 1)[0],
-        "seconds": round(seconds, 3), "requests": len(statuses),
+        "seconds": round(seconds, 3),
+        "requests": len(statuses),
         "throughput_rps": round(len(fetch) / seconds + len(submits) / seconds, 1) if seconds else None,
         # Server CPU per API request (fetch-next, submit, replays): the cost of a request, free
         # of the queueing that latency includes on a busy machine.
-        "server_cpu_ms_per_request": (round((cpu_after - cpu_before) * 1000 / len(statuses), 2)
-                                      if cpu_before is not None and cpu_after is not None and statuses else None),
-        "fetch_next": latency_summary(fetch), "submit": latency_summary(submits),
-        "fetch_next_first": latency_summary(first), "fetch_next_steady": latency_summary(steady),
+        "server_cpu_ms_per_request": (
+            round((cpu_after - cpu_before) * 1000 / len(statuses), 2)
+            if cpu_before is not None and cpu_after is not None and statuses
+            else None
+        ),
+        "fetch_next": latency_summary(fetch),
+        "submit": latency_summary(submits),
+        "fetch_next_first": latency_summary(first),
+        "fetch_next_steady": latency_summary(steady),
         "answers_submitted": sum(len(log.acknowledged) for log in logs),
         **figures,
-        "replays": sum(log.replays for log in logs), "replays_ok": sum(log.replays_ok for log in logs),
+        "replays": sum(log.replays for log in logs),
+        "replays_ok": sum(log.replays_ok for log in logs),
         "status_5xx": sum(1 for s in statuses if s >= 500),
         "status_4xx": sum(1 for s in statuses if 400 <= s < 500),
         "client_errors": [e for log in logs for e in log.errors][:10],
-        "stopped": stops, "target_p95_ms": TARGET_P95_MS,
+        "stopped": stops,
+        "target_p95_ms": TARGET_P95_MS,
         **({"harness_burst": floor} if floor is not None else {}),
     }
     p95s = [report[k]["p95_ms"] for k in ("fetch_next", "submit")]
@@ -513,29 +602,72 @@ def run_crowd_bench(annotators: int = 50, tasks_per_annotator: int = 10, *, kind
 
 
 @click.command("crowd")
-@click.option("--annotators", default=50, show_default=True, type=click.IntRange(1, 90),
-              help="Concurrent simulated annotators (threads, one keep-alive connection each).")
-@click.option("--tasks-per-annotator", default=10, show_default=True, type=click.IntRange(1, 1000),
-              help="Answers each annotator gives before leaving.")
+@click.option(
+    "--annotators",
+    default=50,
+    show_default=True,
+    type=click.IntRange(1, 90),
+    help="Concurrent simulated annotators (threads, one keep-alive connection each).",
+)
+@click.option(
+    "--tasks-per-annotator",
+    default=10,
+    show_default=True,
+    type=click.IntRange(1, 1000),
+    help="Answers each annotator gives before leaving.",
+)
 @click.option("--kind", type=click.Choice(("judge", "crop")), default="judge", show_default=True)
 @click.option("--n", "n", default=3, show_default=True, type=click.IntRange(1, 20), help="Answers per item.")
-@click.option("--think-ms", nargs=2, type=click.FloatRange(0, 60_000), default=(250.0, 750.0), show_default=True,
-              help="Min and max of an annotator's uniform thinking time per task; 0 0 saturates the server.")
-@click.option("--ramp-s", default=DEFAULT_RAMP_S, show_default=True, type=click.FloatRange(0, 600),
-              help="Annotators arrive evenly over this many seconds; 0 starts them all at the same instant "
-                   "and also measures that burst against an app that does nothing.")
-@click.option("--server-processes", type=click.IntRange(1, 16), default=None,
-              help="Server processes, as keystone serve --processes [default: keystone serve's].")
-@click.option("--server-threads", type=click.IntRange(1, 64), default=None,
-              help="Threads per server process, as keystone serve --threads [default: keystone serve's].")
+@click.option(
+    "--think-ms",
+    nargs=2,
+    type=click.FloatRange(0, 60_000),
+    default=(250.0, 750.0),
+    show_default=True,
+    help="Min and max of an annotator's uniform thinking time per task; 0 0 saturates the server.",
+)
+@click.option(
+    "--ramp-s",
+    default=DEFAULT_RAMP_S,
+    show_default=True,
+    type=click.FloatRange(0, 600),
+    help="Annotators arrive evenly over this many seconds; 0 starts them all at the same instant "
+    "and also measures that burst against an app that does nothing.",
+)
+@click.option(
+    "--server-processes",
+    type=click.IntRange(1, 16),
+    default=None,
+    help="Server processes, as keystone serve --processes [default: keystone serve's].",
+)
+@click.option(
+    "--server-threads",
+    type=click.IntRange(1, 64),
+    default=None,
+    help="Threads per server process, as keystone serve --threads [default: keystone serve's].",
+)
 @click.option("--seed", default=0, show_default=True, type=int)
-@click.option("--database-url", default=None, metavar="URL",
-              help="An empty database for the bench's catalogue, e.g. postgresql+psycopg://user@host/db "
-                   "[default: a throwaway SQLite file].")
+@click.option(
+    "--database-url",
+    default=None,
+    metavar="URL",
+    help="An empty database for the bench's catalogue, e.g. postgresql+psycopg://user@host/db "
+    "[default: a throwaway SQLite file].",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
-def bench_crowd_command(annotators: int, tasks_per_annotator: int, kind: str, n: int, think_ms: tuple[float, float],
-                        ramp_s: float, server_processes: int | None, server_threads: int | None, seed: int,
-                        database_url: str | None, as_json: bool) -> None:
+def bench_crowd_command(
+    annotators: int,
+    tasks_per_annotator: int,
+    kind: str,
+    n: int,
+    think_ms: tuple[float, float],
+    ramp_s: float,
+    server_processes: int | None,
+    server_threads: int | None,
+    seed: int,
+    database_url: str | None,
+    as_json: bool,
+) -> None:
     """Latency of fetch-next and submit with concurrent annotators over real HTTP (SQLite by default,
     or an empty PostgreSQL database with --database-url; waitress, or gunicorn with --server-processes above 1).
 
@@ -543,29 +675,51 @@ def bench_crowd_command(annotators: int, tasks_per_annotator: int, kind: str, n:
     """
     if think_ms[0] > think_ms[1]:
         raise click.BadParameter(f"expected min <= max, got {think_ms[0]:g} > {think_ms[1]:g}", param_hint="--think-ms")
-    report = run_crowd_bench(annotators, tasks_per_annotator, kind=kind, n=n, think_ms=think_ms, ramp_s=ramp_s,
-                             server_threads=server_threads, server_processes=server_processes, seed=seed,
-                             database_url=database_url, on_progress=None if as_json else (lambda m: click.echo(m, err=True)))
-    broken = (report["lost"] or report["unacknowledged"] or report["duplicates"] or report["over_capacity_items"]
-              or report["status_5xx"] or report["client_errors"] or report["replays_ok"] != report["replays"])
+    report = run_crowd_bench(
+        annotators,
+        tasks_per_annotator,
+        kind=kind,
+        n=n,
+        think_ms=think_ms,
+        ramp_s=ramp_s,
+        server_threads=server_threads,
+        server_processes=server_processes,
+        seed=seed,
+        database_url=database_url,
+        on_progress=None if as_json else (lambda m: click.echo(m, err=True)),
+    )
+    broken = (
+        report["lost"]
+        or report["unacknowledged"]
+        or report["duplicates"]
+        or report["over_capacity_items"]
+        or report["status_5xx"]
+        or report["client_errors"]
+        or report["replays_ok"] != report["replays"]
+    )
     if as_json:
         click.echo(json.dumps(report, indent=2))
     else:
-        click.echo(f"{annotators} annotators x {tasks_per_annotator} {kind} tasks, arriving over {ramp_s:g} s, "
-                   f"think {think_ms[0]:g}-{think_ms[1]:g} ms, {report['server']}: {report['seconds']:.1f} s, "
-                   f"{report['throughput_rps']} requests/s, server CPU {report['server_cpu_ms_per_request']} ms "
-                   "per request")
+        click.echo(
+            f"{annotators} annotators x {tasks_per_annotator} {kind} tasks, arriving over {ramp_s:g} s, "
+            f"think {think_ms[0]:g}-{think_ms[1]:g} ms, {report['server']}: {report['seconds']:.1f} s, "
+            f"{report['throughput_rps']} requests/s, server CPU {report['server_cpu_ms_per_request']} ms "
+            "per request"
+        )
         for name in ("fetch_next", "fetch_next_first", "fetch_next_steady", "submit"):
             row = report[name]
-            click.echo(f"  {name:<17} n={row['count']:<5} p50 {row['p50_ms']} ms  p95 {row['p95_ms']} ms  "
-                       f"max {row['max_ms']} ms")
+            click.echo(f"  {name:<17} n={row['count']:<5} p50 {row['p50_ms']} ms  p95 {row['p95_ms']} ms  max {row['max_ms']} ms")
         if "harness_burst" in report:
             row = report["harness_burst"]
-            click.echo(f"  the same burst against an app that does nothing: p50 {row['p50_ms']} ms  "
-                       f"p95 {row['p95_ms']} ms  max {row['max_ms']} ms")
-        click.echo(f"  answers: {report['answers_submitted']} acknowledged, {report['answers_stored']} stored, "
-                   f"{report['lost']} lost, {report['duplicates']} duplicated, {report['over_capacity_items']} items "
-                   f"over N; replays {report['replays_ok']}/{report['replays']} ok; 5xx {report['status_5xx']}")
+            click.echo(
+                f"  the same burst against an app that does nothing: p50 {row['p50_ms']} ms  "
+                f"p95 {row['p95_ms']} ms  max {row['max_ms']} ms"
+            )
+        click.echo(
+            f"  answers: {report['answers_submitted']} acknowledged, {report['answers_stored']} stored, "
+            f"{report['lost']} lost, {report['duplicates']} duplicated, {report['over_capacity_items']} items "
+            f"over N; replays {report['replays_ok']}/{report['replays']} ok; 5xx {report['status_5xx']}"
+        )
         click.echo(f"  p95 target < {TARGET_P95_MS:g} ms: {'met' if report['meets_target'] else 'NOT met'}")
     if broken:
         raise SystemExit(1)

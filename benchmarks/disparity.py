@@ -74,7 +74,7 @@ def read_pfm(path: str | Path) -> np.ndarray:
     width, height, scale = int(m.group(2)), int(m.group(3)), float(m.group(4))
     dtype = "<f4" if scale < 0 else ">f4"
     count = width * height * channels
-    body = data[m.end():]
+    body = data[m.end() :]
     if len(body) < 4 * count:
         raise PFMError(f"{path}: truncated ({len(body)} bytes for {count} floats)")
     arr = np.frombuffer(body, dtype=dtype, count=count).astype(np.float32)
@@ -227,8 +227,7 @@ def benchmark_disparity(
                     for _ in range(max(1, repeats)):
                         res = estimate_disparity(scene.left, right, backend, params or DisparityParams())
                         times.append(res.seconds)
-                    row: dict[str, Any] = {"scene": scene.name, "split": scene.split, "perturbation": kind,
-                                           "backend": backend}
+                    row: dict[str, Any] = {"scene": scene.name, "split": scene.split, "perturbation": kind, "backend": backend}
                     row.update(disparity_errors(res.disp_left, scene.gt, res.confidence))
                     row["seconds"] = float(statistics.median(times))
                     row["size"] = [int(scene.left.shape[1]), int(scene.left.shape[0])]
@@ -241,8 +240,12 @@ def benchmark_disparity(
         "summary_by_split": summarise_by_split(results),
         "tuning_scenes": list(TUNING_SCENES),
         "default_backend": DEFAULT_BACKEND,
-        "target": {"mean_bad2": TARGET_BAD2, "split": "held-out", "seconds_741x500": TARGET_SECONDS,
-                   "ratio_to_dis_medium": TARGET_RATIO_TO_DIS_MEDIUM},
+        "target": {
+            "mean_bad2": TARGET_BAD2,
+            "split": "held-out",
+            "seconds_741x500": TARGET_SECONDS,
+            "ratio_to_dis_medium": TARGET_RATIO_TO_DIS_MEDIUM,
+        },
     }
 
 
@@ -263,8 +266,9 @@ def _ratio_to_dis_medium(results: list[dict[str, Any]], rows: list[dict[str, Any
     """Median over the rows' cases of seconds / DIS medium's seconds on the same case (same run),
     or None when DIS medium did not run."""
     dis = {(r["scene"], r["perturbation"]): r["seconds"] for r in results if r["backend"] == "dis-medium"}
-    ratios = [r["seconds"] / dis[(r["scene"], r["perturbation"])] for r in rows
-              if dis.get((r["scene"], r["perturbation"]), 0) > 0]
+    ratios = [
+        r["seconds"] / dis[(r["scene"], r["perturbation"])] for r in rows if dis.get((r["scene"], r["perturbation"]), 0) > 0
+    ]
     return float(statistics.median(ratios)) if ratios else None
 
 
@@ -286,8 +290,14 @@ def summarise_by_split(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
         for split in SPLITS:
             rows = [r for r in results if r["backend"] == backend and r.get("split") == split]
             if rows:
-                out.append({"backend": backend, "split": split, **_means(rows),
-                            "ratio_to_dis_medium": _ratio_to_dis_medium(results, rows)})
+                out.append(
+                    {
+                        "backend": backend,
+                        "split": split,
+                        **_means(rows),
+                        "ratio_to_dis_medium": _ratio_to_dis_medium(results, rows),
+                    }
+                )
     return out
 
 
@@ -301,8 +311,7 @@ def pareto_front(points: list[tuple[str, float, float]]) -> list[str]:
     return front
 
 
-def plot_pareto(summary: list[dict[str, Any]], path: str | Path,
-                by_split: list[dict[str, Any]] | None = None) -> list[str]:
+def plot_pareto(summary: list[dict[str, Any]], path: str | Path, by_split: list[dict[str, Any]] | None = None) -> list[str]:
     """PNG of mean bad-2 against seconds per backend (log time axis) with the Pareto front.
 
     With ``by_split`` holding held-out rows, the front and the filled points are the held-out
@@ -322,8 +331,15 @@ def plot_pareto(summary: list[dict[str, Any]], path: str | Path,
         ax.scatter([sec], [err], s=40, color="tab:red" if name in front else "tab:grey", zorder=3)
         ax.annotate(name, (sec, err), textcoords="offset points", xytext=(5, 4), fontsize=8)
     if tuned:
-        ax.scatter([s["seconds"] for s in tuned], [s["bad2"] for s in tuned], s=40, facecolors="none",
-                   edgecolors="tab:blue", zorder=3, label="tuned scenes (" + ", ".join(TUNING_SCENES) + ")")
+        ax.scatter(
+            [s["seconds"] for s in tuned],
+            [s["bad2"] for s in tuned],
+            s=40,
+            facecolors="none",
+            edgecolors="tab:blue",
+            zorder=3,
+            label="tuned scenes (" + ", ".join(TUNING_SCENES) + ")",
+        )
     fp = sorted((sec, err) for n, sec, err in pts if n in front)
     if fp:
         label = "Pareto front, held-out scenes" if held else "Pareto front"
@@ -342,22 +358,42 @@ def plot_pareto(summary: list[dict[str, Any]], path: str | Path,
 
 
 @click.command("disparity")
-@click.option("--scene", "scenes", multiple=True, type=click.Path(path_type=Path, file_okay=False, exists=True),
-              help="MiddEval3 scene folder (im0.png, im1.png, disp0GT.pfm, optional mask0nocc.png); repeatable. "
-                   "Default: Motorcycle (scikit-image) plus Tsukuba and Adirondack (both exposures) from "
-                   "../shared/data/stereo_gt when present. Scenes other than motorcycle and tsukuba are held out.")
-@click.option("--backend", "backends", multiple=True, type=click.Choice(BACKENDS),
-              help="Backend to run; repeatable. Default: all.")
-@click.option("--perturbation", "perturbations", multiple=True,
-              type=click.Choice(("none", "down2", "down4", "rot0.5")),
-              help="Right-view perturbation; repeatable. Default: all four.")
-@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 100),
-              help="Runs per case; the median time is reported.")
+@click.option(
+    "--scene",
+    "scenes",
+    multiple=True,
+    type=click.Path(path_type=Path, file_okay=False, exists=True),
+    help="MiddEval3 scene folder (im0.png, im1.png, disp0GT.pfm, optional mask0nocc.png); repeatable. "
+    "Default: Motorcycle (scikit-image) plus Tsukuba and Adirondack (both exposures) from "
+    "../shared/data/stereo_gt when present. Scenes other than motorcycle and tsukuba are held out.",
+)
+@click.option(
+    "--backend", "backends", multiple=True, type=click.Choice(BACKENDS), help="Backend to run; repeatable. Default: all."
+)
+@click.option(
+    "--perturbation",
+    "perturbations",
+    multiple=True,
+    type=click.Choice(("none", "down2", "down4", "rot0.5")),
+    help="Right-view perturbation; repeatable. Default: all four.",
+)
+@click.option(
+    "--repeats", default=3, show_default=True, type=click.IntRange(1, 100), help="Runs per case; the median time is reported."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
-@click.option("--plot", type=click.Path(path_type=Path, dir_okay=False),
-              help="Write a PNG of mean bad-2 against seconds with the Pareto front (needs matplotlib).")
-def bench_disparity_command(scenes: tuple[Path, ...], backends: tuple[str, ...], perturbations: tuple[str, ...],
-                            repeats: int, as_json: bool, plot: Path | None) -> None:
+@click.option(
+    "--plot",
+    type=click.Path(path_type=Path, dir_okay=False),
+    help="Write a PNG of mean bad-2 against seconds with the Pareto front (needs matplotlib).",
+)
+def bench_disparity_command(
+    scenes: tuple[Path, ...],
+    backends: tuple[str, ...],
+    perturbations: tuple[str, ...],
+    repeats: int,
+    as_json: bool,
+    plot: Path | None,
+) -> None:
     """EPE, bad-1, bad-2 and coverage over valid ground truth at full coverage, and seconds (one core)."""
     import json
 
@@ -372,8 +408,9 @@ def bench_disparity_command(scenes: tuple[Path, ...], backends: tuple[str, ...],
 
     try:
         loaded = [load_middeval3(s) for s in scenes] if scenes else builtin_scenes()
-        document = benchmark_disparity(loaded, backends=backends or BACKENDS,
-                                       perturbations=perturbations or PERTURBATIONS, repeats=repeats)
+        document = benchmark_disparity(
+            loaded, backends=backends or BACKENDS, perturbations=perturbations or PERTURBATIONS, repeats=repeats
+        )
     except PipelineError as exc:
         raise click.ClickException(exc.reason()) from exc
     if plot is not None:
@@ -384,28 +421,39 @@ def bench_disparity_command(scenes: tuple[Path, ...], backends: tuple[str, ...],
     if as_json:
         click.echo(json.dumps(document, indent=2, allow_nan=False, default=_nan_safe))
         return
-    click.echo(f"{'scene':<14} {'perturbation':<12} {'backend':<14} {'epe':>7} {'bad1%':>7} {'bad2%':>7} "
-               f"{'cover%':>7} {'conf%':>7} {'seconds':>8}")
+    click.echo(
+        f"{'scene':<14} {'perturbation':<12} {'backend':<14} {'epe':>7} {'bad1%':>7} {'bad2%':>7} "
+        f"{'cover%':>7} {'conf%':>7} {'seconds':>8}"
+    )
     for r in document["results"]:
-        click.echo(f"{r['scene'][:14]:<14} {r['perturbation']:<12} {r['backend']:<14} {r['epe']:7.2f} "
-                   f"{r['bad1']:7.1f} {r['bad2']:7.1f} {r['coverage']:7.1f} {r['confident_coverage']:7.1f} "
-                   f"{r['seconds']:8.3f}")
+        click.echo(
+            f"{r['scene'][:14]:<14} {r['perturbation']:<12} {r['backend']:<14} {r['epe']:7.2f} "
+            f"{r['bad1']:7.1f} {r['bad2']:7.1f} {r['coverage']:7.1f} {r['confident_coverage']:7.1f} "
+            f"{r['seconds']:8.3f}"
+        )
     click.echo("")
     click.echo(f"{'backend':<14} {'mean epe':>9} {'mean bad2%':>11} {'cover%':>7} {'median s':>9} {'s@741x500':>10}")
     for s in document["summary"]:
-        click.echo(f"{s['backend']:<14} {s['epe']:9.2f} {s['bad2']:11.1f} {s['coverage']:7.1f} {s['seconds']:9.3f} "
-                   f"{s['seconds_741x500']:10.3f}")
+        click.echo(
+            f"{s['backend']:<14} {s['epe']:9.2f} {s['bad2']:11.1f} {s['coverage']:7.1f} {s['seconds']:9.3f} "
+            f"{s['seconds_741x500']:10.3f}"
+        )
     click.echo("")
-    click.echo(f"{'backend':<14} {'split':<9} {'epe':>6} {'bad1%':>7} {'bad2%':>7} {'cover%':>7} {'median s':>9} "
-               f"{'x dis-medium':>12}")
+    click.echo(
+        f"{'backend':<14} {'split':<9} {'epe':>6} {'bad1%':>7} {'bad2%':>7} {'cover%':>7} {'median s':>9} {'x dis-medium':>12}"
+    )
     for s in document["summary_by_split"]:
         ratio = "-" if s["ratio_to_dis_medium"] is None else f"{s['ratio_to_dis_medium']:.1f}"
-        click.echo(f"{s['backend']:<14} {s['split']:<9} {s['epe']:6.2f} {s['bad1']:7.1f} {s['bad2']:7.1f} "
-                   f"{s['coverage']:7.1f} {s['seconds']:9.3f} {ratio:>12}")
+        click.echo(
+            f"{s['backend']:<14} {s['split']:<9} {s['epe']:6.2f} {s['bad1']:7.1f} {s['bad2']:7.1f} "
+            f"{s['coverage']:7.1f} {s['seconds']:9.3f} {ratio:>12}"
+        )
     target = document["target"]
-    click.echo(f"default backend: {document['default_backend']} (target: {target['split']} mean bad-2 <= "
-               f"{target['mean_bad2']} % at <= {target['ratio_to_dis_medium']:g}x DIS medium's time; "
-               f"tuned on {', '.join(document['tuning_scenes'])})")
+    click.echo(
+        f"default backend: {document['default_backend']} (target: {target['split']} mean bad-2 <= "
+        f"{target['mean_bad2']} % at <= {target['ratio_to_dis_medium']:g}x DIS medium's time; "
+        f"tuned on {', '.join(document['tuning_scenes'])})"
+    )
     if plot is not None:
         click.echo(f"plot: {plot} (Pareto front: {', '.join(document['pareto_front'])})")
 

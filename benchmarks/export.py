@@ -47,8 +47,7 @@ def view_size_for(map_size: int | None) -> tuple[int, int]:
     return (map_size * 25 // 16, map_size * 75 // 64)
 
 
-def _variant_arrays(variant: int, view_size: tuple[int, int] = VIEW_SIZE,
-                    depth_size: int = DEPTH_SIZE) -> dict[str, np.ndarray]:
+def _variant_arrays(variant: int, view_size: tuple[int, int] = VIEW_SIZE, depth_size: int = DEPTH_SIZE) -> dict[str, np.ndarray]:
     """A real stereo card (Motorcycle halves side by side) and plausible maps for it: views
     ``view_size`` (W, H) RGB uint8, disparity (H, W) float32 px (NaN unknown), depth
     ``depth_size`` square float32 (f / d, baseline 1)."""
@@ -57,27 +56,41 @@ def _variant_arrays(variant: int, view_size: tuple[int, int] = VIEW_SIZE,
 
     left, right, disp = data.stereo_motorcycle()
     x0 = 40 * variant  # a different crop per variant: distinct pixels, same kind of scene
-    views = [np.asarray(Image.fromarray(v[:, x0:x0 + 600]).resize(view_size, Image.Resampling.BOX)) for v in (left, right)]
+    views = [np.asarray(Image.fromarray(v[:, x0 : x0 + 600]).resize(view_size, Image.Resampling.BOX)) for v in (left, right)]
     gutter = np.full((view_size[1], 8, 3), 200, np.uint8)
     scale = view_size[0] / 600
-    truth = np.asarray(disp[:, x0:x0 + 600], np.float32)
+    truth = np.asarray(disp[:, x0 : x0 + 600], np.float32)
     truth = np.where(np.isfinite(truth), truth, np.nan)
     small = np.asarray(Image.fromarray(truth).resize(view_size, Image.Resampling.NEAREST), np.float32) * scale
-    depth = np.asarray(Image.fromarray(1.2071 * view_size[1] / np.where(small > 0, small, np.nan))
-                       .resize((depth_size, depth_size), Image.Resampling.NEAREST), np.float32)
-    return {"card": np.concatenate([views[0], gutter, views[1]], axis=1), "left": views[0], "right": views[1],
-            "disparity_left": small, "disparity_right": small, "depth_512": depth}
+    depth = np.asarray(
+        Image.fromarray(1.2071 * view_size[1] / np.where(small > 0, small, np.nan)).resize(
+            (depth_size, depth_size), Image.Resampling.NEAREST
+        ),
+        np.float32,
+    )
+    return {
+        "card": np.concatenate([views[0], gutter, views[1]], axis=1),
+        "left": views[0],
+        "right": views[1],
+        "disparity_left": small,
+        "disparity_right": small,
+        "depth_512": depth,
+    }
 
 
 SYNTHETIC_ORIENTATION = {
-    "decision": "auto", "confidence": 0.99,
-    "flags": {flag: {"p": 0.01, "decided": True, "value": False, "evidence": ["synthetic card"]}
-              for flag in ("upside_down", "inverted", "swapped")},
+    "decision": "auto",
+    "confidence": 0.99,
+    "flags": {
+        flag: {"p": 0.01, "decided": True, "value": False, "evidence": ["synthetic card"]}
+        for flag in ("upside_down", "inverted", "swapped")
+    },
 }
 
 
-def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], None] = print,
-                              map_size: int | None = None) -> None:
+def build_synthetic_catalogue(
+    count: int, data_dir: Path, echo: Callable[[str], None] = print, map_size: int | None = None
+) -> None:
     """Insert ``count`` accepted, graded cards with stage results pointing at shared artifacts
     (``map_size``: see :func:`view_size_for`; None keeps the small default maps)."""
     from sqlalchemy import insert
@@ -99,15 +112,21 @@ def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], 
         for name in ("disparity_left", "disparity_right", "depth_512"):
             write_npy(data_dir / work / f"{name}.npy", arrays[name])
         width = view_size[0]
-        write_json(data_dir / work / "rectification.json", {
-            "convention": "column vectors, x' ~ H x; disparity d = x_left - x_right >= 0",
-            "H_l": np.eye(3).tolist(), "H_r": np.eye(3).tolist(),
-            "K": [[1.2071 * view_size[1], 0, width / 2], [0, 1.2071 * view_size[1], view_size[1] / 2], [0, 0, 1]],
-            "R": np.eye(3).tolist(), "t": [1.0, 0.0, 0.0], "size": list(view_size),
-            "left_box": [0, 0, width, view_size[1]], "right_box": [width + 8, 0, 2 * width + 8, view_size[1]],
-        })
-        shared.append({"card": str(work / "card.png"), "work": work,
-                       "bytes": (data_dir / work / "card.png").stat().st_size})
+        write_json(
+            data_dir / work / "rectification.json",
+            {
+                "convention": "column vectors, x' ~ H x; disparity d = x_left - x_right >= 0",
+                "H_l": np.eye(3).tolist(),
+                "H_r": np.eye(3).tolist(),
+                "K": [[1.2071 * view_size[1], 0, width / 2], [0, 1.2071 * view_size[1], view_size[1] / 2], [0, 0, 1]],
+                "R": np.eye(3).tolist(),
+                "t": [1.0, 0.0, 0.0],
+                "size": list(view_size),
+                "left_box": [0, 0, width, view_size[1]],
+                "right_box": [width + 8, 0, 2 * width + 8, view_size[1]],
+            },
+        )
+        shared.append({"card": str(work / "card.png"), "work": work, "bytes": (data_dir / work / "card.png").stat().st_size})
     collection = Collection(name="bench-synthetic")
     db.session.add(collection)
     db.session.flush()
@@ -117,36 +136,83 @@ def build_synthetic_catalogue(count: int, data_dir: Path, echo: Callable[[str], 
         card_rows = []
         for number in chunk:
             variant = shared[number % VARIANTS]
-            card_rows.append({
-                "collection_id": collection.id, "content_hash": hashlib.sha256(f"bench-{number}".encode()).hexdigest(),
-                "stored_path": variant["card"], "source_name": f"bench-{number:06d}.png", "source_path": "(synthetic)",
-                "accession": f"2026.0001.{number:05d}", "width": 2 * view_size[0] + 8, "height": view_size[1],
-                "image_format": "PNG", "byte_size": variant["bytes"], "state": "pass",
-                "source_metadata": {"title": f"Synthetic card {number}", "url": f"https://example.org/cards/{number}"},
-            })
+            card_rows.append(
+                {
+                    "collection_id": collection.id,
+                    "content_hash": hashlib.sha256(f"bench-{number}".encode()).hexdigest(),
+                    "stored_path": variant["card"],
+                    "source_name": f"bench-{number:06d}.png",
+                    "source_path": "(synthetic)",
+                    "accession": f"2026.0001.{number:05d}",
+                    "width": 2 * view_size[0] + 8,
+                    "height": view_size[1],
+                    "image_format": "PNG",
+                    "byte_size": variant["bytes"],
+                    "state": "pass",
+                    "source_metadata": {"title": f"Synthetic card {number}", "url": f"https://example.org/cards/{number}"},
+                }
+            )
         ids = list(db.session.scalars(insert(Card).returning(Card.id), card_rows))
         results, reviews = [], []
         for number, card_id in zip(chunk, ids):
             work = shared[number % VARIANTS]["work"]
             # The orientation step decided each synthetic card upright (the flow rule releases
             # no card whose orientation is undecided).
-            results.append({"card_id": card_id, "stage": "orientation", "param_hash": "bench0orientati0",
-                            "status": "done", "outcome": "auto", "metrics": SYNTHETIC_ORIENTATION,
-                            "artifacts": {}, "code_version": "0.1.0"})
-            results.append({"card_id": card_id, "stage": "rectify", "param_hash": "bench0rectify000", "status": "done",
-                            "metrics": {"orientation": {"applied": []}, "inputs_digest": "bench",
-                                        "orientation_used": {"upside_down": False, "inverted": False,
-                                                             "swapped": False}},
-                            "artifacts": {"left": str(work / "left.png"), "right": str(work / "right.png"),
-                                          "rectification": str(work / "rectification.json")},
-                            "code_version": "0.1.0"})
-            results.append({"card_id": card_id, "stage": "disparity", "param_hash": "bench0disparity0", "status": "done",
-                            "metrics": {}, "code_version": "0.1.0",
-                            "artifacts": {name: str(work / f"{name}.npy")
-                                          for name in ("disparity_left", "disparity_right", "depth_512")}})
+            results.append(
+                {
+                    "card_id": card_id,
+                    "stage": "orientation",
+                    "param_hash": "bench0orientati0",
+                    "status": "done",
+                    "outcome": "auto",
+                    "metrics": SYNTHETIC_ORIENTATION,
+                    "artifacts": {},
+                    "code_version": "0.1.0",
+                }
+            )
+            results.append(
+                {
+                    "card_id": card_id,
+                    "stage": "rectify",
+                    "param_hash": "bench0rectify000",
+                    "status": "done",
+                    "metrics": {
+                        "orientation": {"applied": []},
+                        "inputs_digest": "bench",
+                        "orientation_used": {"upside_down": False, "inverted": False, "swapped": False},
+                    },
+                    "artifacts": {
+                        "left": str(work / "left.png"),
+                        "right": str(work / "right.png"),
+                        "rectification": str(work / "rectification.json"),
+                    },
+                    "code_version": "0.1.0",
+                }
+            )
+            results.append(
+                {
+                    "card_id": card_id,
+                    "stage": "disparity",
+                    "param_hash": "bench0disparity0",
+                    "status": "done",
+                    "metrics": {},
+                    "code_version": "0.1.0",
+                    "artifacts": {name: str(work / f"{name}.npy") for name in ("disparity_left", "disparity_right", "depth_512")},
+                }
+            )
             grade = grades[number % len(grades)]
-            results.append({"card_id": card_id, "stage": "grade", "param_hash": "bench0grade00000", "status": "done",
-                            "outcome": grade, "metrics": {}, "artifacts": {}, "code_version": "0.1.0"})
+            results.append(
+                {
+                    "card_id": card_id,
+                    "stage": "grade",
+                    "param_hash": "bench0grade00000",
+                    "status": "done",
+                    "outcome": grade,
+                    "metrics": {},
+                    "artifacts": {},
+                    "code_version": "0.1.0",
+                }
+            )
             reviews.append({"card_id": card_id, "auto_grade": grade, "grade": grade, "decision": "accepted"})
         db.session.execute(insert(StageResult), results)
         db.session.execute(insert(CardReview), reviews)
@@ -183,12 +249,25 @@ def _child_export(database_url: str, data_dir: str, out_dir: str, formats: str) 
         seconds = time.perf_counter() - clock
         db.session.remove()
     peak = peak_rss_mb()
-    return {"path": report.path, "cards": report.cards, "files": report.files, "bytes": report.bytes,
-            "export_seconds": seconds, "peak_rss_mb": peak, "rss_before_export_mb": baseline}
+    return {
+        "path": report.path,
+        "cards": report.cards,
+        "files": report.files,
+        "bytes": report.bytes,
+        "export_seconds": seconds,
+        "peak_rss_mb": peak,
+        "rss_before_export_mb": baseline,
+    }
 
 
-def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", folder: Path | None = None,
-                     echo: Callable[[str], None] = print, map_size: int | None = None) -> dict[str, Any]:
+def benchmark_export(
+    count: int,
+    *,
+    formats: str = "keystonedepth,parquet",
+    folder: Path | None = None,
+    echo: Callable[[str], None] = print,
+    map_size: int | None = None,
+) -> dict[str, Any]:
     """Build the catalogue, export it in a child process, verify the release; the figures."""
     from app import create_app
     from app.db import db
@@ -200,19 +279,24 @@ def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", fold
     try:
         database_url = f"sqlite:///{root / 'bench.sqlite3'}"
         data_dir = root / "data"
-        app = create_app({"SQLALCHEMY_DATABASE_URI": database_url, "KEYSTONE_DATA_DIR": str(data_dir)},
-                         instance_path=root / "instance")
+        app = create_app(
+            {"SQLALCHEMY_DATABASE_URI": database_url, "KEYSTONE_DATA_DIR": str(data_dir)}, instance_path=root / "instance"
+        )
         with app.app_context():
             upgrade(db.engine)
             build_synthetic_catalogue(count, data_dir, echo, map_size)
             db.session.remove()
             db.engine.dispose()
-        code = ("import json, sys; from benchmarks.export import _child_export; "
-                "print(json.dumps(_child_export(*sys.argv[1:])))")
+        code = "import json, sys; from benchmarks.export import _child_export; print(json.dumps(_child_export(*sys.argv[1:])))"
         env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(root / "instance")}
-        done = subprocess.run([sys.executable, "-c", code, database_url, str(data_dir), str(root / "releases"), formats],
-                              capture_output=True, text=True, env=env, check=False,
-                              cwd=Path(__file__).resolve().parents[1])
+        done = subprocess.run(
+            [sys.executable, "-c", code, database_url, str(data_dir), str(root / "releases"), formats],
+            capture_output=True,
+            text=True,
+            env=env,
+            check=False,
+            cwd=Path(__file__).resolve().parents[1],
+        )
         if done.returncode != 0:
             raise RuntimeError(f"the export child failed: {done.stderr.strip()[-2000:]}")
         child = json.loads(done.stdout.strip().splitlines()[-1])
@@ -221,12 +305,21 @@ def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", fold
         verify_seconds = time.perf_counter() - clock
         seconds = child["export_seconds"]
         return {
-            "benchmark": "export", "cards": child["cards"], "formats": formats.split(","), "files": child["files"],
-            "bytes": child["bytes"], "export_seconds": round(seconds, 3),
-            "cards_per_second": round(child["cards"] / seconds, 2), "mb_per_second": round(child["bytes"] / 1e6 / seconds, 2),
-            "peak_rss_mb": round(child["peak_rss_mb"], 1), "rss_before_export_mb": round(child["rss_before_export_mb"], 1),
-            "target_rss_mb": TARGET_RSS_MB, "verified": verified.ok, "verify_seconds": round(verify_seconds, 3),
-            "view_size": list(view_size_for(map_size)), "depth_size": [map_size or DEPTH_SIZE] * 2,
+            "benchmark": "export",
+            "cards": child["cards"],
+            "formats": formats.split(","),
+            "files": child["files"],
+            "bytes": child["bytes"],
+            "export_seconds": round(seconds, 3),
+            "cards_per_second": round(child["cards"] / seconds, 2),
+            "mb_per_second": round(child["bytes"] / 1e6 / seconds, 2),
+            "peak_rss_mb": round(child["peak_rss_mb"], 1),
+            "rss_before_export_mb": round(child["rss_before_export_mb"], 1),
+            "target_rss_mb": TARGET_RSS_MB,
+            "verified": verified.ok,
+            "verify_seconds": round(verify_seconds, 3),
+            "view_size": list(view_size_for(map_size)),
+            "depth_size": [map_size or DEPTH_SIZE] * 2,
         }
     finally:
         if folder is None:
@@ -234,29 +327,54 @@ def benchmark_export(count: int, *, formats: str = "keystonedepth,parquet", fold
 
 
 @click.command("export")
-@click.option("--cards", "card_count", default=10_000, show_default=True, type=click.IntRange(1, 1_000_000),
-              help="Synthetic accepted cards in the catalogue.")
-@click.option("--format", "formats", default=",".join(DEFAULT_FORMATS), show_default=True,
-              help=f"Comma-separated layouts: {', '.join(FORMATS)}.")
-@click.option("--dir", "folder", type=click.Path(path_type=Path, file_okay=False),
-              help="Work folder (catalogue, store, release); default a temporary folder, removed after.")
-@click.option("--map-size", type=click.IntRange(16, 4096), default=None,
-              help="Real-size cards: depth maps MAP_SIZE x MAP_SIZE, rectified views and disparity 4:3 at "
-                   "MAP_SIZE*25/16 wide (512 gives 800 x 600, ~9 MB per card and format). "
-                   "Default: small maps (160 x 108 views, 128 x 128 depth).")
+@click.option(
+    "--cards",
+    "card_count",
+    default=10_000,
+    show_default=True,
+    type=click.IntRange(1, 1_000_000),
+    help="Synthetic accepted cards in the catalogue.",
+)
+@click.option(
+    "--format",
+    "formats",
+    default=",".join(DEFAULT_FORMATS),
+    show_default=True,
+    help=f"Comma-separated layouts: {', '.join(FORMATS)}.",
+)
+@click.option(
+    "--dir",
+    "folder",
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Work folder (catalogue, store, release); default a temporary folder, removed after.",
+)
+@click.option(
+    "--map-size",
+    type=click.IntRange(16, 4096),
+    default=None,
+    help="Real-size cards: depth maps MAP_SIZE x MAP_SIZE, rectified views and disparity 4:3 at "
+    "MAP_SIZE*25/16 wide (512 gives 800 x 600, ~9 MB per card and format). "
+    "Default: small maps (160 x 108 views, 128 x 128 depth).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
-def bench_export_command(card_count: int, formats: str, folder: Path | None, map_size: int | None,
-                         as_json: bool) -> None:
+def bench_export_command(card_count: int, formats: str, folder: Path | None, map_size: int | None, as_json: bool) -> None:
     """Release throughput (cards/s) and peak memory on a synthetic catalogue of accepted cards.
 
     The export runs in a child process so its peak resident memory is its own."""
     from app.console import emit_json
 
-    document = benchmark_export(card_count, formats=formats, folder=folder, map_size=map_size,
-                                echo=(lambda m: click.echo(m, err=True)) if as_json else click.echo)
+    document = benchmark_export(
+        card_count,
+        formats=formats,
+        folder=folder,
+        map_size=map_size,
+        echo=(lambda m: click.echo(m, err=True)) if as_json else click.echo,
+    )
     if as_json:
         emit_json(document)
         return
-    click.echo(f"{document['cards']} cards in {document['export_seconds']:.1f} s: {document['cards_per_second']:.1f} "
-               f"cards/s, {document['mb_per_second']:.1f} MB/s; peak RSS {document['peak_rss_mb']:.0f} MB "
-               f"(target < {document['target_rss_mb']} MB); verify {document['verify_seconds']:.1f} s, ok={document['verified']}")
+    click.echo(
+        f"{document['cards']} cards in {document['export_seconds']:.1f} s: {document['cards_per_second']:.1f} "
+        f"cards/s, {document['mb_per_second']:.1f} MB/s; peak RSS {document['peak_rss_mb']:.0f} MB "
+        f"(target < {document['target_rss_mb']} MB); verify {document['verify_seconds']:.1f} s, ok={document['verified']}"
+    )

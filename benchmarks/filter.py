@@ -53,19 +53,21 @@ def benchmark_filter(
                 total_s.append(time.perf_counter() - start)
                 detect_s.append(result.detect_seconds)
                 match_s.append(result.match_seconds)
-            results.append({
-                "card": name,
-                "card_size": [int(card.shape[1]), int(card.shape[0])],
-                "half_size": list(result.left_size),
-                "right_half_size": list(result.right_size),
-                "keypoints": [result.keypoints_left, result.keypoints_right],
-                "outcome": result.outcome,
-                "good_match_fraction": round(result.good_match_fraction, 6),
-                "split_seconds": round(statistics.median(split_s), 6),
-                "detect_seconds": round(statistics.median(detect_s), 6),
-                "match_seconds": round(statistics.median(match_s), 6),
-                "total_seconds": round(statistics.median(total_s), 6),
-            })
+            results.append(
+                {
+                    "card": name,
+                    "card_size": [int(card.shape[1]), int(card.shape[0])],
+                    "half_size": list(result.left_size),
+                    "right_half_size": list(result.right_size),
+                    "keypoints": [result.keypoints_left, result.keypoints_right],
+                    "outcome": result.outcome,
+                    "good_match_fraction": round(result.good_match_fraction, 6),
+                    "split_seconds": round(statistics.median(split_s), 6),
+                    "detect_seconds": round(statistics.median(detect_s), 6),
+                    "match_seconds": round(statistics.median(match_s), 6),
+                    "total_seconds": round(statistics.median(total_s), 6),
+                }
+            )
     finally:
         cv2.setNumThreads(previous_threads)
     totals = [r["total_seconds"] for r in results]
@@ -109,7 +111,10 @@ def synthetic_bench_cards() -> list[tuple[str, np.ndarray]]:
 
 
 def mounted_pair(
-    left: np.ndarray, right: np.ndarray, margin: tuple[int, int, int, int] = (40, 30, 40, 50), gutter: int = 24,
+    left: np.ndarray,
+    right: np.ndarray,
+    margin: tuple[int, int, int, int] = (40, 30, 40, 50),
+    gutter: int = 24,
     colour: tuple[int, int, int] = MOUNT_RGB,
 ) -> np.ndarray:
     """Two equal-size RGB views on a plain mount: ``margin`` = (left, top, right, bottom) px,
@@ -135,11 +140,15 @@ def film_strip_pair(left: np.ndarray, right: np.ndarray, edge: int = 12) -> np.n
 
 
 @click.command("filter")
-@click.option("--repeats", default=3, show_default=True, type=click.IntRange(1, 100),
-              help="Runs per card; the median is reported.")
-@click.option("--shared-data", type=click.Path(path_type=Path, file_okay=False),
-              help="Folder with the real test cards (../shared/data); default: found next to the checkout, "
-                   "else synthetic cards from scikit-image's Motorcycle pair.")
+@click.option(
+    "--repeats", default=3, show_default=True, type=click.IntRange(1, 100), help="Runs per card; the median is reported."
+)
+@click.option(
+    "--shared-data",
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Folder with the real test cards (../shared/data); default: found next to the checkout, "
+    "else synthetic cards from scikit-image's Motorcycle pair.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
 def bench_filter_command(repeats: int, shared_data: Path | None, as_json: bool) -> None:
     """Seconds per card on one core for the split + SIFT filter, split into detect and match."""
@@ -156,8 +165,10 @@ def bench_filter_command(repeats: int, shared_data: Path | None, as_json: bool) 
     click.echo(f"{'card':<56} {'half':>10} {'split':>7} {'detect':>7} {'match':>7} {'total':>7}")
     for row in document["results"]:
         size = "x".join(str(v) for v in row["half_size"])
-        click.echo(f"{row['card'][:56]:<56} {size:>10} {row['split_seconds']:7.3f} {row['detect_seconds']:7.3f} "
-                   f"{row['match_seconds']:7.3f} {row['total_seconds']:7.3f}")
-    click.echo(f"median total {document['median_total_seconds']:.3f} s per card "
-               f"(target <= {document['target_seconds']} s, one core)")
-
+        click.echo(
+            f"{row['card'][:56]:<56} {size:>10} {row['split_seconds']:7.3f} {row['detect_seconds']:7.3f} "
+            f"{row['match_seconds']:7.3f} {row['total_seconds']:7.3f}"
+        )
+    click.echo(
+        f"median total {document['median_total_seconds']:.3f} s per card (target <= {document['target_seconds']} s, one core)"
+    )

@@ -66,8 +66,10 @@ CASES: tuple[tuple[str, Degradation], ...] = (
     ("low-texture-1.0", Degradation(low_texture=1.0)),
     ("swapped-eyes", Degradation(swap=True)),
     ("combined", Degradation(fade=0.6, blur_px=2.5, jpeg_quality=25, dy_px=2.0, scratches=2)),
-    ("combined-heavy", Degradation(fade=0.8, blur_px=4.0, jpeg_quality=12, dy_px=5.0, rotation_deg=1.5,
-                                   scratches=4, low_texture=0.6)),
+    (
+        "combined-heavy",
+        Degradation(fade=0.8, blur_px=4.0, jpeg_quality=12, dy_px=5.0, rotation_deg=1.5, scratches=4, low_texture=0.6),
+    ),
 )
 QUICK_CASES = ("clean", "blur-5", "offset-10px", "swapped-eyes")
 
@@ -108,8 +110,9 @@ def run_pipeline_on_scan(scan: Path, folder: Path, grade_params: Any = None) -> 
     def task(stage: str, inputs: dict[str, Any]) -> CardTask:
         work = folder / stage
         work.mkdir(exist_ok=True)
-        return CardTask(card_id=1, content_hash="bench", image_path=str(scan), work_dir=str(work),
-                        data_dir=str(folder), inputs=inputs)
+        return CardTask(
+            card_id=1, content_hash="bench", image_path=str(scan), work_dir=str(work), data_dir=str(folder), inputs=inputs
+        )
 
     records["filter"] = filtered = filter_task(task("filter", {}), FilterParams())
     if filtered.status != "done" or filtered.outcome == "culled":
@@ -119,18 +122,35 @@ def run_pipeline_on_scan(scan: Path, folder: Path, grade_params: Any = None) -> 
     if rectified.status == "failed":
         return CardRun(records, folder)
     camera = rectified.metrics.get("K") or [[None]]
-    records["disparity"] = disparity = disparity_task(task("disparity", {
-        "left": rectified.artifacts["left"], "right": rectified.artifacts["right"],
-        "disparity_range": [rectified.metrics.get("disparity_min"), rectified.metrics.get("disparity_max")],
-        "focal_px": camera[0][0]}), DisparityStageParams())
+    records["disparity"] = disparity = disparity_task(
+        task(
+            "disparity",
+            {
+                "left": rectified.artifacts["left"],
+                "right": rectified.artifacts["right"],
+                "disparity_range": [rectified.metrics.get("disparity_min"), rectified.metrics.get("disparity_max")],
+                "focal_px": camera[0][0],
+            },
+        ),
+        DisparityStageParams(),
+    )
     if disparity.status != "done":
         return CardRun(records, folder)
     metrics = {name: records[name].metrics for name in ("filter", "rectify", "disparity")}
-    records["grade"] = grade_task(task("grade", {
-        "left": rectified.artifacts["left"], "right": rectified.artifacts["right"],
-        "disparity_left": disparity.artifacts["disparity_left"],
-        "disparity_right": disparity.artifacts["disparity_right"],
-        "confidence": disparity.artifacts["confidence"], "metrics": metrics}), grade_params or GradeParams())
+    records["grade"] = grade_task(
+        task(
+            "grade",
+            {
+                "left": rectified.artifacts["left"],
+                "right": rectified.artifacts["right"],
+                "disparity_left": disparity.artifacts["disparity_left"],
+                "disparity_right": disparity.artifacts["disparity_right"],
+                "confidence": disparity.artifacts["confidence"],
+                "metrics": metrics,
+            },
+        ),
+        grade_params or GradeParams(),
+    )
     return CardRun(records, folder)
 
 
@@ -165,8 +185,10 @@ def true_points(run: CardRun, truth: dict[str, Any], gt: np.ndarray, stride: int
     ys, xs = ys[keep].astype(float), xs[keep].astype(float)
     d = gt[ys.astype(int), xs.astype(int)].astype(float)
     A_l, A_r = np.asarray(truth["left_affine"], float), np.asarray(truth["right_affine"], float)
-    eye_point = {"left": np.column_stack([xs, ys, np.ones_like(xs)]) @ A_l.T,
-                 "right": np.column_stack([xs - d, ys, np.ones_like(xs)]) @ A_r.T}
+    eye_point = {
+        "left": np.column_stack([xs, ys, np.ones_like(xs)]) @ A_l.T,
+        "right": np.column_stack([xs - d, ys, np.ones_like(xs)]) @ A_r.T,
+    }
     # Which eye each crop shows: the card's left photo is the right eye when the eyes are swapped.
     eye_of_box = ["right", "left"] if truth.get("halves_swapped") else ["left", "right"]
     shown_left_box = 1 if camera.get("swapped") else 0  # H_l maps the right crop when rectify swapped
@@ -203,8 +225,11 @@ def true_bad2(run: CardRun, truth: dict[str, Any], gt: np.ndarray, stride: int =
         offset = float(np.median(d_pipe[finite] + d_true[finite])) if finite.any() else 0.0
         d_true = offset - d_true
     error = np.abs(np.where(np.isfinite(d_pipe), d_pipe, np.inf) - d_true)
-    return {"true_bad2": round(100.0 * float(np.mean(error > BAD_PX)), 3), "points": int(points.col.size),
-            "left_eye_shown_left": points.left_eye_shown_left}
+    return {
+        "true_bad2": round(100.0 * float(np.mean(error > BAD_PX)), 3),
+        "points": int(points.col.size),
+        "left_eye_shown_left": points.left_eye_shown_left,
+    }
 
 
 def _ranks(values: Sequence[float]) -> np.ndarray:
@@ -241,19 +266,32 @@ def summarise(results: list[dict[str, Any]]) -> dict[str, Any]:
     everything = [(LEVEL.get(r["grade"], 2), r["true_bad2"]) for r in results]
     rho = spearman([LEVEL[r["grade"]] for r in graded], [r["true_bad2"] for r in graded])
     return {
-        "cards": len(results), "graded": len(graded), "stopped": len(results) - len(graded),
-        "counts": counts, "median_true_bad2": medians,
+        "cards": len(results),
+        "graded": len(graded),
+        "stopped": len(results) - len(graded),
+        "counts": counts,
+        "median_true_bad2": medians,
         "spearman": rho,
         "spearman_all_cards": spearman([level for level, _ in everything], [error for _, error in everything]),
         "ordered": len(present) == 3 and present[0] < present[1] < present[2],
         "targets": {"spearman": TARGET_SPEARMAN, "median_order": "few < some < failure"},
-        "meets_targets": bool(rho is not None and rho >= TARGET_SPEARMAN and len(present) == 3
-                              and present[0] < present[1] < present[2]),
+        "meets_targets": bool(
+            rho is not None and rho >= TARGET_SPEARMAN and len(present) == 3 and present[0] < present[1] < present[2]
+        ),
     }
 
 
-_NOT_MEASUREMENTS = ("reasons", "notes", "checks", "nearest", "levels", "deciding", "uncertainty_reason",
-                     "thresholds_hash", "uncertainty")
+_NOT_MEASUREMENTS = (
+    "reasons",
+    "notes",
+    "checks",
+    "nearest",
+    "levels",
+    "deciding",
+    "uncertainty_reason",
+    "thresholds_hash",
+    "uncertainty",
+)
 
 
 def outcome_of(run: CardRun) -> dict[str, Any]:
@@ -265,15 +303,31 @@ def outcome_of(run: CardRun) -> dict[str, Any]:
         stopped = next(name for name in ("grade", "disparity", "rectify", "filter") if name in run.records)
         record = run.records[stopped]
         status = "culled" if stopped == "filter" and record.outcome == "culled" else f"{stopped} {record.status}"
-        return {"grade": status, "uncertainty": None, "reason": record.reason, "nearest": None, "deciding": None,
-                "measurements": None}
-    return {"grade": graded.outcome, "uncertainty": graded.metrics["uncertainty"], "reason": graded.reason,
-            "nearest": graded.metrics.get("nearest"), "deciding": graded.metrics.get("deciding"),
-            "measurements": {k: v for k, v in graded.metrics.items() if k not in _NOT_MEASUREMENTS}}
+        return {
+            "grade": status,
+            "uncertainty": None,
+            "reason": record.reason,
+            "nearest": None,
+            "deciding": None,
+            "measurements": None,
+        }
+    return {
+        "grade": graded.outcome,
+        "uncertainty": graded.metrics["uncertainty"],
+        "reason": graded.reason,
+        "nearest": graded.metrics.get("nearest"),
+        "deciding": graded.metrics.get("deciding"),
+        "measurements": {k: v for k, v in graded.metrics.items() if k not in _NOT_MEASUREMENTS},
+    }
 
 
-def benchmark_grade(scenes: list[Scene], cases: Sequence[tuple[str, Degradation]] = CASES, seed: int = 0,
-                    grade_params: Any = None, keep: Path | None = None) -> dict[str, Any]:
+def benchmark_grade(
+    scenes: list[Scene],
+    cases: Sequence[tuple[str, Degradation]] = CASES,
+    seed: int = 0,
+    grade_params: Any = None,
+    keep: Path | None = None,
+) -> dict[str, Any]:
     """Every scene x case through the pipeline; the document ``keystone bench grade --json`` prints.
     The cards' files go to ``keep`` (kept) or to a temporary folder removed at the end."""
     if keep is None:
@@ -285,8 +339,13 @@ def benchmark_grade(scenes: list[Scene], cases: Sequence[tuple[str, Degradation]
     for scene_index, scene in enumerate(scenes):
         for case_index, (case, degradation) in enumerate(cases):
             started = time.perf_counter()
-            card = make_card_from_pair(scene.left, scene.right, seed=1000 * seed + 37 * scene_index + case_index,
-                                       degradation=degradation, name=f"{scene.name}-{case}")
+            card = make_card_from_pair(
+                scene.left,
+                scene.right,
+                seed=1000 * seed + 37 * scene_index + case_index,
+                degradation=degradation,
+                name=f"{scene.name}-{case}",
+            )
             folder = root / f"{scene.name}-{case}"
             run = run_pipeline(card.image, degradation.jpeg_quality or 92, folder, grade_params)
             entry: dict[str, Any] = {"scene": scene.name, "case": case, **outcome_of(run)}
@@ -296,8 +355,11 @@ def benchmark_grade(scenes: list[Scene], cases: Sequence[tuple[str, Degradation]
                 entry["true_bad2"] = 100.0
             entry["seconds"] = round(time.perf_counter() - started, 3)
             results.append(entry)
-    return {"results": results, "summary": {**summarise(results), "seconds": round(time.perf_counter() - clock, 2)},
-            "units": "true_bad2: percent of valid ground truth more than 2 rectified-view px off, missing = off"}
+    return {
+        "results": results,
+        "summary": {**summarise(results), "seconds": round(time.perf_counter() - clock, 2)},
+        "units": "true_bad2: percent of valid ground truth more than 2 rectified-view px off, missing = off",
+    }
 
 
 def _load_scenes(scene_dirs: Sequence[Path], quick: bool) -> list[Scene]:
@@ -308,17 +370,27 @@ def _load_scenes(scene_dirs: Sequence[Path], quick: bool) -> list[Scene]:
 
 
 @click.command("grade")
-@click.option("--scene", "scene_dirs", multiple=True, type=click.Path(path_type=Path, file_okay=False, exists=True),
-              help="A MiddEval3 scene folder (im0.png, im1.png, disp0GT.pfm); repeatable. Default: Motorcycle, "
-                   "and Tsukuba and Adirondack from ../shared/data/stereo_gt when present.")
+@click.option(
+    "--scene",
+    "scene_dirs",
+    multiple=True,
+    type=click.Path(path_type=Path, file_okay=False, exists=True),
+    help="A MiddEval3 scene folder (im0.png, im1.png, disp0GT.pfm); repeatable. Default: Motorcycle, "
+    "and Tsukuba and Adirondack from ../shared/data/stereo_gt when present.",
+)
 @click.option("--quick", is_flag=True, help=f"Motorcycle (or the first scene) with {len(QUICK_CASES)} cases: a test-sized run.")
 @click.option("--case", "case_names", multiple=True, help="Only these cases (repeatable); see the module for the list.")
 @click.option("--seed", default=0, show_default=True, type=int)
-@click.option("--thresholds", "thresholds_file", type=click.Path(path_type=Path, dir_okay=False, exists=True),
-              help="Grade with these thresholds (JSON as `keystone grade show --json` prints) instead of the defaults.")
+@click.option(
+    "--thresholds",
+    "thresholds_file",
+    type=click.Path(path_type=Path, dir_okay=False, exists=True),
+    help="Grade with these thresholds (JSON as `keystone grade show --json` prints) instead of the defaults.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
-def bench_grade_command(scene_dirs: tuple[Path, ...], quick: bool, case_names: tuple[str, ...], seed: int,
-                        thresholds_file: Path | None, as_json: bool) -> None:
+def bench_grade_command(
+    scene_dirs: tuple[Path, ...], quick: bool, case_names: tuple[str, ...], seed: int, thresholds_file: Path | None, as_json: bool
+) -> None:
     """Antique cards from ground-truth scenes at a range of degradations through the real pipeline:
     the grade, its uncertainty and the true bad-2 of the disparity per card, and how well the
     grade follows the true error (Spearman, median true error per grade)."""
@@ -353,10 +425,16 @@ def bench_grade_command(scene_dirs: tuple[Path, ...], quick: bool, case_names: t
         click.echo(f"{r['scene'][:12]:<12} {r['case']:<16} {r['grade']:<18} {uncertainty:>6} {r['true_bad2']:7.1f}  {shown}")
     s = document["summary"]
     medians = s["median_true_bad2"]
-    click.echo(f"\n{s['cards']} cards, {s['graded']} graded ({s['counts']['few']} few / {s['counts']['some']} some / "
-               f"{s['counts']['failure']} failure), {s['stopped']} stopped by the pipeline; {s['seconds']} s")
-    click.echo(f"Spearman(grade level, true bad-2) = {s['spearman']} over graded cards "
-               f"({s['spearman_all_cards']} with stopped cards as failure); target >= {TARGET_SPEARMAN}")
-    click.echo("median true bad-2: " + " / ".join(
-        f"{g} {'-' if medians[g] is None else f'{medians[g]:.1f} %'}" for g in LEVEL)
-        + f" (ordered few < some < failure: {'yes' if s['ordered'] else 'no'})")
+    click.echo(
+        f"\n{s['cards']} cards, {s['graded']} graded ({s['counts']['few']} few / {s['counts']['some']} some / "
+        f"{s['counts']['failure']} failure), {s['stopped']} stopped by the pipeline; {s['seconds']} s"
+    )
+    click.echo(
+        f"Spearman(grade level, true bad-2) = {s['spearman']} over graded cards "
+        f"({s['spearman_all_cards']} with stopped cards as failure); target >= {TARGET_SPEARMAN}"
+    )
+    click.echo(
+        "median true bad-2: "
+        + " / ".join(f"{g} {'-' if medians[g] is None else f'{medians[g]:.1f} %'}" for g in LEVEL)
+        + f" (ordered few < some < failure: {'yes' if s['ordered'] else 'no'})"
+    )

@@ -40,8 +40,9 @@ def real_cards(data: Path) -> list[tuple[str, list[Path]]]:
     for folder in CARD_FOLDERS:
         directory = root / folder
         if directory.is_dir():
-            cards += [(f"{folder}/{path.name}", [path]) for path in sorted(directory.iterdir())
-                      if path.suffix.lower() in CARD_SUFFIXES]
+            cards += [
+                (f"{folder}/{path.name}", [path]) for path in sorted(directory.iterdir()) if path.suffix.lower() in CARD_SUFFIXES
+            ]
     pairs = root / "cropped_pairs"
     if pairs.is_dir():
         for directory in sorted(p for p in pairs.iterdir() if p.is_dir() and p.name != "jps"):
@@ -69,9 +70,13 @@ def _scan_of(files: list[Path], folder: Path) -> Path:
 
     left, right = read_image(files[0]), read_image(files[1])
     height = max(left.shape[0], right.shape[0])
+
     def pad(view: np.ndarray) -> np.ndarray:
-        return np.pad(view, ((0, height - view.shape[0]), (0, 0), (0, 0)) if view.ndim == 3
-                      else ((0, height - view.shape[0]), (0, 0)), constant_values=255)
+        return np.pad(
+            view,
+            ((0, height - view.shape[0]), (0, 0), (0, 0)) if view.ndim == 3 else ((0, height - view.shape[0]), (0, 0)),
+            constant_values=255,
+        )
 
     gutter = np.full((height, 24, *left.shape[2:]), 255, np.uint8)
     scan = folder / "card.png"
@@ -97,11 +102,20 @@ def grade_real_cards(data: Path, labels_path: Path, grade_params: Any = None) ->
             outcome = outcome_of(run)
             row = labels.get(name, {})
             person = (row.get("grade") or "").strip() or None
-            results.append({"file": name, "grade": outcome["grade"], "uncertainty": outcome["uncertainty"],
-                            "nearest": outcome["nearest"], "reason": outcome["reason"],
-                            "person": person if person in GRADES else None, "person_reason": row.get("reason")})
+            results.append(
+                {
+                    "file": name,
+                    "grade": outcome["grade"],
+                    "uncertainty": outcome["uncertainty"],
+                    "nearest": outcome["nearest"],
+                    "reason": outcome["reason"],
+                    "person": person if person in GRADES else None,
+                    "person_reason": row.get("reason"),
+                }
+            )
     automatic = {g: sum(r["grade"] == g for r in results) for g in GRADES}
     labelled = [r for r in results if r["person"] is not None]
+
     def as_level(grade: str | None) -> int:
         return GRADES.index(grade) if grade in GRADES else 2
 
@@ -113,26 +127,47 @@ def grade_real_cards(data: Path, labels_path: Path, grade_params: Any = None) ->
     return {
         "results": results,
         "summary": {
-            "cards": len(results), "graded": sum(automatic.values()), "stopped": len(results) - sum(automatic.values()),
+            "cards": len(results),
+            "graded": sum(automatic.values()),
+            "stopped": len(results) - sum(automatic.values()),
             "automatic": {"counts": automatic, "fractions": _fractions(automatic)},
             "labelled": len(labelled),
             "automatic_on_labelled": {"counts": auto_on_labelled, "fractions": _fractions(auto_on_labelled)},
             "person": {"counts": person_counts, "fractions": _fractions(person_counts)},
             "paper": {"fractions": paper_distribution(), "sample": 711},
-            "agreement": {"agreed": int(np.trace(np.asarray(figures["confusion"]))), "of": len(labelled),
-                          "cohen_kappa": figures["cohen_kappa"], "confusion": figures["confusion"],
-                          "order": list(GRADES), "grade_more_lenient": lenient, "grade_harsher": harsher},
+            "agreement": {
+                "agreed": int(np.trace(np.asarray(figures["confusion"]))),
+                "of": len(labelled),
+                "cohen_kappa": figures["cohen_kappa"],
+                "confusion": figures["confusion"],
+                "order": list(GRADES),
+                "grade_more_lenient": lenient,
+                "grade_harsher": harsher,
+            },
         },
     }
 
 
 @click.command("grade-real")
-@click.option("--data", type=click.Path(path_type=Path, file_okay=False), default=DEFAULT_DATA, show_default=True,
-              help="A folder with stereocards/ (and labels/careful_grades.csv).")
-@click.option("--labels", "labels_path", type=click.Path(path_type=Path, dir_okay=False),
-              help="Labels CSV (file, grade, reason); default <data>/labels/careful_grades.csv.")
-@click.option("--thresholds", "thresholds_file", type=click.Path(path_type=Path, dir_okay=False, exists=True),
-              help="Grade with these thresholds (JSON as `keystone grade show --json` prints).")
+@click.option(
+    "--data",
+    type=click.Path(path_type=Path, file_okay=False),
+    default=DEFAULT_DATA,
+    show_default=True,
+    help="A folder with stereocards/ (and labels/careful_grades.csv).",
+)
+@click.option(
+    "--labels",
+    "labels_path",
+    type=click.Path(path_type=Path, dir_okay=False),
+    help="Labels CSV (file, grade, reason); default <data>/labels/careful_grades.csv.",
+)
+@click.option(
+    "--thresholds",
+    "thresholds_file",
+    type=click.Path(path_type=Path, dir_okay=False, exists=True),
+    help="Grade with these thresholds (JSON as `keystone grade show --json` prints).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
 def bench_grade_real_command(data: Path, labels_path: Path | None, thresholds_file: Path | None, as_json: bool) -> None:
     """The automatic grade on real cards: its distribution beside a careful person's and the
@@ -158,6 +193,7 @@ def bench_grade_real_command(data: Path, labels_path: Path | None, thresholds_fi
         shown = f"{near.get('measurement')} {near.get('value')} vs {near.get('threshold')}" if near else "-"
         click.echo(f"{r['file'][:58]:<58} {r['grade']:<16} person {r['person'] or '-':<8} nearest {shown}")
     s = report["summary"]
+
     def show(block: dict[str, Any]) -> str:
         return " / ".join(f"{block['counts'][g]} ({100 * (block['fractions'][g] or 0):.0f} %)" for g in GRADES)
 
@@ -167,5 +203,7 @@ def bench_grade_real_command(data: Path, labels_path: Path | None, thresholds_fi
     click.echo(f"careful person:          {show(s['person'])}")
     click.echo("paper (711 cards):       " + " / ".join(f"{100 * v:.0f} %" for v in s["paper"]["fractions"].values()))
     a = s["agreement"]
-    click.echo(f"agreement {a['agreed']}/{a['of']}, Cohen's kappa {a['cohen_kappa']}; the grade more lenient "
-               f"{a['grade_more_lenient']}, harsher {a['grade_harsher']}")
+    click.echo(
+        f"agreement {a['agreed']}/{a['of']}, Cohen's kappa {a['cohen_kappa']}; the grade more lenient "
+        f"{a['grade_more_lenient']}, harsher {a['grade_harsher']}"
+    )

@@ -156,10 +156,7 @@ def package_map(graph: dict[str, set[str]]) -> dict[str, dict[str, int]]:
 
 
 def largest_modules(root: Path = REPO_ROOT, count: int = 10) -> list[tuple[str, int]]:
-    sizes = [
-        (module.name, len(module.path.read_text(encoding="utf-8").splitlines()))
-        for module in module_files(root).values()
-    ]
+    sizes = [(module.name, len(module.path.read_text(encoding="utf-8").splitlines())) for module in module_files(root).values()]
     return sorted(sizes, key=lambda item: -item[1])[:count]
 
 
@@ -168,8 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
     graph = import_graph()
-    product = {k: {t for t in v if t.split(".")[0] in PRODUCT_PACKAGES}
-               for k, v in graph.items() if k.split(".")[0] in PRODUCT_PACKAGES}
+    product = {
+        k: {t for t in v if t.split(".")[0] in PRODUCT_PACKAGES} for k, v in graph.items() if k.split(".")[0] in PRODUCT_PACKAGES
+    }
     cycle = largest_cycle(product)
     report = {
         "modules": len(graph),

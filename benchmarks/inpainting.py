@@ -28,8 +28,9 @@ from pipeline.inpainting import (
 )
 
 
-def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig | None = None,
-                         out_dir: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+def benchmark_inpainting(
+    steps: int = 300, size: int = 64, config: InpaintConfig | None = None, out_dir: str | os.PathLike[str] | None = None
+) -> dict[str, Any]:
     """Train briefly on double-reprojection holes of the training crops, then L1 inside the holes
     (over pixels with ground truth) on the held-out crops' holes for the network, Telea,
     Navier-Stokes and none, for intensity and D^. Returns the JSON-ready document."""
@@ -75,13 +76,16 @@ def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig
 
     results = [{"method": m, "channel": c, "l1": l1((m, c))} for c in channels for m in METHODS]
     by = {(r["method"], r["channel"]): r["l1"] for r in results}
-    beats = all(by[("network", "depth")] is not None and by[("network", "depth")] < by[(m, "depth")]
-                for m in ("telea", "navier-stokes"))
+    beats = all(
+        by[("network", "depth")] is not None and by[("network", "depth")] < by[(m, "depth")] for m in ("telea", "navier-stokes")
+    )
     losses = result["losses"]
     return {
         "results": results,
-        "init_results": [{"method": "background-fill" if c == "depth" else "navier-stokes", "channel": c,
-                          "l1": l1(("init", c))} for c in channels],
+        "init_results": [
+            {"method": "background-fill" if c == "depth" else "navier-stokes", "channel": c, "l1": l1(("init", c))}
+            for c in channels
+        ],
         "depth_per_sample": _paired_summary(per, cfg.seed),
         "training_seconds": round(result["seconds"], 3),
         "inference_seconds": round(inference, 3),
@@ -102,8 +106,7 @@ def benchmark_inpainting(steps: int = 300, size: int = 64, config: InpaintConfig
     }
 
 
-def _paired_summary(per: dict[tuple[str, str], list[tuple[float, int]]], seed: int,
-                    resamples: int = 2000) -> dict[str, Any]:
+def _paired_summary(per: dict[tuple[str, str], list[tuple[float, int]]], seed: int, resamples: int = 2000) -> dict[str, Any]:
     """Depth, per held-out sample: how often the network's hole L1 beats the best classical one
     (the lower of Telea and Navier-Stokes on that sample), and a bootstrap over samples (seeded) of
     the pooled difference network - min(Telea, Navier-Stokes) in D^ with its 95 % interval."""
@@ -129,10 +132,14 @@ def _paired_summary(per: dict[tuple[str, str], list[tuple[float, int]]], seed: i
 
 
 @click.command("inpainting")
-@click.option("--steps", default=300, show_default=True, type=click.IntRange(1, 1_000_000),
-              help="Training steps (each trains both networks on one batch).")
-@click.option("--size", default=64, show_default=True, type=click.IntRange(16, 1024),
-              help="Side of the square GD crops in px.")
+@click.option(
+    "--steps",
+    default=300,
+    show_default=True,
+    type=click.IntRange(1, 1_000_000),
+    help="Training steps (each trains both networks on one batch).",
+)
+@click.option("--size", default=64, show_default=True, type=click.IntRange(16, 1024), help="Side of the square GD crops in px.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
 def bench_inpainting_command(steps: int, size: int, as_json: bool) -> None:
     """L1 inside held-out double-reprojection holes for the partial-conv network, OpenCV Telea,
@@ -160,9 +167,13 @@ def bench_inpainting_command(steps: int, size: int, as_json: bool) -> None:
     paired = document["depth_per_sample"]
     if paired.get("samples"):
         low, high = paired["bootstrap_ci95"]
-        click.echo(f"depth, per held-out sample: network beats the better of Telea / Navier-Stokes on "
-                   f"{paired['network_beats_best_classical']} of {paired['samples']}; pooled L1 difference "
-                   f"{paired['l1_difference_vs_best_classical']:+.4f} (bootstrap 95 % CI {low:+.4f} .. {high:+.4f})")
-    click.echo(f"training: {document['steps']} steps in {document['training_seconds']:.1f} s "
-               f"({document['train_samples']} train / {document['test_samples']} test samples, {size} px)")
+        click.echo(
+            f"depth, per held-out sample: network beats the better of Telea / Navier-Stokes on "
+            f"{paired['network_beats_best_classical']} of {paired['samples']}; pooled L1 difference "
+            f"{paired['l1_difference_vs_best_classical']:+.4f} (bootstrap 95 % CI {low:+.4f} .. {high:+.4f})"
+        )
+    click.echo(
+        f"training: {document['steps']} steps in {document['training_seconds']:.1f} s "
+        f"({document['train_samples']} train / {document['test_samples']} test samples, {size} px)"
+    )
     click.echo(f"network beats Telea and Navier-Stokes on depth: {document['network_beats_classical_on_depth']}")

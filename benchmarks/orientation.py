@@ -62,7 +62,6 @@ from .orientation_split import TUNE
 DEFAULT_DATA = Path(os.environ.get("KEYSTONE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
 
-
 def load_cards(data: Path) -> list[tuple[str, np.ndarray]]:
     root = data / "stereocards"
     cards = []
@@ -91,14 +90,21 @@ def measure(cards: list[tuple[str, np.ndarray]], params: OrientationParams) -> l
             cpu = time.process_time()
             estimate = estimate_orientation(variant, vsplit.left_box, vsplit.right_box, params)
             cpu = time.process_time() - cpu
-            rows.append({
-                "card": name, "truth": dict(zip(FLAGS, flags)), "split": "tune" if name in TUNE else "held_out",
-                "values": {c.name: c.value for c in estimate.cues}, "undecidable": estimate.undecidable,
-                "tie_decided": estimate.tie_decided,
-                "tie_right": (estimate.same_turn_and_swap >= 0.5) == (flags[0] == flags[2]),
-                "seconds": estimate.seconds, "cpu_seconds": cpu, "split_seconds": split_seconds,
-                "decided_by": estimate.orientation()["decided_by"],
-            })
+            rows.append(
+                {
+                    "card": name,
+                    "truth": dict(zip(FLAGS, flags)),
+                    "split": "tune" if name in TUNE else "held_out",
+                    "values": {c.name: c.value for c in estimate.cues},
+                    "undecidable": estimate.undecidable,
+                    "tie_decided": estimate.tie_decided,
+                    "tie_right": (estimate.same_turn_and_swap >= 0.5) == (flags[0] == flags[2]),
+                    "seconds": estimate.seconds,
+                    "cpu_seconds": cpu,
+                    "split_seconds": split_seconds,
+                    "decided_by": estimate.orientation()["decided_by"],
+                }
+            )
     return rows
 
 
@@ -124,17 +130,16 @@ def single_view_caps(data: Path) -> dict[str, float]:
         _smooth_bright,
     )
 
-    cues = {"sky_top": _sky_top, "detail_bottom": _detail_bottom, "smooth_bright": _smooth_bright,
-            "dark_detail": _dark_detail}
+    cues = {"sky_top": _sky_top, "detail_bottom": _detail_bottom, "smooth_bright": _smooth_bright, "dark_detail": _dark_detail}
     values: dict[str, list[float]] = {c: [] for c in cues}
     for path in sorted((data / "keystonedepth" / "rectified_left_vis" / "train").glob("*/*.png")):
         grey = _grey(read_image(path))
         h, w = grey.shape
-        grey = grey[int(0.15 * h):int(0.85 * h), int(0.15 * w):int(0.85 * w)]
+        grey = grey[int(0.15 * h) : int(0.85 * h), int(0.15 * w) : int(0.85 * w)]
         scale = min(1.0, 512 / grey.shape[1])
         grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
         half = grey.shape[1] // 2
-        left, right = np.ascontiguousarray(grey[:, :half]), np.ascontiguousarray(grey[:, half:2 * half])
+        left, right = np.ascontiguousarray(grey[:, :half]), np.ascontiguousarray(grey[:, half : 2 * half])
         for name, measure_cue in cues.items():
             values[name].append(measure_cue(left, right))
     caps = {}
@@ -164,7 +169,7 @@ def fit_weights(rows: list[dict], l2: float, caps: dict[str, float] | None = Non
         scores = (X * w) @ signs.T  # (N, 8)
         scores -= scores.max(axis=1, keepdims=True)
         log_p = scores - np.log(np.exp(scores).sum(axis=1, keepdims=True))
-        return float(-log_p[np.arange(len(truth)), truth].mean() + l2 * (w ** 2).sum() / len(names))
+        return float(-log_p[np.arange(len(truth)), truth].mean() + l2 * (w**2).sum() / len(names))
 
     caps = caps or {}
     bounds = [(0.0, caps.get(c)) for c in names]
@@ -186,8 +191,9 @@ def log_loss(rows: list[dict], weights: dict[str, float]) -> float:
     return float(-log_p[np.arange(len(truth)), truth].mean())
 
 
-def choose_l2(rows: list[dict], candidates: tuple[float, ...] = (1e-4, 1e-3, 3e-3, 1e-2, 3e-2),
-              caps: dict[str, float] | None = None) -> dict:
+def choose_l2(
+    rows: list[dict], candidates: tuple[float, ...] = (1e-4, 1e-3, 3e-3, 1e-2, 3e-2), caps: dict[str, float] | None = None
+) -> dict:
     """Leave-one-card-out within the tune cards (the held-out cards play no part): the
     strongest L2 whose held-back log-loss is within one standard error (over the left-out cards)
     of the smallest. (The one-standard-error rule: with seven tune cards the smallest loss alone
@@ -196,15 +202,20 @@ def choose_l2(rows: list[dict], candidates: tuple[float, ...] = (1e-4, 1e-3, 3e-
     cards = sorted({r["card"] for r in rows})
     losses, errors = {}, {}
     for l2 in candidates:
-        per_card = [log_loss([r for r in rows if r["card"] == card], fit_weights([r for r in rows if r["card"] != card], l2, caps))
-                    for card in cards]
+        per_card = [
+            log_loss([r for r in rows if r["card"] == card], fit_weights([r for r in rows if r["card"] != card], l2, caps))
+            for card in cards
+        ]
         losses[l2] = float(np.mean(per_card))
         errors[l2] = float(np.std(per_card, ddof=1) / np.sqrt(len(per_card))) if len(per_card) > 1 else 0.0
     best = min(losses, key=losses.get)
     chosen = max(l2 for l2 in candidates if losses[l2] <= losses[best] + errors[best])
-    return {"l2": chosen, "smallest_loss_l2": best,
-            "leave_one_card_out_log_loss": {str(k): round(v, 4) for k, v in losses.items()},
-            "standard_error": {str(k): round(v, 4) for k, v in errors.items()}}
+    return {
+        "l2": chosen,
+        "smallest_loss_l2": best,
+        "leave_one_card_out_log_loss": {str(k): round(v, 4) for k, v in losses.items()},
+        "standard_error": {str(k): round(v, 4) for k, v in errors.items()},
+    }
 
 
 def evaluate(rows: list[dict], weights: dict[str, float], auto_probability: float) -> dict:
@@ -255,8 +266,12 @@ def evaluate(rows: list[dict], weights: dict[str, float], auto_probability: floa
     out["upside_down_equals_swapped"] = {"decided": len(ties), "right": sum(r["tie_right"] for r in ties)}
     # cards people settle with one answer (is it upside down?): tie and inverted both confident
     out["doubtful_needing_one_answer"] = sum(
-        1 for r in rows if r["undecidable"] is None and r["tie_decided"]
-        and max(p := flag_probabilities(r["values"], weights)["inverted"], 1 - p) >= auto_probability)
+        1
+        for r in rows
+        if r["undecidable"] is None
+        and r["tie_decided"]
+        and max(p := flag_probabilities(r["values"], weights)["inverted"], 1 - p) >= auto_probability
+    )
     for s in per_flag.values():
         s["accuracy_decided"] = round(s["right"] / s["decided"], 4) if s["decided"] else None
         s["accuracy_all"] = round(s["right_at_0.5"] / len(rows), 4)
@@ -274,9 +289,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--rows", action="store_true", help="include every variant's cue values")
-    parser.add_argument("--flow", action="store_true",
-                        help="measure the whole flow instead: four variants per card through keystone ingest/run "
-                             "on a fresh instance (benchmarks.orientation_flow)")
+    parser.add_argument(
+        "--flow",
+        action="store_true",
+        help="measure the whole flow instead: four variants per card through keystone ingest/run "
+        "on a fresh instance (benchmarks.orientation_flow)",
+    )
     parser.add_argument("--scans", type=Path, help="with --flow: measure the images in this folder instead")
     parser.add_argument("--truth", type=Path, help="with --scans: hand-drawn photo boxes (photo_area_truth.csv format)")
     parser.add_argument("--keep", type=Path, help="with --flow: keep the instance in this folder")
@@ -296,8 +314,11 @@ def main(argv: list[str] | None = None) -> int:
     selection = choose_l2(tune, caps=caps)
     fitted = fit_weights(tune, selection["l2"], caps)
     report = {
-        "tune_cards": sorted(TUNE), "held_out_cards": sorted({r["card"] for r in held}),
-        "default_weights": params.weights(), "single_view_caps": caps, "l2_selection": selection,
+        "tune_cards": sorted(TUNE),
+        "held_out_cards": sorted({r["card"] for r in held}),
+        "default_weights": params.weights(),
+        "single_view_caps": caps,
+        "l2_selection": selection,
         "fitted_on_tune": fitted,
         "held_out": evaluate(held, params.weights(), params.auto_probability),
         "tune": evaluate(tune, params.weights(), params.auto_probability),

@@ -47,28 +47,35 @@ from .photo_area import TRUTH, inside, iou, read_truth
 Box = tuple[int, int, int, int]
 FLAGS = ("upside_down", "inverted", "swapped")
 VARIANT_FLAGS: dict[str, tuple[bool, bool, bool]] = {
-    "original": (False, False, False), "rotated_180": (True, False, False),
-    "negative": (False, True, False), "swapped": (False, False, True),
+    "original": (False, False, False),
+    "rotated_180": (True, False, False),
+    "negative": (False, True, False),
+    "swapped": (False, False, True),
 }
 STAGES = "filter,orientation,rectify,disparity,grade"
 
 
-def _variant_truth(name: str, shape: tuple[int, int], split: tuple[Box, Box], truth: tuple[Box, Box] | None
-                   ) -> tuple[Box, Box] | None:
+def _variant_truth(
+    name: str, shape: tuple[int, int], split: tuple[Box, Box], truth: tuple[Box, Box] | None
+) -> tuple[Box, Box] | None:
     """The hand boxes (left photo, right photo on the scan) mapped onto a variant."""
     if truth is None:
         return None
     left, right = truth
     height, width = shape
     if name == "rotated_180":
+
         def turn(b: Box) -> Box:
             return (width - b[2], height - b[3], width - b[0], height - b[1])
+
         return turn(right), turn(left)
     if name == "swapped":
         lb, rb = split
         dx, dy = rb[0] - lb[0], rb[1] - lb[1]
-        return ((right[0] - dx, right[1] - dy, right[2] - dx, right[3] - dy),
-                (left[0] + dx, left[1] + dy, left[2] + dx, left[3] + dy))
+        return (
+            (right[0] - dx, right[1] - dy, right[2] - dx, right[3] - dy),
+            (left[0] + dx, left[1] + dy, left[2] + dx, left[3] + dy),
+        )
     return left, right
 
 
@@ -94,9 +101,13 @@ def make_variants(cards: list[tuple[str, Path, tuple[Box, Box] | None]], out: Pa
                 image = card
             file_name = f"{stem}__{name}.png"
             Image.fromarray(image).save(out / file_name)
-            truths[file_name] = {"card": stem, "variant": name, "flags": dict(zip(FLAGS, flags)),
-                                 "split": "tune" if stem in TUNE else "held_out",
-                                 "boxes": _variant_truth(name, card.shape[:2], same, boxes)}
+            truths[file_name] = {
+                "card": stem,
+                "variant": name,
+                "flags": dict(zip(FLAGS, flags)),
+                "split": "tune" if stem in TUNE else "held_out",
+                "boxes": _variant_truth(name, card.shape[:2], same, boxes),
+            }
     return truths
 
 
@@ -109,9 +120,13 @@ def _keystone(args: list[str], env: dict[str, str]) -> dict[str, Any]:
 
 def run_flow(scans: Path, instance: Path) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Ingest and run on a fresh instance; the run report and ``keystone cards --json``."""
-    env = {**os.environ, "KEYSTONE_DATABASE_URL": f"sqlite:///{instance / 'keystone.sqlite3'}",
-           "KEYSTONE_DATA_DIR": str(instance / "data"), "KEYSTONE_INSTANCE_PATH": str(instance / "instance"),
-           "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {
+        **os.environ,
+        "KEYSTONE_DATABASE_URL": f"sqlite:///{instance / 'keystone.sqlite3'}",
+        "KEYSTONE_DATA_DIR": str(instance / "data"),
+        "KEYSTONE_INSTANCE_PATH": str(instance / "instance"),
+        "PYTHONPATH": str(Path(__file__).resolve().parents[1]),
+    }
     _keystone(["ingest", str(scans), "--json"], env)
     report = _keystone(["run", "--stages", STAGES, "--json"], env)
     cards = _keystone(["cards", "--json"], env)["cards"]
@@ -129,22 +144,37 @@ def evaluate(truths: dict[str, dict[str, Any]], report: dict[str, Any], cards: l
         step = stages.get("orientation", {})
         metrics = step.get("metrics") or {}
         right = all(orientation[f] == truth["flags"][f] for f in FLAGS)
-        filter_box = (stages["filter"].get("metrics") or {})
+        filter_box = stages["filter"].get("metrics") or {}
         fallback = metrics.get("photo_area_fallback") or not metrics.get("photo_left_box")
-        used = ((filter_box.get("left_box"), filter_box.get("right_box")) if fallback
-                else (metrics.get("photo_left_box"), metrics.get("photo_right_box")))
+        used = (
+            (filter_box.get("left_box"), filter_box.get("right_box"))
+            if fallback
+            else (metrics.get("photo_left_box"), metrics.get("photo_right_box"))
+        )
         crop: dict[str, Any] = {"source": "filter split" if fallback else "photo area"}
         if truth["boxes"] is not None and used[0] is not None:
-            crop.update(inside=[inside(tuple(b), tuple(t)) for b, t in zip(used, truth["boxes"])],
-                        iou=[round(iou(tuple(b), tuple(t)), 4) for b, t in zip(used, truth["boxes"])])
-        rows.append({
-            "source": card["source"], "card": truth["card"], "variant": truth["variant"], "split": truth["split"],
-            "filter": stages["filter"].get("outcome"), "decision": step.get("outcome"), "step_status": step.get("status"),
-            "orientation": orientation, "truth": truth["flags"], "right": right,
-            "flags_step": {f: (metrics.get("flags") or {}).get(f, {}).get("value") for f in FLAGS},
-            "graded": stages["grade"]["status"] == "done", "grade": stages["grade"].get("outcome"),
-            "crop": crop,
-        })
+            crop.update(
+                inside=[inside(tuple(b), tuple(t)) for b, t in zip(used, truth["boxes"])],
+                iou=[round(iou(tuple(b), tuple(t)), 4) for b, t in zip(used, truth["boxes"])],
+            )
+        rows.append(
+            {
+                "source": card["source"],
+                "card": truth["card"],
+                "variant": truth["variant"],
+                "split": truth["split"],
+                "filter": stages["filter"].get("outcome"),
+                "decision": step.get("outcome"),
+                "step_status": step.get("status"),
+                "orientation": orientation,
+                "truth": truth["flags"],
+                "right": right,
+                "flags_step": {f: (metrics.get("flags") or {}).get(f, {}).get("value") for f in FLAGS},
+                "graded": stages["grade"]["status"] == "done",
+                "grade": stages["grade"].get("outcome"),
+                "crop": crop,
+            }
+        )
     return summarise(rows, report)
 
 
@@ -158,28 +188,36 @@ def summarise(rows: list[dict[str, Any]], report: dict[str, Any]) -> dict[str, A
         flag_accuracy[split] = {}
         for flag in FLAGS:
             decided = [r for r in chosen if r["flags_step"][flag] is not None]
-            flag_accuracy[split][flag] = {"decided": len(decided), "of": len(chosen),
-                                          "right": sum(r["flags_step"][flag] == r["truth"][flag] for r in decided)}
+            flag_accuracy[split][flag] = {
+                "decided": len(decided),
+                "of": len(chosen),
+                "right": sum(r["flags_step"][flag] == r["truth"][flag] for r in decided),
+            }
     boxes = [r["crop"] for r in rows if "inside" in r["crop"]]
     halves_inside = sum(sum(c["inside"]) for c in boxes)
     ious = [v for c in boxes for v in c["iou"]]
-    seconds = {s["stage"]: (round(s["seconds"] / s["processed"], 3) if s["processed"] else None)
-               for s in report.get("stages", [])}
+    seconds = {
+        s["stage"]: (round(s["seconds"] / s["processed"], 3) if s["processed"] else None) for s in report.get("stages", [])
+    }
     return {
         "variants": n,
         "wrong_graded": [r["source"] for r in rows if r["graded"] and not r["right"]],
         "graded": sum(r["graded"] for r in rows),
-        "auto_right": sum(r["right"] for r in auto), "auto_wrong": [r["source"] for r in auto if not r["right"]],
+        "auto_right": sum(r["right"] for r in auto),
+        "auto_wrong": [r["source"] for r in auto if not r["right"]],
         "auto_right_fraction": round(sum(r["right"] for r in auto) / n, 4) if n else None,
         "sent_to_people": sum(r["orientation"]["decided_by"] is None for r in rows),
         "originals_sent_to_people": sum(r["orientation"]["decided_by"] is None for r in originals),
         "originals": len(originals),
         "waiting_for_people": report.get("waiting_for_people"),
         "flag_accuracy": flag_accuracy,
-        "crop": {"halves": 2 * len(boxes), "inside": halves_inside,
-                 "photo_area_used": sum(c["source"] == "photo area" for c in boxes),
-                 "mean_iou": round(float(np.mean(ious)), 4) if ious else None,
-                 "not_inside": [r["source"] for r in rows if "inside" in r["crop"] and not all(r["crop"]["inside"])]},
+        "crop": {
+            "halves": 2 * len(boxes),
+            "inside": halves_inside,
+            "photo_area_used": sum(c["source"] == "photo area" for c in boxes),
+            "mean_iou": round(float(np.mean(ious)), 4) if ious else None,
+            "not_inside": [r["source"] for r in rows if "inside" in r["crop"] and not all(r["crop"]["inside"])],
+        },
         "seconds_per_card": seconds,
         "rows": rows,
     }
@@ -188,14 +226,16 @@ def summarise(rows: list[dict[str, Any]], report: dict[str, Any]) -> dict[str, A
 def shared_cards(data: Path) -> list[tuple[str, Path, tuple[Box, Box] | None]]:
     """The real cards with hand-drawn photo areas (full cards and Keystone-Mast raw scans)."""
     root = data / "stereocards"
-    return [(Path(name).stem, root / name, (left, right)) for name, left, right in read_truth(TRUTH)
-            if (root / name).is_file()]
+    return [(Path(name).stem, root / name, (left, right)) for name, left, right in read_truth(TRUTH) if (root / name).is_file()]
 
 
 def folder_cards(folder: Path, truth_csv: Path | None) -> list[tuple[str, Path, tuple[Box, Box] | None]]:
     boxes = {name: (left, right) for name, left, right in read_truth(truth_csv)} if truth_csv else {}
-    return [(path.stem, path, boxes.get(str(path.relative_to(folder))))
-            for path in sorted(folder.rglob("*")) if path.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff")]
+    return [
+        (path.stem, path, boxes.get(str(path.relative_to(folder))))
+        for path in sorted(folder.rglob("*"))
+        if path.suffix.lower() in (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+    ]
 
 
 def main_flow(data: Path, scans: Path | None, truth_csv: Path | None, as_json: bool, keep: Path | None) -> int:

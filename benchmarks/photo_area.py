@@ -67,8 +67,12 @@ def iou(a: Box, b: Box) -> float:
 
 
 def inside(box: Box, truth: Box, tolerance: int = 0) -> bool:
-    return (box[0] >= truth[0] - tolerance and box[1] >= truth[1] - tolerance
-            and box[2] <= truth[2] + tolerance and box[3] <= truth[3] + tolerance)
+    return (
+        box[0] >= truth[0] - tolerance
+        and box[1] >= truth[1] - tolerance
+        and box[2] <= truth[2] + tolerance
+        and box[3] <= truth[3] + tolerance
+    )
 
 
 # A variant maps (card, left truth, right truth) to the same for a transformed card.
@@ -125,14 +129,25 @@ def measure(data: Path, variants: list[str], tolerance: int, params: PhotoAreaPa
             halves = {}
             for half, box, truth in (("left", result.left_box, lt), ("right", result.right_box, rt)):
                 halves[half] = {
-                    "box": list(box), "truth": list(truth), "iou": round(iou(box, truth), 4),
-                    "inside": inside(box, truth), "inside_tolerant": inside(box, truth, tolerance),
+                    "box": list(box),
+                    "truth": list(truth),
+                    "iou": round(iou(box, truth), 4),
+                    "inside": inside(box, truth),
+                    "inside_tolerant": inside(box, truth, tolerance),
                 }
-            cards.append({
-                "file": name, "variant": variant, "set": "held_out" if name in HELD_OUT else "tuned",
-                "seconds": round(seconds, 4), "cpu_seconds": round(cpu_seconds, 4), "confidence": result.confidence,
-                "fallback_reason": result.fallback_reason, "evidence": list(result.evidence), **halves,
-            })
+            cards.append(
+                {
+                    "file": name,
+                    "variant": variant,
+                    "set": "held_out" if name in HELD_OUT else "tuned",
+                    "seconds": round(seconds, 4),
+                    "cpu_seconds": round(cpu_seconds, 4),
+                    "confidence": result.confidence,
+                    "fallback_reason": result.fallback_reason,
+                    "evidence": list(result.evidence),
+                    **halves,
+                }
+            )
     return {"tolerance_px": tolerance, "cards": cards, "summary": summarise(cards)}
 
 
@@ -175,10 +190,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     for card in report["cards"]:
         flag = f"  FALLBACK: {card['fallback_reason']}" if card["fallback_reason"] else ""
-        print(f"{card['variant']:11s} {card['set']:8s} {card['file'][-44:]:44s} "
-              f"IoU {card['left']['iou']:.3f}/{card['right']['iou']:.3f} "
-              f"inside {int(card['left']['inside'])}{int(card['right']['inside'])} "
-              f"{card['seconds'] * 1000:5.0f} ms{flag}")
+        print(
+            f"{card['variant']:11s} {card['set']:8s} {card['file'][-44:]:44s} "
+            f"IoU {card['left']['iou']:.3f}/{card['right']['iou']:.3f} "
+            f"inside {int(card['left']['inside'])}{int(card['right']['inside'])} "
+            f"{card['seconds'] * 1000:5.0f} ms{flag}"
+        )
     for key, row in report["summary"].items():
         print(f"{key:22s} {row}")
     return 0

@@ -50,8 +50,9 @@ def real_cards(shared_data: Path) -> list[Path]:
     """The stereo cards and pairs of the shared data (card backs left out: they are not stereo)."""
     root = shared_data / "stereocards"
     folders = [root / "full_cards", root / "keystone_mast_raw_scans", root / "cropped_pairs" / "jps"]
-    return sorted(path for folder in folders if folder.is_dir() for path in folder.iterdir()
-                  if path.suffix.lower() in CARD_SUFFIXES)
+    return sorted(
+        path for folder in folders if folder.is_dir() for path in folder.iterdir() if path.suffix.lower() in CARD_SUFFIXES
+    )
 
 
 def synthetic_cards(folder: Path) -> list[Path]:
@@ -99,13 +100,20 @@ def by_size(rows: list[dict[str, Any]], stages: tuple[str, ...]) -> list[dict[st
         group = [r for r in rows if r["reached_grade"] and low <= r["width"] < high]
         if not group:
             continue
-        out.append({
-            "size": label, "cards": len(group), "widths": sorted({r["width"] for r in group}),
-            "median_pipeline_cpu_seconds": round(statistics.median(r["pipeline_cpu_seconds"] for r in group), 4),
-            "max_pipeline_cpu_seconds": max(r["pipeline_cpu_seconds"] for r in group),
-            "median_cpu_seconds": {name: round(statistics.median(r["cpu_seconds"][name] for r in group), 4)
-                                   for name in stages if all(name in r["cpu_seconds"] for r in group)},
-        })
+        out.append(
+            {
+                "size": label,
+                "cards": len(group),
+                "widths": sorted({r["width"] for r in group}),
+                "median_pipeline_cpu_seconds": round(statistics.median(r["pipeline_cpu_seconds"] for r in group), 4),
+                "max_pipeline_cpu_seconds": max(r["pipeline_cpu_seconds"] for r in group),
+                "median_cpu_seconds": {
+                    name: round(statistics.median(r["cpu_seconds"][name] for r in group), 4)
+                    for name in stages
+                    if all(name in r["cpu_seconds"] for r in group)
+                },
+            }
+        )
     return out
 
 
@@ -127,14 +135,21 @@ def _decide_as_stored() -> None:
     from review.models import OrientationOverride
 
     for card_id in db.session.scalars(select(Card.id).where(~Card.id.in_(select(OrientationOverride.card_id)))):
-        db.session.add(OrientationOverride(card_id=card_id, upside_down=False, inverted=False, swapped=False,
-                                           note="benchmark: cards stored upright"))
+        db.session.add(
+            OrientationOverride(
+                card_id=card_id, upside_down=False, inverted=False, swapped=False, note="benchmark: cards stored upright"
+            )
+        )
     db.session.commit()
 
 
-def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
-                       echo: Callable[[str], None] = lambda _m: None, sbs_order: str | None = None,
-                       params: dict[str, Any] | None = None) -> dict[str, Any]:
+def benchmark_pipeline(
+    cards: list[Path],
+    stages: tuple[str, ...] = ALL_STAGES,
+    echo: Callable[[str], None] = lambda _m: None,
+    sbs_order: str | None = None,
+    params: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """Ingest ``cards`` into a throwaway instance and run ``stages`` inline; per-card CPU seconds.
     ``sbs_order`` is ``keystone ingest --sbs-order`` (None: JPS files are read cross-eyed);
     ``params``: stage name -> parameters replacing that stage's defaults."""
@@ -152,13 +167,20 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
 
     root = Path(tempfile.mkdtemp(prefix="keystone-bench-pipeline-"))
     data_dir = root / "data"
-    app = create_app({"SQLALCHEMY_DATABASE_URI": f"sqlite:///{root / 'bench.sqlite3'}",
-                      "KEYSTONE_DATA_DIR": str(data_dir)}, instance_path=root / "instance")
+    app = create_app(
+        {"SQLALCHEMY_DATABASE_URI": f"sqlite:///{root / 'bench.sqlite3'}", "KEYSTONE_DATA_DIR": str(data_dir)},
+        instance_path=root / "instance",
+    )
     per_stage: dict[str, dict[int, float]] = {}
     with app.app_context():
         upgrade(db.engine)
-        report = ingest(cards, data_dir=data_dir, collection_name="bench-pipeline",
-                        max_pixels=app.config["KEYSTONE_MAX_PIXELS"], stereo=StereoOptions(sbs_order=sbs_order))
+        report = ingest(
+            cards,
+            data_dir=data_dir,
+            collection_name="bench-pipeline",
+            max_pixels=app.config["KEYSTONE_MAX_PIXELS"],
+            stereo=StereoOptions(sbs_order=sbs_order),
+        )
         rejected = [item for item in report.rejected]
         specs = available_stages()
         for name in stages:
@@ -177,30 +199,38 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
             latest = card.latest_results()
             costs = {name: round(per_stage[name][card.id], 4) for name in stages if card.id in per_stage[name]}
             pipeline = [costs[name] for name in DEFAULT_STAGES if name in costs]
-            rows.append({
-                "card": card.source_name, "width": card.width, "height": card.height,
-                "filter_outcome": latest["filter"].outcome if "filter" in latest else None,
-                "grade": latest["grade"].outcome if "grade" in latest else None,
-                "failed": {name: result.reason for name, result in latest.items() if result.status == "failed"},
-                "cpu_seconds": costs,
-                "pipeline_cpu_seconds": round(sum(pipeline), 4),
-                "reached_grade": "grade" in costs,
-                "views_cpu_seconds": costs.get("views"),
-            })
+            rows.append(
+                {
+                    "card": card.source_name,
+                    "width": card.width,
+                    "height": card.height,
+                    "filter_outcome": latest["filter"].outcome if "filter" in latest else None,
+                    "grade": latest["grade"].outcome if "grade" in latest else None,
+                    "failed": {name: result.reason for name, result in latest.items() if result.status == "failed"},
+                    "cpu_seconds": costs,
+                    "pipeline_cpu_seconds": round(sum(pipeline), 4),
+                    "reached_grade": "grade" in costs,
+                    "views_cpu_seconds": costs.get("views"),
+                }
+            )
         db.session.remove()
         db.engine.dispose()
     complete = [row for row in rows if row["reached_grade"]]
     views = [row["views_cpu_seconds"] for row in rows if row["views_cpu_seconds"] is not None]
     summary = {
-        "cards": len(rows), "reached_grade": len(complete),
+        "cards": len(rows),
+        "reached_grade": len(complete),
         "median_pipeline_cpu_seconds": round(statistics.median(r["pipeline_cpu_seconds"] for r in complete), 4)
-        if complete else None,
+        if complete
+        else None,
         "max_pipeline_cpu_seconds": max((r["pipeline_cpu_seconds"] for r in complete), default=None),
         "median_views_cpu_seconds": round(statistics.median(views), 4) if views else None,
         "max_views_cpu_seconds": max(views, default=None),
         "per_stage_median_cpu_seconds": {
-            name: round(statistics.median(per_stage[name].values()), 4) for name in stages if per_stage[name]},
-        "target_pipeline_cpu_seconds": TARGET_PIPELINE_CPU_S, "target_views_cpu_seconds": TARGET_VIEWS_CPU_S,
+            name: round(statistics.median(per_stage[name].values()), 4) for name in stages if per_stage[name]
+        },
+        "target_pipeline_cpu_seconds": TARGET_PIPELINE_CPU_S,
+        "target_views_cpu_seconds": TARGET_VIEWS_CPU_S,
         "by_size": by_size(rows, stages),
     }
     import shutil
@@ -210,27 +240,45 @@ def benchmark_pipeline(cards: list[Path], stages: tuple[str, ...] = ALL_STAGES,
 
 
 @click.command("pipeline")
-@click.option("--shared-data", type=click.Path(path_type=Path, file_okay=False),
-              help="Folder with the real cards (../shared/data) [default: found next to the checkout].")
+@click.option(
+    "--shared-data",
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Folder with the real cards (../shared/data) [default: found next to the checkout].",
+)
 @click.option("--synthetic", is_flag=True, help="Use the Motorcycle card at 760, 1400 and 3000 px instead.")
-@click.option("--stages", default=",".join(ALL_STAGES), show_default=True,
-              help="Stages to run, in flow order.")
+@click.option("--stages", default=",".join(ALL_STAGES), show_default=True, help="Stages to run, in flow order.")
 @click.option("--limit", type=click.IntRange(1), help="Only the first N cards.")
-@click.option("--sbs-order", type=click.Choice(["cross", "parallel"]), default="parallel", show_default=True,
-              help="Eye order of side-by-side files, as keystone ingest --sbs-order: the shared JPS files are "
-                   "stored parallel (../shared/data/PROVENANCE.md, and the ingest's own eye-order check).")
-@click.option("--variant", "variants", multiple=True, type=click.Choice(VARIANTS),
-              help="full (work_side None: full resolution, as before) and/or work (the defaults); repeatable. "
-                   "Default: both, side by side, each in its own process.")
+@click.option(
+    "--sbs-order",
+    type=click.Choice(["cross", "parallel"]),
+    default="parallel",
+    show_default=True,
+    help="Eye order of side-by-side files, as keystone ingest --sbs-order: the shared JPS files are "
+    "stored parallel (../shared/data/PROVENANCE.md, and the ingest's own eye-order check).",
+)
+@click.option(
+    "--variant",
+    "variants",
+    multiple=True,
+    type=click.Choice(VARIANTS),
+    help="full (work_side None: full resolution, as before) and/or work (the defaults); repeatable. "
+    "Default: both, side by side, each in its own process.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
-def bench_pipeline_command(shared_data: Path | None, synthetic: bool, stages: str, limit: int | None,
-                           sbs_order: str, variants: tuple[str, ...], as_json: bool) -> None:
+def bench_pipeline_command(
+    shared_data: Path | None,
+    synthetic: bool,
+    stages: str,
+    limit: int | None,
+    sbs_order: str,
+    variants: tuple[str, ...],
+    as_json: bool,
+) -> None:
     """CPU seconds per card for each stage (one core, inline) and peak memory on real cards."""
     names = tuple(name.strip() for name in stages.split(",") if name.strip())
     unknown = [name for name in names if name not in ALL_STAGES]
     if unknown or not names:
-        raise click.BadParameter(f"expected stages among {', '.join(ALL_STAGES)}, got {stages!r}",
-                                 param_hint="--stages")
+        raise click.BadParameter(f"expected stages among {', '.join(ALL_STAGES)}, got {stages!r}", param_hint="--stages")
     if shared_data is None:
         candidate = Path(__file__).resolve().parents[2] / "shared" / "data"
         shared_data = candidate if candidate.is_dir() else None
@@ -248,8 +296,7 @@ def bench_pipeline_command(shared_data: Path | None, synthetic: bool, stages: st
         with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
             runs[variant] = pool.submit(benchmark_variant, cards, names, sbs_order, variant).result()
     main = runs.get("work") or next(iter(runs.values()))
-    document = {**main, "variants": runs,
-                "comparison": comparison(runs) if len(runs) > 1 else None}
+    document = {**main, "variants": runs, "comparison": comparison(runs) if len(runs) > 1 else None}
     if as_json:
         click.echo(json.dumps(document, indent=2))
         return
@@ -258,15 +305,18 @@ def bench_pipeline_command(shared_data: Path | None, synthetic: bool, stages: st
         click.echo(f"{'card':<52} {'size':>10} " + " ".join(f"{name:>9}" for name in names) + f" {'pipeline':>9}")
         for row in run["results"]:
             cells = " ".join(f"{row['cpu_seconds'][n]:9.3f}" if n in row["cpu_seconds"] else f"{'-':>9}" for n in names)
-            click.echo(f"{row['card'][:52]:<52} {row['width']:>5}x{row['height']:<4} {cells} "
-                       f"{row['pipeline_cpu_seconds']:9.3f}")
+            click.echo(f"{row['card'][:52]:<52} {row['width']:>5}x{row['height']:<4} {cells} {row['pipeline_cpu_seconds']:9.3f}")
         summary = run["summary"]
         for group in summary["by_size"]:
-            click.echo(f"{group['size']:>13}: median {group['median_pipeline_cpu_seconds']} CPU-s a card "
-                       f"({group['cards']} cards) {group['median_cpu_seconds']}")
-        click.echo(f"median pipeline {summary['median_pipeline_cpu_seconds']} CPU-s a card (target <= "
-                   f"{TARGET_PIPELINE_CPU_S}), views {summary['median_views_cpu_seconds']} (target <= "
-                   f"{TARGET_VIEWS_CPU_S}); peak {run['peak_rss_mb']} MB")
+            click.echo(
+                f"{group['size']:>13}: median {group['median_pipeline_cpu_seconds']} CPU-s a card "
+                f"({group['cards']} cards) {group['median_cpu_seconds']}"
+            )
+        click.echo(
+            f"median pipeline {summary['median_pipeline_cpu_seconds']} CPU-s a card (target <= "
+            f"{TARGET_PIPELINE_CPU_S}), views {summary['median_views_cpu_seconds']} (target <= "
+            f"{TARGET_VIEWS_CPU_S}); peak {run['peak_rss_mb']} MB"
+        )
 
 
 def comparison(runs: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:

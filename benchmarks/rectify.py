@@ -57,8 +57,15 @@ from pipeline.rectify import (
 )
 
 __all__ = [
-    "METHODS", "SYNTHETIC_WARPS", "BenchPair", "benchmark_rectify", "default_pairs", "keystone_warp", "real_pairs",
-    "summarise", "synthetic_pairs",
+    "METHODS",
+    "SYNTHETIC_WARPS",
+    "BenchPair",
+    "benchmark_rectify",
+    "default_pairs",
+    "keystone_warp",
+    "real_pairs",
+    "summarise",
+    "synthetic_pairs",
 ]
 
 METHODS = ("keystone", "hartley")
@@ -139,13 +146,17 @@ def real_pairs(shared_data: str | Path | None) -> list[BenchPair]:
         except PipelineError:
             continue
         half = card.shape[1] // 2
-        out.append(BenchPair(f"jps/{path.stem}", "real", np.ascontiguousarray(card[:, :half]),
-                             np.ascontiguousarray(card[:, half:2 * half])))
+        out.append(
+            BenchPair(
+                f"jps/{path.stem}", "real", np.ascontiguousarray(card[:, :half]), np.ascontiguousarray(card[:, half : 2 * half])
+            )
+        )
     depthy = root / "cropped_pairs" / "depthy_7995"
     if (depthy / "7995l-image.jpg").is_file() and (depthy / "7995r-image.jpg").is_file():
         try:
-            out.append(BenchPair("depthy/7995", "real", read_image(depthy / "7995l-image.jpg"),
-                                 read_image(depthy / "7995r-image.jpg")))
+            out.append(
+                BenchPair("depthy/7995", "real", read_image(depthy / "7995l-image.jpg"), read_image(depthy / "7995r-image.jpg"))
+            )
         except PipelineError:
             pass
     return out
@@ -208,7 +219,8 @@ def _metrics(H_l, H_r, il, ir, shapes) -> dict[str, float]:
     dy = np.abs(a[:, 1] - b[:, 1])
     ms = [distortion_metrics(H, w, h) for H, (h, w) in zip((H_l, H_r), shapes)]
     return {
-        "dy_median": float(np.median(dy)), "dy_p95": float(np.percentile(dy, 95)),
+        "dy_median": float(np.median(dy)),
+        "dy_p95": float(np.percentile(dy, 95)),
         "midline_deviation": float(max(abs(m["midline_angle"] - 90.0) for m in ms)),
         "aspect_change": float(max(m["aspect_change"] for m in ms)),
     }
@@ -253,8 +265,16 @@ def _inlier_range(H_l: np.ndarray, H_r: np.ndarray, il: np.ndarray, ir: np.ndarr
     return float(disp[keep].min()), float(disp[keep].max())
 
 
-def _disparity_error(pair: BenchPair, left: np.ndarray, right: np.ndarray, H_l: np.ndarray, H_r: np.ndarray,
-                     size: tuple[int, int], swapped: bool, drange: tuple[float, float]) -> dict[str, float]:
+def _disparity_error(
+    pair: BenchPair,
+    left: np.ndarray,
+    right: np.ndarray,
+    H_l: np.ndarray,
+    H_r: np.ndarray,
+    size: tuple[int, int],
+    swapped: bool,
+    drange: tuple[float, float],
+) -> dict[str, float]:
     """Disparity on the rectified pair (search range: the method's own inlier disparity range, as
     the pipeline passes it), mapped back to the original left view, against GT."""
     if swapped:  # H_l applies to the view given as right: no GT for that orientation
@@ -299,9 +319,21 @@ def _disparity_error(pair: BenchPair, left: np.ndarray, right: np.ndarray, H_l: 
 
 
 def _row(pair: BenchPair, method: str) -> dict[str, Any]:
-    return {"pair": pair.name, "kind": pair.kind, "method": method, "dy_median": None, "dy_p95": None,
-            "midline_deviation": None, "aspect_change": None, "epe": None, "bad2": None, "coverage": None, "gt_dy_p95": None,
-            "seconds": None, "error": None}
+    return {
+        "pair": pair.name,
+        "kind": pair.kind,
+        "method": method,
+        "dy_median": None,
+        "dy_p95": None,
+        "midline_deviation": None,
+        "aspect_change": None,
+        "epe": None,
+        "bad2": None,
+        "coverage": None,
+        "gt_dy_p95": None,
+        "seconds": None,
+        "error": None,
+    }
 
 
 def _clean(value: Any) -> Any:
@@ -338,8 +370,11 @@ def benchmark_rectify(
                 ours["warp_needed"] = bool(rect.warp_needed)
                 if disparity and pair.gt is not None:
                     try:
-                        ours.update(_disparity_error(pair, pair.left, pair.right, rect.H_l, rect.H_r, rect.size,
-                                                     rect.swapped, rect.disparity_range))
+                        ours.update(
+                            _disparity_error(
+                                pair, pair.left, pair.right, rect.H_l, rect.H_r, rect.size, rect.swapped, rect.disparity_range
+                            )
+                        )
                     except PipelineError as exc:
                         ours["error"] = f"disparity: {exc.reason()}"
                     except (np.linalg.LinAlgError, cv2.error) as exc:
@@ -428,16 +463,23 @@ def _fmt(value, spec: str) -> str:
 
 
 @click.command("rectify")
-@click.option("--shared-data", type=click.Path(path_type=Path, file_okay=False),
-              help="Folder with the real pairs and stereo_gt (../shared/data); default: found next to the "
-                   "checkout, else the Motorcycle synthetic pairs only.")
-@click.option("--repeats", default=1, show_default=True, type=click.IntRange(1, 100),
-              help="Runs per pair and method; the median time is reported.")
+@click.option(
+    "--shared-data",
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Folder with the real pairs and stereo_gt (../shared/data); default: found next to the "
+    "checkout, else the Motorcycle synthetic pairs only.",
+)
+@click.option(
+    "--repeats",
+    default=1,
+    show_default=True,
+    type=click.IntRange(1, 100),
+    help="Runs per pair and method; the median time is reported.",
+)
 @click.option("--quick", is_flag=True, help="Motorcycle at half size, one synthetic warp (a few seconds).")
 @click.option("--no-disparity", is_flag=True, help="Skip the disparity error on the synthetic pairs.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
-def bench_rectify_command(shared_data: Path | None, repeats: int, quick: bool, no_disparity: bool,
-                          as_json: bool) -> None:
+def bench_rectify_command(shared_data: Path | None, repeats: int, quick: bool, no_disparity: bool, as_json: bool) -> None:
     """Residual |dy|, distortion, disparity error (synthetic) and seconds per pair: keystone vs hartley."""
     from benchmarks.rectify import benchmark_rectify, default_pairs
     from pipeline.errors import PipelineError
@@ -450,26 +492,38 @@ def bench_rectify_command(shared_data: Path | None, repeats: int, quick: bool, n
     if as_json:
         click.echo(json.dumps(document, indent=2, allow_nan=False))
         return
-    click.echo(f"{'pair':<44} {'method':<9} {'dy med':>7} {'dy p95':>7} {'midline':>8} {'aspect':>7} "
-               f"{'epe':>6} {'bad2%':>6} {'gt dy95':>7} {'seconds':>8}  error")
+    click.echo(
+        f"{'pair':<44} {'method':<9} {'dy med':>7} {'dy p95':>7} {'midline':>8} {'aspect':>7} "
+        f"{'epe':>6} {'bad2%':>6} {'gt dy95':>7} {'seconds':>8}  error"
+    )
     for r in document["results"]:
-        click.echo(f"{r['pair'][:44]:<44} {r['method']:<9} {_fmt(r['dy_median'], '7.2f')} {_fmt(r['dy_p95'], '7.2f')} "
-                   f"{_fmt(r['midline_deviation'], '8.2f')} {_fmt(r['aspect_change'], '7.3f')} "
-                   f"{_fmt(r['epe'], '6.2f')} {_fmt(r['bad2'], '6.1f')} {_fmt(r['gt_dy_p95'], '7.2f')} "
-                   f"{_fmt(r['seconds'], '8.3f')}  {r['error'] or ''}")
+        click.echo(
+            f"{r['pair'][:44]:<44} {r['method']:<9} {_fmt(r['dy_median'], '7.2f')} {_fmt(r['dy_p95'], '7.2f')} "
+            f"{_fmt(r['midline_deviation'], '8.2f')} {_fmt(r['aspect_change'], '7.3f')} "
+            f"{_fmt(r['epe'], '6.2f')} {_fmt(r['bad2'], '6.1f')} {_fmt(r['gt_dy_p95'], '7.2f')} "
+            f"{_fmt(r['seconds'], '8.3f')}  {r['error'] or ''}"
+        )
     summary = document["summary"]
     click.echo("")
-    click.echo(f"medians over the {summary['compared_pairs']} pairs both methods rectified "
-               "(midline = |midline angle - 90| deg, worse view):")
-    click.echo(f"{'method':<9} {'kind':<10} {'pairs':>5} {'dy med':>7} {'dy p95':>7} {'midline':>8} {'aspect':>7} "
-               f"{'epe':>6} {'bad2%':>6} {'seconds':>8} {'failures':>8}")
+    click.echo(
+        f"medians over the {summary['compared_pairs']} pairs both methods rectified "
+        "(midline = |midline angle - 90| deg, worse view):"
+    )
+    click.echo(
+        f"{'method':<9} {'kind':<10} {'pairs':>5} {'dy med':>7} {'dy p95':>7} {'midline':>8} {'aspect':>7} "
+        f"{'epe':>6} {'bad2%':>6} {'seconds':>8} {'failures':>8}"
+    )
     for method in ("keystone", "hartley"):
         entry = summary[method]
         for kind in ("real", "synthetic"):
             s = entry[kind]
-            click.echo(f"{method:<9} {kind:<10} {s['pairs']:>5} {_fmt(s['dy_median'], '7.2f')} {_fmt(s['dy_p95'], '7.2f')} "
-                       f"{_fmt(s['midline_deviation'], '8.2f')} {_fmt(s['aspect_change'], '7.3f')} "
-                       f"{_fmt(s['epe'], '6.2f')} {_fmt(s['bad2'], '6.1f')} {_fmt(s['seconds'], '8.3f')} "
-                       f"{s['failures']:>8}")
-    click.echo(f"keystone beats hartley on {summary['keystone_beats_hartley']} of {summary['compared_pairs']} pairs "
-               f"({summary['criterion']})")
+            click.echo(
+                f"{method:<9} {kind:<10} {s['pairs']:>5} {_fmt(s['dy_median'], '7.2f')} {_fmt(s['dy_p95'], '7.2f')} "
+                f"{_fmt(s['midline_deviation'], '8.2f')} {_fmt(s['aspect_change'], '7.3f')} "
+                f"{_fmt(s['epe'], '6.2f')} {_fmt(s['bad2'], '6.1f')} {_fmt(s['seconds'], '8.3f')} "
+                f"{s['failures']:>8}"
+            )
+    click.echo(
+        f"keystone beats hartley on {summary['keystone_beats_hartley']} of {summary['compared_pairs']} pairs "
+        f"({summary['criterion']})"
+    )

@@ -95,19 +95,19 @@ def real_pairs(data: Path) -> list[RealPair]:
             pairs.append(RealPair(f"{folder.split('/')[-1]}/{path.stem}", card=read_image(path)))
     depthy = root / "cropped_pairs" / "depthy_7995"
     if (depthy / "7995l-image.jpg").is_file():
-        pairs.append(RealPair("depthy_7995", left=read_image(depthy / "7995l-image.jpg"),
-                              right=read_image(depthy / "7995r-image.jpg")))
+        pairs.append(
+            RealPair("depthy_7995", left=read_image(depthy / "7995l-image.jpg"), right=read_image(depthy / "7995r-image.jpg"))
+        )
     return pairs
 
 
 def _cut(image: np.ndarray, crop: tuple[int, int, int, int]) -> np.ndarray:
     left, top, right, bottom = crop
     h, w = image.shape[:2]
-    return np.ascontiguousarray(image[top:h - bottom, left:w - right])
+    return np.ascontiguousarray(image[top : h - bottom, left : w - right])
 
 
-def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0),
-            params: RectifyParams = RectifyParams()) -> Prepared:
+def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0), params: RectifyParams = RectifyParams()) -> Prepared:
     """The two views as the rectify stage gets them, ``crop`` = (left, top, right, bottom) px cut
     off the card (off each file for a pre-split pair) first. As in the stage, crop alignment
     matches at ``params``' SIFT side and its matches are kept for rectification."""
@@ -130,9 +130,12 @@ def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0),
             except PipelineError:
                 alignment = None
         if alignment is None:
-            alignment = align_crops(card, split.left_box, split.right_box,
-                                    CropAlignParams(ratio=params.ratio, max_side=params.max_side,
-                                                    max_keypoints=params.max_keypoints))
+            alignment = align_crops(
+                card,
+                split.left_box,
+                split.right_box,
+                CropAlignParams(ratio=params.ratio, max_side=params.max_side, max_keypoints=params.max_keypoints),
+            )
             lb, rb = alignment.left_box_before, alignment.right_box_before
             scale = max(1.0, max(lb[2] - lb[0], lb[3] - lb[1], rb[2] - rb[0], rb[3] - rb[1]) / params.max_side)
         boxes = alignment.left_box, alignment.right_box
@@ -143,8 +146,12 @@ def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0),
     full = boxes_before[0]
     principal_point = ((full[0] + full[2] - 1) / 2 - lx0, (full[1] + full[3] - 1) / 2 - ly0)
     return Prepared(
-        np.ascontiguousarray(card[ly0:ly1, lx0:lx1]), np.ascontiguousarray(card[ry0:ry1, rx0:rx1]),
-        (lx0 + crop[0], ly0 + crop[1]), (rx0 + crop[0], ry0 + crop[1]), principal_point, matches,
+        np.ascontiguousarray(card[ly0:ly1, lx0:lx1]),
+        np.ascontiguousarray(card[ry0:ry1, rx0:rx1]),
+        (lx0 + crop[0], ly0 + crop[1]),
+        (rx0 + crop[0], ry0 + crop[1]),
+        principal_point,
+        matches,
     )
 
 
@@ -154,8 +161,15 @@ def rectify_prepared(prepared: Prepared, params: RectifyParams) -> Rectification
     if prepared.matches is None:
         return rectify_pair(prepared.left, prepared.right, params, principal_point=prepared.principal_point)
     pts_l, pts_r, scale = prepared.matches
-    return rectify_matches(pts_l, pts_r, prepared.left.shape[1::-1], prepared.right.shape[1::-1], params,
-                           principal_point=prepared.principal_point, match_scale=scale)
+    return rectify_matches(
+        pts_l,
+        pts_r,
+        prepared.left.shape[1::-1],
+        prepared.right.shape[1::-1],
+        params,
+        principal_point=prepared.principal_point,
+        match_scale=scale,
+    )
 
 
 def method_of(rect: Rectification) -> str:
@@ -224,11 +238,18 @@ def measure(pair: RealPair, params: RectifyParams = RectifyParams(), n_crops: in
         row.update(method="refused", code=exc.code, reason=str(exc), seconds=round(time.perf_counter() - clock, 3))
         return row
     row["seconds"] = round(time.perf_counter() - clock, 3)  # crop alignment and rectification
-    row.update(method=method_of(rect), reason=rect.reason, swapped=rect.swapped, inliers=rect.inliers,
-               inlier_dy_p95=round(rect.dy_p95, 3), midline_angle=round(rect.midline_angle, 3),
-               aspect_change=round(rect.aspect_change, 4), rotation=round(rect.rotation, 3),
-               kept_fraction=round(rect.kept_fraction, 4),
-               disparity_range=[round(v, 1) for v in rect.disparity_range])
+    row.update(
+        method=method_of(rect),
+        reason=rect.reason,
+        swapped=rect.swapped,
+        inliers=rect.inliers,
+        inlier_dy_p95=round(rect.dy_p95, 3),
+        midline_angle=round(rect.midline_angle, 3),
+        aspect_change=round(rect.aspect_change, 4),
+        rotation=round(rect.rotation, 3),
+        kept_fraction=round(rect.kept_fraction, 4),
+        disparity_range=[round(v, 1) for v in rect.disparity_range],
+    )
     # Fresh matches on the views as the stage stores them (at the working side), their |dy| in
     # full-resolution px (divided by the view scale) so figures compare across working sides.
     stored = scale_rectification(rect, stored_view_scale(rect.size, params.work_side))
@@ -250,11 +271,20 @@ def measure(pair: RealPair, params: RectifyParams = RectifyParams(), n_crops: in
             continue
         angle = max(_angle_between(b[2], row_direction(H, b[1])) for b, (H, _) in zip(base, _physical(rc, cropped)))
         moved = max(abs(a - b) for a, b in zip(rc.disparity_range, rect.disparity_range))
-        crop_rows.append({"crop": list(crop), "method": method_of(rc), "angle": round(angle, 3),
-                          "disparity_range": [round(v, 1) for v in rc.disparity_range]})
+        crop_rows.append(
+            {
+                "crop": list(crop),
+                "method": method_of(rc),
+                "angle": round(angle, 3),
+                "disparity_range": [round(v, 1) for v in rc.disparity_range],
+            }
+        )
         worst_angle, worst_range = max(worst_angle, angle), max(worst_range, moved)
-    row.update(crop_angle=round(worst_angle, 3) if math.isfinite(worst_angle) else None,
-               crop_disparity_move=round(worst_range, 1), crops=crop_rows)
+    row.update(
+        crop_angle=round(worst_angle, 3) if math.isfinite(worst_angle) else None,
+        crop_disparity_move=round(worst_range, 1),
+        crops=crop_rows,
+    )
     return row
 
 
@@ -263,12 +293,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="shared data folder (holds stereocards/)")
     parser.add_argument("--crops", type=int, default=3, help="random crops per pair besides the 16 px one")
     parser.add_argument("--only", default=None, help="only pairs whose name contains this")
-    parser.add_argument("--max-side", type=int, default=RectifyParams().max_side,
-                        help="working resolution: longer side (px) of the views SIFT matches on for rectification")
-    parser.add_argument("--max-keypoints", type=int, default=RectifyParams().max_keypoints,
-                        help="SIFT keypoints per view for rectification")
-    parser.add_argument("--work-side", default=str(RectifyParams().work_side),
-                        help="longer side (px) of the stored rectified views the check matches on, or 'none' (full)")
+    parser.add_argument(
+        "--max-side",
+        type=int,
+        default=RectifyParams().max_side,
+        help="working resolution: longer side (px) of the views SIFT matches on for rectification",
+    )
+    parser.add_argument(
+        "--max-keypoints", type=int, default=RectifyParams().max_keypoints, help="SIFT keypoints per view for rectification"
+    )
+    parser.add_argument(
+        "--work-side",
+        default=str(RectifyParams().work_side),
+        help="longer side (px) of the stored rectified views the check matches on, or 'none' (full)",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON document")
     args = parser.parse_args(argv)
     if not (args.data / "stereocards").is_dir():
@@ -283,15 +321,29 @@ def main(argv: list[str] | None = None) -> int:
         row = measure(pair, params, n_crops=args.crops)
         rows.append(row)
         if not args.json:
-            print(f"{row['pair']:<58} {row['method']:<11} dy_p95 {row.get('dy_p95')!s:>6} "
-                  f"kept {row.get('fresh_kept')!s:>5} midline {row.get('midline_angle')!s:>7} "
-                  f"rot {row.get('rotation')!s:>6} crop_angle {row.get('crop_angle')!s:>6} "
-                  f"disp_move {row.get('crop_disparity_move')!s:>5} {row['seconds']:.2f}s "
-                  f"{row.get('code', '')}", flush=True)
+            print(
+                f"{row['pair']:<58} {row['method']:<11} dy_p95 {row.get('dy_p95')!s:>6} "
+                f"kept {row.get('fresh_kept')!s:>5} midline {row.get('midline_angle')!s:>7} "
+                f"rot {row.get('rotation')!s:>6} crop_angle {row.get('crop_angle')!s:>6} "
+                f"disp_move {row.get('crop_disparity_move')!s:>5} {row['seconds']:.2f}s "
+                f"{row.get('code', '')}",
+                flush=True,
+            )
     if args.json:
-        print(json.dumps({"max_side": args.max_side, "max_keypoints": args.max_keypoints, "work_side": work_side,
-                          "row_gate_px": ROW_GATE, "dy_gate_px": DY_GATE, "max_crop_px": MAX_CROP, "pairs": rows},
-                         indent=1))
+        print(
+            json.dumps(
+                {
+                    "max_side": args.max_side,
+                    "max_keypoints": args.max_keypoints,
+                    "work_side": work_side,
+                    "row_gate_px": ROW_GATE,
+                    "dy_gate_px": DY_GATE,
+                    "max_crop_px": MAX_CROP,
+                    "pairs": rows,
+                },
+                indent=1,
+            )
+        )
     return 0
 
 

@@ -60,9 +60,13 @@ def scanned(scene: Scene, factor: int, seed: int = 0) -> Scene:
     return Scene(f"{scene.name}", view(scene.left), view(scene.right), gt.astype(np.float32))
 
 
-def benchmark_workres(scenes: list[Scene], sides: tuple[str, ...] = DEFAULT_SIDES,
-                      factors: tuple[int, ...] = SCAN_FACTORS, repeats: int = 1,
-                      backend: str = DEFAULT_BACKEND) -> dict[str, Any]:
+def benchmark_workres(
+    scenes: list[Scene],
+    sides: tuple[str, ...] = DEFAULT_SIDES,
+    factors: tuple[int, ...] = SCAN_FACTORS,
+    repeats: int = 1,
+    backend: str = DEFAULT_BACKEND,
+) -> dict[str, Any]:
     """Every scene x scan factor x working side (``"full"`` or px): errors and seconds."""
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
@@ -86,19 +90,23 @@ def benchmark_workres(scenes: list[Scene], sides: tuple[str, ...] = DEFAULT_SIDE
                     valid = np.isfinite(scene.gt)
                     err = np.abs(result.disp_left[valid].astype(np.float64) - scene.gt[valid])
                     err[~np.isfinite(err)] = np.inf
-                    results.append({
-                        "scene": scene.name, "scan": factor, "side": side,
-                        "size": [int(scene.left.shape[1]), int(scene.left.shape[0])],
-                        "work_size": [round(scene.left.shape[1] * scale), round(scene.left.shape[0] * scale)],
-                        "epe": round(errors["epe"], 4), "bad2": round(errors["bad2"], 3),
-                        "bad2_scene": round(float((err > 2 * factor).mean() * 100), 3),
-                        "coverage": round(errors["coverage"], 3),
-                        "seconds": round(float(statistics.median(times)), 4),
-                    })
+                    results.append(
+                        {
+                            "scene": scene.name,
+                            "scan": factor,
+                            "side": side,
+                            "size": [int(scene.left.shape[1]), int(scene.left.shape[0])],
+                            "work_size": [round(scene.left.shape[1] * scale), round(scene.left.shape[0] * scale)],
+                            "epe": round(errors["epe"], 4),
+                            "bad2": round(errors["bad2"], 3),
+                            "bad2_scene": round(float((err > 2 * factor).mean() * 100), 3),
+                            "coverage": round(errors["coverage"], 3),
+                            "seconds": round(float(statistics.median(times)), 4),
+                        }
+                    )
     finally:
         cv2.setNumThreads(threads)
-    return {"results": results, "summary": summarise(results, sides), "backend": backend,
-            "grain_sigma": GRAIN_SIGMA}
+    return {"results": results, "summary": summarise(results, sides), "backend": backend, "grain_sigma": GRAIN_SIGMA}
 
 
 def summarise(results: list[dict[str, Any]], sides: tuple[str, ...]) -> dict[str, list[dict[str, Any]]]:
@@ -111,13 +119,16 @@ def summarise(results: list[dict[str, Any]], sides: tuple[str, ...]) -> dict[str
             rows = [r for r in results if r["side"] == side and keep(r)]
             if not rows:
                 continue
-            rows_out.append({
-                "side": side, "cases": len(rows),
-                "epe": round(float(np.mean([r["epe"] for r in rows])), 4),
-                "bad2": round(float(np.mean([r["bad2"] for r in rows])), 3),
-                "bad2_scene": round(float(np.mean([r["bad2_scene"] for r in rows])), 3),
-                "seconds": round(float(statistics.median(r["seconds"] for r in rows)), 4),
-            })
+            rows_out.append(
+                {
+                    "side": side,
+                    "cases": len(rows),
+                    "epe": round(float(np.mean([r["epe"] for r in rows])), 4),
+                    "bad2": round(float(np.mean([r["bad2"] for r in rows])), 3),
+                    "bad2_scene": round(float(np.mean([r["bad2_scene"] for r in rows])), 3),
+                    "seconds": round(float(statistics.median(r["seconds"] for r in rows)), 4),
+                }
+            )
         out[label] = rows_out
     return out
 
@@ -151,16 +162,24 @@ def plot_workres(summary: list[dict[str, Any]], path: str) -> list[str]:
 
 
 @click.command("workres")
-@click.option("--side", "sides", multiple=True,
-              help="Working side in px, or 'full'; repeatable. Default: 400 500 600 700 800 1000 full.")
-@click.option("--scan", "factors", multiple=True, type=click.IntRange(1, 4),
-              help="Scan factor (1 = the scene as given, 2 = scanned at 2x); repeatable. Default: 1 and 2.")
-@click.option("--repeats", default=1, show_default=True, type=click.IntRange(1, 20),
-              help="Runs per case; the median time is reported.")
+@click.option(
+    "--side", "sides", multiple=True, help="Working side in px, or 'full'; repeatable. Default: 400 500 600 700 800 1000 full."
+)
+@click.option(
+    "--scan",
+    "factors",
+    multiple=True,
+    type=click.IntRange(1, 4),
+    help="Scan factor (1 = the scene as given, 2 = scanned at 2x); repeatable. Default: 1 and 2.",
+)
+@click.option(
+    "--repeats", default=1, show_default=True, type=click.IntRange(1, 20), help="Runs per case; the median time is reported."
+)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document on stdout and nothing else.")
 @click.option("--plot", type=click.Path(dir_okay=False), help="Write a PNG of bad-2 against seconds (2x scans).")
-def bench_workres_command(sides: tuple[str, ...], factors: tuple[int, ...], repeats: int, as_json: bool,
-                          plot: str | None) -> None:
+def bench_workres_command(
+    sides: tuple[str, ...], factors: tuple[int, ...], repeats: int, as_json: bool, plot: str | None
+) -> None:
     """Disparity error against run time across working resolutions, on ground-truth scenes."""
     chosen = sides or DEFAULT_SIDES
     for side in chosen:
@@ -174,11 +193,15 @@ def bench_workres_command(sides: tuple[str, ...], factors: tuple[int, ...], repe
         click.echo(json.dumps(document, indent=2))
         return
     for row in document["results"]:
-        click.echo(f"{row['scene']:<11} x{row['scan']} side {row['side']:>5} work {row['work_size'][0]:>5}x"
-                   f"{row['work_size'][1]:<5} epe {row['epe']:7.3f} bad2 {row['bad2']:6.2f} % "
-                   f"(scene px {row['bad2_scene']:6.2f} %) {row['seconds']:.3f} s")
+        click.echo(
+            f"{row['scene']:<11} x{row['scan']} side {row['side']:>5} work {row['work_size'][0]:>5}x"
+            f"{row['work_size'][1]:<5} epe {row['epe']:7.3f} bad2 {row['bad2']:6.2f} % "
+            f"(scene px {row['bad2_scene']:6.2f} %) {row['seconds']:.3f} s"
+        )
     for label, rows in document["summary"].items():
         click.echo(f"-- {label}")
         for row in rows:
-            click.echo(f"side {row['side']:>5}: epe {row['epe']:.3f} bad2 {row['bad2']:.2f} % "
-                       f"bad2_scene {row['bad2_scene']:.2f} % {row['seconds']:.3f} s ({row['cases']} cases)")
+            click.echo(
+                f"side {row['side']:>5}: epe {row['epe']:.3f} bad2 {row['bad2']:.2f} % "
+                f"bad2_scene {row['bad2_scene']:.2f} % {row['seconds']:.3f} s ({row['cases']} cases)"
+            )

@@ -55,9 +55,10 @@ def inputs_date(card_ids: list[int]) -> datetime:
     give the same files whenever they are written. Truncated to whole seconds, UTC."""
     newest: datetime | None = None
     for start in range(0, len(card_ids), 1000):
-        chunk = card_ids[start:start + 1000]
-        value = db.session.scalar(select(func.max(func.coalesce(CardReview.decided_at, CardReview.updated_at)))
-                                  .where(CardReview.card_id.in_(chunk)))
+        chunk = card_ids[start : start + 1000]
+        value = db.session.scalar(
+            select(func.max(func.coalesce(CardReview.decided_at, CardReview.updated_at))).where(CardReview.card_id.in_(chunk))
+        )
         if value is not None and (newest is None or _utc(value) > newest):
             newest = _utc(value)
     return (newest or EPOCH).replace(microsecond=0)
@@ -71,23 +72,27 @@ def latest_release() -> Release | None:
     return db.session.scalar(select(Release).order_by(Release.id.desc()).limit(1))
 
 
-def stream_release_cards(card_ids: list[int], data_dir: Path, exclusions: list[Exclusion] | None = None,
-                         with_views: bool = False) -> Iterator[ReleaseCard]:
+def stream_release_cards(
+    card_ids: list[int], data_dir: Path, exclusions: list[Exclusion] | None = None, with_views: bool = False
+) -> Iterator[ReleaseCard]:
     """Yield a :class:`ReleaseCard` per id (ascending); a card that cannot be released (no
     finished rectification or disparity, a missing file) is skipped and noted in ``exclusions``.
     ``with_views``: also collect each card's views (see :func:`card_views`)."""
     from annotation.models import Aggregate
 
     for start in range(0, len(card_ids), CHUNK):
-        chunk = card_ids[start:start + CHUNK]
+        chunk = card_ids[start : start + CHUNK]
         cards = db.session.scalars(
-            select(Card).where(Card.id.in_(chunk)).order_by(Card.id)
+            select(Card)
+            .where(Card.id.in_(chunk))
+            .order_by(Card.id)
             .options(selectinload(Card.stage_results), selectinload(Card.collection))
         ).all()
         reviews = {row.card_id: row for row in db.session.scalars(select(CardReview).where(CardReview.card_id.in_(chunk)))}
         crowd: dict[int, dict[str, dict[str, Any]]] = {}
-        for row in db.session.scalars(select(Aggregate).where(Aggregate.card_id.in_(chunk), Aggregate.state == "approved")
-                                      .order_by(Aggregate.id)):
+        for row in db.session.scalars(
+            select(Aggregate).where(Aggregate.card_id.in_(chunk), Aggregate.state == "approved").order_by(Aggregate.id)
+        ):
             crowd.setdefault(row.card_id, {})[row.kind] = {"batch": row.batch_id, "answers": row.answers}
         # The flow rule: an undecided orientation, an open crowd dispute or a grade made from an
         # orientation that changed since keeps an accepted card out of the release.
@@ -130,8 +135,9 @@ def card_views(result: Any, data_dir: Path) -> tuple[dict[str, Path], str]:
     return found, "done"
 
 
-def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]], data_dir: Path,
-                 with_views: bool = False) -> ReleaseCard:
+def release_card(
+    card: Card, review: CardReview, crowd: dict[str, dict[str, Any]], data_dir: Path, with_views: bool = False
+) -> ReleaseCard:
     latest = card.latest_results()
     rectify, disparity, grade = latest.get("rectify"), latest.get("disparity"), latest.get("grade")
     if rectify is None or rectify.status not in ("done", "skipped"):
@@ -159,9 +165,14 @@ def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]
     if not original.is_file():
         raise ReleaseInputError(f"the original scan is missing on disk ({card.stored_path})")
     stages = {
-        result.stage: {"param_hash": result.param_hash, "code_version": result.code_version, "status": result.status,
-                       "inputs_digest": result.metrics.get("inputs_digest")}
-        for result in (rectify, disparity, grade) if result is not None
+        result.stage: {
+            "param_hash": result.param_hash,
+            "code_version": result.code_version,
+            "status": result.status,
+            "inputs_digest": result.metrics.get("inputs_digest"),
+        }
+        for result in (rectify, disparity, grade)
+        if result is not None
     }
     views: dict[str, Path] = {}
     views_note: str | None = None
@@ -169,18 +180,38 @@ def release_card(card: Card, review: CardReview, crowd: dict[str, dict[str, Any]
         views, views_note = card_views(latest.get("views"), data_dir)
         if views:
             result = latest["views"]
-            stages["views"] = {"param_hash": result.param_hash, "code_version": result.code_version,
-                               "status": result.status, "inputs_digest": result.metrics.get("inputs_digest")}
+            stages["views"] = {
+                "param_hash": result.param_hash,
+                "code_version": result.code_version,
+                "status": result.status,
+                "inputs_digest": result.metrics.get("inputs_digest"),
+            }
     orientation = rectify.metrics.get("orientation") or {}
     metadata = dict(card.source_metadata or {})
     return ReleaseCard(
-        card_id=card.id, accession=card.accession, collection=card.collection.name, source_name=card.source_name,
-        content_hash=card.content_hash, original=original, width=card.width, height=card.height,
-        metadata=metadata, museum_url=metadata.get("url") or None,
-        grade=review.grade or "", decision=review.decision, auto_grade=review.auto_grade,
-        orientation=list(orientation.get("applied") or []), rectification=rectification,
-        rectified_left=path(rectify, "left"), rectified_right=path(rectify, "right"),
-        disparity_left=path(disparity, "disparity_left"), disparity_right=path(disparity, "disparity_right"),
-        depth_512=path(disparity, "depth_512"), stages=stages, crowd=crowd, views=views, views_note=views_note,
+        card_id=card.id,
+        accession=card.accession,
+        collection=card.collection.name,
+        source_name=card.source_name,
+        content_hash=card.content_hash,
+        original=original,
+        width=card.width,
+        height=card.height,
+        metadata=metadata,
+        museum_url=metadata.get("url") or None,
+        grade=review.grade or "",
+        decision=review.decision,
+        auto_grade=review.auto_grade,
+        orientation=list(orientation.get("applied") or []),
+        rectification=rectification,
+        rectified_left=path(rectify, "left"),
+        rectified_right=path(rectify, "right"),
+        disparity_left=path(disparity, "disparity_left"),
+        disparity_right=path(disparity, "disparity_right"),
+        depth_512=path(disparity, "depth_512"),
+        stages=stages,
+        crowd=crowd,
+        views=views,
+        views_note=views_note,
         stereo_source=card.stereo_source,
     )

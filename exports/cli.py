@@ -11,12 +11,27 @@ from .records import DEFAULT_FORMATS, FORMATS, RELEASABLE_GRADES
 
 
 @click.command("export")
-@click.option("--out", "out_dir", required=True, type=click.Path(path_type=Path, file_okay=False),
-              help="Folder that holds the releases; this one is written to OUT/<version>.")
-@click.option("--min-grade", type=click.Choice(list(RELEASABLE_GRADES)), default="some", show_default=True,
-              help="Lowest curator grade released (few > some; failure is never released).")
-@click.option("--format", "formats", default=",".join(DEFAULT_FORMATS), show_default=True,
-              help=f"Comma-separated layouts: {', '.join(FORMATS)}.")
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(path_type=Path, file_okay=False),
+    help="Folder that holds the releases; this one is written to OUT/<version>.",
+)
+@click.option(
+    "--min-grade",
+    type=click.Choice(list(RELEASABLE_GRADES)),
+    default="some",
+    show_default=True,
+    help="Lowest curator grade released (few > some; failure is never released).",
+)
+@click.option(
+    "--format",
+    "formats",
+    default=",".join(DEFAULT_FORMATS),
+    show_default=True,
+    help=f"Comma-separated layouts: {', '.join(FORMATS)}.",
+)
 @click.option("--dry-run", is_flag=True, help="Show what would go in, what changed and the version; write nothing.")
 @click.option("--notes", default="", help="Release notes (README and the releases page).")
 @click.option("--json", "as_json", is_flag=True, help="Print the release report as one JSON document.")
@@ -52,26 +67,36 @@ def export_command(out_dir: Path, min_grade: str, formats: str, dry_run: bool, n
         emit_json(report.as_json())
         return
     changes = report.changes
-    summary = (f"{len(changes['added'])} added, {len(changes['removed'])} removed, {len(changes['changed'])} changed"
-               + (f" since {changes['previous_version']}" if changes["previous_version"] else ""))
+    summary = f"{len(changes['added'])} added, {len(changes['removed'])} removed, {len(changes['changed'])} changed" + (
+        f" since {changes['previous_version']}" if changes["previous_version"] else ""
+    )
     grades = ", ".join(f"{k} {v}" for k, v in report.grades.items())
     if dry_run:
         say(f"would write release {report.version} ({changes['kind']}): {report.cards} cards ({grades}); {summary}", as_json)
     else:
-        say(f"wrote release {report.version} to {report.path}: {report.cards} cards ({grades}), {report.files} files, "
-            f"{report.bytes / 1e6:.1f} MB in {report.seconds:.1f} s; {summary}", as_json)
+        say(
+            f"wrote release {report.version} to {report.path}: {report.cards} cards ({grades}), {report.files} files, "
+            f"{report.bytes / 1e6:.1f} MB in {report.seconds:.1f} s; {summary}",
+            as_json,
+        )
     for entry in report.excluded:
         say(f"  not released: card {entry['card_id']}: {entry['reason']}", as_json)
     for leftover in report.leftovers_removed:
-        say(f"  removed {leftover['path']} ({leftover['bytes'] / 1e6:.1f} MB), left by an interrupted export: "
-            f"{leftover['reason']}", as_json)
+        say(
+            f"  removed {leftover['path']} ({leftover['bytes'] / 1e6:.1f} MB), left by an interrupted export: "
+            f"{leftover['reason']}",
+            as_json,
+        )
 
 
 @click.command("verify")
 @click.argument("path", type=click.Path(path_type=Path))
-@click.option("--no-mlcroissant", is_flag=True,
-              help="Skip mlcroissant's own validation (it takes ~100 s and 1.6 GB for 90,000 files); "
-                   "checksums and the Croissant file list are still checked.")
+@click.option(
+    "--no-mlcroissant",
+    is_flag=True,
+    help="Skip mlcroissant's own validation (it takes ~100 s and 1.6 GB for 90,000 files); "
+    "checksums and the Croissant file list are still checked.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document.")
 def verify_command(path: Path, no_mlcroissant: bool, as_json: bool) -> None:
     """Check a release: every checksum, the Croissant file, the Parquet schema, and that every
@@ -86,8 +111,9 @@ def verify_command(path: Path, no_mlcroissant: bool, as_json: bool) -> None:
     else:
         for problem in report.problems:
             click.echo(f"{problem['path']}: {problem['problem']}", err=True)
-        click.echo(f"{'OK' if report.ok else 'FAILED'}: {report.checked} files checked, "
-                   f"{len(report.problems)} problem(s) in {path}")
+        click.echo(
+            f"{'OK' if report.ok else 'FAILED'}: {report.checked} files checked, {len(report.problems)} problem(s) in {path}"
+        )
     if not report.ok:
         raise SystemExit(1)
 

@@ -53,10 +53,21 @@ CONTEXT: dict[str, Any] = {
 }
 
 ENCODINGS = {
-    ".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".tif": "image/tiff", ".tiff": "image/tiff",
-    ".exr": "image/x-exr", ".json": "application/json", ".jsonl": "application/jsonlines",
-    ".parquet": "application/x-parquet", ".tar": "application/x-tar", ".md": "text/markdown",
-    ".webp": "image/webp", ".gif": "image/gif", ".mpo": "image/mpo", ".jps": "image/x-jps",
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".jpeg": "image/jpeg",
+    ".tif": "image/tiff",
+    ".tiff": "image/tiff",
+    ".exr": "image/x-exr",
+    ".json": "application/json",
+    ".jsonl": "application/jsonlines",
+    ".parquet": "application/x-parquet",
+    ".tar": "application/x-tar",
+    ".md": "text/markdown",
+    ".webp": "image/webp",
+    ".gif": "image/gif",
+    ".mpo": "image/mpo",
+    ".jps": "image/x-jps",
 }
 
 # (field name, schema.org / Croissant type, description) of the ``cards`` record set.
@@ -77,8 +88,14 @@ CARD_FIELDS: tuple[tuple[str, str, str], ...] = (
 VIEW_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("key", "sc:Text", "The card's key (as in cards): its views are in views/<key>/."),
     ("card_id", "sc:Integer", "The card's id in the catalogue."),
-    ("folder", "sc:Text", ("Folder of v0.png..v4.png (8-bit grey, or RGB for a colour card), v0_depth.exr..v4_depth.exr (float32 depth, baseline 1), "
-                           "views.json (cameras) and preview.webp.")),
+    (
+        "folder",
+        "sc:Text",
+        (
+            "Folder of v0.png..v4.png (8-bit grey, or RGB for a colour card), v0_depth.exr..v4_depth.exr (float32 depth, baseline 1), "
+            "views.json (cameras) and preview.webp."
+        ),
+    ),
     ("width", "sc:Integer", "Width of the five views in pixels."),
     ("height", "sc:Integer", "Height of the five views in pixels."),
     ("focal_px", "sc:Float", "Focal length of the reference view v0 in pixels."),
@@ -113,8 +130,15 @@ def _file_id(path: str) -> str:
 
 
 def file_object(path: str, sha: str, size: int) -> dict[str, Any]:
-    return {"@type": "cr:FileObject", "@id": _file_id(path), "name": path, "contentUrl": path,
-            "contentSize": f"{size} B", "encodingFormat": _encoding(path), "sha256": sha}
+    return {
+        "@type": "cr:FileObject",
+        "@id": _file_id(path),
+        "name": path,
+        "contentUrl": path,
+        "contentSize": f"{size} B",
+        "encodingFormat": _encoding(path),
+        "sha256": sha,
+    }
 
 
 DISTRIBUTION_MARK = "@@distribution@@"
@@ -143,45 +167,80 @@ def write_croissant(handle: IO[bytes], files: dict[str, tuple[str, int]], **docu
 def _jsonl_record_set(name: str, fields: Any, description: str) -> dict[str, Any]:
     """A RecordSet read from the release's ``<name>/<name>.jsonl`` index, one field per column."""
     return {
-        "@type": "cr:RecordSet", "@id": name, "name": name, "description": description,
+        "@type": "cr:RecordSet",
+        "@id": name,
+        "name": name,
+        "description": description,
         "key": {"@id": f"{name}/key"},
         "field": [
-            {"@type": "cr:Field", "@id": f"{name}/{field}", "name": field, "description": field_description,
-             "dataType": kind,
-             "source": {"fileObject": {"@id": _file_id(f"{name}/{name}.jsonl")}, "extract": {"column": field}}}
+            {
+                "@type": "cr:Field",
+                "@id": f"{name}/{field}",
+                "name": field,
+                "description": field_description,
+                "dataType": kind,
+                "source": {"fileObject": {"@id": _file_id(f"{name}/{name}.jsonl")}, "extract": {"column": field}},
+            }
             for field, kind, field_description in fields
         ],
     }
 
 
-def croissant_document(*, version: str, date: str, files: dict[str, tuple[str, int]], card_count: int,
-                       grade_counts: dict[str, int], crowd: dict[str, Any], notes: str,
-                       name: str = "keystone-stereographs", views_count: int | None = None,
-                       stereo_count: int | None = None) -> dict[str, Any]:
+def croissant_document(
+    *,
+    version: str,
+    date: str,
+    files: dict[str, tuple[str, int]],
+    card_count: int,
+    grade_counts: dict[str, int],
+    crowd: dict[str, Any],
+    notes: str,
+    name: str = "keystone-stereographs",
+    views_count: int | None = None,
+    stereo_count: int | None = None,
+) -> dict[str, Any]:
     """The Croissant JSON-LD document (``files``: relative path -> (sha256, bytes));
     ``views_count`` (cards with views) is given when the release has the views component."""
     distribution = [file_object(path, sha, size) for path, (sha, size) in sorted(files.items())]
     fields = [
-        {"@type": "cr:Field", "@id": f"cards/{field}", "name": field, "description": description, "dataType": kind,
-         "source": {"fileObject": {"@id": _file_id("cards.jsonl")}, "extract": {"column": field}}}
+        {
+            "@type": "cr:Field",
+            "@id": f"cards/{field}",
+            "name": field,
+            "description": description,
+            "dataType": kind,
+            "source": {"fileObject": {"@id": _file_id("cards.jsonl")}, "extract": {"column": field}},
+        }
         for field, kind, description in CARD_FIELDS
     ]
-    record_sets = [{
-        "@type": "cr:RecordSet", "@id": "cards", "name": "cards",
-        "description": f"One record per released card ({card_count} cards).",
-        "key": {"@id": "cards/key"},
-        "field": fields,
-    }]
+    record_sets = [
+        {
+            "@type": "cr:RecordSet",
+            "@id": "cards",
+            "name": "cards",
+            "description": f"One record per released card ({card_count} cards).",
+            "key": {"@id": "cards/key"},
+            "field": fields,
+        }
+    ]
     if views_count is not None:
-        record_sets.append(_jsonl_record_set(
-            "views", VIEW_FIELDS,
-            f"The five GD images per card (reference view v0 and quad corners v1..v4, KeystoneDepth "
-            f"section 5) for {views_count} of {card_count} cards; one record per card with views."))
+        record_sets.append(
+            _jsonl_record_set(
+                "views",
+                VIEW_FIELDS,
+                f"The five GD images per card (reference view v0 and quad corners v1..v4, KeystoneDepth "
+                f"section 5) for {views_count} of {card_count} cards; one record per card with views.",
+            )
+        )
     if stereo_count is not None:
-        record_sets.append(_jsonl_record_set(
-            "stereo", STEREO_FIELDS,
-            f"Viewing files of the rectified pair (anaglyph, wiggles, side-by-side, JPS, MPO) for "
-            f"{stereo_count} of {card_count} cards; one record per card with them."))
+        record_sets.append(
+            _jsonl_record_set(
+                "stereo",
+                STEREO_FIELDS,
+                f"Viewing files of the rectified pair (anaglyph, wiggles, side-by-side, JPS, MPO) for "
+                f"{stereo_count} of {card_count} cards; one record per card with them.",
+            )
+        )
     answers = crowd.get("answers_per_card")
     return {
         "@context": CONTEXT,
@@ -199,44 +258,57 @@ def croissant_document(*, version: str, date: str, files: dict[str, tuple[str, i
         "url": "https://github.com/keystone-stereo/keystone",
         "creator": {"@type": "sc:Organization", "name": "Keystone curators"},
         "keywords": ["stereo", "stereograph", "disparity", "depth estimation", "cultural heritage", "KeystoneDepth"],
-        "citeAs": ("@inproceedings{luo2020keystonedepth, title={KeystoneDepth: History in 3D}, "
-                   "author={Luo, Xuan and Kong, Yanmeng and Lawrence, Jason and Martin-Brualla, Ricardo and "
-                   "Seitz, Steven M.}, booktitle={International Conference on 3D Vision (3DV)}, year={2020}}"),
+        "citeAs": (
+            "@inproceedings{luo2020keystonedepth, title={KeystoneDepth: History in 3D}, "
+            "author={Luo, Xuan and Kong, Yanmeng and Lawrence, Jason and Martin-Brualla, Ricardo and "
+            "Seitz, Steven M.}, booktitle={International Conference on 3D Vision (3DV)}, year={2020}}"
+        ),
         "isLiveDataset": False,
         "rai:dataCollection": (
             "Scans of antique stereo cards with their museum catalogue records (accession, title, date, creator, "
-            "publisher, place, URL). Each scan is stored once by content hash and never modified."),
+            "publisher, place, URL). Each scan is stored once by content hash and never modified."
+        ),
         "rai:dataCollectionType": "Secondary data: digitised museum holdings",
         "rai:dataAnnotationProtocol": (
             "Crowd workers judged each card (stereo pair or not, upside down, inverted intensities) and drew the "
             "largest artifact-free crop box on each half; answers were aggregated per card (Dawid-Skene for "
             "judgements, consensus for boxes) and disputed aggregates went to a curator. An automatic grader "
             "scored each rectified pair (few artifacts / some artifacts / failure) and curators accepted or "
-            "changed every grade in this release."),
+            "changed every grade in this release."
+        ),
         "rai:dataAnnotationPlatform": "Keystone's own crowd task pages (invite links and Prolific-style study links)",
-        "rai:annotationsPerItem": (f"{answers:.2f} crowd answers per card on average" if answers is not None
-                                   else "no crowd answers: boxes from the automatic split, grades by curators"),
+        "rai:annotationsPerItem": (
+            f"{answers:.2f} crowd answers per card on average"
+            if answers is not None
+            else "no crowd answers: boxes from the automatic split, grades by curators"
+        ),
         "rai:dataAnnotationAnalysis": (
             "Agreement per crowd batch (Krippendorff's alpha for judgements, IoU for boxes) and agreement of the "
-            "automatic grade with curators are reported by `keystone report`."),
+            "automatic grade with curators are reported by `keystone report`."
+        ),
         "rai:machineAnnotationTools": "SIFT filtering, Loop-Zhang rectification, dense optical flow disparity (OpenCV)",
         "rai:dataPreprocessingProtocol": (
             "Orientation corrections (rotate 180 deg, invert) are applied to derived images only; views are cropped "
-            "to the aligned crowd boxes and rectified; disparity is the horizontal flow between rectified views."),
+            "to the aligned crowd boxes and rectified; disparity is the horizontal flow between rectified views."
+        ),
         "rai:dataBiases": (
             "Stereo cards over-represent tourist sites, exhibitions and studio scenes chosen by commercial "
             "publishers (1850s-1960s); their captions reflect the views of their time. Cards graded failure are "
-            f"never released, so hard scenes are under-represented. Grades here: {grade_counts}."),
+            f"never released, so hard scenes are under-represented. Grades here: {grade_counts}."
+        ),
         "rai:dataLimitations": (
             "Depth is up to scale (unknown baseline); disparity maps are estimated, not measured, and are unknown "
-            "(NaN) where no match was found. Pairs are never perfectly rectified."),
+            "(NaN) where no match was found. Pairs are never perfectly rectified."
+        ),
         "rai:personalSensitiveInformation": (
             "Historic photographs may show identifiable people, now deceased; no personal data of annotators is "
-            "released (crowd answers appear only as counts per card)."),
+            "released (crowd answers appear only as counts per card)."
+        ),
         "rai:dataUseCases": "Stereo matching and monocular depth on historic photographs; novel view synthesis.",
         "rai:dataReleaseMaintenancePlan": (
             "Semantic versions: patch = same data re-serialised, minor = cards added, major = cards removed or "
-            "changed; every release has a CHANGELOG against the one before and a SHA256SUMS file."),
+            "changed; every release has a CHANGELOG against the one before and a SHA256SUMS file."
+        ),
         "distribution": distribution,
         "recordSet": record_sets,
     }

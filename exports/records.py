@@ -47,8 +47,10 @@ PART_WORDS: dict[str, str] = {
 def grades_at_or_above(min_grade: str) -> tuple[str, ...]:
     """``few`` -> (few,); ``some`` -> (few, some). Failure is refused: it is never released."""
     if min_grade not in RELEASABLE_GRADES:
-        raise ValueError(f"Expected a minimum grade of {' or '.join(RELEASABLE_GRADES)}, got {min_grade!r} "
-                         "(cards graded failure are never released)")
+        raise ValueError(
+            f"Expected a minimum grade of {' or '.join(RELEASABLE_GRADES)}, got {min_grade!r} "
+            "(cards graded failure are never released)"
+        )
     return RELEASABLE_GRADES[: RELEASABLE_GRADES.index(min_grade) + 1]
 
 
@@ -144,14 +146,25 @@ class ReleaseCard:
     def record(self) -> dict[str, Any]:
         """The card's metadata as one JSON-safe document (``cards.jsonl``, WebDataset ``.json``)."""
         return {
-            "key": self.key, "card_id": self.card_id, "accession": self.accession, "collection": self.collection,
-            "source_name": self.source_name, "original_sha256": self.content_hash,
-            "original_size": [self.width, self.height], "museum_url": self.museum_url, "metadata": self.metadata,
-            "grade": self.grade, "review_decision": self.decision, "automatic_grade": self.auto_grade,
+            "key": self.key,
+            "card_id": self.card_id,
+            "accession": self.accession,
+            "collection": self.collection,
+            "source_name": self.source_name,
+            "original_sha256": self.content_hash,
+            "original_size": [self.width, self.height],
+            "museum_url": self.museum_url,
+            "metadata": self.metadata,
+            "grade": self.grade,
+            "review_decision": self.decision,
+            "automatic_grade": self.auto_grade,
             "orientation_corrections": self.orientation,
-            "left_box": self.left_box, "right_box": self.right_box,
+            "left_box": self.left_box,
+            "right_box": self.right_box,
             "rectification": {k: self.rectification.get(k) for k in RECTIFICATION_KEYS if k in self.rectification},
-            "pipeline": self.stages, "crowd": self.crowd, "digest": self.manifest_entry()["digest"],
+            "pipeline": self.stages,
+            "crowd": self.crowd,
+            "digest": self.manifest_entry()["digest"],
             **({} if self.views_note is None else {"views": self.views_record()}),
             **({} if self.stereo_source is None else {"stereo_source": released_stereo_source(self.stereo_source)}),
         }
@@ -165,14 +178,29 @@ class ReleaseCard:
 
 def released_stereo_source(source: dict[str, Any]) -> dict[str, Any]:
     """A card's stereo source as released: no path of the ingesting machine, only names and hashes."""
-    originals = [{k: original.get(k) for k in ("role", "source_name", "sha256", "bytes")}
-                 for original in source.get("originals") or []]
+    originals = [
+        {k: original.get(k) for k in ("role", "source_name", "sha256", "bytes")} for original in source.get("originals") or []
+    ]
     return {**{k: v for k, v in source.items() if k != "originals"}, "originals": originals}
 
 
 RECTIFICATION_KEYS: tuple[str, ...] = (
-    "convention", "H_l", "H_r", "K", "R", "t", "size", "left_box", "right_box", "disparity_min", "disparity_max",
-    "dy_median", "dy_p95", "swapped", "warp_needed", "implied_pose",
+    "convention",
+    "H_l",
+    "H_r",
+    "K",
+    "R",
+    "t",
+    "size",
+    "left_box",
+    "right_box",
+    "disparity_min",
+    "disparity_max",
+    "dy_median",
+    "dy_p95",
+    "swapped",
+    "warp_needed",
+    "implied_pose",
 )
 
 
@@ -196,14 +224,17 @@ class Changes:
 
     def as_json(self) -> dict[str, Any]:
         return {
-            "previous_version": self.previous_version, "kind": self.kind,
-            "added": self.added, "removed": self.removed,
+            "previous_version": self.previous_version,
+            "kind": self.kind,
+            "added": self.added,
+            "removed": self.removed,
             "changed": [{"card_id": card_id, "why": why} for card_id, why in sorted(self.changed.items())],
         }
 
 
-def compare_manifests(previous: dict[str, dict[str, Any]] | None, current: dict[str, dict[str, Any]],
-                      previous_version: str | None) -> Changes:
+def compare_manifests(
+    previous: dict[str, dict[str, Any]] | None, current: dict[str, dict[str, Any]], previous_version: str | None
+) -> Changes:
     """Diff two manifests (``{str(card id): manifest entry}``) into a :class:`Changes`."""
     if previous is None:
         return Changes(added=sorted(int(k) for k in current), removed=[], changed={}, previous_version=None)

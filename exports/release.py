@@ -93,12 +93,25 @@ class ReleaseReport:
 
     def as_json(self) -> dict[str, Any]:
         return {
-            "version": self.version, "path": self.path, "cards": self.cards, "formats": self.formats,
-            "min_grade": self.min_grade, "date": self.date, "changes": self.changes, "grades": self.grades,
-            "excluded": self.excluded, "seconds": round(self.seconds, 3), "files": self.files, "bytes": self.bytes,
-            "dry_run": self.dry_run, "manifest_sha256": self.manifest_sha256, "release_id": self.release_id,
+            "version": self.version,
+            "path": self.path,
+            "cards": self.cards,
+            "formats": self.formats,
+            "min_grade": self.min_grade,
+            "date": self.date,
+            "changes": self.changes,
+            "grades": self.grades,
+            "excluded": self.excluded,
+            "seconds": round(self.seconds, 3),
+            "files": self.files,
+            "bytes": self.bytes,
+            "dry_run": self.dry_run,
+            "manifest_sha256": self.manifest_sha256,
+            "release_id": self.release_id,
             "cards_per_second": round(self.cards / self.seconds, 2) if self.seconds > 0 and not self.dry_run else None,
-            "views": self.views, "leftovers_removed": self.leftovers_removed, "stereo": self.stereo,
+            "views": self.views,
+            "leftovers_removed": self.leftovers_removed,
+            "stereo": self.stereo,
         }
 
 
@@ -120,8 +133,9 @@ def _count_grades(manifest: dict[str, dict[str, Any]]) -> dict[str, int]:
     return {grade: counts.get(grade, 0) for grade in ("few", "some")}
 
 
-def plan_release(*, min_grade: str = "some", formats: str | tuple[str, ...] = DEFAULT_FORMATS,
-                 notes: str = "", data_dir: Path | None = None) -> ReleaseReport:
+def plan_release(
+    *, min_grade: str = "some", formats: str | tuple[str, ...] = DEFAULT_FORMATS, notes: str = "", data_dir: Path | None = None
+) -> ReleaseReport:
     """The dry run: which cards would go in, what changed since the last release, the version.
 
     Reads the catalogue only (no file is written); cards whose outputs are incomplete are
@@ -144,10 +158,19 @@ def plan_release(*, min_grade: str = "some", formats: str | tuple[str, ...] = DE
                 views.add(card.views_note or "views not run")
     changes = compare_manifests(previous.manifest, manifest, previous.version)
     return ReleaseReport(
-        version=next_version(previous.version, changes.kind), path=None, cards=len(manifest), formats=list(fmt),
-        min_grade=min_grade, date=date.isoformat(), changes=changes.as_json(), grades=_count_grades(manifest),
+        version=next_version(previous.version, changes.kind),
+        path=None,
+        cards=len(manifest),
+        formats=list(fmt),
+        min_grade=min_grade,
+        date=date.isoformat(),
+        changes=changes.as_json(),
+        grades=_count_grades(manifest),
         excluded=[{"card_id": e.card_id, "reason": e.reason} for e in exclusions],
-        seconds=time.perf_counter() - clock, dry_run=True, notes=notes, manifest=manifest,
+        seconds=time.perf_counter() - clock,
+        dry_run=True,
+        notes=notes,
+        manifest=manifest,
         views=views.as_json() if views is not None else None,
     )
 
@@ -166,8 +189,11 @@ class _ViewsCount:
             self.without[note] = self.without.get(note, 0) + 1
 
     def as_json(self) -> dict[str, Any]:
-        return {"cards_with_views": self.with_views, "cards_without_views": sum(self.without.values()),
-                "without": dict(sorted(self.without.items()))}
+        return {
+            "cards_with_views": self.with_views,
+            "cards_without_views": sum(self.without.values()),
+            "without": dict(sorted(self.without.items())),
+        }
 
 
 def _data_dir() -> Path:
@@ -176,10 +202,17 @@ def _data_dir() -> Path:
     return data_dir()
 
 
-def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
-                    formats: str | tuple[str, ...] = DEFAULT_FORMATS, notes: str = "", actor: Person | None = None,
-                    actor_label: str = "cli", progress: Progress | None = None,
-                    data_dir: Path | None = None) -> ReleaseReport:
+def publish_release(
+    out_dir: str | os.PathLike[str],
+    *,
+    min_grade: str = "some",
+    formats: str | tuple[str, ...] = DEFAULT_FORMATS,
+    notes: str = "",
+    actor: Person | None = None,
+    actor_label: str = "cli",
+    progress: Progress | None = None,
+    data_dir: Path | None = None,
+) -> ReleaseReport:
     """Write a release of the accepted cards into ``<out_dir>/<version>``, record a Release row
     and an audit event. Raises :class:`ReleaseError` when there is nothing to release or the
     version's folder or row already exists; nothing is left behind on any error."""
@@ -192,8 +225,13 @@ def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
         raise ReleaseError(
             f"no curator-accepted cards at grade {' or '.join(grades_at_or_above(min_grade))} with finished "
             "rectification and disparity: review cards on /review (accept or change their grade) first"
-            + (f"; {len(plan.excluded)} accepted card(s) excluded, e.g. card {plan.excluded[0]['card_id']}: "
-               f"{plan.excluded[0]['reason']}" if plan.excluded else ""))
+            + (
+                f"; {len(plan.excluded)} accepted card(s) excluded, e.g. card {plan.excluded[0]['card_id']}: "
+                f"{plan.excluded[0]['reason']}"
+                if plan.excluded
+                else ""
+            )
+        )
     out.mkdir(parents=True, exist_ok=True)
     leftovers = remove_stale_partials(out)  # of exports killed before they could clean up
     holder = ReleaseStaging(out, plan.version)
@@ -204,12 +242,24 @@ def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
         if target.exists():
             raise ReleaseError(f"{target} already exists: releases are immutable; choose another --out")
         release = Release(
-            version=report.version, path=str(target), min_grade=min_grade, formats=list(fmt),
-            card_count=report.cards, notes=notes, manifest_sha256=report.manifest_sha256 or "",
+            version=report.version,
+            path=str(target),
+            min_grade=min_grade,
+            formats=list(fmt),
+            card_count=report.cards,
+            notes=notes,
+            manifest_sha256=report.manifest_sha256 or "",
             created_by=actor.id if actor is not None else None,
-            stats={"grades": report.grades, "bytes": report.bytes, "files": report.files,
-                   "seconds": round(time.perf_counter() - clock, 3), "date": report.date,
-                   "excluded": report.excluded, "views": report.views, "manifest": report.manifest},
+            stats={
+                "grades": report.grades,
+                "bytes": report.bytes,
+                "files": report.files,
+                "seconds": round(time.perf_counter() - clock, 3),
+                "date": report.date,
+                "excluded": report.excluded,
+                "views": report.views,
+                "manifest": report.manifest,
+            },
             changes=report.changes,
         )
         db.session.add(release)
@@ -220,10 +270,21 @@ def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
             raise ReleaseError(f"release {report.version} is already recorded in the catalogue") from exc
         from review.models import record_event
 
-        record_event(entity="release", action="publish", entity_id=release.id, actor=actor, actor_label=actor_label,
-                     after={"version": report.version, "cards": report.cards, "formats": list(fmt),
-                            "min_grade": min_grade, "manifest_sha256": report.manifest_sha256},
-                     why=notes or f"release {report.version}")
+        record_event(
+            entity="release",
+            action="publish",
+            entity_id=release.id,
+            actor=actor,
+            actor_label=actor_label,
+            after={
+                "version": report.version,
+                "cards": report.cards,
+                "formats": list(fmt),
+                "min_grade": min_grade,
+                "manifest_sha256": report.manifest_sha256,
+            },
+            why=notes or f"release {report.version}",
+        )
         make_world_readable(staging)
         os.replace(staging, target)
         try:
@@ -243,8 +304,7 @@ def publish_release(out_dir: str | os.PathLike[str], *, min_grade: str = "some",
     return report
 
 
-def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path,
-           progress: Progress | None) -> ReleaseReport:
+def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path, progress: Progress | None) -> ReleaseReport:
     clock = time.perf_counter()
     date = datetime.fromisoformat(plan.date)
     ledger = FileLedger(root)
@@ -289,8 +349,9 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
         writer.close()
     ledger.record_file("cards.jsonl")
     if not manifest:
-        raise ReleaseError("every eligible card was excluded: " + "; ".join(
-            f"card {e.card_id}: {e.reason}" for e in exclusions[:5]))
+        raise ReleaseError(
+            "every eligible card was excluded: " + "; ".join(f"card {e.card_id}: {e.reason}" for e in exclusions[:5])
+        )
 
     previous = _previous_for(plan)
     changes = compare_manifests(previous.manifest, manifest, previous.version)
@@ -299,18 +360,31 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     excluded = plan.excluded + [{"card_id": e.card_id, "reason": e.reason} for e in exclusions]
     views: dict[str, Any] | None = None
     if views_writer is not None:
-        views = {"cards_with_views": views_writer.with_views, "cards_without_views": sum(views_writer.without.values()),
-                 "without": dict(sorted(views_writer.without.items()))}
+        views = {
+            "cards_with_views": views_writer.with_views,
+            "cards_without_views": sum(views_writer.without.values()),
+            "without": dict(sorted(views_writer.without.items())),
+        }
     stereo = stereo_writer.summary() if stereo_writer is not None else None
     ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, views, stereo).encode())
-    ledger.write_bytes("README.md", dataset_card(version, plan.date, len(manifest), grades, fmt, plan.notes,
-                                                 changes, plan.min_grade, views, stereo).encode())
+    ledger.write_bytes(
+        "README.md",
+        dataset_card(version, plan.date, len(manifest), grades, fmt, plan.notes, changes, plan.min_grade, views, stereo).encode(),
+    )
     crowd = {"answers_per_card": crowd_answers / crowd_cards if crowd_cards else None, "cards_with_crowd": crowd_cards}
     with open(root / "croissant.json", "wb") as handle:
-        write_croissant(handle, ledger.files, version=version, date=plan.date, card_count=len(manifest),
-                        grade_counts=grades, crowd=crowd, notes=plan.notes,
-                        views_count=views["cards_with_views"] if views is not None else None,
-                        stereo_count=stereo["cards"] if stereo is not None else None)
+        write_croissant(
+            handle,
+            ledger.files,
+            version=version,
+            date=plan.date,
+            card_count=len(manifest),
+            grade_counts=grades,
+            crowd=crowd,
+            notes=plan.notes,
+            views_count=views["cards_with_views"] if views is not None else None,
+            stereo_count=stereo["cards"] if stereo is not None else None,
+        )
     ledger.record_file("croissant.json")
     sums_hash = hashlib.sha256()
     sums_bytes = 0
@@ -321,10 +395,23 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
             sums_hash.update(line)
             sums_bytes += len(line)
     return ReleaseReport(
-        version=version, path=None, cards=len(manifest), formats=list(fmt), min_grade=plan.min_grade, date=plan.date,
-        changes=changes.as_json(), grades=grades, excluded=excluded, seconds=time.perf_counter() - clock,
-        files=len(ledger.files) + 1, bytes=ledger.total_bytes + sums_bytes,
-        manifest_sha256=sums_hash.hexdigest(), notes=plan.notes, manifest=manifest, views=views, stereo=stereo,
+        version=version,
+        path=None,
+        cards=len(manifest),
+        formats=list(fmt),
+        min_grade=plan.min_grade,
+        date=plan.date,
+        changes=changes.as_json(),
+        grades=grades,
+        excluded=excluded,
+        seconds=time.perf_counter() - clock,
+        files=len(ledger.files) + 1,
+        bytes=ledger.total_bytes + sums_bytes,
+        manifest_sha256=sums_hash.hexdigest(),
+        notes=plan.notes,
+        manifest=manifest,
+        views=views,
+        stereo=stereo,
     )
 
 
@@ -333,8 +420,14 @@ def _previous_for(plan: ReleaseReport) -> _Previous:
         return _previous()
 
 
-def changelog(version: str, date: str, changes: Changes, excluded: list[dict[str, Any]],
-              views: dict[str, Any] | None = None, stereo: dict[str, Any] | None = None) -> str:
+def changelog(
+    version: str,
+    date: str,
+    changes: Changes,
+    excluded: list[dict[str, Any]],
+    views: dict[str, Any] | None = None,
+    stereo: dict[str, Any] | None = None,
+) -> str:
     """CHANGELOG.md: cards added, removed and changed against the previous release, and why;
     with the views component, how many cards have views and why the others have none."""
     day = date[:10]
@@ -342,13 +435,19 @@ def changelog(version: str, date: str, changes: Changes, excluded: list[dict[str
     if changes.previous_version is None:
         lines.append(f"First release: {len(changes.added)} card(s).")
     else:
-        lines.append(f"Against {changes.previous_version}: a {changes.kind} release "
-                     f"({len(changes.added)} added, {len(changes.removed)} removed, {len(changes.changed)} changed).")
+        lines.append(
+            f"Against {changes.previous_version}: a {changes.kind} release "
+            f"({len(changes.added)} added, {len(changes.removed)} removed, {len(changes.changed)} changed)."
+        )
     if changes.previous_version is not None:
-        sections = (("Added", [f"- card {key_of(i)}" for i in changes.added]),
-                    ("Removed", [f"- card {key_of(i)}: no longer accepted at this grade, or its outputs are incomplete"
-                                 for i in changes.removed]),
-                    ("Changed", [f"- card {key_of(i)}: " + "; ".join(why) for i, why in sorted(changes.changed.items())]))
+        sections = (
+            ("Added", [f"- card {key_of(i)}" for i in changes.added]),
+            (
+                "Removed",
+                [f"- card {key_of(i)}: no longer accepted at this grade, or its outputs are incomplete" for i in changes.removed],
+            ),
+            ("Changed", [f"- card {key_of(i)}: " + "; ".join(why) for i, why in sorted(changes.changed.items())]),
+        )
         for title, items in sections:
             lines += ["", f"### {title} ({len(items)})", ""] + (items or ["- none"])
     if views is not None:
@@ -373,17 +472,36 @@ def key_of(card_id: int) -> str:
     return card_key(card_id)
 
 
-def dataset_card(version: str, date: str, cards: int, grades: dict[str, int], fmt: tuple[str, ...], notes: str,
-                 changes: Changes, min_grade: str, views: dict[str, Any] | None = None,
-                 stereo: dict[str, Any] | None = None) -> str:
+def dataset_card(
+    version: str,
+    date: str,
+    cards: int,
+    grades: dict[str, int],
+    fmt: tuple[str, ...],
+    notes: str,
+    changes: Changes,
+    min_grade: str,
+    views: dict[str, Any] | None = None,
+    stereo: dict[str, Any] | None = None,
+) -> str:
     """README.md in the Hugging Face dataset-card layout (YAML header, then the template's sections)."""
     size = "n<1K" if cards < 1000 else "1K<n<10K" if cards < 10_000 else "10K<n<100K"
-    header = ["---", "pretty_name: Keystone stereographs", "license: other",
-              "license_name: public-domain-mark-where-applicable", "task_categories:", "- depth-estimation",
-              "tags:", "- stereo", "- disparity", "- cultural-heritage", "size_categories:", f"- {size}"]
+    header = [
+        "---",
+        "pretty_name: Keystone stereographs",
+        "license: other",
+        "license_name: public-domain-mark-where-applicable",
+        "task_categories:",
+        "- depth-estimation",
+        "tags:",
+        "- stereo",
+        "- disparity",
+        "- cultural-heritage",
+        "size_categories:",
+        f"- {size}",
+    ]
     if "parquet" in fmt:
-        header += ["configs:", "- config_name: default", "  data_files:", "  - split: train",
-                   "    path: data/train-*.parquet"]
+        header += ["configs:", "- config_name: default", "  data_files:", "  - split: train", "    path: data/train-*.parquet"]
     header.append("---")
     layout = []
     if "keystonedepth" in fmt:
@@ -399,12 +517,16 @@ def dataset_card(version: str, date: str, cards: int, grades: dict[str, int], fm
             "- `original/<id>.<ext>`: the scan as ingested (never modified).",
         ]
     if "parquet" in fmt:
-        layout.append("- `data/train-*.parquet`: one row per card; image columns (`original`, `cropped_left/right`, "
-                      "`rectified_left/right`) load as images with `datasets.load_dataset('parquet', ...)` or "
-                      "`load_dataset(<this folder>)`; maps are `list<list<float32>>`; typed metadata columns.")
+        layout.append(
+            "- `data/train-*.parquet`: one row per card; image columns (`original`, `cropped_left/right`, "
+            "`rectified_left/right`) load as images with `datasets.load_dataset('parquet', ...)` or "
+            "`load_dataset(<this folder>)`; maps are `list<list<float32>>`; typed metadata columns."
+        )
     if "webdataset" in fmt:
-        layout.append("- `webdataset/keystone-*.tar`: WebDataset shards; keys are the dot-free card ids, members "
-                      "`<id>.json`, `<id>.left.png`, `<id>.right.png`, `<id>.disparity_left.npy`, ...")
+        layout.append(
+            "- `webdataset/keystone-*.tar`: WebDataset shards; keys are the dot-free card ids, members "
+            "`<id>.json`, `<id>.left.png`, `<id>.right.png`, `<id>.disparity_left.npy`, ..."
+        )
     if views is not None:
         layout.append(
             f"- `views/<id>/`: the five GD images of the scene for {views['cards_with_views']} of "
@@ -415,7 +537,8 @@ def dataset_card(version: str, date: str, cards: int, grades: dict[str, int], fm
             "`v4_depth.exr`, float32 channel `Y`, depth along each view's -z axis in baseline units (up to scale), "
             "finite and > 0 at every pixel (EXR as KeystoneDepth's maps); `views.json`, the five cameras (OpenGL "
             "convention, `x_cam = R x_world + t`, world = v0's camera, focal length in px, principal point at the "
-            "image centre); `preview.webp`, an animated parallax preview. `views/views.jsonl` lists them.")
+            "image centre); `preview.webp`, an animated parallax preview. `views/views.jsonl` lists them."
+        )
     if stereo is not None:
         layout.append(
             f"- `stereo/<id>/`: viewing files of the rectified pair for {stereo['cards']} cards: `anaglyph.jpg` "
@@ -425,41 +548,71 @@ def dataset_card(version: str, date: str, cards: int, grades: dict[str, int], fm
             "left view on the left; half = each view squeezed to half width, for 3D TVs and headsets), `cross.jps` "
             "(JPS: cross-eyed, right view on the left) and `pair.mpo` (multi-picture JPEG, left view first, for 3D "
             "displays and cameras). Each carries the card's title, date, accession and licence (EXIF and XMP; "
-            "the GIF's comment). `stereo/stereo.jsonl` lists them.")
-    layout += ["- `cards.jsonl`: one JSON record per card (museum metadata and URL, boxes, transforms, grade, review "
-               "decision, pipeline versions and parameter hashes).",
-               "- `croissant.json` (Croissant 1.1 with Responsible-AI fields), `SHA256SUMS`, `CHANGELOG.md`.",
-               "", "Check a copy with `keystone verify <folder>` or `sha256sum -c SHA256SUMS`."]
-    since = ("first release" if changes.previous_version is None else
-             f"{changes.kind} release after {changes.previous_version}: {len(changes.added)} added, "
-             f"{len(changes.removed)} removed, {len(changes.changed)} changed (see CHANGELOG.md)")
+            "the GIF's comment). `stereo/stereo.jsonl` lists them."
+        )
+    layout += [
+        "- `cards.jsonl`: one JSON record per card (museum metadata and URL, boxes, transforms, grade, review "
+        "decision, pipeline versions and parameter hashes).",
+        "- `croissant.json` (Croissant 1.1 with Responsible-AI fields), `SHA256SUMS`, `CHANGELOG.md`.",
+        "",
+        "Check a copy with `keystone verify <folder>` or `sha256sum -c SHA256SUMS`.",
+    ]
+    since = (
+        "first release"
+        if changes.previous_version is None
+        else f"{changes.kind} release after {changes.previous_version}: {len(changes.added)} added, "
+        f"{len(changes.removed)} removed, {len(changes.changed)} changed (see CHANGELOG.md)"
+    )
     body = [
-        "", f"# Keystone stereographs {version}", "",
-        "## Dataset Description", "",
+        "",
+        f"# Keystone stereographs {version}",
+        "",
+        "## Dataset Description",
+        "",
         f"Antique stereo cards turned into rectified stereo pairs with disparity and depth, after KeystoneDepth. "
         f"Release {version} of {date[:10]}: {cards} cards ({grades.get('few', 0)} with few artifacts, "
         f"{grades.get('some', 0)} with some artifacts; minimum grade `{min_grade}`); {since}.",
         *([""] + [f"Notes: {notes.strip()}"] if notes.strip() else []),
-        "", "## Dataset Structure", "", *layout,
-        "", "## Dataset Creation", "",
-        "### Curation Rationale", "",
+        "",
+        "## Dataset Structure",
+        "",
+        *layout,
+        "",
+        "## Dataset Creation",
+        "",
+        "### Curation Rationale",
+        "",
         "Historic stereographs hold real stereo geometry; recovering it gives depth data of the past.",
-        "", "### Source Data", "",
+        "",
+        "### Source Data",
+        "",
         "Scans of stereo cards with the holding museum's catalogue records (accession number, title, date, "
         "creator, publisher, place, URL where known). Each card's metadata travels in `cards.jsonl`.",
-        "", "## Annotations", "",
+        "",
+        "## Annotations",
+        "",
         "Crowd workers judged each card (a stereo pair? upside down? inverted?) and drew crop boxes on both halves; "
         "answers were aggregated and disputes went to curators. The automatic grader rated every rectified pair "
         "(few / some artifacts / failure); a curator accepted or changed each grade of this release. Annotator "
         "identities are not released.",
-        "", "## Bias, Risks, and Limitations", "",
+        "",
+        "## Bias, Risks, and Limitations",
+        "",
         "Commercial stereo publishers chose tourist sites, exhibitions and staged scenes; captions carry the views "
         "of their time. Cards graded failure are left out, so difficult scenes are under-represented. Depth is up "
         "to scale and estimated from optical flow, not measured; pairs are never perfectly rectified.",
-        "", "## Citation", "", "```bibtex",
-        "@inproceedings{luo2020keystonedepth,", "  title={KeystoneDepth: History in 3D},",
+        "",
+        "## Citation",
+        "",
+        "```bibtex",
+        "@inproceedings{luo2020keystonedepth,",
+        "  title={KeystoneDepth: History in 3D},",
         "  author={Luo, Xuan and Kong, Yanmeng and Lawrence, Jason and Martin-Brualla, Ricardo and Seitz, Steven M.},",
-        "  booktitle={International Conference on 3D Vision (3DV)},", "  year={2020}", "}", "```", "",
+        "  booktitle={International Conference on 3D Vision (3DV)},",
+        "  year={2020}",
+        "}",
+        "```",
+        "",
     ]
     return "\n".join(header + body)
 

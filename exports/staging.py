@@ -107,8 +107,9 @@ def _tree_size_and_newest(root: Path) -> tuple[int, float]:
     return size, newest
 
 
-def remove_stale_partials(out: Path, *, unlocked_stale_seconds: float = UNLOCKED_STALE_SECONDS,
-                          now: float | None = None) -> list[Leftover]:
+def remove_stale_partials(
+    out: Path, *, unlocked_stale_seconds: float = UNLOCKED_STALE_SECONDS, now: float | None = None
+) -> list[Leftover]:
     """Remove the staging folders of dead exports in ``out``; returns what was removed.
 
     A folder whose lock another process holds is a running export and stays. A folder with no

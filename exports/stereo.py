@@ -66,9 +66,13 @@ class CardCaption:
                     return str(value)
             return None
 
-        return cls(title=text("title") or fallback_title, date=text("date", "dated"), accession=accession,
-                   creator=text("creator", "photographer", "publisher", "artist"),
-                   licence=text("license", "licence", "rights", "credit_line") or DEFAULT_LICENCE)
+        return cls(
+            title=text("title") or fallback_title,
+            date=text("date", "dated"),
+            accession=accession,
+            creator=text("creator", "photographer", "publisher", "artist"),
+            licence=text("license", "licence", "rights", "credit_line") or DEFAULT_LICENCE,
+        )
 
     @property
     def description(self) -> str:
@@ -91,8 +95,9 @@ class CardCaption:
 
     def xmp(self) -> bytes:
         """A minimal XMP packet: dc:title, dc:date, dc:identifier (accession), dc:creator, dc:rights."""
+
         def alt(tag: str, value: str) -> str:
-            return (f"<dc:{tag}><rdf:Alt><rdf:li xml:lang=\"x-default\">{escape(value)}</rdf:li></rdf:Alt></dc:{tag}>")
+            return f'<dc:{tag}><rdf:Alt><rdf:li xml:lang="x-default">{escape(value)}</rdf:li></rdf:Alt></dc:{tag}>'
 
         body = [alt("title", self.title), alt("rights", self.licence), alt("description", self.description)]
         if self.date:
@@ -101,9 +106,12 @@ class CardCaption:
             body.append(f"<dc:identifier>{escape(self.accession)}</dc:identifier>")
         if self.creator:
             body.append(f"<dc:creator><rdf:Seq><rdf:li>{escape(self.creator)}</rdf:li></rdf:Seq></dc:creator>")
-        return ("<x:xmpmeta xmlns:x=\"adobe:ns:meta/\"><rdf:RDF xmlns:rdf=\"http://www.w3.org/1999/02/22-rdf-syntax-ns#\">"
-                "<rdf:Description rdf:about=\"\" xmlns:dc=\"http://purl.org/dc/elements/1.1/\">"
-                + "".join(body) + "</rdf:Description></rdf:RDF></x:xmpmeta>").encode()
+        return (
+            '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+            '<rdf:Description rdf:about="" xmlns:dc="http://purl.org/dc/elements/1.1/">'
+            + "".join(body)
+            + "</rdf:Description></rdf:RDF></x:xmpmeta>"
+        ).encode()
 
     def comment(self) -> bytes:
         return f"{self.description}. {self.licence}".encode()
@@ -119,8 +127,9 @@ def _jpeg(image: np.ndarray, caption: CardCaption, **extra: Any) -> bytes:
     from PIL import Image
 
     buffer = io.BytesIO()
-    Image.fromarray(image).save(buffer, format="JPEG", quality=JPEG_QUALITY, subsampling=0, exif=caption.exif(),
-                                xmp=caption.xmp(), **extra)
+    Image.fromarray(image).save(
+        buffer, format="JPEG", quality=JPEG_QUALITY, subsampling=0, exif=caption.exif(), xmp=caption.xmp(), **extra
+    )
     return buffer.getvalue()
 
 
@@ -140,11 +149,29 @@ def encode_wiggle(frames: list[np.ndarray], caption: CardCaption, fmt: str) -> b
     if fmt == "gif":
         palette = images[0].quantize(colors=256, method=Image.Quantize.MEDIANCUT)
         paletted = [image.quantize(palette=palette, dither=Image.Dither.NONE) for image in images]
-        paletted[0].save(buffer, format="GIF", save_all=True, append_images=paletted[1:], duration=WIGGLE_FRAME_MS,
-                         loop=0, comment=caption.comment(), optimize=False)
+        paletted[0].save(
+            buffer,
+            format="GIF",
+            save_all=True,
+            append_images=paletted[1:],
+            duration=WIGGLE_FRAME_MS,
+            loop=0,
+            comment=caption.comment(),
+            optimize=False,
+        )
     elif fmt == "webp":
-        images[0].save(buffer, format="WEBP", save_all=True, append_images=images[1:], duration=WIGGLE_FRAME_MS,
-                       loop=0, quality=80, method=4, exif=caption.exif(), xmp=caption.xmp())
+        images[0].save(
+            buffer,
+            format="WEBP",
+            save_all=True,
+            append_images=images[1:],
+            duration=WIGGLE_FRAME_MS,
+            loop=0,
+            quality=80,
+            method=4,
+            exif=caption.exif(),
+            xmp=caption.xmp(),
+        )
     else:
         raise ValueError(f"Expected a wiggle format of gif or webp, got {fmt!r}")
     return buffer.getvalue()
@@ -157,8 +184,15 @@ def encode_mpo(left: np.ndarray, right: np.ndarray, caption: CardCaption) -> byt
     from pipeline.stereo_formats import as_rgb
 
     buffer = io.BytesIO()
-    Image.fromarray(as_rgb(left)).save(buffer, format="MPO", save_all=True, append_images=[Image.fromarray(as_rgb(right))],
-                                       quality=JPEG_QUALITY, exif=caption.exif(), xmp=caption.xmp())
+    Image.fromarray(as_rgb(left)).save(
+        buffer,
+        format="MPO",
+        save_all=True,
+        append_images=[Image.fromarray(as_rgb(right))],
+        quality=JPEG_QUALITY,
+        exif=caption.exif(),
+        xmp=caption.xmp(),
+    )
     return mark_disparity_pair(buffer.getvalue())
 
 
@@ -175,10 +209,10 @@ def mark_disparity_pair(data: bytes) -> bytes:
     import struct
 
     start = data.find(b"MPF\0")
-    if start < 0 or data[start + 4:start + 8] not in (b"II*\0", b"MM\0*"):
+    if start < 0 or data[start + 4 : start + 8] not in (b"II*\0", b"MM\0*"):
         raise ValueError("no MP index (APP2 'MPF') in the MPO")
     tiff = start + 4
-    order = "<" if data[tiff:tiff + 2] == b"II" else ">"
+    order = "<" if data[tiff : tiff + 2] == b"II" else ">"
     ifd = tiff + struct.unpack_from(order + "L", data, tiff + 4)[0]
     (count,) = struct.unpack_from(order + "H", data, ifd)
     patched = bytearray(data)
@@ -205,13 +239,23 @@ class StereoCosts:
 
     def as_json(self) -> dict[str, Any]:
         per = max(self.cards, 1)
-        return {"cards": self.cards,
-                "per_card": {name: {"seconds": round(self.seconds[name] / per, 4), "bytes": round(self.bytes[name] / per)}
-                             for name in STEREO_FORMATS}}
+        return {
+            "cards": self.cards,
+            "per_card": {
+                name: {"seconds": round(self.seconds[name] / per, 4), "bytes": round(self.bytes[name] / per)}
+                for name in STEREO_FORMATS
+            },
+        }
 
 
-def encode_stereo(left: np.ndarray, right: np.ndarray, disparity: np.ndarray, caption: CardCaption,
-                  only: tuple[str, ...] | None = None, costs: StereoCosts | None = None) -> dict[str, bytes]:
+def encode_stereo(
+    left: np.ndarray,
+    right: np.ndarray,
+    disparity: np.ndarray,
+    caption: CardCaption,
+    only: tuple[str, ...] | None = None,
+    costs: StereoCosts | None = None,
+) -> dict[str, bytes]:
     """Every stereo file of a rectified pair (or the ``only`` ones): format name -> bytes.
 
     Raises :class:`pipeline.stereo_formats.StereoFormatError` on mismatched sizes or a disparity
@@ -288,10 +332,18 @@ class StereoWriter:
         paths = stereo_files(card.key)
         for relative, name in zip(paths, STEREO_FORMATS):
             self.ledger.write_bytes(relative, files[name])
-        line = {"key": card.key, "card_id": card.card_id, "folder": f"{STEREO_FOLDER}/{card.key}",
-                "width": int(left.shape[1]), "height": int(left.shape[0]), "title": caption.title,
-                "date": caption.date, "accession": caption.accession, "licence": caption.licence,
-                **{name: relative for relative, name in zip(paths, STEREO_FORMATS)}}
+        line = {
+            "key": card.key,
+            "card_id": card.card_id,
+            "folder": f"{STEREO_FOLDER}/{card.key}",
+            "width": int(left.shape[1]),
+            "height": int(left.shape[0]),
+            "title": caption.title,
+            "date": caption.date,
+            "accession": caption.accession,
+            "licence": caption.licence,
+            **{name: relative for relative, name in zip(paths, STEREO_FORMATS)},
+        }
         with open(self.ledger.root / STEREO_INDEX, "ab") as index:
             index.write(json.dumps(line, sort_keys=True, ensure_ascii=False, allow_nan=False).encode() + b"\n")
 
@@ -301,5 +353,8 @@ class StereoWriter:
             self.ledger.record_file(STEREO_INDEX)
 
     def summary(self) -> dict[str, Any]:
-        return {**self.costs.as_json(), "cards_without": sum(self.without.values()),
-                "without": dict(sorted(self.without.items()))}
+        return {
+            **self.costs.as_json(),
+            "cards_without": sum(self.without.values()),
+            "without": dict(sorted(self.without.items())),
+        }

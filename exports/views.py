@@ -57,16 +57,27 @@ bp = Blueprint("exports", __name__, url_prefix="/releases", template_folder="tem
 bp.record_once(lambda state: add_nav_link(state.app, "Releases", "exports.index", "exporter", order=70))
 
 FILES_LISTED = 1000  # a release page lists this many files; the archive and SHA256SUMS hold them all
-RELEASE_DOCUMENTS = {"README.md": "text/markdown", "CHANGELOG.md": "text/markdown",
-                     "croissant.json": "application/json", "SHA256SUMS": "text/plain"}
+RELEASE_DOCUMENTS = {
+    "README.md": "text/markdown",
+    "CHANGELOG.md": "text/markdown",
+    "croissant.json": "application/json",
+    "SHA256SUMS": "text/plain",
+}
 
 
 class ReleaseForm(FlaskForm):
-    min_grade = SelectField("Lowest grade", choices=[SelectChoice(g, f"{g} artifacts") for g in RELEASABLE_GRADES], default="some")
+    min_grade = SelectField(
+        "Lowest grade", choices=[SelectChoice(g, f"{g} artifacts") for g in RELEASABLE_GRADES], default="some"
+    )
     # No DataRequired: it would put `required` on every checkbox, and a browser then refuses the
     # form unless all of them are ticked. At least one is checked on the server instead.
-    formats = SelectMultipleField("Formats", choices=list(FORMATS), default=list(DEFAULT_FORMATS),
-                                  widget=ListWidget(prefix_label=False), option_widget=CheckboxInput())
+    formats = SelectMultipleField(
+        "Formats",
+        choices=list(FORMATS),
+        default=list(DEFAULT_FORMATS),
+        widget=ListWidget(prefix_label=False),
+        option_widget=CheckboxInput(),
+    )
     notes = TextAreaField("Notes", validators=[Length(max=5000)])
     plan_digest = HiddenField()
     planned_version = HiddenField()
@@ -80,16 +91,24 @@ class ReleaseForm(FlaskForm):
 def plan_digest(plan: Any) -> str:
     """What publishing would write, as one hash: version, lowest grade, formats, notes and each
     card's content digest. Any change between preview and publish changes it."""
-    document = {"version": plan.version, "min_grade": plan.min_grade, "formats": sorted(plan.formats),
-                "notes": plan.notes, "cards": {key: entry.get("digest") for key, entry in plan.manifest.items()}}
+    document = {
+        "version": plan.version,
+        "min_grade": plan.min_grade,
+        "formats": sorted(plan.formats),
+        "notes": plan.notes,
+        "cards": {key: entry.get("digest") for key, entry in plan.manifest.items()},
+    }
     return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
 
 
 def content_digest(manifest: dict[str, Any], formats: list[str], min_grade: str) -> str:
     """A release's content without its version, date or notes: two releases with the same
     content digest hold the same files for the same cards."""
-    document = {"min_grade": min_grade, "formats": sorted(formats),
-                "cards": {key: (entry or {}).get("digest") for key, entry in manifest.items()}}
+    document = {
+        "min_grade": min_grade,
+        "formats": sorted(formats),
+        "cards": {key: (entry or {}).get("digest") for key, entry in manifest.items()},
+    }
     return hashlib.sha256(json.dumps(document, sort_keys=True).encode()).hexdigest()
 
 
@@ -103,7 +122,8 @@ def same_as_last_release(plan: Any) -> str | None:
             return None
         manifest = dict((last.stats or {}).get("manifest") or {})
         same = content_digest(manifest, list(last.formats or []), last.min_grade) == content_digest(
-            plan.manifest, list(plan.formats), plan.min_grade)
+            plan.manifest, list(plan.formats), plan.min_grade
+        )
         return last.version if same else None
 
 
@@ -114,10 +134,10 @@ def releases_dir() -> Path:
 
 def _releases() -> list[Release]:
     with read_only():
-        rows = list(db.session.scalars(select(Release).options(defer(Release.stats), defer(Release.changes))
-                                       .order_by(Release.id.desc())))
-        summaries = {row.id: db.session.scalar(select(Release.stats["grades"]).where(Release.id == row.id))
-                     for row in rows}
+        rows = list(
+            db.session.scalars(select(Release).options(defer(Release.stats), defer(Release.changes)).order_by(Release.id.desc()))
+        )
+        summaries = {row.id: db.session.scalar(select(Release.stats["grades"]).where(Release.id == row.id)) for row in rows}
         for row in rows:
             row.grade_counts = summaries.get(row.id) or {}  # type: ignore[attr-defined]
             db.session.expunge(row)
@@ -146,8 +166,14 @@ def _preview_page(form: ReleaseForm, plan: Any, *, changed: dict[str, Any] | Non
     form.plan_digest.data = plan_digest(plan)
     form.planned_version.data = plan.version
     form.planned_cards.data = ",".join(sorted(plan.manifest, key=int))
-    return render_template("exports/index.html", releases=_releases(), form=form, preview=plan,
-                           identical_to=same_as_last_release(plan), changed=changed), status
+    return render_template(
+        "exports/index.html",
+        releases=_releases(),
+        form=form,
+        preview=plan,
+        identical_to=same_as_last_release(plan),
+        changed=changed,
+    ), status
 
 
 def _card_ids(text: str) -> set[int]:
@@ -168,29 +194,47 @@ def publish() -> Any:
     plan = plan_release(min_grade=form.min_grade.data, formats=tuple(form.formats.data), notes=form.notes.data or "")
     if plan_digest(plan) != form.plan_digest.data:
         before, now = _card_ids(form.planned_cards.data), {int(key) for key in plan.manifest}
-        changed = {"version_before": form.planned_version.data or "?", "version_now": plan.version,
-                   "added": sorted(now - before), "removed": sorted(before - now),
-                   "same_cards": before == now}
-        flash("Nothing was published: the release changed since your preview (see below). "
-              "Check the new preview and publish it if it is what you want.", "error")
+        changed = {
+            "version_before": form.planned_version.data or "?",
+            "version_now": plan.version,
+            "added": sorted(now - before),
+            "removed": sorted(before - now),
+            "same_cards": before == now,
+        }
+        flash(
+            "Nothing was published: the release changed since your preview (see below). "
+            "Check the new preview and publish it if it is what you want.",
+            "error",
+        )
         return _preview_page(form, plan, changed=changed, status=409)
     identical = same_as_last_release(plan)
     if identical:
-        flash(f"Nothing was published: this release would hold exactly the same cards, files and formats as "
-              f"release {identical}. Accept or change cards in review, or choose other formats, first.", "error")
+        flash(
+            f"Nothing was published: this release would hold exactly the same cards, files and formats as "
+            f"release {identical}. Accept or change cards in review, or choose other formats, first.",
+            "error",
+        )
         return _preview_page(form, plan, status=409)
     # The logged-in person is already loaded and detached (app.auth): using it opens no
     # transaction, so the export's reads do not hold SQLite's write lock for minutes.
     actor = current_user._get_current_object()
     try:
-        report = publish_release(releases_dir(), min_grade=form.min_grade.data, formats=tuple(form.formats.data),
-                                 notes=form.notes.data or "", actor=actor, actor_label="web")
+        report = publish_release(
+            releases_dir(),
+            min_grade=form.min_grade.data,
+            formats=tuple(form.formats.data),
+            notes=form.notes.data or "",
+            actor=actor,
+            actor_label="web",
+        )
     except ReleaseError as exc:
         db.session.rollback()
         flash(str(exc), "error")
         return render_template("exports/index.html", releases=_releases(), form=form, preview=None), 409
-    flash(f"Published release {report.version}: {report.cards} card{'' if report.cards == 1 else 's'}, "
-          f"{report.files} files.", "success")
+    flash(
+        f"Published release {report.version}: {report.cards} card{'' if report.cards == 1 else 's'}, {report.files} files.",
+        "success",
+    )
     return redirect(url_for("exports.release_page", version=report.version), code=303)
 
 
@@ -222,8 +266,13 @@ def release_page(version: str) -> Any:
         release = db.session.scalar(select(Release).where(Release.version == version).options(defer(Release.stats)))
         db.session.expunge(release)
     files = release_files(root)
-    return render_template("exports/release.html", release=release, files=files[:FILES_LISTED], file_count=len(files),
-                           total=sum(size for _, size in files))
+    return render_template(
+        "exports/release.html",
+        release=release,
+        files=files[:FILES_LISTED],
+        file_count=len(files),
+        total=sum(size for _, size in files),
+    )
 
 
 @bp.route("/<version>/files/<path:name>")

@@ -138,8 +138,12 @@ def read_views(card: ReleaseCard) -> ViewsPayload:
         raise ValueError("the five views' depth maps differ in size")
     if not all(np.isfinite(depth).all() and (depth > 0).all() for depth in depths):
         raise ValueError("a view's depth map is not finite and > 0 everywhere")
-    return ViewsPayload(images=[card.views[name].read_bytes() for name in VIEW_NAMES], depths=depths, scene=scene,
-                        preview=card.views["preview"].read_bytes())
+    return ViewsPayload(
+        images=[card.views[name].read_bytes() for name in VIEW_NAMES],
+        depths=depths,
+        scene=scene,
+        preview=card.views["preview"].read_bytes(),
+    )
 
 
 @dataclass
@@ -165,9 +169,16 @@ class CardPayload:
 
     @property
     def size(self) -> int:
-        return (len(self.original) + len(self.cropped_left) + len(self.cropped_right) + len(self.rectified_left)
-                + len(self.rectified_right) + self.disparity_left.nbytes + self.disparity_right.nbytes
-                + self.depth_512.nbytes)
+        return (
+            len(self.original)
+            + len(self.cropped_left)
+            + len(self.cropped_right)
+            + len(self.rectified_left)
+            + len(self.rectified_right)
+            + self.disparity_left.nbytes
+            + self.disparity_right.nbytes
+            + self.depth_512.nbytes
+        )
 
 
 def build_payload(card: ReleaseCard) -> CardPayload:
@@ -196,12 +207,18 @@ def build_payload(card: ReleaseCard) -> CardPayload:
             raise ValueError(f"crop box {box} lies outside the {scan.shape[1]} x {scan.shape[0]} card")
         crops.append(encode_png(scan[y0:y1, x0:x1]))
     return CardPayload(
-        card=card, original=card.original.read_bytes(), original_suffix=card.original.suffix.lower() or ".bin",
-        cropped_left=crops[0], cropped_right=crops[1],
-        rectified_left=card.rectified_left.read_bytes(), rectified_right=card.rectified_right.read_bytes(),
+        card=card,
+        original=card.original.read_bytes(),
+        original_suffix=card.original.suffix.lower() or ".bin",
+        cropped_left=crops[0],
+        cropped_right=crops[1],
+        rectified_left=card.rectified_left.read_bytes(),
+        rectified_right=card.rectified_right.read_bytes(),
         disparity_left=_load_map(card.disparity_left, "disparity_left"),
         disparity_right=_load_map(card.disparity_right, "disparity_right"),
-        depth_512=_load_map(card.depth_512, "depth_512"), record=card.record(), views=views,
+        depth_512=_load_map(card.depth_512, "depth_512"),
+        record=card.record(),
+        views=views,
     )
 
 
@@ -225,8 +242,9 @@ class KeystoneDepthWriter:
         ledger.write_bytes(f"{KD_DISPARITY}/{key}R.exr", encode_exr(payload.disparity_right, self.scratch))
         ledger.write_bytes(f"{KD_DEPTH}/{key}.exr", encode_exr(payload.depth_512, self.scratch))
         rectification = payload.record["rectification"]
-        ledger.write_bytes(f"{KD_RECTIFICATION}/{key}.json",
-                           json.dumps(rectification, sort_keys=True, indent=1, allow_nan=False).encode())
+        ledger.write_bytes(
+            f"{KD_RECTIFICATION}/{key}.json", json.dumps(rectification, sort_keys=True, indent=1, allow_nan=False).encode()
+        )
 
     def close(self) -> None:
         pass
@@ -236,8 +254,20 @@ class KeystoneDepthWriter:
 
 IMAGE_COLUMNS = ("original", "cropped_left", "cropped_right", "rectified_left", "rectified_right")
 MAP_COLUMNS = ("disparity_left", "disparity_right", "depth_512")
-STRING_COLUMNS = ("key", "accession", "collection", "title", "date", "museum_url", "grade", "review_decision",
-                  "automatic_grade", "metadata_json", "pipeline_json", "digest")
+STRING_COLUMNS = (
+    "key",
+    "accession",
+    "collection",
+    "title",
+    "date",
+    "museum_url",
+    "grade",
+    "review_decision",
+    "automatic_grade",
+    "metadata_json",
+    "pipeline_json",
+    "digest",
+)
 MATRIX_COLUMNS = ("H_l", "H_r", "K", "R")
 
 
@@ -323,8 +353,9 @@ class ParquetWriter:
         if self.writer is None:
             relative = f"data/.shard-{len(self.shards):05d}.parquet"
             (self.ledger.root / "data").mkdir(parents=True, exist_ok=True)
-            self.writer = pq.ParquetWriter(self.ledger.root / relative, self.schema, compression="zstd",
-                                           compression_level=3, store_schema=True)
+            self.writer = pq.ParquetWriter(
+                self.ledger.root / relative, self.schema, compression="zstd", compression_level=3, store_schema=True
+            )
             self.shards.append(relative)
             self.row_counts.append(0)
         columns: dict[str, Any] = {}
@@ -332,10 +363,13 @@ class ParquetWriter:
         columns["card_id"] = pa.array([r["card_id"] for r in records], pa.int64())
         meta = [r["metadata"] for r in records]
         strings = {
-            "key": [r["key"] for r in records], "accession": [r["accession"] for r in records],
+            "key": [r["key"] for r in records],
+            "accession": [r["accession"] for r in records],
             "collection": [r["collection"] for r in records],
-            "title": [_text(m.get("title")) for m in meta], "date": [_text(m.get("date")) for m in meta],
-            "museum_url": [r["museum_url"] for r in records], "grade": [r["grade"] for r in records],
+            "title": [_text(m.get("title")) for m in meta],
+            "date": [_text(m.get("date")) for m in meta],
+            "museum_url": [r["museum_url"] for r in records],
+            "grade": [r["grade"] for r in records],
             "review_decision": [r["review_decision"] for r in records],
             "automatic_grade": [r["automatic_grade"] for r in records],
             "metadata_json": [json.dumps(m, sort_keys=True, ensure_ascii=False) for m in meta],
@@ -349,13 +383,18 @@ class ParquetWriter:
         for name in MATRIX_COLUMNS:
             columns[name] = pa.array([r["rectification"].get(name) for r in records], pa.list_(pa.list_(pa.float64())))
         columns["t"] = pa.array([_flat(r["rectification"].get("t")) for r in records], pa.list_(pa.float64()))
-        suffix = {"original": None, "cropped_left": "L.png", "cropped_right": "R.png",
-                  "rectified_left": "L.png", "rectified_right": "R.png"}
+        suffix = {
+            "original": None,
+            "cropped_left": "L.png",
+            "cropped_right": "R.png",
+            "rectified_left": "L.png",
+            "rectified_right": "R.png",
+        }
         for name in IMAGE_COLUMNS:
             columns[name] = pa.array(
-                [{"bytes": getattr(p, name),
-                  "path": f"{p.card.key}{suffix[name] or p.original_suffix}"} for p in self.rows],
-                self.schema.field(name).type)
+                [{"bytes": getattr(p, name), "path": f"{p.card.key}{suffix[name] or p.original_suffix}"} for p in self.rows],
+                self.schema.field(name).type,
+            )
         for name in MAP_COLUMNS:
             columns[name] = _map_column([getattr(p, name) for p in self.rows])
         table = pa.Table.from_arrays([columns[f.name] for f in self.schema], schema=self.schema)
@@ -445,8 +484,12 @@ VIEWS_INDEX = f"{VIEWS_FOLDER}/views.jsonl"
 def view_files(key: str) -> tuple[str, ...]:
     """The release paths of one card's views, in the order they are written."""
     folder = f"{VIEWS_FOLDER}/{key}"
-    return (*(f"{folder}/{name}.png" for name in VIEW_NAMES), *(f"{folder}/{name}_depth.exr" for name in VIEW_NAMES),
-            f"{folder}/views.json", f"{folder}/preview.webp")
+    return (
+        *(f"{folder}/{name}.png" for name in VIEW_NAMES),
+        *(f"{folder}/{name}_depth.exr" for name in VIEW_NAMES),
+        f"{folder}/views.json",
+        f"{folder}/preview.webp",
+    )
 
 
 class ViewsWriter:
@@ -482,9 +525,16 @@ class ViewsWriter:
         ledger.write_bytes(paths[10], json.dumps(views.scene, sort_keys=True, indent=1, allow_nan=False).encode())
         ledger.write_bytes(paths[11], views.preview)
         scene = views.scene
-        line = {"key": key, "card_id": card.card_id, "folder": f"{VIEWS_FOLDER}/{key}", "width": scene.get("width"),
-                "height": scene.get("height"), "focal_px": scene["views"][0].get("focal_px"),
-                "quad_radius": scene.get("quad_radius"), "preview": paths[11]}
+        line = {
+            "key": key,
+            "card_id": card.card_id,
+            "folder": f"{VIEWS_FOLDER}/{key}",
+            "width": scene.get("width"),
+            "height": scene.get("height"),
+            "focal_px": scene["views"][0].get("focal_px"),
+            "quad_radius": scene.get("quad_radius"),
+            "preview": paths[11],
+        }
         # Appended per card (not held open) so a release that stops half-way leaks no handle.
         with open(self.ledger.root / VIEWS_INDEX, "ab") as index:
             index.write(json.dumps(line, sort_keys=True, allow_nan=False).encode() + b"\n")

@@ -21,9 +21,7 @@ def check_image(image: object, name: str = "image", min_width: int = 1, min_heig
         raise InvalidInputError(f"Expected {name} with dtype uint8, got {image.dtype}")
     height, width = image.shape[:2]
     if width < min_width or height < min_height:
-        raise InvalidInputError(
-            f"Expected {name} of at least {min_width}x{min_height} px (W x H), got {width}x{height}"
-        )
+        raise InvalidInputError(f"Expected {name} of at least {min_width}x{min_height} px (W x H), got {width}x{height}")
     return image
 
 

@@ -129,10 +129,16 @@ class CropAlignment:
 
     def metrics(self) -> dict[str, Any]:
         return {
-            "left_box_before": list(self.left_box_before), "right_box_before": list(self.right_box_before),
-            "left_box": list(self.left_box), "right_box": list(self.right_box),
-            "dx": round(float(self.dx), 3), "dy": round(float(self.dy), 3), "dy_spread": round(float(self.dy_spread), 3),
-            "matches": int(self.matches), "inliers": int(self.inliers), "size": list(self.size),
+            "left_box_before": list(self.left_box_before),
+            "right_box_before": list(self.right_box_before),
+            "left_box": list(self.left_box),
+            "right_box": list(self.right_box),
+            "dx": round(float(self.dx), 3),
+            "dy": round(float(self.dy), 3),
+            "dy_spread": round(float(self.dy_spread), 3),
+            "matches": int(self.matches),
+            "inliers": int(self.inliers),
+            "size": list(self.size),
             "convention": "far content at left-crop (x, y) is at right-crop (x + dx, y + dy)",
             "seconds": round(float(self.seconds), 4),
         }
@@ -146,8 +152,7 @@ def matches_in_boxes(card_matches: np.ndarray, left_box: Box, right_box: Box) ->
     a, b = m[:, :2], m[:, 2:]
 
     def inside(pts: np.ndarray, box: Box) -> np.ndarray:
-        return ((pts[:, 0] >= box[0] - 0.5) & (pts[:, 0] < box[2] - 0.5)
-                & (pts[:, 1] >= box[1] - 0.5) & (pts[:, 1] < box[3] - 0.5))
+        return (pts[:, 0] >= box[0] - 0.5) & (pts[:, 0] < box[2] - 0.5) & (pts[:, 1] >= box[1] - 0.5) & (pts[:, 1] < box[3] - 0.5)
 
     forward = inside(a, left_box) & inside(b, right_box)
     backward = inside(b, left_box) & inside(a, right_box) & ~forward
@@ -175,7 +180,10 @@ def _check_box(box: object, name: str, width: int, height: int) -> Box:
 
 
 def align_crops(
-    card: np.ndarray, left_box: Box, right_box: Box, params: CropAlignParams = CropAlignParams(),
+    card: np.ndarray,
+    left_box: Box,
+    right_box: Box,
+    params: CropAlignParams = CropAlignParams(),
     matches: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> CropAlignment:
     """Align two crop boxes on ``card`` (uint8 ``(H, W)``/``(H, W, 3)``) by a SIFT translation and
@@ -192,8 +200,8 @@ def align_crops(
     height, width = card.shape[:2]
     lb = _check_box(left_box, "left_box", width, height)
     rb = _check_box(right_box, "right_box", width, height)
-    left = np.ascontiguousarray(card[lb[1]:lb[3], lb[0]:lb[2]])
-    right = np.ascontiguousarray(card[rb[1]:rb[3], rb[0]:rb[2]])
+    left = np.ascontiguousarray(card[lb[1] : lb[3], lb[0] : lb[2]])
+    right = np.ascontiguousarray(card[rb[1] : rb[3], rb[0] : rb[2]])
     if matches is None:
         rp = RectifyParams(ratio=params.ratio, max_side=params.max_side, max_keypoints=params.max_keypoints)
         pts_l, pts_r = match_features(left, right, rp)
@@ -233,6 +241,15 @@ def align_crops(
     new_l = (lb[0] + x0, lb[1] + y0, lb[0] + x1, lb[1] + y1)
     new_r = (rb[0] + x0 + ix, rb[1] + y0 + iy, rb[0] + x1 + ix, rb[1] + y1 + iy)
     return CropAlignment(
-        left_box_before=lb, right_box_before=rb, left_box=new_l, right_box=new_r, dx=dx, dy=dy,
-        dy_spread=spread, matches=n, inliers=n_in, seconds=time.perf_counter() - clock, points=(pts_l, pts_r),
+        left_box_before=lb,
+        right_box_before=rb,
+        left_box=new_l,
+        right_box=new_r,
+        dx=dx,
+        dy=dy,
+        dy_spread=spread,
+        matches=n,
+        inliers=n_in,
+        seconds=time.perf_counter() - clock,
+        points=(pts_l, pts_r),
     )

@@ -234,8 +234,16 @@ def _sgbm_pair(
     matched for real, and only pixels whose match lands outside the other view are left empty."""
     P1, P2 = 8 * block * block, 32 * block * block  # OpenCV's guidance for one channel
     matcher = cv2.StereoSGBM_create(  # type: ignore[attr-defined]  # cv2's stubs lack the factory
-        minDisparity=min_d, numDisparities=num, blockSize=block, P1=P1, P2=P2, disp12MaxDiff=-1,
-        uniquenessRatio=10, speckleWindowSize=100, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+        minDisparity=min_d,
+        numDisparities=num,
+        blockSize=block,
+        P1=P1,
+        P2=P2,
+        disp12MaxDiff=-1,
+        uniquenessRatio=10,
+        speckleWindowSize=100,
+        speckleRange=2,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
     )
     before, after = (max(0, min_d + num), max(0, -min_d)) if pad else (0, 0)
     w = L.shape[1]
@@ -247,7 +255,7 @@ def _sgbm_pair(
         if before or after:
             a = cv2.copyMakeBorder(a, 0, 0, before, after, cv2.BORDER_REPLICATE)
             b = cv2.copyMakeBorder(b, 0, 0, before, after, cv2.BORDER_REPLICATE)
-        raw = matcher.compute(a, b)[:, before:before + w]
+        raw = matcher.compute(a, b)[:, before : before + w]
         d = raw.astype(np.float32) / 16.0
         d[raw < min_d * 16] = np.nan
         if pad:  # a match in the padding is a guess, not a match
@@ -432,9 +440,14 @@ def estimate_disparity(
     if fraction < 0.2:
         flags = flags + ("low_confidence",)
     return DisparityResult(
-        disp_left=np.asarray(d_left, np.float32), disp_right=np.asarray(d_right, np.float32),
-        confidence=conf, confident_fraction=fraction, seconds=time.perf_counter() - start,
-        backend=backend, flags=flags, vertical_model=vertical,
+        disp_left=np.asarray(d_left, np.float32),
+        disp_right=np.asarray(d_right, np.float32),
+        confidence=conf,
+        confident_fraction=fraction,
+        seconds=time.perf_counter() - start,
+        backend=backend,
+        flags=flags,
+        vertical_model=vertical,
     )
 
 

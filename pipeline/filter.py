@@ -190,9 +190,7 @@ def route(fraction: float, good: int, params: FilterParams, consistent: int | No
             f"culled: only {consistent} of {good} good matches fit one stereo geometry (< {params.min_good_matches})"
         )
     if fraction < params.review_fraction:
-        return "review", (
-            f"review: fraction {_pct(fraction)} in [{_pct(params.cull_fraction)}, {_pct(params.review_fraction)})"
-        )
+        return "review", (f"review: fraction {_pct(fraction)} in [{_pct(params.cull_fraction)}, {_pct(params.review_fraction)})")
     if consistent is not None and consistent < params.min_consistent_share * good:
         return "review", (
             f"review: fraction {_pct(fraction)} passes, but only {consistent} of {good} good matches "
@@ -276,17 +274,27 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
     else:
         outcome, reason = route(fraction, good, params, consistent)
     # Pixel centres: x_half + 0.5 = (x_sift + 0.5) / scale, per half and axis.
-    to_half = [np.array([left.shape[1] / grey_left.shape[1], left.shape[0] / grey_left.shape[0]]),
-               np.array([right.shape[1] / grey_right.shape[1], right.shape[0] / grey_right.shape[0]])]
+    to_half = [
+        np.array([left.shape[1] / grey_left.shape[1], left.shape[0] / grey_left.shape[0]]),
+        np.array([right.shape[1] / grey_right.shape[1], right.shape[0] / grey_right.shape[0]]),
+    ]
     points = tuple((np.array(pts, np.float64).reshape(-1, 2) + 0.5) * scale - 0.5 for pts, scale in zip((pts_l, pts_r), to_half))
     return FilterResult(
-        points=points, match_scale=float(max(to_half[0].max(), to_half[1].max())),
-        outcome=outcome, good_matches=good, keypoints_left=n_left, keypoints_right=n_right,
-        denominator=DENOMINATOR, good_match_fraction=float(fraction), reason=reason,
+        points=points,
+        match_scale=float(max(to_half[0].max(), to_half[1].max())),
+        outcome=outcome,
+        good_matches=good,
+        keypoints_left=n_left,
+        keypoints_right=n_right,
+        denominator=DENOMINATOR,
+        good_match_fraction=float(fraction),
+        reason=reason,
         consistent_matches=-1 if consistent is None else consistent,
-        detect_seconds=detect_seconds, match_seconds=match_seconds,
+        detect_seconds=detect_seconds,
+        match_seconds=match_seconds,
         left_size=(int(grey_left.shape[1]), int(grey_left.shape[0])),
-        right_size=(int(grey_right.shape[1]), int(grey_right.shape[0])), params=params,
+        right_size=(int(grey_right.shape[1]), int(grey_right.shape[0])),
+        params=params,
     )
 
 

@@ -102,9 +102,7 @@ def centre_to_corner(H: np.ndarray) -> np.ndarray:
     return shift @ np.asarray(H, dtype=float) @ np.linalg.inv(shift)
 
 
-def apply_homography(
-    H: np.ndarray, points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def apply_homography(H: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Map (N, 2) points; returns (N, 2) image points and the (N,) homogeneous w'.
 
     Points with w' == 0 come back as +-inf, never NaN-from-0/0 silently: callers check w'."""
@@ -141,9 +139,7 @@ def _jacobian(H: np.ndarray, x: float, y: float) -> np.ndarray:
     return (H[:2, :2] * w - np.outer(p[:2], H[2, :2])) / (w * w)
 
 
-def infer_input_size(
-    H: np.ndarray, out_width: int, out_height: int
-) -> tuple[float, float] | None:
+def infer_input_size(H: np.ndarray, out_width: int, out_height: int) -> tuple[float, float] | None:
     """(w, h) of the input whose warped rectangle has an (out_width, out_height) bounding box.
 
     This is how KeystoneDepth drew its rectified views; None if it does not solve cleanly."""
@@ -159,9 +155,7 @@ def infer_input_size(
         return [span[0] - out_width, span[1] - out_height]
 
     Hc = _oriented(Hc, out_width, out_height)
-    sol = least_squares(
-        residual, x0=[float(out_width), float(out_height)], bounds=([8, 8], [1e5, 1e5])
-    )
+    sol = least_squares(residual, x0=[float(out_width), float(out_height)], bounds=([8, 8], [1e5, 1e5]))
     if not sol.success or np.max(np.abs(sol.fun)) > 1.0:
         return None
     return float(sol.x[0]), float(sol.x[1])
@@ -215,9 +209,7 @@ def single_metrics(H: np.ndarray, width: float, height: float) -> dict[str, Any]
         reasons["projective_log10"] = "H33 is 0: the origin maps to infinity"
     elif proj == 0.0:
         out["projective_log10"] = None
-        reasons["projective_log10"] = (
-            "affine homography: no projective component (would be +inf)"
-        )
+        reasons["projective_log10"] = "affine homography: no projective component (would be +inf)"
     else:
         out["projective_log10"] = float(-math.log10(proj / abs(H[2, 2])))
     out["rotation_deg"] = float(math.degrees(math.atan2(Hn[1, 0], Hn[0, 0])))
@@ -256,23 +248,17 @@ def single_metrics(H: np.ndarray, width: float, height: float) -> dict[str, Any]
     out["area_change"] = float(area / (w * h))
     if area <= 0:
         out["corner_disp_max"] = out["corner_disp_mean"] = None
-        reasons["corner_disp_max"] = reasons["corner_disp_mean"] = (
-            "warp folds the image (negative area)"
-        )
+        reasons["corner_disp_max"] = reasons["corner_disp_mean"] = "warp folds the image (negative area)"
     else:
         centred = (warped - warped.mean(0)) / math.sqrt(area / (w * h))
-        disp = np.linalg.norm(
-            centred - (corners - corners.mean(0)), axis=1
-        ) / math.hypot(w, h)
+        disp = np.linalg.norm(centred - (corners - corners.mean(0)), axis=1) / math.hypot(w, h)
         out["corner_disp_max"] = float(disp.max())
         out["corner_disp_mean"] = float(disp.mean())
     out["_reasons"] = reasons
     return out
 
 
-def pair_metrics(
-    H_l: np.ndarray, H_r: np.ndarray, width: float, height: float
-) -> dict[str, Any]:
+def pair_metrics(H_l: np.ndarray, H_r: np.ndarray, width: float, height: float) -> dict[str, Any]:
     """Metrics of both homographies (``l_*``, ``r_*``), pair-level worst cases and left-right
     consistency. Both views are taken to be ``width x height`` (KeystoneDepth crops both halves
     to a common box). Never NaN: what cannot be computed is ``None`` with a reason."""
@@ -293,30 +279,18 @@ def pair_metrics(
 
     out["max_midline_dev_deg"] = worst("midline_dev_deg")
     out["max_projective_span"] = worst("projective_span")
-    logs = [
-        m["projective_log10"] for m in (ml, mr) if m.get("projective_log10") is not None
-    ]
-    affine = [
-        m
-        for m in (ml, mr)
-        if m.get("_reasons", {}).get("projective_log10", "").startswith("affine")
-    ]
-    out["min_projective_log10"] = (
-        float(min(logs)) if logs and len(logs) + len(affine) == 2 else None
-    )
+    logs = [m["projective_log10"] for m in (ml, mr) if m.get("projective_log10") is not None]
+    affine = [m for m in (ml, mr) if m.get("_reasons", {}).get("projective_log10", "").startswith("affine")]
+    out["min_projective_log10"] = float(min(logs)) if logs and len(logs) + len(affine) == 2 else None
     if out["min_projective_log10"] is None and len(affine) == 2:
         reasons["min_projective_log10"] = "both views affine: no projective component"
     elif out["min_projective_log10"] is None:
         reasons["min_projective_log10"] = "H33 is 0 in a view (see l_/r_ reasons)"
     out["max_rotation_deg"] = worst("rotation_deg")
     out["max_abs_shear"] = worst("shear")
-    out["max_aspect_dev"] = worst(
-        "aspect_change", transform=lambda v: abs(math.log(v)) if v > 0 else math.inf
-    )
+    out["max_aspect_dev"] = worst("aspect_change", transform=lambda v: abs(math.log(v)) if v > 0 else math.inf)
     out["max_corner_disp"] = worst("corner_disp_max")
-    out["max_area_dev"] = worst(
-        "area_change", transform=lambda v: abs(math.log(v)) if v > 0 else math.inf
-    )
+    out["max_area_dev"] = worst("area_change", transform=lambda v: abs(math.log(v)) if v > 0 else math.inf)
 
     # Left-right consistency: the same (x, y) in both views must land on a common row. Over a
     # 5x5 grid of the image: the row difference (offset), its spread, and the ratio of the
@@ -348,9 +322,7 @@ def pair_metrics(
         "max_area_dev",
     ):
         if out[key] is None:
-            reasons[key] = reasons.get(
-                key, "not computable for one of the views (see l_/r_ reasons)"
-            )
+            reasons[key] = reasons.get(key, "not computable for one of the views (see l_/r_ reasons)")
         elif not math.isfinite(out[key]):
             out[key] = None
             reasons[key] = "degenerate warp (non-positive aspect or area)"
@@ -421,18 +393,12 @@ def _fit_thresholds(scores: np.ndarray, y: np.ndarray) -> tuple[float, float, fl
     finite = np.sort(np.unique(scores[np.isfinite(scores)]))
     if len(finite) == 0:
         finite = np.array([0.0])
-    cands = np.concatenate(
-        [[finite[0] - 1.0], (finite[:-1] + finite[1:]) / 2, [finite[-1] + 1.0]]
-    )
+    cands = np.concatenate([[finite[0] - 1.0], (finite[:-1] + finite[1:]) / 2, [finite[-1] + 1.0]])
     below = scores[None, :] < cands[:, None]  # (C, N)
     n_good = (below & (y == 0)).sum(1)
     n_border = (below & (y == 1)).sum(1)
     n_bad_below = (below & (y == 2)).sum(1)
-    acc = (
-        n_good[:, None]
-        + (n_border[None, :] - n_border[:, None])
-        + ((y == 2).sum() - n_bad_below)[None, :]
-    )
+    acc = n_good[:, None] + (n_border[None, :] - n_border[:, None]) + ((y == 2).sum() - n_bad_below)[None, :]
     acc = np.where(np.triu(np.ones((len(cands), len(cands)), bool)), acc, -1)
     i, j = np.unravel_index(int(np.argmax(acc)), acc.shape)
     return float(cands[i]), float(cands[j]), float(acc[i, j]) / len(y)
@@ -449,9 +415,7 @@ def fit_verdict(
     ``features``/``scales`` default to the shipped model's. Scales are fixed (they put the
     features on a common footing); only the two thresholds are fitted, by maximum accuracy."""
     feats = tuple(features or SHIPPED_MODEL.features)
-    scl = tuple(
-        scales or (SHIPPED_MODEL.scales if features is None else [1.0] * len(feats))
-    )
+    scl = tuple(scales or (SHIPPED_MODEL.scales if features is None else [1.0] * len(feats)))
     proto = VerdictModel(feats, scl, 0.0, 0.0)
     y = np.array([_ORDER[lab] for lab in labels])
     s = np.array([proto.score(m) for m in metrics_rows])
@@ -487,9 +451,7 @@ def cross_validate(
         correct = 0
         for test in stratified_folds(y, k, rng):
             train = np.setdiff1d(np.arange(len(y)), test)
-            model = fit_verdict(
-                [rows[i] for i in train], [labs[i] for i in train], features, scales
-            )
+            model = fit_verdict([rows[i] for i in train], [labs[i] for i in train], features, scales)
             correct += sum(model.predict(rows[i]) == labs[i] for i in test)
         accs.append(correct / len(y))
     a = np.array(accs)
@@ -599,12 +561,8 @@ def read_keystonedepth_mat(path: str | Path) -> HomographyPair:
 
     try:
         data = loadmat(str(path))
-    except (
-        Exception
-    ) as exc:  # scipy raises ValueError, TypeError, MatReadError... on bad files
-        raise HomographyReadError(
-            path, f"not a readable MATLAB file ({type(exc).__name__}: {exc})"
-        ) from exc
+    except Exception as exc:  # scipy raises ValueError, TypeError, MatReadError... on bad files
+        raise HomographyReadError(path, f"not a readable MATLAB file ({type(exc).__name__}: {exc})") from exc
     missing = [k for k in ("tl", "tr") if k not in data]
     if missing:
         raise HomographyReadError(path, f"missing variable(s) {', '.join(missing)}")
@@ -617,9 +575,7 @@ def read_keystonedepth_mat(path: str | Path) -> HomographyPair:
     )
 
 
-def _pair_from_json_obj(
-    key: str, obj: Mapping[str, Any], path: str | Path
-) -> HomographyPair:
+def _pair_from_json_obj(key: str, obj: Mapping[str, Any], path: str | Path) -> HomographyPair:
     if "tl" in obj and "tr" in obj:  # KeystoneDepth's JSON: row-vector convention
         return HomographyPair(
             parse_id(key),
@@ -677,12 +633,8 @@ def read_json(path: str | Path) -> list[HomographyPair]:
         return [_pair_from_json_obj(Path(path).name, data, path)]
     pairs = []
     for key, obj in data.items():
-        if not isinstance(obj, dict) or not (
-            {"tl", "tr"} <= obj.keys() or {"H_l", "H_r"} <= obj.keys()
-        ):
-            raise NotHomographyDocument(
-                path, f"entry {key!r} is neither {{tl, tr}} nor {{H_l, H_r}}"
-            )
+        if not isinstance(obj, dict) or not ({"tl", "tr"} <= obj.keys() or {"H_l", "H_r"} <= obj.keys()):
+            raise NotHomographyDocument(path, f"entry {key!r} is neither {{tl, tr}} nor {{H_l, H_r}}")
         pair = _pair_from_json_obj(key, obj, path)
         pairs.append(
             HomographyPair(
@@ -706,13 +658,7 @@ def iter_homography_files(paths: Iterable[str | Path]) -> list[Path]:
     out: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            out.extend(
-                sorted(
-                    f
-                    for f in p.rglob("*")
-                    if f.is_file() and f.suffix.lower() in HOMOGRAPHY_SUFFIXES
-                )
-            )
+            out.extend(sorted(f for f in p.rglob("*") if f.is_file() and f.suffix.lower() in HOMOGRAPHY_SUFFIXES))
         else:
             out.append(p)
     return out
@@ -728,9 +674,7 @@ def read_homographies(path: str | Path) -> list[HomographyPair]:
         return [read_keystonedepth_mat(p)]
     if suffix == ".json":
         return read_json(p)
-    raise HomographyReadError(
-        p, f"unsupported file type {suffix or '(none)'}: expected .mat or .json"
-    )
+    raise HomographyReadError(p, f"unsupported file type {suffix or '(none)'}: expected .mat or .json")
 
 
 def read_labels(path: str | Path) -> dict[str, str]:
@@ -738,6 +682,4 @@ def read_labels(path: str | Path) -> dict[str, str]:
     import csv
 
     with open(path, newline="") as fh:
-        return {
-            row["keystonedepth_id"]: row["human_label"] for row in csv.DictReader(fh)
-        }
+        return {row["keystonedepth_id"]: row["human_label"] for row in csv.DictReader(fh)}

@@ -195,8 +195,9 @@ TEMP_SUFFIX = ".tmp"
 STALE_TEMP_SECONDS = 10 * 60  # a temporary file lives seconds; ten minutes untouched is a dead writer
 
 
-def remove_stale_temp_files(root: str | os.PathLike[str], older_than_s: float,
-                            now: float | None = None) -> list[tuple[Path, int]]:
+def remove_stale_temp_files(
+    root: str | os.PathLike[str], older_than_s: float, now: float | None = None
+) -> list[tuple[Path, int]]:
     """Remove the hidden ``.<name>.XXXX.tmp`` files :func:`atomic_write` (and ingest's store)
     leave when their process is killed, if unchanged for ``older_than_s`` seconds; returns each
     removed path with its size in bytes.

@@ -188,8 +188,9 @@ class OrientationParams:
         if self.working_width < 4 * MIN_PHOTO_SIDE:
             raise InvalidInputError(f"Expected working_width >= {4 * MIN_PHOTO_SIDE} px, got {self.working_width}")
         if self.arch_working_width != 0 and self.arch_working_width < 4 * MIN_PHOTO_SIDE:
-            raise InvalidInputError(f"Expected arch_working_width 0 (off) or >= {4 * MIN_PHOTO_SIDE} px, "
-                                    f"got {self.arch_working_width}")
+            raise InvalidInputError(
+                f"Expected arch_working_width 0 (off) or >= {4 * MIN_PHOTO_SIDE} px, got {self.arch_working_width}"
+            )
         if not 0.5 < self.auto_probability < 1.0:
             raise InvalidInputError(f"Expected 0.5 < auto_probability < 1, got {self.auto_probability}")
         for name in self.weights():
@@ -211,8 +212,13 @@ class Cue:
     meaning: str
 
     def as_dict(self) -> dict[str, Any]:
-        return {"cue": self.name, "flags": list(self.flags), "value": round(self.value, 4),
-                "weight": self.weight, "meaning": self.meaning}
+        return {
+            "cue": self.name,
+            "flags": list(self.flags),
+            "value": round(self.value, 4),
+            "weight": self.weight,
+            "meaning": self.meaning,
+        }
 
 
 @dataclass(frozen=True)
@@ -229,8 +235,12 @@ class FlagEstimate:
         return (self.probability >= 0.5) if self.decided else None
 
     def as_dict(self) -> dict[str, Any]:
-        return {"probability": round(self.probability, 4), "decided": self.decided, "value": self.value,
-                "evidence": [cue.as_dict() for cue in self.evidence]}
+        return {
+            "probability": round(self.probability, 4),
+            "decided": self.decided,
+            "value": self.value,
+            "evidence": [cue.as_dict() for cue in self.evidence],
+        }
 
 
 @dataclass(frozen=True)
@@ -288,11 +298,16 @@ class OrientationEstimate:
         return {**values, "decided_by": "auto" if self.decided else None, "confidence": round(self.confidence, 4)}
 
     def as_dict(self) -> dict[str, Any]:
-        return {"orientation": self.orientation(), "undecidable": self.undecidable,
-                "same_turn_and_swap": round(self.same_turn_and_swap, 4), "tie_decided": self.tie_decided,
-                "combination_probability": round(self.combination_probability, 4),
-                "flags": {f.name: f.as_dict() for f in self.flags},
-                "seconds": round(self.seconds, 4), "details": self.details}
+        return {
+            "orientation": self.orientation(),
+            "undecidable": self.undecidable,
+            "same_turn_and_swap": round(self.same_turn_and_swap, 4),
+            "tie_decided": self.tie_decided,
+            "combination_probability": round(self.combination_probability, 4),
+            "flags": {f.name: f.as_dict() for f in self.flags},
+            "seconds": round(self.seconds, 4),
+            "details": self.details,
+        }
 
 
 # ------------------------------------------------------------------------------ input checks
@@ -321,8 +336,7 @@ def _check_box(box: object, name: str, width: int, height: int) -> Box:
     if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
         raise OrientationInputError(f"Expected {name} inside the {width}x{height} card, got {(x0, y0, x1, y1)}")
     if x1 - x0 < MIN_PHOTO_SIDE or y1 - y0 < MIN_PHOTO_SIDE:
-        raise OrientationInputError(
-            f"Expected {name} of at least {MIN_PHOTO_SIDE}x{MIN_PHOTO_SIDE} px, got {x1 - x0}x{y1 - y0}")
+        raise OrientationInputError(f"Expected {name} of at least {MIN_PHOTO_SIDE}x{MIN_PHOTO_SIDE} px, got {x1 - x0}x{y1 - y0}")
     return x0, y0, x1, y1
 
 
@@ -340,8 +354,12 @@ def _working_scale(card: np.ndarray, lb: Box, rb: Box, width: int) -> tuple[np.n
     small = cv2.resize(card, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
 
     def scaled(b: Box) -> Box:
-        return (int(b[0] * scale), int(b[1] * scale), max(int(b[0] * scale) + 1, round(b[2] * scale)),
-                max(int(b[1] * scale) + 1, round(b[3] * scale)))
+        return (
+            int(b[0] * scale),
+            int(b[1] * scale),
+            max(int(b[0] * scale) + 1, round(b[2] * scale)),
+            max(int(b[1] * scale) + 1, round(b[3] * scale)),
+        )
 
     return small, scaled(lb), scaled(rb)
 
@@ -350,8 +368,8 @@ def _photo_pair(grey: np.ndarray, lb: Box, rb: Box) -> tuple[np.ndarray, np.ndar
     """Both photos cut to a common size (their top-left corners kept)."""
     w = min(lb[2] - lb[0], rb[2] - rb[0])
     h = min(lb[3] - lb[1], rb[3] - rb[1])
-    left = grey[lb[1]:lb[1] + h, lb[0]:lb[0] + w]
-    right = grey[rb[1]:rb[1] + h, rb[0]:rb[0] + w]
+    left = grey[lb[1] : lb[1] + h, lb[0] : lb[0] + w]
+    right = grey[rb[1] : rb[1] + h, rb[0] : rb[0] + w]
     return np.ascontiguousarray(left), np.ascontiguousarray(right)
 
 
@@ -364,14 +382,14 @@ def _third_photo(grey: np.ndarray, lb: Box, rb: Box, threshold: float) -> float:
     small = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     y0, y1 = round(lb[1] * scale), max(round(lb[1] * scale) + 8, round(lb[3] * scale))
     x0, x1 = round((lb[0] + 0.2 * photo_w) * scale), round((lb[2] - 0.2 * photo_w) * scale)
-    template = small[y0 + (y1 - y0) // 5:y1 - (y1 - y0) // 5, x0:x1]
+    template = small[y0 + (y1 - y0) // 5 : y1 - (y1 - y0) // 5, x0:x1]
     if template.size == 0 or float(template.std()) < 1.0:
         return 0.0
     best = 0.0
     for a, b in ((0, min(lb[0], rb[0])), (max(lb[2], rb[2]), width)):
         if b - a < 0.6 * photo_w:
             continue
-        strip = small[:, round(a * scale):round(b * scale)]
+        strip = small[:, round(a * scale) : round(b * scale)]
         if strip.shape[0] < template.shape[0] or strip.shape[1] < template.shape[1]:
             continue
         ncc = cv2.matchTemplate(strip, template, cv2.TM_CCOEFF_NORMED)
@@ -424,14 +442,12 @@ def _align_rows(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, dict[s
     if not (response > 0.05 and np.isfinite(sx) and np.isfinite(sy)) or abs(sy) > 0.2 * h or abs(sx) > 0.5 * w:
         sx, sy = 0.0, 0.0
     gy, gx = np.mgrid[0:h, 0:w].astype(np.float32)
-    shifted = cv2.remap(right, gx + np.float32(sx), gy + np.float32(sy), cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_REPLICATE)
+    shifted = cv2.remap(right, gx + np.float32(sx), gy + np.float32(sy), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     # OpenCV's stubs omit that the initial flow may be None (start from zero).
     flow = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_FAST).calc(left, shifted, None)  # type: ignore[call-overload]
     # The scene's horizontal spread around the dominant shift, px (sets the disparity search).
     spread = float(np.nanmax(np.abs(np.nanpercentile(flow[..., 0], [1, 99]))))
-    model: dict[str, Any] = {"shift": [round(float(sx), 2), round(float(sy), 2)], "rows": None,
-                             "spread": round(spread, 2)}
+    model: dict[str, Any] = {"shift": [round(float(sx), 2), round(float(sy), 2)], "rows": None, "spread": round(spread, 2)}
     step = max(1, int(np.sqrt(h * w / 20000)))
     ys, xs = np.mgrid[0:h:step, 0:w:step]
     v = flow[::step, ::step, 1].ravel().astype(np.float64)
@@ -482,8 +498,8 @@ def _stereo_cues(left: np.ndarray, right: np.ndarray) -> tuple[float, float, dic
     back = np.take_along_axis(d_left, np.clip(np.rint(xs).astype(np.int64), 0, w - 1), axis=1)
     consistent_r = inside & (np.abs(back - d_right) <= 1.0)
     end_r, start_r = _occlusion_counts(
-        np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(d_right[:, ::-1]),
-        np.ascontiguousarray(consistent_r[:, ::-1]))
+        np.ascontiguousarray(right[:, ::-1]), np.ascontiguousarray(d_right[:, ::-1]), np.ascontiguousarray(consistent_r[:, ::-1])
+    )
     n_end, n_start = end_l + end_r, start_l + start_r
     # A handful of bands is noise: shrink towards 0 (10 pseudo-bands split evenly).
     occlusion = (n_end - n_start) / (n_end + n_start + 10.0)
@@ -495,8 +511,14 @@ def _stereo_cues(left: np.ndarray, right: np.ndarray) -> tuple[float, float, dic
         if float(np.ptp(values)) > 0.5 and float(np.ptp(ys)) > 0:
             rho = spearmanr(ys[::step], values).statistic
             ground = float(rho) if np.isfinite(rho) else 0.0
-    details = {"alignment": alignment, "search_px": round(reach, 1), "occlusion_bands_end": n_end, "occlusion_bands_start": n_start,
-               "consistent_fraction": round(result.confident_fraction, 4), "disparity_flags": list(result.flags)}
+    details = {
+        "alignment": alignment,
+        "search_px": round(reach, 1),
+        "occlusion_bands_end": n_end,
+        "occlusion_bands_start": n_start,
+        "consistent_fraction": round(result.confident_fraction, 4),
+        "disparity_flags": list(result.flags),
+    }
     return occlusion, ground, details
 
 
@@ -605,8 +627,9 @@ def parity(hypothesis: tuple[bool, bool, bool], flags: tuple[str, ...]) -> int:
 def hypothesis_probabilities(values: dict[str, float], weights: dict[str, float]) -> dict[tuple[bool, bool, bool], float]:
     """``P(h)`` for the eight hypotheses ``h = (upside_down, inverted, swapped)`` under the
     log-linear model of the module docstring."""
-    scores = np.array([sum(weights[c] * values.get(c, 0.0) * (1 - 2 * parity(h, CUE_FLAGS[c])) for c in CUE_FLAGS)
-                       for h in HYPOTHESES])
+    scores = np.array(
+        [sum(weights[c] * values.get(c, 0.0) * (1 - 2 * parity(h, CUE_FLAGS[c])) for c in CUE_FLAGS) for h in HYPOTHESES]
+    )
     p = np.exp(scores - scores.max())
     p /= p.sum()
     return {h: float(p[k]) for k, h in enumerate(HYPOTHESES)}
@@ -626,31 +649,47 @@ def same_turn_and_swap_probability(values: dict[str, float], weights: dict[str, 
 
 def _meaning(name: str, value: float) -> str:
     if value == 0.0:
-        return {"warm_tone": "greyscale scan: no colour evidence",
-                "arched_top": "no arched photo tops found"}.get(name, "no measurable evidence")
+        return {"warm_tone": "greyscale scan: no colour evidence", "arched_top": "no arched photo tops found"}.get(
+            name, "no measurable evidence"
+        )
     even = value > 0
     return {
-        "occlusion_side": ("occluded bands end at near objects as in a correct pair: eyes not swapped"
-                           if even else "occluded bands start at near objects: eyes swapped"),
-        "ground_plane": ("disparity grows towards the bottom: upright and not swapped, or turned and swapped"
-                         if even else "disparity grows towards the top: turned and not swapped, or upright and swapped"),
-        "sky_top": ("top lighter than bottom: upright positive, or a turned negative"
-                    if even else "top darker than bottom: a turned positive, or an upright negative"),
-        "detail_bottom": ("more texture in the bottom third (near ground): upright" if even
-                          else "more texture in the top third: turned"),
+        "occlusion_side": (
+            "occluded bands end at near objects as in a correct pair: eyes not swapped"
+            if even
+            else "occluded bands start at near objects: eyes swapped"
+        ),
+        "ground_plane": (
+            "disparity grows towards the bottom: upright and not swapped, or turned and swapped"
+            if even
+            else "disparity grows towards the top: turned and not swapped, or upright and swapped"
+        ),
+        "sky_top": (
+            "top lighter than bottom: upright positive, or a turned negative"
+            if even
+            else "top darker than bottom: a turned positive, or an upright negative"
+        ),
+        "detail_bottom": (
+            "more texture in the bottom third (near ground): upright" if even else "more texture in the top third: turned"
+        ),
         "warm_tone": "warm (sepia/buff) tones: a positive" if even else "cold (blue) tones: a negative",
         "dark_detail": "fine detail mostly dark: a positive" if even else "fine detail mostly bright: a negative",
-        "smooth_bright": ("plain areas (sky, paper, walls) lighter than the rest: a positive" if even
-                          else "plain areas darker than the rest: a negative"),
-        "arched_top": ("the photos' arched tops are at the top: upright" if even
-                       else "the photos' arched tops are at the bottom: turned"),
+        "smooth_bright": (
+            "plain areas (sky, paper, walls) lighter than the rest: a positive"
+            if even
+            else "plain areas darker than the rest: a negative"
+        ),
+        "arched_top": (
+            "the photos' arched tops are at the top: upright" if even else "the photos' arched tops are at the bottom: turned"
+        ),
     }[name]
 
 
 def _undecidable(reason: str, clock: float, details: dict[str, Any]) -> OrientationEstimate:
     flags = [FlagEstimate(name=f, probability=0.5, decided=False, evidence=()) for f in FLAGS]
-    return OrientationEstimate(flags[0], flags[1], flags[2], cues=(), seconds=time.perf_counter() - clock, undecidable=reason,
-                               details=details)
+    return OrientationEstimate(
+        flags[0], flags[1], flags[2], cues=(), seconds=time.perf_counter() - clock, undecidable=reason, details=details
+    )
 
 
 def estimate_orientation(
@@ -681,24 +720,28 @@ def estimate_orientation(
         return _undecidable(f"blank photo: grey-level spread {min(spreads):.1f} < {params.min_texture}", clock, details)
     difference = float(np.abs(left.astype(np.int16) - right.astype(np.int16)).mean())
     if difference < params.identical_tolerance:
-        return _undecidable(f"identical photos (mean |difference| {difference:.2f} grey levels): no stereo", clock,
-                            details)
+        return _undecidable(f"identical photos (mean |difference| {difference:.2f} grey levels): no stereo", clock, details)
     third = _third_photo(grey, lb, rb, params.third_photo_ncc)
     details["third_photo_ncc"] = round(third, 4)
     if third >= params.third_photo_ncc:
-        return _undecidable(f"a third copy of the photo beside the boxes (NCC {third:.2f}): more than two photos",
-                            clock, details)
+        return _undecidable(f"a third copy of the photo beside the boxes (NCC {third:.2f}): more than two photos", clock, details)
 
     try:
         occlusion, ground, stereo_details = _stereo_cues(left, right)
     except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
     details.update(stereo_details)
-    if (stereo_details["occlusion_bands_end"] + stereo_details["occlusion_bands_start"] == 0
-            and stereo_details["alignment"]["spread"] < params.no_parallax_px):
+    if (
+        stereo_details["occlusion_bands_end"] + stereo_details["occlusion_bands_start"] == 0
+        and stereo_details["alignment"]["spread"] < params.no_parallax_px
+    ):
         # Two copies of one photo a few px apart pass the pixel-identity check above.
-        return _undecidable(f"no parallax between the photos (flow spread {stereo_details['alignment']['spread']} px, "
-                            "no occluded band): copies of one image, no stereo", clock, details)
+        return _undecidable(
+            f"no parallax between the photos (flow spread {stereo_details['alignment']['spread']} px, "
+            "no occluded band): copies of one image, no stereo",
+            clock,
+            details,
+        )
     values = {
         "occlusion_side": occlusion,
         "ground_plane": ground,
@@ -713,29 +756,42 @@ def estimate_orientation(
     # inverted first. Where that call is wrong, the inverted flag is wrong or doubtful anyway.
     weights = params.weights()
     tone = sum(weights[c] * values[c] for c in values if CUE_FLAGS[c] == ("inverted",))
-    values["arched_top"], details["arches"], areas = _arched_top(255 - card if tone < 0 else card,
-                                                                 params.arch_working_width)
-    cues = tuple(Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c],
-                     meaning=_meaning(c, float(values[c]))) for c in CUE_FLAGS)
+    values["arched_top"], details["arches"], areas = _arched_top(255 - card if tone < 0 else card, params.arch_working_width)
+    cues = tuple(
+        Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c], meaning=_meaning(c, float(values[c])))
+        for c in CUE_FLAGS
+    )
     probabilities = flag_probabilities(values, weights)
     estimates = []
     for flag in FLAGS:
         p = probabilities[flag]
         decided = p >= params.auto_probability or p <= 1.0 - params.auto_probability
-        estimates.append(FlagEstimate(name=flag, probability=p, decided=decided,
-                                      evidence=tuple(c for c in cues if flag in c.flags)))
+        estimates.append(
+            FlagEstimate(name=flag, probability=p, decided=decided, evidence=tuple(c for c in cues if flag in c.flags))
+        )
     tie = same_turn_and_swap_probability(values, weights)
     tie_decided = tie >= params.auto_probability or tie <= 1.0 - params.auto_probability
     best = max(hypothesis_probabilities(values, weights).values())
-    return OrientationEstimate(estimates[0], estimates[1], estimates[2], cues=cues, seconds=time.perf_counter() - clock, details=details,
-                               same_turn_and_swap=tie, tie_decided=tie_decided, combination_probability=best,
-                               combination_decided=best >= params.auto_probability, photo_areas=areas,
-                               photo_areas_scale=(scanned[1] / card.shape[1], scanned[0] / card.shape[0]),
-                               photo_areas_inverted=bool(tone < 0))
+    return OrientationEstimate(
+        estimates[0],
+        estimates[1],
+        estimates[2],
+        cues=cues,
+        seconds=time.perf_counter() - clock,
+        details=details,
+        same_turn_and_swap=tie,
+        tie_decided=tie_decided,
+        combination_probability=best,
+        combination_decided=best >= params.auto_probability,
+        photo_areas=areas,
+        photo_areas_scale=(scanned[1] / card.shape[1], scanned[0] / card.shape[0]),
+        photo_areas_inverted=bool(tone < 0),
+    )
 
 
-def orient_variant(card: np.ndarray, left_box: Box, right_box: Box, upside_down: bool, inverted: bool,
-                   swapped: bool) -> tuple[np.ndarray, Box, Box]:
+def orient_variant(
+    card: np.ndarray, left_box: Box, right_box: Box, upside_down: bool, inverted: bool, swapped: bool
+) -> tuple[np.ndarray, Box, Box]:
     """The scan a correctly oriented card would give with these flags (the inverse of the
     fixes, applied in reverse order: swap the photos, negate, turn), and its photos' boxes.
 
@@ -747,9 +803,9 @@ def orient_variant(card: np.ndarray, left_box: Box, right_box: Box, upside_down:
     if (lb[2] - lb[0], lb[3] - lb[1]) != (rb[2] - rb[0], rb[3] - rb[1]):
         raise OrientationInputError(f"Expected boxes of one size to swap photos, got {lb} and {rb}")
     if swapped:
-        a = out[lb[1]:lb[3], lb[0]:lb[2]].copy()
-        out[lb[1]:lb[3], lb[0]:lb[2]] = out[rb[1]:rb[3], rb[0]:rb[2]]
-        out[rb[1]:rb[3], rb[0]:rb[2]] = a
+        a = out[lb[1] : lb[3], lb[0] : lb[2]].copy()
+        out[lb[1] : lb[3], lb[0] : lb[2]] = out[rb[1] : rb[3], rb[0] : rb[2]]
+        out[rb[1] : rb[3], rb[0] : rb[2]] = a
     if inverted:
         out = 255 - out
     if upside_down:

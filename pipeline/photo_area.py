@@ -179,8 +179,7 @@ class PhotoAreaParams:
             raise InvalidInputError(f"Expected 0 <= mount_ring[0] < mount_ring[1] <= 0.5, got {self.mount_ring}")
         if self.cell < 1:
             raise InvalidInputError(f"Expected cell >= 1 px, got {self.cell}")
-        for name in ("mount_coverage", "text_closing", "clean_line", "inset", "min_area", "min_agreement",
-                     "fallback_confidence"):
+        for name in ("mount_coverage", "text_closing", "clean_line", "inset", "min_area", "min_agreement", "fallback_confidence"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise InvalidInputError(f"Expected 0 <= {name} <= 1, got {getattr(self, name)}")
 
@@ -334,10 +333,14 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     # such gaps, become barriers too.
     height, width = grey.shape
     segments = cv2.HoughLinesP(
-        edges, 1, np.pi / 180, threshold=max(8, round(0.1 * width)),
-        minLineLength=max(8, round(params.barrier_length * width)), maxLineGap=max(2, round(params.barrier_gap * width)),
+        edges,
+        1,
+        np.pi / 180,
+        threshold=max(8, round(0.1 * width)),
+        minLineLength=max(8, round(params.barrier_length * width)),
+        maxLineGap=max(2, round(params.barrier_gap * width)),
     )
-    for xa, ya, xb, yb in (np.zeros((0, 4), int) if segments is None else segments.reshape(-1, 4)):
+    for xa, ya, xb, yb in np.zeros((0, 4), int) if segments is None else segments.reshape(-1, 4):
         if abs(int(xa) - int(xb)) <= 2 or abs(int(ya) - int(yb)) <= 2:
             cv2.line(edges, (int(xa), int(ya)), (int(xb), int(yb)), 255, 1)
     is_edge = edges > 0
@@ -370,11 +373,18 @@ def _measure(card: np.ndarray, params: PhotoAreaParams) -> _Mask:
     # absorbs them.
     non_photo = cv2.morphologyEx(raw, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
     return _Mask(
-        scale_x=card.shape[1] / small.shape[1], scale_y=card.shape[0] / small.shape[0], grey=grey,
-        non_photo=non_photo.astype(bool), line_columns=line_columns, plain=mount | dark | white,
-        foreign=non_photo.astype(bool) | (spread < params.plain_spread), mount=mount & raw.astype(bool),
+        scale_x=card.shape[1] / small.shape[1],
+        scale_y=card.shape[0] / small.shape[0],
+        grey=grey,
+        non_photo=non_photo.astype(bool),
+        line_columns=line_columns,
+        plain=mount | dark | white,
+        foreign=non_photo.astype(bool) | (spread < params.plain_spread),
+        mount=mount & raw.astype(bool),
         dark=dark & raw.astype(bool),
-        white=white & raw.astype(bool), mount_rgb=mount_rgb, lab=lab,
+        white=white & raw.astype(bool),
+        mount_rgb=mount_rgb,
+        lab=lab,
     )
 
 
@@ -445,7 +455,9 @@ def _refine(bad: np.ndarray, box: tuple[int, int, int, int], clean: float, steps
 
 
 def _prefer_full_width(
-    good: np.ndarray, best: tuple[int, int, int, int], preference: float,
+    good: np.ndarray,
+    best: tuple[int, int, int, int],
+    preference: float,
 ) -> tuple[int, int, int, int]:
     """Under an arched top the largest rectangle is narrower than the photo and reaches up into
     the arch. The photo's full width is where the lower half of ``best``'s rows is photo in every
@@ -471,7 +483,11 @@ def _prefer_full_width(
 
 
 def _cut_straight_edges(
-    grey: np.ndarray, foreign: np.ndarray, box: tuple[int, int, int, int], params: PhotoAreaParams, sides: set[str],
+    grey: np.ndarray,
+    foreign: np.ndarray,
+    box: tuple[int, int, int, int],
+    params: PhotoAreaParams,
+    sides: set[str],
 ) -> tuple[int, int, int, int, list[str]]:
     """Cut ``box`` (``(y0, x0, y1, x1)``, ``grey``'s px) at straight edges near its sides.
 
@@ -495,7 +511,9 @@ def _cut_straight_edges(
         # edge the pixels change the same way (a band is darker or lighter all along).
         along = cv2.blur(np.ascontiguousarray(lines), (9, 1))
         step = along[2 * k :] - along[: -2 * k]
-        change = np.maximum((step > params.edge_step).mean(axis=1), (step < -params.edge_step).mean(axis=1))  # [i]: edge at line i + k
+        change = np.maximum(
+            (step > params.edge_step).mean(axis=1), (step < -params.edge_step).mean(axis=1)
+        )  # [i]: edge at line i + k
         reach = max(k + 1, int(params.edge_band * n))
         per_line = np.concatenate(([0.0], np.cumsum(alien.mean(axis=1))))  # [j]: sum over lines [0, j)
         edge_line = np.arange(change.size) + k  # the line each change value sits on
@@ -536,7 +554,9 @@ def _cut_straight_edges(
 
 
 def _cut_uniform_bands(
-    lab: np.ndarray, box: tuple[int, int, int, int], params: PhotoAreaParams,
+    lab: np.ndarray,
+    box: tuple[int, int, int, int],
+    params: PhotoAreaParams,
 ) -> tuple[int, int, int, int, list[str]]:
     """Cut ``box`` (``(y0, x0, y1, x1)``, ``lab``'s px) inside a uniform band along a side.
 
@@ -551,8 +571,12 @@ def _cut_uniform_bands(
     cuts = []
     for side in ("top", "bottom", "left", "right"):
         region = lab[y0:y1, x0:x1]
-        lines = {"top": region, "bottom": region[::-1], "left": region.transpose(1, 0, 2),
-                 "right": region.transpose(1, 0, 2)[::-1]}[side]
+        lines = {
+            "top": region,
+            "bottom": region[::-1],
+            "left": region.transpose(1, 0, 2),
+            "right": region.transpose(1, 0, 2)[::-1],
+        }[side]
         n, length = lines.shape[:2]
         depth = max(2, round(params.band_depth * n))
         if n < 4 * (depth + 4) or length < 10:
@@ -611,8 +635,7 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
     # The arch may be at the top or (a turned card) at the bottom: both are tried.
     rows = good.shape[0]
     from_top = _prefer_full_width(good, found, params.full_width_preference)
-    turned = _prefer_full_width(good[::-1], (rows - found[2], found[1], rows - found[0], found[3]),
-                                params.full_width_preference)
+    turned = _prefer_full_width(good[::-1], (rows - found[2], found[1], rows - found[0], found[3]), params.full_width_preference)
     from_bottom = (rows - turned[2], turned[1], rows - turned[0], turned[3])
     wider = [r for r in (from_top, from_bottom) if r != found]
     r0, c0, r1, c1 = max(wider, key=lambda r: (r[2] - r[0]) * (r[3] - r[1])) if wider else found
@@ -623,7 +646,11 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
         # A further pass, on the sides just cut, finds a photo's edge behind a wide side title
         # or a caption band once those are cut off.
         y0, bx0, y1, bx1, found_cuts = _cut_straight_edges(
-            mask.grey[:, x0:x1], mask.foreign[:, x0:x1], (y0, bx0, y1, bx1), params, sides,
+            mask.grey[:, x0:x1],
+            mask.foreign[:, x0:x1],
+            (y0, bx0, y1, bx1),
+            params,
+            sides,
         )
         cuts += [side for side in found_cuts if side not in cuts]
         sides = set(found_cuts)
@@ -666,8 +693,10 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
         if near.size and near.mean(axis=1).max() > 0.6 and rows.max() > 0.6:
             notes.append(f"dark band {name} the photo (caption strip or film edge)")
     return _HalfArea(
-        box=(x0 + bx0, y0, x0 + bx1, y1), area_fraction=(bx1 - bx0) * (y1 - y0) / float(height * width),
-        photos=photos, notes=notes,
+        box=(x0 + bx0, y0, x0 + bx1, y1),
+        area_fraction=(bx1 - bx0) * (y1 - y0) / float(height * width),
+        photos=photos,
+        notes=notes,
     )
 
 
@@ -717,7 +746,8 @@ def _clear_of_text(mask: _Mask, box: Box, x0: int, x1: int, params: PhotoAreaPar
     size = max(3, round(0.015 * width)) | 1
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
     ink = (cv2.morphologyEx(grey, cv2.MORPH_BLACKHAT, kernel) > params.ink_contrast) | (
-        cv2.morphologyEx(grey, cv2.MORPH_TOPHAT, kernel) > params.ink_contrast)
+        cv2.morphologyEx(grey, cv2.MORPH_TOPHAT, kernel) > params.ink_contrast
+    )
     words = cv2.morphologyEx(ink.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((size, size), np.uint8))
     count, _, stats, _ = cv2.connectedComponentsWithStats(words, connectivity=8)
     plain = mask.foreign[lo_y:hi_y, lo_x:hi_x]
@@ -749,9 +779,17 @@ def _clear_of_text(mask: _Mask, box: Box, x0: int, x1: int, params: PhotoAreaPar
 def _turned(mask: _Mask) -> _Mask:
     """``mask`` turned by 180 degrees (a view: no copy)."""
     return _Mask(
-        scale_x=mask.scale_x, scale_y=mask.scale_y, grey=mask.grey[::-1, ::-1], non_photo=mask.non_photo[::-1, ::-1],
-        foreign=mask.foreign[::-1, ::-1], line_columns=mask.line_columns[::-1], plain=mask.plain[::-1, ::-1],
-        mount=mask.mount[::-1, ::-1], dark=mask.dark[::-1, ::-1], white=mask.white[::-1, ::-1], mount_rgb=mask.mount_rgb,
+        scale_x=mask.scale_x,
+        scale_y=mask.scale_y,
+        grey=mask.grey[::-1, ::-1],
+        non_photo=mask.non_photo[::-1, ::-1],
+        foreign=mask.foreign[::-1, ::-1],
+        line_columns=mask.line_columns[::-1],
+        plain=mask.plain[::-1, ::-1],
+        mount=mask.mount[::-1, ::-1],
+        dark=mask.dark[::-1, ::-1],
+        white=mask.white[::-1, ::-1],
+        mount_rgb=mask.mount_rgb,
         lab=mask.lab[::-1, ::-1],
     )
 
@@ -769,8 +807,7 @@ def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: P
         return None
     fx0, fy0, fx1, fy1 = flipped.box
     back = (width - fx1, height - fy1, width - fx0, height - fy0)
-    box = (max(upright.box[0], back[0]), max(upright.box[1], back[1]),
-           min(upright.box[2], back[2]), min(upright.box[3], back[3]))
+    box = (max(upright.box[0], back[0]), max(upright.box[1], back[1]), min(upright.box[2], back[2]), min(upright.box[3], back[3]))
     # Under an arch the box's corner meets the curve inside the photo's sides, where the curve
     # is nearly vertical: the arch meets the sides lower. An extra inset covers that (before the
     # corners are checked: the drop usually clears them, which keeps the sides).
@@ -792,8 +829,10 @@ def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: P
         if " ".join(words) not in notes:
             notes.append(" ".join(words))
     return _HalfArea(
-        box=box, area_fraction=(box[2] - box[0]) * (box[3] - box[1]) / float(height * (x1 - x0)),
-        photos=max(upright.photos, flipped.photos), notes=notes,
+        box=box,
+        area_fraction=(box[2] - box[0]) * (box[3] - box[1]) / float(height * (x1 - x0)),
+        photos=max(upright.photos, flipped.photos),
+        notes=notes,
     )
 
 
@@ -802,9 +841,13 @@ def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: P
 
 def _fallback(split: CardSplit, reason: str, evidence: list[str], params: PhotoAreaParams) -> PhotoAreas:
     return PhotoAreas(
-        left_box=split.left_box, right_box=split.right_box, gutter_x=split.gutter_x,
+        left_box=split.left_box,
+        right_box=split.right_box,
+        gutter_x=split.gutter_x,
         confidence=round(min(params.fallback_confidence, split.confidence), 4),
-        evidence=tuple(evidence), fallback_reason=reason, split=split,
+        evidence=tuple(evidence),
+        fallback_reason=reason,
+        split=split,
     )
 
 
@@ -850,8 +893,9 @@ def find_photo_areas(card: np.ndarray, params: PhotoAreaParams = PhotoAreaParams
         return _fallback(split, "no border found: the photos fill their halves", evidence, params)
     small = [name for name, half in zip(("left", "right"), halves) if half.area_fraction < params.min_area]
     if small:
-        return _fallback(split, f"photo area of the {' and '.join(small)} half below {params.min_area:.0%} of it",
-                         evidence, params)
+        return _fallback(
+            split, f"photo area of the {' and '.join(small)} half below {params.min_area:.0%} of it", evidence, params
+        )
     several = [name for name, half in zip(("left", "right"), halves) if half.photos > 1]
     if several:
         return _fallback(split, f"more than one photo in the {' and '.join(several)} half", evidence, params)
@@ -859,19 +903,23 @@ def find_photo_areas(card: np.ndarray, params: PhotoAreaParams = PhotoAreaParams
     boxes = []
     for half, (lo, hi) in zip(halves, ((0, split.gutter_x), (split.gutter_x, width))):
         x0, y0, x1, y1 = half.box
-        boxes.append((
-            int(np.clip(np.ceil(x0 * mask.scale_x), lo, hi - 1)),
-            int(np.clip(np.ceil(y0 * mask.scale_y), 0, height - 1)),
-            int(np.clip(np.floor(x1 * mask.scale_x), lo + 1, hi)),
-            int(np.clip(np.floor(y1 * mask.scale_y), 1, height)),
-        ))
+        boxes.append(
+            (
+                int(np.clip(np.ceil(x0 * mask.scale_x), lo, hi - 1)),
+                int(np.clip(np.ceil(y0 * mask.scale_y), 0, height - 1)),
+                int(np.clip(np.floor(x1 * mask.scale_x), lo + 1, hi)),
+                int(np.clip(np.floor(y1 * mask.scale_y), 1, height)),
+            )
+        )
     widths = [b[2] - b[0] for b in boxes]
     heights = [b[3] - b[1] for b in boxes]
     agreement = min(min(widths) / max(widths), min(heights) / max(heights))
     if agreement < params.min_agreement:
         return _fallback(
-            split, f"the halves' photo areas differ too much ({widths[0]}x{heights[0]} vs {widths[1]}x{heights[1]} px)",
-            evidence, params,
+            split,
+            f"the halves' photo areas differ too much ({widths[0]}x{heights[0]} vs {widths[1]}x{heights[1]} px)",
+            evidence,
+            params,
         )
     # Same rows for both crops: the intersection of the two row ranges lies inside both photo
     # areas (photos of a pair are mounted level, up to a few px). Widths stay as found: disparity
@@ -886,6 +934,11 @@ def find_photo_areas(card: np.ndarray, params: PhotoAreaParams = PhotoAreaParams
     coverage = min(1.0, min(h.area_fraction for h in halves) / 0.5)
     confidence = round(float(np.clip(agreement * coverage * (0.5 + 0.5 * split.confidence), 0.0, 1.0)), 4)
     return PhotoAreas(
-        left_box=left_box, right_box=right_box, gutter_x=split.gutter_x, confidence=confidence,
-        evidence=tuple(evidence), fallback_reason=None, split=split,
+        left_box=left_box,
+        right_box=right_box,
+        gutter_x=split.gutter_x,
+        confidence=confidence,
+        evidence=tuple(evidence),
+        fallback_reason=None,
+        split=split,
     )

@@ -256,9 +256,7 @@ class RectifyParams:
         if self.max_side < MIN_SIDE or self.max_keypoints < 0:
             raise InvalidInputError(f"Expected max_side >= {MIN_SIDE} and max_keypoints >= 0")
         if self.min_inliers < 8 or self.min_matches < self.min_inliers:
-            raise InvalidInputError(
-                f"Expected 8 <= min_inliers <= min_matches, got {self.min_inliers}, {self.min_matches}"
-            )
+            raise InvalidInputError(f"Expected 8 <= min_inliers <= min_matches, got {self.min_inliers}, {self.min_matches}")
         for name in ("f_threshold", "h_threshold", "skip_dy_tolerance", "max_dy_p95", "max_midline_deviation"):
             if not getattr(self, name) > 0:
                 raise InvalidInputError(f"Expected {name} > 0, got {getattr(self, name)}")
@@ -321,16 +319,28 @@ class Rectification:
     def metrics(self) -> dict[str, Any]:
         """JSON-safe numbers for a StageRecord (homographies as nested lists, row = row of H)."""
         return {
-            "H_l": np.asarray(self.H_l, float).tolist(), "H_r": np.asarray(self.H_r, float).tolist(),
-            "size": [int(v) for v in self.size], "K": np.asarray(self.K, float).tolist(),
-            "R": np.asarray(self.R, float).tolist(), "t": np.asarray(self.t, float).tolist(),
-            "disparity_min": float(self.disparity_range[0]), "disparity_max": float(self.disparity_range[1]),
-            "dy_median": float(self.dy_median), "dy_p95": float(self.dy_p95),
-            "midline_angle": float(self.midline_angle), "aspect_change": float(self.aspect_change),
-            "shear": float(self.shear), "kept_fraction": float(self.kept_fraction),
-            "matches": int(self.matches), "inliers": int(self.inliers), "swapped": bool(self.swapped),
-            "warp_needed": bool(self.warp_needed), "reason": self.reason, "seconds": round(float(self.seconds), 4),
-            "rotation": round(float(self.rotation), 3), "method": self.method,
+            "H_l": np.asarray(self.H_l, float).tolist(),
+            "H_r": np.asarray(self.H_r, float).tolist(),
+            "size": [int(v) for v in self.size],
+            "K": np.asarray(self.K, float).tolist(),
+            "R": np.asarray(self.R, float).tolist(),
+            "t": np.asarray(self.t, float).tolist(),
+            "disparity_min": float(self.disparity_range[0]),
+            "disparity_max": float(self.disparity_range[1]),
+            "dy_median": float(self.dy_median),
+            "dy_p95": float(self.dy_p95),
+            "midline_angle": float(self.midline_angle),
+            "aspect_change": float(self.aspect_change),
+            "shear": float(self.shear),
+            "kept_fraction": float(self.kept_fraction),
+            "matches": int(self.matches),
+            "inliers": int(self.inliers),
+            "swapped": bool(self.swapped),
+            "warp_needed": bool(self.warp_needed),
+            "reason": self.reason,
+            "seconds": round(float(self.seconds), 4),
+            "rotation": round(float(self.rotation), 3),
+            "method": self.method,
             "view_scale": float(self.view_scale),
         }
 
@@ -354,9 +364,7 @@ def _check_view(image: object, name: str) -> np.ndarray:
     return check_image(image, name, MIN_SIDE, MIN_SIDE)
 
 
-def match_features(
-    left: np.ndarray, right: np.ndarray, params: RectifyParams = RectifyParams()
-) -> tuple[np.ndarray, np.ndarray]:
+def match_features(left: np.ndarray, right: np.ndarray, params: RectifyParams = RectifyParams()) -> tuple[np.ndarray, np.ndarray]:
     """SIFT matches between two views, Lowe ratio test ``params.ratio`` [0.7].
 
     ``left``, ``right``: uint8 ``(H, W)`` / ``(H, W, 3)``, at least 16 x 16 px. SIFT runs on grey
@@ -447,9 +455,7 @@ def _fit_f(pts_l: np.ndarray, pts_r: np.ndarray, params: RectifyParams, scale: f
     usac.loIterations = 10
     usac.loSampleSize = 14
     try:
-        F, mask = cv2.findFundamentalMat(
-            np.ascontiguousarray(pts_l, np.float64), np.ascontiguousarray(pts_r, np.float64), usac
-        )
+        F, mask = cv2.findFundamentalMat(np.ascontiguousarray(pts_l, np.float64), np.ascontiguousarray(pts_r, np.float64), usac)
     except cv2.error as exc:
         raise TooFewMatchesError(f"no fundamental matrix: {str(exc).strip().splitlines()[-1][:120]}") from exc
     if F is None or F.shape != (3, 3) or mask is None or not np.all(np.isfinite(F)):
@@ -645,8 +651,7 @@ def loop_zhang(
             raise MirroredPairError(f"the {name} rectifying homography would mirror the view")
         if jac[0, 0] <= 0 or jac[1, 1] <= 0:
             raise UpsideDownError(
-                f"the {name} view is turned over relative to the other (x or y would run backwards): "
-                "fix its orientation first"
+                f"the {name} view is turned over relative to the other (x or y would run backwards): fix its orientation first"
             )
     return h_l, h_r
 
@@ -770,9 +775,7 @@ def _rectify(
 ) -> Rectification:
     pts_l, pts_r = match_features(left, right, params)
     sift_scale = max(1.0, max(max(left.shape[:2]), max(right.shape[:2])) / params.max_side)
-    return _rectify_matches(
-        pts_l, pts_r, left.shape[:2][::-1], right.shape[:2][::-1], params, principal_point, clock, sift_scale
-    )
+    return _rectify_matches(pts_l, pts_r, left.shape[:2][::-1], right.shape[:2][::-1], params, principal_point, clock, sift_scale)
 
 
 def rectify_matches(
@@ -807,8 +810,14 @@ def rectify_matches(
 
 
 def _rectify_matches(
-    pts_l: np.ndarray, pts_r: np.ndarray, left_size: tuple[int, int], right_size: tuple[int, int],
-    params: RectifyParams, principal_point: tuple[float, float] | None, clock: float, sift_scale: float,
+    pts_l: np.ndarray,
+    pts_r: np.ndarray,
+    left_size: tuple[int, int],
+    right_size: tuple[int, int],
+    params: RectifyParams,
+    principal_point: tuple[float, float] | None,
+    clock: float,
+    sift_scale: float,
 ) -> Rectification:
     n = len(pts_l)
     if n < params.min_matches:
@@ -852,14 +861,28 @@ def _rectify_matches(
                 reason += f"; right view translated {d_min:.1f} px so that no disparity is negative"
                 d_min, d_max = 0.0, d_max - d_min
             return Rectification(
-                H_l=np.eye(3), H_r=H_r, size=size, K=_intrinsics(size, principal_point, np.eye(3)),
-                R=np.eye(3), t=np.array([-1.0, 0.0, 0.0]),
+                H_l=np.eye(3),
+                H_r=H_r,
+                size=size,
+                K=_intrinsics(size, principal_point, np.eye(3)),
+                R=np.eye(3),
+                t=np.array([-1.0, 0.0, 0.0]),
                 disparity_range=(d_min, d_max),
-                dy_median=float(np.median(dy0)), dy_p95=float(np.percentile(dy0, 95)),
-                midline_angle=90.0, aspect_change=1.0, shear=0.0, kept_fraction=1.0,
-                matches=n, inliers=int(fit0.sum()), swapped=swapped, warp_needed=bool(H_r[0, 2] != 0),
-                reason=reason, method="identity",
-                seconds=time.perf_counter() - clock, F=F, inlier_points=(pts_l[fit0], pts_r[fit0]),
+                dy_median=float(np.median(dy0)),
+                dy_p95=float(np.percentile(dy0, 95)),
+                midline_angle=90.0,
+                aspect_change=1.0,
+                shear=0.0,
+                kept_fraction=1.0,
+                matches=n,
+                inliers=int(fit0.sum()),
+                swapped=swapped,
+                warp_needed=bool(H_r[0, 2] != 0),
+                reason=reason,
+                method="identity",
+                seconds=time.perf_counter() - clock,
+                F=F,
+                inlier_points=(pts_l[fit0], pts_r[fit0]),
             )
 
     n_h = _homography_inliers(pts_l, pts_r, params, sift_scale)
@@ -879,15 +902,18 @@ def _rectify_matches(
     refused: list[RectificationError] = []
     proposals: list[tuple[str, np.ndarray, np.ndarray]] = []
     e_l, e_r = epipoles(F)
-    near = [name for name, e, (w_, h_) in (("left", e_l, (wl, hl)), ("right", e_r, (wr, hr)))
-            if _epipole_near(e, w_, h_, params.epipole_margin)]
+    near = [
+        name
+        for name, e, (w_, h_) in (("left", e_l, (wl, hl)), ("right", e_r, (wr, hr)))
+        if _epipole_near(e, w_, h_, params.epipole_margin)
+    ]
     if planar is not None:
         refused.append(planar)
     elif near:
         # Near-planar content gives an F whose epipole lands anywhere: Loop-Zhang is not tried.
-        refused.append(EpipoleInImageError(
-            f"the {near[0]} epipole lies within {params.epipole_margin} half-diagonals of the centre"
-        ))
+        refused.append(
+            EpipoleInImageError(f"the {near[0]} epipole lies within {params.epipole_margin} half-diagonals of the centre")
+        )
     else:
         try:
             H_l, H_r = loop_zhang(F, wl, hl, wr, hr)
@@ -910,8 +936,9 @@ def _rectify_matches(
     done: list[Rectification] = []
     for name, H_l, H_r in proposals:
         try:
-            done.append(_finish(name, H_l, H_r, pts_l, pts_r, dys[name], n_good, (wl, hl), (wr, hr),
-                                params, sift_scale, principal_point))
+            done.append(
+                _finish(name, H_l, H_r, pts_l, pts_r, dys[name], n_good, (wl, hl), (wr, hr), params, sift_scale, principal_point)
+            )
         except (DistortionError, UnboundedWarpError, ResidualDyError) as exc:
             refused.append(exc)
     if planar is not None:
@@ -931,8 +958,15 @@ def _rectify_matches(
         reason += " (far or planar scene: F undetermined, rows aligned without it)"
     elif near:
         reason += f" (F put the {near[0]} epipole inside the image)"
-    return replace(chosen, matches=n, inliers=n_f if chosen.method == "loop_zhang" else chosen.inliers,
-                   swapped=swapped, F=F, reason=reason, seconds=time.perf_counter() - clock)
+    return replace(
+        chosen,
+        matches=n,
+        inliers=n_f if chosen.method == "loop_zhang" else chosen.inliers,
+        swapped=swapped,
+        F=F,
+        reason=reason,
+        seconds=time.perf_counter() - clock,
+    )
 
 
 ROW_MODELS = ("affine", "projective")
@@ -973,8 +1007,12 @@ def _choose(done: list[Rectification], sift_scale: float) -> Rectification:
 
 
 def _row_fit(
-    pts_l: np.ndarray, pts_r: np.ndarray, model: str, right_size: tuple[int, int],
-    params: RectifyParams, sift_scale: float,
+    pts_l: np.ndarray,
+    pts_r: np.ndarray,
+    model: str,
+    right_size: tuple[int, int],
+    params: RectifyParams,
+    sift_scale: float,
 ) -> np.ndarray | None:
     """Robust row alignment of the right view onto the left: ``H_r`` or None.
 
@@ -1039,9 +1077,18 @@ def _row_fit(
 
 
 def _finish(
-    method: str, H_l: np.ndarray, H_r: np.ndarray, pts_l: np.ndarray, pts_r: np.ndarray, abs_dy: np.ndarray,
-    n_good: int, left_size: tuple[int, int], right_size: tuple[int, int], params: RectifyParams,
-    sift_scale: float, principal_point: tuple[float, float] | None,
+    method: str,
+    H_l: np.ndarray,
+    H_r: np.ndarray,
+    pts_l: np.ndarray,
+    pts_r: np.ndarray,
+    abs_dy: np.ndarray,
+    n_good: int,
+    left_size: tuple[int, int],
+    right_size: tuple[int, int],
+    params: RectifyParams,
+    sift_scale: float,
+    principal_point: tuple[float, float] | None,
 ) -> Rectification:
     """KeystoneDepth's translation, the output canvas, the distortion and residual gates for one
     candidate. ``abs_dy``: |dy| of every match under the candidate (px); its score ``dy_p95`` is
@@ -1102,7 +1149,9 @@ def _finish(
     shear = max(ml["shear"], mr["shear"])
     rotation = max(abs(ml["rotation"]), abs(mr["rotation"]))
     if abs(worst["midline_angle"] - 90) > params.max_midline_deviation:
-        raise DistortionError(f"{method}: midline angle {worst['midline_angle']:.1f} deg, limit 90 +- {params.max_midline_deviation}")
+        raise DistortionError(
+            f"{method}: midline angle {worst['midline_angle']:.1f} deg, limit 90 +- {params.max_midline_deviation}"
+        )
     if aspect > params.max_aspect_change:
         raise DistortionError(f"{method}: aspect change {aspect:.2f} > {params.max_aspect_change}")
     if rotation > params.max_rotation:
@@ -1119,13 +1168,27 @@ def _finish(
         "row_projective": "row-aligned with a projective term (nearly rectified pair)",
     }[method]
     return Rectification(
-        H_l=H_l, H_r=H_r, size=size, K=_intrinsics(size, principal_point, H_l), R=np.eye(3),
-        t=np.array([-1.0, 0.0, 0.0]), disparity_range=(float(disp[keep].min()), float(disp[keep].max())),
-        dy_median=dy_med, dy_p95=dy_p95, midline_angle=float(worst["midline_angle"]), aspect_change=float(aspect),
-        rotation=float(rotation), shear=float(shear), kept_fraction=float(kept), matches=len(pts_l),
-        inliers=int(aligned.sum()), swapped=False, warp_needed=True,
+        H_l=H_l,
+        H_r=H_r,
+        size=size,
+        K=_intrinsics(size, principal_point, H_l),
+        R=np.eye(3),
+        t=np.array([-1.0, 0.0, 0.0]),
+        disparity_range=(float(disp[keep].min()), float(disp[keep].max())),
+        dy_median=dy_med,
+        dy_p95=dy_p95,
+        midline_angle=float(worst["midline_angle"]),
+        aspect_change=float(aspect),
+        rotation=float(rotation),
+        shear=float(shear),
+        kept_fraction=float(kept),
+        matches=len(pts_l),
+        inliers=int(aligned.sum()),
+        swapped=False,
+        warp_needed=True,
         reason=f"{label}: |dy| p95 {dy_p95:.2f} px, midline angle {worst['midline_angle']:.1f} deg",
-        inlier_points=(il, ir), method=method,
+        inlier_points=(il, ir),
+        method=method,
     )
 
 
@@ -1154,8 +1217,7 @@ def implied_pose(H_l: np.ndarray, H_r: np.ndarray, K: np.ndarray) -> dict[str, A
     R = R_r.T @ R_l
     t = R_r.T @ np.array([-1.0, 0.0, 0.0])
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
-    return {"R_left": R_l.tolist(), "R_right": R_r.tolist(), "R": R.tolist(), "t": t.tolist(),
-            "relative_rotation_deg": angle}
+    return {"R_left": R_l.tolist(), "R_right": R_r.tolist(), "R": R.tolist(), "t": t.tolist(), "relative_rotation_deg": angle}
 
 
 def _intrinsics(size: tuple[int, int], principal_point: tuple[float, float] | None, H_l: np.ndarray) -> np.ndarray:
@@ -1204,8 +1266,12 @@ def warp_pair(left: np.ndarray, right: np.ndarray, rect: Rectification) -> tuple
                 image = cv2.resize(image, small, interpolation=cv2.INTER_AREA)
                 H = H @ np.linalg.inv(scaling_matrix(small[0] / w_in, small[1] / h_in))
         warped = cv2.warpPerspective(
-            image, H, (width, height), flags=cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+            image,
+            H,
+            (width, height),
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
         )
         out.append(warped)
     return out[0], out[1]
@@ -1259,7 +1325,13 @@ def scale_rectification(rect: Rectification, scale: float) -> Rectification:
     S = scaling_matrix(size[0] / width, size[1] / height)
     s = math.sqrt(S[0, 0] * S[1, 1])  # the two differ by the rounding of the size only
     return replace(
-        rect, H_l=S @ rect.H_l, H_r=S @ rect.H_r, size=size, K=S @ rect.K,
+        rect,
+        H_l=S @ rect.H_l,
+        H_r=S @ rect.H_r,
+        size=size,
+        K=S @ rect.K,
         disparity_range=(rect.disparity_range[0] * S[0, 0], rect.disparity_range[1] * S[0, 0]),
-        dy_median=rect.dy_median * S[1, 1], dy_p95=rect.dy_p95 * S[1, 1], view_scale=rect.view_scale * s,
+        dy_median=rect.dy_median * S[1, 1],
+        dy_p95=rect.dy_p95 * S[1, 1],
+        view_scale=rect.view_scale * s,
     )

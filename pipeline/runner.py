@@ -106,8 +106,12 @@ def run_tasks(
                 yield _crashed(task, stage, param_hash)
             except Exception as exc:  # the function itself catches card errors; this is transport
                 yield StageRecord(
-                    card_id=task.card_id, stage=stage, param_hash=param_hash, status="failed",
-                    reason=f"executor_error: {type(exc).__name__}: {exc}", started_at=time.time(),
+                    card_id=task.card_id,
+                    stage=stage,
+                    param_hash=param_hash,
+                    status="failed",
+                    reason=f"executor_error: {type(exc).__name__}: {exc}",
+                    started_at=time.time(),
                     code_version=CODE_VERSION,
                 )
 
@@ -123,7 +127,11 @@ def clear_stale_temp_files(task: CardTask) -> None:
 
 def _crashed(task: CardTask, stage: str, param_hash: str) -> StageRecord:
     return StageRecord(
-        card_id=task.card_id, stage=stage, param_hash=param_hash, status="failed",
+        card_id=task.card_id,
+        stage=stage,
+        param_hash=param_hash,
+        status="failed",
         reason="worker_crashed: the worker process died while handling this card; rerun to retry",
-        started_at=time.time(), code_version=CODE_VERSION,
+        started_at=time.time(),
+        code_version=CODE_VERSION,
     )

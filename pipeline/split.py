@@ -304,9 +304,19 @@ def _analyse(card: np.ndarray, params: SplitParams) -> _Analysis:
     seam = np.clip((jump / (_local_median(jump, half_window) + 0.5) - 1.5) / 2.0, 0.0, 1.0)
     seam = np.maximum(seam, np.maximum(np.roll(seam, 1), np.roll(seam, -1)))  # a thin line has two edges
     return _Analysis(
-        scale=card.shape[1] / a_width, smooth=smooth, textured=textured, band=band, period=period, dy=dy,
-        period_ncc=period_ncc, tolerance=tolerance, fwd=_resample(fwd_sharp, a_width), bwd=_resample(bwd_sharp, a_width),
-        similarity=similarity, strip=strip, seam=seam,
+        scale=card.shape[1] / a_width,
+        smooth=smooth,
+        textured=textured,
+        band=band,
+        period=period,
+        dy=dy,
+        period_ncc=period_ncc,
+        tolerance=tolerance,
+        fwd=_resample(fwd_sharp, a_width),
+        bwd=_resample(bwd_sharp, a_width),
+        similarity=similarity,
+        strip=strip,
+        seam=seam,
     )
 
 
@@ -363,7 +373,11 @@ def _choose_split(an: _Analysis, params: SplitParams) -> tuple[int, str, float]:
 
 
 def _border(
-    lines: np.ndarray, textured: np.ndarray, matched: np.ndarray, columns: bool, params: SplitParams,
+    lines: np.ndarray,
+    textured: np.ndarray,
+    matched: np.ndarray,
+    columns: bool,
+    params: SplitParams,
     max_width: int | None = None,
 ) -> int:
     """Width of the border at the start of ``lines`` (0 if none): one side of one half.
@@ -510,12 +524,14 @@ def split_card(card: np.ndarray, params: SplitParams = SplitParams()) -> CardSpl
     pad = params.margin * width
     boxes = []
     for (x0, y0, x1, y1), (lo, hi) in zip(boxes_a, ((0, gutter_x), (gutter_x, width))):
-        boxes.append((
-            int(np.clip(np.floor(x0 * an.scale - pad), lo, hi - 1)),
-            int(np.clip(np.floor(y0 * an.scale - pad), 0, height - 1)),
-            int(np.clip(np.ceil(x1 * an.scale + pad), lo + 1, hi)),
-            int(np.clip(np.ceil(y1 * an.scale + pad), 1, height)),
-        ))
+        boxes.append(
+            (
+                int(np.clip(np.floor(x0 * an.scale - pad), lo, hi - 1)),
+                int(np.clip(np.floor(y0 * an.scale - pad), 0, height - 1)),
+                int(np.clip(np.ceil(x1 * an.scale + pad), lo + 1, hi)),
+                int(np.clip(np.ceil(y1 * an.scale + pad), 1, height)),
+            )
+        )
     left_box, right_box = _equalise(boxes[0], boxes[1], gutter_x, width, height)
     return CardSplit(left_box=left_box, right_box=right_box, gutter_x=gutter_x, method=method, confidence=confidence)
 

@@ -29,12 +29,8 @@ from .errors import PipelineError
 
 # Dubois red-cyan, least squares (source above). Rows give the anaglyph's R, G, B; columns the
 # input's R, G, B. The output is  A = DUBOIS_LEFT @ L + DUBOIS_RIGHT @ R  on linear RGB in [0, 1].
-DUBOIS_LEFT = np.array([[0.437, 0.449, 0.164],
-                        [-0.062, -0.062, -0.024],
-                        [-0.048, -0.050, -0.017]], np.float64)
-DUBOIS_RIGHT = np.array([[-0.011, -0.032, -0.007],
-                         [0.377, 0.761, 0.009],
-                         [-0.026, -0.093, 1.234]], np.float64)
+DUBOIS_LEFT = np.array([[0.437, 0.449, 0.164], [-0.062, -0.062, -0.024], [-0.048, -0.050, -0.017]], np.float64)
+DUBOIS_RIGHT = np.array([[-0.011, -0.032, -0.007], [0.377, 0.761, 0.009], [-0.026, -0.093, 1.234]], np.float64)
 
 ENCODE_LEVELS = 65536  # entries of the linear -> sRGB table used by the anaglyph
 WIGGLE_STEPS = 7  # views from left to right inclusive (odd, so t = 0.5 is one of them)
@@ -98,8 +94,9 @@ def dubois_anaglyph(left: np.ndarray, right: np.ndarray) -> np.ndarray:
 
     decode = srgb_to_linear(np.arange(256) / 255.0).astype(np.float32)
     # cv2.transform applies a 3 x 3 matrix per pixel (out = M @ px), several times faster than numpy's matmul.
-    projected = (cv2.transform(decode[left], DUBOIS_LEFT.astype(np.float32))
-                 + cv2.transform(decode[right], DUBOIS_RIGHT.astype(np.float32)))
+    projected = cv2.transform(decode[left], DUBOIS_LEFT.astype(np.float32)) + cv2.transform(
+        decode[right], DUBOIS_RIGHT.astype(np.float32)
+    )
     encode = np.round(linear_to_srgb(np.arange(ENCODE_LEVELS) / (ENCODE_LEVELS - 1)) * 255.0).astype(np.uint8)
     index = np.clip(projected, 0.0, 1.0) * np.float32(ENCODE_LEVELS - 1) + np.float32(0.5)
     return encode[index.astype(np.int32)]
@@ -153,8 +150,7 @@ def warp_left(left: np.ndarray, disparity: np.ndarray, t: float) -> np.ndarray:
     height, width = disparity.shape
     xs = np.arange(width, dtype=np.float32)[None, :] + np.float32(t) * disparity.astype(np.float32)
     ys = np.broadcast_to(np.arange(height, dtype=np.float32)[:, None], (height, width))
-    return cv2.remap(left, xs, np.ascontiguousarray(ys), interpolation=cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(left, xs, np.ascontiguousarray(ys), interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 def wiggle_frames(pair: StereoPair, steps: int = WIGGLE_STEPS, max_side: int | None = None) -> list[np.ndarray]:
@@ -199,7 +195,7 @@ def split_side_by_side(image: np.ndarray, order: str) -> tuple[np.ndarray, np.nd
     half = image.shape[1] // 2
     if half < 1:
         raise StereoFormatError(f"Expected a side-by-side image at least 2 px wide, got width {image.shape[1]}")
-    first, second = image[:, :half], image[:, image.shape[1] - half:]
+    first, second = image[:, :half], image[:, image.shape[1] - half :]
     return (first, second) if order == "parallel" else (second, first)
 
 
@@ -227,8 +223,12 @@ class EyeOrderEvidence:
     width: int
 
     def as_json(self) -> dict[str, object]:
-        return {"suggests": self.suggests, "slope": round(self.slope, 5),
-                "shifts_px": [round(s, 2) for s in self.shifts], "analysed_width": self.width}
+        return {
+            "suggests": self.suggests,
+            "slope": round(self.slope, 5),
+            "shifts_px": [round(s, 2) for s in self.shifts],
+            "analysed_width": self.width,
+        }
 
 
 def eye_order_evidence(first: np.ndarray, second: np.ndarray, analysed_width: int = 512) -> EyeOrderEvidence:
@@ -243,14 +243,18 @@ def eye_order_evidence(first: np.ndarray, second: np.ndarray, analysed_width: in
         raise StereoFormatError(f"Expected halves of at least 32 x {4 * EYE_ORDER_STRIPS} px, got {width} x {height}")
     scale = min(1.0, analysed_width / width)
     size = (max(32, round(width * scale)), max(4 * EYE_ORDER_STRIPS, round(height * scale)))
-    grey = [cv2.resize(cv2.cvtColor(np.ascontiguousarray(view[:height, :width]), cv2.COLOR_RGB2GRAY), size,
-                       interpolation=cv2.INTER_AREA).astype(np.float64) for view in (first, second)]
+    grey = [
+        cv2.resize(
+            cv2.cvtColor(np.ascontiguousarray(view[:height, :width]), cv2.COLOR_RGB2GRAY), size, interpolation=cv2.INTER_AREA
+        ).astype(np.float64)
+        for view in (first, second)
+    ]
     window_rows = size[1] // EYE_ORDER_STRIPS
     margin = size[0] // 10  # mount edges and arch corners sit at the sides
     shifts: list[float] = []
     for strip in range(EYE_ORDER_STRIPS):
         rows = slice(strip * window_rows, (strip + 1) * window_rows)
-        a, b = (image[rows, margin:size[0] - margin] for image in grey)
+        a, b = (image[rows, margin : size[0] - margin] for image in grey)
         window = cv2.createHanningWindow((a.shape[1], a.shape[0]), cv2.CV_64F)
         (dx, _dy), _response = cv2.phaseCorrelate(a, b, window)
         shifts.append(float(dx))

@@ -206,8 +206,9 @@ def _known_inverse_range(depth: np.ndarray, known: np.ndarray) -> tuple[float, f
 CLASSICAL_FILL = "classical"
 
 
-def _classical(intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray,
-               fill_intensity: bool) -> tuple[np.ndarray, np.ndarray]:
+def _classical(
+    intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray, fill_intensity: bool
+) -> tuple[np.ndarray, np.ndarray]:
     known = ~hole & np.isfinite(depth) & (depth > 0)
     lo, hi = _known_inverse_range(depth, known)
     inv = np.where(known, 1.0 / np.where(known, depth, 1.0), lo)
@@ -249,8 +250,9 @@ def _ring_fill(key: np.ndarray, todo: np.ndarray, held: np.ndarray, rings: int |
     return todo
 
 
-def background_fill_with_colour(dhat: np.ndarray, values: np.ndarray, hole: np.ndarray,
-                                foreground: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def background_fill_with_colour(
+    dhat: np.ndarray, values: np.ndarray, hole: np.ndarray, foreground: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Fill ``hole`` (H, W) bool in ``dhat`` (H, W) normalised inverse depth in [0, 1] (larger =
     nearer) and in ``values`` (H, W) or (H, W, 3) float in [0, 1], from the **background**: ring by
     ring from the hole's edge inwards, each hole pixel takes the depth *and the colour* of its
@@ -274,7 +276,7 @@ def background_fill_with_colour(dhat: np.ndarray, values: np.ndarray, hole: np.n
     for k in range(planes.shape[2]):
         code = code * 256.0 + np.clip(np.round(planes[..., k] * 255.0), 0, 255)
     depth_level = np.clip(np.round(np.nan_to_num(np.asarray(dhat, np.float64)) * _DHAT_LEVELS), 0, _DHAT_LEVELS)
-    key = np.where(hole, np.inf, depth_level * 2.0 ** _COLOUR_BITS + code)
+    key = np.where(hole, np.inf, depth_level * 2.0**_COLOUR_BITS + code)
     held = np.zeros(hole.shape, bool) if foreground is None else np.asarray(foreground, bool) & ~hole
     # Cost: one erosion per ring. A few rings over the whole image close the small holes; each hole
     # still open is then finished inside its own bounding box (the wide bands along the border take
@@ -284,10 +286,12 @@ def background_fill_with_colour(dhat: np.ndarray, values: np.ndarray, hole: np.n
         labels, _ = ndimage.label(left, structure=np.ones((3, 3), bool))
         h, w = hole.shape
         for index, box in enumerate(ndimage.find_objects(labels), start=1):
-            crop = (slice(max(box[0].start - 1, 0), min(box[0].stop + 1, h)),
-                    slice(max(box[1].start - 1, 0), min(box[1].stop + 1, w)))
+            crop = (
+                slice(max(box[0].start - 1, 0), min(box[0].stop + 1, h)),
+                slice(max(box[1].start - 1, 0), min(box[1].stop + 1, w)),
+            )
             _ring_fill(key[crop], labels[crop] == index, held[crop], rings=None, release=True)
-    level, code = np.divmod(key, 2.0 ** _COLOUR_BITS)
+    level, code = np.divmod(key, 2.0**_COLOUR_BITS)
     filled = np.empty(planes.shape, np.float64)
     for k in range(planes.shape[2] - 1, -1, -1):
         code, filled[..., k] = np.divmod(code, 256.0)
@@ -326,8 +330,12 @@ def _checkpoint_exists(checkpoint: str | None) -> bool:
 
 
 def fill_holes(
-    intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray,
-    checkpoint: str | None, fill_intensity: bool = True,
+    intensity: np.ndarray,
+    depth: np.ndarray,
+    hole: np.ndarray,
+    boundary: np.ndarray,
+    checkpoint: str | None,
+    fill_intensity: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
     """Fill ``hole`` (H, W) bool of a GD view: ``intensity`` (H, W) or (H, W, 3) float32 in [0, 1], ``depth``
     (H, W) float32 (> 0 outside the holes), ``boundary`` (H, W) bool (the network's B input).
@@ -381,7 +389,11 @@ def _resize_depth(depth: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -
 
 
 def synthesise_views(
-    image: np.ndarray, depth: np.ndarray, valid: np.ndarray, focal_px: float, params: ViewsStageParams,
+    image: np.ndarray,
+    depth: np.ndarray,
+    valid: np.ndarray,
+    focal_px: float,
+    params: ViewsStageParams,
 ) -> SceneViews:
     """The five GD images of a scene (module docstring, steps 2-5).
 
@@ -415,7 +427,8 @@ def synthesise_views(
     if real < params.min_depth_fraction:
         raise TooLittleDepthError(
             f"{100 * real:.1f} % of the reference view has a usable depth; at least "
-            f"{100 * params.min_depth_fraction:.0f} % is needed")
+            f"{100 * params.min_depth_fraction:.0f} % is needed"
+        )
 
     # v0: fill the pixels without depth so every GD image is a complete mesh.
     missing = ~partial.valid
@@ -424,8 +437,9 @@ def synthesise_views(
     depth0 = partial.depth
     if missing.any():
         no_boundary = np.zeros_like(missing)
-        _, depth0, v0_method, v0_note = fill_holes(partial.intensity, partial.depth, missing, no_boundary,
-                                                   params.checkpoint, fill_intensity=False)
+        _, depth0, v0_method, v0_note = fill_holes(
+            partial.intensity, partial.depth, missing, no_boundary, params.checkpoint, fill_intensity=False
+        )
     v0 = make_gd_image(partial.intensity, depth0, focal)
     if not v0.valid.all():  # filled depth always lies inside the known range: a bug if not
         raise NonFiniteOutputError("the reference view's filled depth left invalid pixels")
@@ -436,8 +450,9 @@ def synthesise_views(
     zoom = max(fit_zoom(v0, cam) for cam in corners)
     corners = [replace(cam, focal_px=cam.focal_px * zoom) for cam in corners]
     ref = reference_camera(v0)
-    renders: list[Reprojection] = [reproject(v0, ref, cam, params.max_relative_step, max_stretch_px=params.max_stretch_px)
-                                   for cam in corners]
+    renders: list[Reprojection] = [
+        reproject(v0, ref, cam, params.max_relative_step, max_stretch_px=params.max_stretch_px) for cam in corners
+    ]
     seconds_reproject = time.perf_counter() - clock - seconds_v0
     holes = [r.hole for r in renders]
     fractions = [round(float(m.mean()), 6) for m in holes]
@@ -445,7 +460,8 @@ def synthesise_views(
     if worst > params.max_hole_fraction:
         raise MostlyHolesError(
             f"holes cover {100 * worst:.1f} % of a corner view (at most {100 * params.max_hole_fraction:.0f} % "
-            "may be invented); the depth has steps everywhere")
+            "may be invented); the depth has steps everywhere"
+        )
 
     needed, why = needs_inpainting(holes)
     views = [v0]
@@ -461,32 +477,47 @@ def synthesise_views(
                 i_out, d_out = r.intensity, r.depth
             views.append(make_gd_image(i_out, d_out, cam.focal_px))
         inpainting: dict[str, Any] = {
-            "status": "done", "method": "network" if methods == {"network"} else CLASSICAL_FILL,
-            "reason": why, "checkpoint": params.checkpoint, "note": "; ".join(sorted(notes)) or None,
+            "status": "done",
+            "method": "network" if methods == {"network"} else CLASSICAL_FILL,
+            "reason": why,
+            "checkpoint": params.checkpoint,
+            "note": "; ".join(sorted(notes)) or None,
         }
     else:
         views.extend(make_gd_image(r.intensity, r.depth, cam.focal_px) for cam, r in zip(corners, renders))
-        inpainting = {"status": "skipped", "method": None, "reason": f"not needed: {why.split(': ', 1)[-1]}",
-                      "checkpoint": params.checkpoint, "note": None}
+        inpainting = {
+            "status": "skipped",
+            "method": None,
+            "reason": f"not needed: {why.split(': ', 1)[-1]}",
+            "checkpoint": params.checkpoint,
+            "note": None,
+        }
     for i, view in enumerate(views):
         if not (view.valid.all() and np.isfinite(view.depth).all() and np.isfinite(view.intensity).all()):
             raise NonFiniteOutputError(f"view v{i} has pixels without a finite positive depth after filling")
     cameras = [ref, *corners]
     all_depths = np.concatenate([v.depth.ravel() for v in views])
     metrics = {
-        "size": [w, h], "max_stretch_px": params.max_stretch_px, "scale": round(w / w0, 6), "focal_px": round(focal, 4),
-        "corner_focal_px": round(float(focal * zoom), 4), "zoom": round(float(zoom), 6), "shift_px": round(shift, 3),
+        "size": [w, h],
+        "max_stretch_px": params.max_stretch_px,
+        "scale": round(w / w0, 6),
+        "focal_px": round(focal, 4),
+        "corner_focal_px": round(float(focal * zoom), 4),
+        "zoom": round(float(zoom), 6),
+        "shift_px": round(shift, 3),
         "quad_radius": float(np.linalg.norm(corners[0].centre[:2]) / math.sqrt(2.0)),
         "scene_centre_depth": float(-scene_centre(v0)[2]),
         "depth_range": [float(all_depths.min()), float(all_depths.max())],
         "reference_depth_filled_fraction": round(float(missing.mean()), 6),
-        "reference_depth_fill": v0_method, "reference_depth_note": v0_note,
+        "reference_depth_fill": v0_method,
+        "reference_depth_note": v0_note,
         "hole_fractions": fractions,
         "crack_fractions": [round(crack_fraction(r.hole), 6) for r in renders],
         "boundary_fractions": [round(float(r.boundary.mean()), 6) for r in renders],
         "dropped_triangles": [r.dropped_triangles for r in renders],
         "inpainting": inpainting,
-        "seconds_reference": round(seconds_v0, 4), "seconds_reproject": round(seconds_reproject, 4),
+        "seconds_reference": round(seconds_v0, 4),
+        "seconds_reproject": round(seconds_reproject, 4),
         "seconds_fill": round(time.perf_counter() - clock - seconds_v0 - seconds_reproject, 4),
     }
     return SceneViews(views=views, cameras=cameras, holes=holes, metrics=metrics)
@@ -545,6 +576,7 @@ def encode_webp(frames: list[np.ndarray], frame_ms: int) -> bytes:
 
     pictures = [Image.fromarray(f) for f in frames]
     buffer = io.BytesIO()
-    pictures[0].save(buffer, format="WEBP", save_all=True, append_images=pictures[1:], duration=frame_ms,
-                     loop=0, quality=80, method=2)  # method 4: 2 % smaller, twice the time
+    pictures[0].save(
+        buffer, format="WEBP", save_all=True, append_images=pictures[1:], duration=frame_ms, loop=0, quality=80, method=2
+    )  # method 4: 2 % smaller, twice the time
     return buffer.getvalue()

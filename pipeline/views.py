@@ -189,9 +189,7 @@ class Reprojection:
 
 
 # ------------------------------------------------------------------------------------ GD images
-def make_gd_image(
-    intensity: np.ndarray, depth: np.ndarray, focal_px: float, valid: np.ndarray | None = None
-) -> GDImage:
+def make_gd_image(intensity: np.ndarray, depth: np.ndarray, focal_px: float, valid: np.ndarray | None = None) -> GDImage:
     """Validate and build a :class:`GDImage`.
 
     ``intensity`` (H, W) grey or (H, W, 3) RGB: uint8 (divided by 255) or float in [0, 1]; ``depth`` (H, W) float, in the
@@ -278,9 +276,7 @@ def quad_radius(baseline: float, d_max: float, shift_px: float = SHIFT_PX) -> fl
     return r
 
 
-def look_at(
-    eye: np.ndarray, target: np.ndarray, up: np.ndarray, focal_px: float, width: int, height: int
-) -> Camera:
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray, focal_px: float, width: int, height: int) -> Camera:
     """A camera at ``eye`` (3,) whose -z axis points at ``target`` (3,), with its y axis in the
     plane of ``up`` (3,) and the view direction (gluLookAt): rows of R are ``s = f x up / |.|``,
     ``u = s x f``, ``-f`` with ``f = (target - eye) / |target - eye|``; ``t = -R eye``."""
@@ -308,8 +304,7 @@ def corner_cameras(gd: GDImage, baseline: float = 1.0, shift_px: float = SHIFT_P
     c = scene_centre(gd)
     h, w = gd.shape
     up = np.array([0.0, 1.0, 0.0])
-    return [look_at(np.array([sx * r, sy * r, 0.0]), c, up, gd.focal_px, w, h)
-            for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+    return [look_at(np.array([sx * r, sy * r, 0.0]), c, up, gd.focal_px, w, h) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
 
 
 # --------------------------------------------------------------------------------- reprojection
@@ -373,8 +368,7 @@ def reproject(
 
     # The edge test reads the depth through a 3 x 3 median when the stretch rule is on: a lone noisy
     # pixel is no edge, a real step (a line of pixels) survives the median where it was.
-    d_rule = d if max_stretch_px is None or min(h, w) < 3 else \
-        cv2.medianBlur(gd.depth.astype(np.float32), 3).astype(np.float64)
+    d_rule = d if max_stretch_px is None or min(h, w) < 3 else cv2.medianBlur(gd.depth.astype(np.float32), 3).astype(np.float64)
     d_rule = np.where(d_rule > 0, d_rule, d)
     d00, d01, d10, d11 = quad(d_rule)
     o00, o01, o10, o11 = quad(ok)
@@ -417,7 +411,8 @@ def reproject(
     live = (nx > 0) & (ny > 0) & (np.abs(denom) > 1e-6)
     if not live.all():
         a, b, c, xa, xb, xc, ya, yb, yc, x0, y0, nx, ny, denom = (
-            v[live] for v in (a, b, c, xa, xb, xc, ya, yb, yc, x0, y0, nx, ny, denom))
+            v[live] for v in (a, b, c, xa, xb, xc, ya, yb, yc, x0, y0, nx, ny, denom)
+        )
     mesh = _ScreenMesh(a, b, c, xa, xb, xc, ya, yb, yc, denom)
     izf = inverse_z.ravel().astype(np.float32)
     values = gd.intensity.reshape(h * w, channels) * izf[:, None]  # value / z, perspective
@@ -480,12 +475,14 @@ class _ScreenMesh:
     denom: np.ndarray
 
 
-def _fragments(mesh: _ScreenMesh, rep: np.ndarray | None, qx: np.ndarray, qy: np.ndarray, tw: int,
-               inverse_z: np.ndarray, zbuf: np.ndarray) -> tuple[np.ndarray, ...]:
+def _fragments(
+    mesh: _ScreenMesh, rep: np.ndarray | None, qx: np.ndarray, qy: np.ndarray, tw: int, inverse_z: np.ndarray, zbuf: np.ndarray
+) -> tuple[np.ndarray, ...]:
     """Test candidate pixel centres ``(qx, qy)`` against triangles ``rep`` (all of them, in order,
     when None); the inside ones go into the z-buffer ``zbuf`` (flat, in place: an unbuffered
     minimum, O(n); a sort by pixel and depth cost twice the whole rasterisation). Returns the
     fragments ``(triangle, pixel, l0, l1, l2, depth)``."""
+
     def col(v: np.ndarray) -> np.ndarray:
         return v if rep is None else v[rep]
 
@@ -598,8 +595,11 @@ def training_holes(gd: GDImage, cameras: Sequence[Camera]) -> list[tuple[np.ndar
 def needs_inpainting(holes: np.ndarray | Sequence[np.ndarray]) -> tuple[bool, str]:
     """Whether a scene's views need inpainting, and why (for the stage record). ``holes``: one
     (H, W) bool mask or a sequence of them (one per corner view)."""
-    masks = [np.asarray(holes, bool)] if isinstance(holes, np.ndarray) and np.ndim(holes) == 2 \
+    masks = (
+        [np.asarray(holes, bool)]
+        if isinstance(holes, np.ndarray) and np.ndim(holes) == 2
         else [np.asarray(m, bool) for m in holes]
+    )
     if not masks or all(not m.any() for m in masks):
         return False, "no_holes: the reprojections leave no holes"
     worst = max(float(m.mean()) for m in masks if m.size)

@@ -33,20 +33,26 @@ def _percent(value: float | None) -> str:
 
 def render_text(report: dict[str, Any]) -> str:
     paper = report["paper"]["fractions"]
-    lines = [f"Grades (few / some / failure); paper, {report['paper']['sample']} cards: "
-             + " / ".join(_percent(paper[g]) for g in ("few", "some", "failure"))]
+    lines = [
+        f"Grades (few / some / failure); paper, {report['paper']['sample']} cards: "
+        + " / ".join(_percent(paper[g]) for g in ("few", "some", "failure"))
+    ]
     for entry in report["collections"]:
         auto, curated = entry["automatic"], entry["curated"]
         lines.append(f"  {entry['collection']}: {entry['cards']} cards")
         for label, block in (("automatic", auto), ("curated", curated)):
             counts = block["counts"]
             if sum(counts.values()):
-                lines.append(f"    {label:9s} " + " / ".join(
-                    f"{counts[g]} ({_percent(block['fractions'][g])})" for g in ("few", "some", "failure")))
+                lines.append(
+                    f"    {label:9s} "
+                    + " / ".join(f"{counts[g]} ({_percent(block['fractions'][g])})" for g in ("few", "some", "failure"))
+                )
         lines.append("    decisions " + ", ".join(f"{k} {v}" for k, v in entry["decisions"].items()))
     block = report["automatic_vs_curator"]
-    lines.append(f"Automatic grade vs curators: {block['labels']} labels, accuracy {_percent(block['accuracy'])}, "
-                 f"Cohen's kappa {block['cohen_kappa'] if block['cohen_kappa'] is not None else '-'}")
+    lines.append(
+        f"Automatic grade vs curators: {block['labels']} labels, accuracy {_percent(block['accuracy'])}, "
+        f"Cohen's kappa {block['cohen_kappa'] if block['cohen_kappa'] is not None else '-'}"
+    )
     if block["labels"]:
         lines.append("    curator \\ automatic   few  some  failure")
         for grade, row in zip(block["order"], block["confusion"]):
@@ -54,14 +60,19 @@ def render_text(report: dict[str, Any]) -> str:
     model = report["grade_model"]
     if model is not None:
         held = model["held_out"]
-        lines.append(f"Grade model {model['id']}: fitted on {model['fitted_on']} curator labels; held-out accuracy "
-                     f"{_percent(held.get('accuracy'))}, kappa {held.get('cohen_kappa', '-')}")
+        lines.append(
+            f"Grade model {model['id']}: fitted on {model['fitted_on']} curator labels; held-out accuracy "
+            f"{_percent(held.get('accuracy'))}, kappa {held.get('cohen_kappa', '-')}"
+        )
     for batch in report["crowd"]:
         figures = "; ".join(
             f"{part}: " + ", ".join(f"{name} {value:.2f}" for name, value in values.items() if value is not None)
-            for part, values in batch["agreement"].items())
-        lines.append(f"Crowd batch {batch['batch']} ({batch['kind']}, {batch['items']} items, "
-                     f"{batch['answers']} answers): {figures or 'not enough answers'}")
+            for part, values in batch["agreement"].items()
+        )
+        lines.append(
+            f"Crowd batch {batch['batch']} ({batch['kind']}, {batch['items']} items, "
+            f"{batch['answers']} answers): {figures or 'not enough answers'}"
+        )
     return "\n".join(lines)
 
 
@@ -91,20 +102,36 @@ def grade_show_command(as_json: bool) -> None:
 
 
 @grade_group.command("fit")
-@click.option("--from-bench", "bench_file", type=click.Path(path_type=Path, dir_okay=False, exists=True),
-              help="Fit to the true error in this `keystone bench grade --json` output instead of curator labels.")
-@click.option("--few-below", default=25.0, show_default=True, type=click.FloatRange(0, 100),
-              help="With --from-bench: a card under this true bad-2 (percent) should grade few.")
-@click.option("--failure-above", default=50.0, show_default=True, type=click.FloatRange(0, 100),
-              help="With --from-bench: a card over this true bad-2 (percent) should grade failure.")
-@click.option("--folds", default=5, show_default=True, type=click.IntRange(2, 20),
-              help="Cross-validation folds for the held-out agreement.")
+@click.option(
+    "--from-bench",
+    "bench_file",
+    type=click.Path(path_type=Path, dir_okay=False, exists=True),
+    help="Fit to the true error in this `keystone bench grade --json` output instead of curator labels.",
+)
+@click.option(
+    "--few-below",
+    default=25.0,
+    show_default=True,
+    type=click.FloatRange(0, 100),
+    help="With --from-bench: a card under this true bad-2 (percent) should grade few.",
+)
+@click.option(
+    "--failure-above",
+    default=50.0,
+    show_default=True,
+    type=click.FloatRange(0, 100),
+    help="With --from-bench: a card over this true bad-2 (percent) should grade failure.",
+)
+@click.option(
+    "--folds", default=5, show_default=True, type=click.IntRange(2, 20), help="Cross-validation folds for the held-out agreement."
+)
 @click.option("--seed", default=0, show_default=True, type=int)
 @click.option("--dry-run", is_flag=True, help="Report the fit without saving the thresholds.")
 @click.option("--json", "as_json", is_flag=True, help="Print the fit report as one JSON document.")
 @with_appcontext
-def grade_fit_command(bench_file: Path | None, few_below: float, failure_above: float, folds: int, seed: int,
-                      dry_run: bool, as_json: bool) -> None:
+def grade_fit_command(
+    bench_file: Path | None, few_below: float, failure_above: float, folds: int, seed: int, dry_run: bool, as_json: bool
+) -> None:
     """Refit the grade thresholds to the curators' labels so far (or, with --from-bench, to the
     true error of bench cards) and report their agreement on labels they were not fitted on.
     Then `keystone run --stages grade` regrades with them."""
@@ -121,8 +148,9 @@ def grade_fit_command(bench_file: Path | None, few_below: float, failure_above: 
                 bench = json.loads(bench_file.read_text())
             except (OSError, ValueError) as exc:
                 raise GradingError(f"{bench_file}: not readable JSON ({exc})") from exc
-            document = fit_from_bench(bench, few_below=few_below, failure_above=failure_above, folds=folds,
-                                      seed=seed, save=not dry_run)
+            document = fit_from_bench(
+                bench, few_below=few_below, failure_above=failure_above, folds=folds, seed=seed, save=not dry_run
+            )
         else:
             document = fit_from_curators(folds=folds, seed=seed, save=not dry_run)
     except GradingError as exc:
@@ -133,8 +161,10 @@ def grade_fit_command(bench_file: Path | None, few_below: float, failure_above: 
     held = document["held_out"]
     what = "bench cards (labels from true bad-2)" if bench_file is not None else "curator labels"
     click.echo(f"fitted on {document['labels']} {what} ({folds}-fold cross-validation)")
-    click.echo(f"held-out accuracy {_percent(held.get('accuracy'))}, Cohen's kappa {held.get('cohen_kappa')}; "
-               f"default thresholds on the same labels: accuracy {_percent(document['baseline'].get('accuracy'))}")
+    click.echo(
+        f"held-out accuracy {_percent(held.get('accuracy'))}, Cohen's kappa {held.get('cohen_kappa')}; "
+        f"default thresholds on the same labels: accuracy {_percent(document['baseline'].get('accuracy'))}"
+    )
     for change in document.get("changed", []):
         click.echo(f"  {change}")
     click.echo("saved as grade model " + str(document["model"]) if document.get("model") else "not saved (--dry-run)")

@@ -42,8 +42,9 @@ class CardReview(db.Model):
         # SQLite sorts NULLs last in DESC by default and serves "DESC NULLS LAST" from this index;
         # PostgreSQL needs the NULLS LAST spelled out in the index (SQLite refuses it there).
         Index("ix_card_reviews_queue", "decision", db.text("uncertainty DESC"), "card_id").ddl_if(dialect="sqlite"),
-        Index("ix_card_reviews_queue", "decision", db.text("uncertainty DESC NULLS LAST"), "card_id")
-        .ddl_if(dialect="postgresql"),
+        Index("ix_card_reviews_queue", "decision", db.text("uncertainty DESC NULLS LAST"), "card_id").ddl_if(
+            dialect="postgresql"
+        ),
         CheckConstraint(_in("decision", DECISIONS), name="decision"),
         CheckConstraint(f"grade IS NULL OR {_in('grade', GRADES)}", name="grade"),
         CheckConstraint(f"auto_grade IS NULL OR {_in('auto_grade', GRADES)}", name="auto_grade"),
@@ -138,16 +139,29 @@ def _refuse_audit_changes(session: Session, _context: Any, _instances: Any) -> N
             raise AuditTamperError(f"audit event {instance.id} is append-only: it cannot be changed or deleted")
 
 
-def record_event(*, entity: str, action: str, card_id: int | None = None, entity_id: int | None = None,
-                 actor: Person | None = None, actor_label: str | None = None,
-                 before: dict[str, Any] | None = None, after: dict[str, Any] | None = None,
-                 why: str = "") -> AuditEvent:
+def record_event(
+    *,
+    entity: str,
+    action: str,
+    card_id: int | None = None,
+    entity_id: int | None = None,
+    actor: Person | None = None,
+    actor_label: str | None = None,
+    before: dict[str, Any] | None = None,
+    after: dict[str, Any] | None = None,
+    why: str = "",
+) -> AuditEvent:
     """Add an audit event to the current session (committed with the change it describes)."""
     event_row = AuditEvent(
-        card_id=card_id, entity=entity, entity_id=entity_id, action=action,
+        card_id=card_id,
+        entity=entity,
+        entity_id=entity_id,
+        action=action,
         actor_id=actor.id if actor is not None else None,
         actor=actor.username if actor is not None else (actor_label or "system"),
-        before=before, after=after, why=why or "",
+        before=before,
+        after=after,
+        why=why or "",
     )
     db.session.add(event_row)
     return event_row

@@ -48,8 +48,7 @@ def _flag_value(name: str, value: Any) -> bool | None:
     raise ReviewError(f"Expected {name} to be yes, no or empty (leave it to the step and the crowd), got {value!r}")
 
 
-def override_orientation(card_id: int, flags: Mapping[str, Any], *, curator: Person,
-                         note: str = "") -> dict[str, Any]:
+def override_orientation(card_id: int, flags: Mapping[str, Any], *, curator: Person, note: str = "") -> dict[str, Any]:
     """Set (true/false) or clear (None) the curator's word on each flag of ``card_id``; returns
     the orientation the pipeline now uses. Flags not named in ``flags`` keep their override."""
     unknown = sorted(set(flags) - set(FLAGS))
@@ -63,8 +62,9 @@ def override_orientation(card_id: int, flags: Mapping[str, Any], *, curator: Per
     if card is None:
         raise ReviewError(f"There is no card {card_id}", 404)
     if card.state not in ("pass", "review"):
-        raise ReviewError(f"Card {card_id} is {card.state}: only cards the filter passed or sent to review have an "
-                          "orientation to decide")
+        raise ReviewError(
+            f"Card {card_id} is {card.state}: only cards the filter passed or sent to review have an orientation to decide"
+        )
     before = public_orientation(current_orientation(card))
     row = db.session.scalar(select(OrientationOverride).where(OrientationOverride.card_id == card_id))
     if row is None:
@@ -75,8 +75,16 @@ def override_orientation(card_id: int, flags: Mapping[str, Any], *, curator: Per
     row.curator_id, row.curator, row.note = curator.id, curator, note
     db.session.flush()
     after = public_orientation(current_orientation(card))
-    record_event(entity="orientation", action="override", card_id=card_id, entity_id=row.id, actor=curator,
-                 before=before, after={**after, "override": {name: getattr(row, name) for name in FLAGS}}, why=note)
+    record_event(
+        entity="orientation",
+        action="override",
+        card_id=card_id,
+        entity_id=row.id,
+        actor=curator,
+        before=before,
+        after={**after, "override": {name: getattr(row, name) for name in FLAGS}},
+        why=note,
+    )
     db.session.commit()
     return after
 
@@ -95,8 +103,9 @@ def flow_blockers_for(cards: list[Card]) -> dict[int, list[str]]:
     approved = approved_annotations(ids)
     latest: dict[int, dict[str, Aggregate]] = {}
     for start in range(0, len(ids), 500):
-        for row in db.session.scalars(select(Aggregate).where(Aggregate.card_id.in_(ids[start:start + 500]))
-                                      .order_by(Aggregate.id)):
+        for row in db.session.scalars(
+            select(Aggregate).where(Aggregate.card_id.in_(ids[start : start + 500])).order_by(Aggregate.id)
+        ):
             latest.setdefault(row.card_id, {})[row.kind] = row
     blockers: dict[int, list[str]] = {}
     for card in cards:
@@ -112,6 +121,8 @@ def flow_blockers_for(cards: list[Card]) -> dict[int, list[str]]:
         if rectify is not None and is_decided(orientation):
             used = rectify.metrics.get("orientation_used")
             if used is not None and any(used.get(flag) != orientation[flag] for flag in FLAGS):
-                found.append("it was rectified and graded with another orientation "
-                             f"({', '.join(f'{f}={used.get(f)}' for f in FLAGS)}); run the pipeline again")
+                found.append(
+                    "it was rectified and graded with another orientation "
+                    f"({', '.join(f'{f}={used.get(f)}' for f in FLAGS)}); run the pipeline again"
+                )
     return blockers

@@ -57,11 +57,20 @@ def crowd_agreement() -> list[dict[str, Any]]:
     for batch in batches:
         items = [row for row in db.session.scalars(select(BatchItem).where(BatchItem.batch_id == batch.id))]
         regular = [it.id for it in items if not it.is_gold]
-        answers = list(db.session.scalars(select(Answer).join(BatchItem, Answer.item_id == BatchItem.id)
-                                          .where(BatchItem.batch_id == batch.id)))
-        out.append({"batch": batch.id, "kind": batch.kind, "items": len(regular), "answers": len(answers),
-                    "agreement": batch_agreement(batch.kind, [a for a in answers if a.item_id in set(regular)],
-                                                 regular)})
+        answers = list(
+            db.session.scalars(
+                select(Answer).join(BatchItem, Answer.item_id == BatchItem.id).where(BatchItem.batch_id == batch.id)
+            )
+        )
+        out.append(
+            {
+                "batch": batch.id,
+                "kind": batch.kind,
+                "items": len(regular),
+                "answers": len(answers),
+                "agreement": batch_agreement(batch.kind, [a for a in answers if a.item_id in set(regular)], regular),
+            }
+        )
     return out
 
 
@@ -72,8 +81,9 @@ def build_report() -> dict[str, Any]:
         reviews = {r.card_id: r for r in db.session.scalars(select(CardReview))}
         collections = {c.id: c.name for c in db.session.scalars(select(Collection))}
         card_collection = dict(db.session.execute(select(Card.id, Card.collection_id)).all())
-        per_collection: dict[int, dict[str, Any]] = defaultdict(lambda: {"cards": 0, "auto": Counter(),
-                                                                         "final": Counter(), "decisions": Counter()})
+        per_collection: dict[int, dict[str, Any]] = defaultdict(
+            lambda: {"cards": 0, "auto": Counter(), "final": Counter(), "decisions": Counter()}
+        )
         for card_id, collection_id in card_collection.items():
             entry = per_collection[collection_id]
             entry["cards"] += 1
@@ -83,26 +93,35 @@ def build_report() -> dict[str, Any]:
             entry["decisions"][review.decision if review else "not reviewed"] += 1
             if review is not None and review.decision in LABELLED_DECISIONS and review.grade:
                 entry["final"][review.grade] += 1
-        pairs = [(r.grade, auto[r.card_id]) for r in reviews.values()
-                 if r.decision in LABELLED_DECISIONS and r.grade and r.card_id in auto]
+        pairs = [
+            (r.grade, auto[r.card_id])
+            for r in reviews.values()
+            if r.decision in LABELLED_DECISIONS and r.grade and r.card_id in auto
+        ]
         model = db.session.scalars(select(GradeModel).order_by(GradeModel.id.desc()).limit(1)).first()
         crowd = crowd_agreement()
 
     collections_out = []
     for collection_id, entry in sorted(per_collection.items()):
-        collections_out.append({
-            "collection": collections.get(collection_id, str(collection_id)),
-            "cards": entry["cards"],
-            "automatic": {"counts": {g: entry["auto"].get(g, 0) for g in GRADES}, "fractions": _fractions(entry["auto"])},
-            "curated": {"counts": {g: entry["final"].get(g, 0) for g in GRADES}, "fractions": _fractions(entry["final"])},
-            "decisions": dict(sorted(entry["decisions"].items())),
-        })
+        collections_out.append(
+            {
+                "collection": collections.get(collection_id, str(collection_id)),
+                "cards": entry["cards"],
+                "automatic": {"counts": {g: entry["auto"].get(g, 0) for g in GRADES}, "fractions": _fractions(entry["auto"])},
+                "curated": {"counts": {g: entry["final"].get(g, 0) for g in GRADES}, "fractions": _fractions(entry["final"])},
+                "decisions": dict(sorted(entry["decisions"].items())),
+            }
+        )
     return {
         "paper": {"fractions": PAPER_DISTRIBUTION, "sample": PAPER_SAMPLE},
         "collections": collections_out,
         "automatic_vs_curator": agreement(pairs),
-        "grade_model": None if model is None else {
-            "id": model.id, "fitted_on": model.fitted_on, "created_at": model.created_at.isoformat(),
+        "grade_model": None
+        if model is None
+        else {
+            "id": model.id,
+            "fitted_on": model.fitted_on,
+            "created_at": model.created_at.isoformat(),
             "held_out": model.evaluation,
         },
         "crowd": crowd,

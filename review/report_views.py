@@ -27,8 +27,7 @@ def index() -> Any:
 @role_required("curator", "exporter")
 def plot(name: str) -> Response:
     if name not in PLOTS:
-        return Response(f"no plot named {name!r}; expected one of {', '.join(PLOTS)}", status=404,
-                        mimetype="text/plain")
+        return Response(f"no plot named {name!r}; expected one of {', '.join(PLOTS)}", status=404, mimetype="text/plain")
     picture = PLOTS[name](build_report())
     etag = hashlib.sha256(picture).hexdigest()[:32]
     if etag in request.if_none_match:

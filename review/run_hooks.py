@@ -20,7 +20,7 @@ def card_reviews(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     """The curator review per card: ``{card: {"review": CardReview}}``."""
     found: dict[int, dict[str, Any]] = {}
     for start in range(0, len(card_ids), CHUNK):
-        rows = db.session.scalars(select(CardReview).where(CardReview.card_id.in_(card_ids[start:start + CHUNK])))
+        rows = db.session.scalars(select(CardReview).where(CardReview.card_id.in_(card_ids[start : start + CHUNK])))
         for review in rows:
             found.setdefault(review.card_id, {})["review"] = review
     return found
@@ -31,9 +31,11 @@ def orientation_overrides(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     (app.orientation resolves the orientation the pipeline uses from it)."""
     found: dict[int, dict[str, Any]] = {}
     for start in range(0, len(card_ids), CHUNK):
-        rows = db.session.scalars(select(OrientationOverride)
-                                  .where(OrientationOverride.card_id.in_(card_ids[start:start + CHUNK]))
-                                  .options(selectinload(OrientationOverride.curator)))
+        rows = db.session.scalars(
+            select(OrientationOverride)
+            .where(OrientationOverride.card_id.in_(card_ids[start : start + CHUNK]))
+            .options(selectinload(OrientationOverride.curator))
+        )
         for row in rows:
             found.setdefault(row.card_id, {})["orientation_override"] = row
     return found

@@ -47,8 +47,16 @@ class ReviewError(Exception):
 class ReviewConflict(ReviewError):
     """The card changed since the curator loaded it; ``message`` names who changed it and when."""
 
-    def __init__(self, message: str, *, review_id: int, card_id: int, current_version: int,
-                 changed_by: str | None, changed_at: datetime | None) -> None:
+    def __init__(
+        self,
+        message: str,
+        *,
+        review_id: int,
+        card_id: int,
+        current_version: int,
+        changed_by: str | None,
+        changed_at: datetime | None,
+    ) -> None:
         super().__init__(message, 409)
         self.review_id = review_id
         self.card_id = card_id
@@ -109,11 +117,23 @@ def _latest_grades(card_ids: Sequence[int]) -> dict[int, _Grade]:
     objects: a sync over 250,000 cards should not build an identity map of results.
     """
     latest: dict[int, tuple[tuple[datetime, int], _Grade]] = {}
-    rows = db.session.execute(select(
-        StageResult.id, StageResult.card_id, StageResult.param_hash, StageResult.outcome, StageResult.reason,
-        StageResult.metrics, StageResult.started_at, StageResult.created_at,
-    ).where(StageResult.card_id.in_(card_ids), StageResult.stage == "grade", StageResult.status == "done",
-            StageResult.outcome.in_(GRADES)))
+    rows = db.session.execute(
+        select(
+            StageResult.id,
+            StageResult.card_id,
+            StageResult.param_hash,
+            StageResult.outcome,
+            StageResult.reason,
+            StageResult.metrics,
+            StageResult.started_at,
+            StageResult.created_at,
+        ).where(
+            StageResult.card_id.in_(card_ids),
+            StageResult.stage == "grade",
+            StageResult.status == "done",
+            StageResult.outcome.in_(GRADES),
+        )
+    )
     for result_id, card_id, phash, outcome, reason, metrics, started_at, created_at in rows:
         ran_at = _aware(started_at or created_at)
         key = (ran_at or utcnow(), result_id)
@@ -142,8 +162,13 @@ class SyncReport:
 
 
 def _auto_snapshot(review: CardReview) -> dict[str, Any]:
-    return {"auto_grade": review.auto_grade, "auto_param_hash": review.auto_param_hash,
-            "uncertainty": review.uncertainty, "decision": review.decision, "grade": review.grade}
+    return {
+        "auto_grade": review.auto_grade,
+        "auto_param_hash": review.auto_param_hash,
+        "uncertainty": review.uncertainty,
+        "decision": review.decision,
+        "grade": review.grade,
+    }
 
 
 def sync_reviews(card_ids: Iterable[int] | None = None) -> SyncReport:
@@ -162,7 +187,7 @@ def sync_reviews(card_ids: Iterable[int] | None = None) -> SyncReport:
     else:
         wanted = sorted(set(card_ids))
     for start in range(0, len(wanted), SYNC_CHUNK):
-        chunk = wanted[start:start + SYNC_CHUNK]
+        chunk = wanted[start : start + SYNC_CHUNK]
         grades = _latest_grades(chunk)
         reviews = {r.card_id: r for r in db.session.scalars(select(CardReview).where(CardReview.card_id.in_(chunk)))}
         # Events need review ids: collect them, flush the chunk once, then write them.
@@ -173,27 +198,45 @@ def sync_reviews(card_ids: Iterable[int] | None = None) -> SyncReport:
                 _sync_one(reviews.get(card_id), grade, report, events)
         db.session.flush()
         for review, action, before, grade in events:
-            record_event(entity="grade", action=action, card_id=review.card_id, entity_id=review.id,
-                         actor_label="pipeline", before=before, after=_auto_snapshot(review),
-                         why=_grade_reasons_of(grade))
+            record_event(
+                entity="grade",
+                action=action,
+                card_id=review.card_id,
+                entity_id=review.id,
+                actor_label="pipeline",
+                before=before,
+                after=_auto_snapshot(review),
+                why=_grade_reasons_of(grade),
+            )
         db.session.commit()
     return report
 
 
-def _sync_one(review: CardReview | None, grade: _Grade, report: SyncReport,
-              events: list[tuple[CardReview, str, dict[str, Any] | None, _Grade]]) -> None:
+def _sync_one(
+    review: CardReview | None,
+    grade: _Grade,
+    report: SyncReport,
+    events: list[tuple[CardReview, str, dict[str, Any] | None, _Grade]],
+) -> None:
     uncertainty = grade_uncertainty(grade.metrics)
     if review is None:
-        review = CardReview(card_id=grade.card_id, auto_grade=grade.outcome, auto_param_hash=grade.param_hash,
-                            uncertainty=uncertainty, decision="pending", note="")
+        review = CardReview(
+            card_id=grade.card_id,
+            auto_grade=grade.outcome,
+            auto_param_hash=grade.param_hash,
+            uncertainty=uncertainty,
+            decision="pending",
+            note="",
+        )
         db.session.add(review)
         events.append((review, "graded", None, grade))
         report.created += 1
         return
     same_grade = (review.auto_grade, review.auto_param_hash) == (grade.outcome, grade.param_hash)
     decided_at = _aware(review.decided_at)
-    regraded_after_send_back = (review.decision == "sent_back" and grade.ran_at is not None
-                                and decided_at is not None and grade.ran_at > decided_at)
+    regraded_after_send_back = (
+        review.decision == "sent_back" and grade.ran_at is not None and decided_at is not None and grade.ran_at > decided_at
+    )
     if same_grade and review.uncertainty == uncertainty and not regraded_after_send_back:
         report.unchanged += 1
         return
@@ -233,8 +276,12 @@ class QueueFilters:
             raise ReviewError("Expected a reason filter of at most 200 characters")
 
     def query_args(self) -> dict[str, Any]:
-        args = {"grade": self.grade, "collection": self.collection_id, "reason": self.reason,
-                "decision": self.decision if self.decision != "pending" else None}
+        args = {
+            "grade": self.grade,
+            "collection": self.collection_id,
+            "reason": self.reason,
+            "decision": self.decision if self.decision != "pending" else None,
+        }
         return {key: value for key, value in args.items() if value not in (None, "")}
 
 
@@ -267,8 +314,11 @@ def _escape_like(text: str) -> str:
 
 def _grade_join() -> Any:
     # The grade result the review was synced from: unique by (card, stage, parameters).
-    return and_(StageResult.card_id == CardReview.card_id, StageResult.stage == "grade",
-                StageResult.param_hash == CardReview.auto_param_hash)
+    return and_(
+        StageResult.card_id == CardReview.card_id,
+        StageResult.stage == "grade",
+        StageResult.param_hash == CardReview.auto_param_hash,
+    )
 
 
 def _queue_conditions(filters: QueueFilters) -> list[Any]:
@@ -296,8 +346,14 @@ def _queue_select(filters: QueueFilters, *columns: Any) -> Any:
 QUEUE_ORDER = (CardReview.uncertainty.desc().nulls_last(), CardReview.card_id)
 
 
-def review_queue(grade: str | None = None, collection_id: int | None = None, reason: str | None = None,
-                 decision: str = "pending", limit: int = 50, offset: int = 0) -> QueuePage:
+def review_queue(
+    grade: str | None = None,
+    collection_id: int | None = None,
+    reason: str | None = None,
+    decision: str = "pending",
+    limit: int = 50,
+    offset: int = 0,
+) -> QueuePage:
     """Reviews sorted by uncertainty (most uncertain first; unknown last), then card id.
 
     ``grade`` filters the automatic grade, ``reason`` is a case-insensitive substring of the
@@ -310,16 +366,35 @@ def review_queue(grade: str | None = None, collection_id: int | None = None, rea
         raise ReviewError(f"Expected offset >= 0, got {offset}")
     filters = QueueFilters(grade, collection_id, reason or None, decision)
     total = db.session.scalar(_queue_select(filters, func.count())) or 0
-    query = (select(CardReview, Card, StageResult).join(Card, Card.id == CardReview.card_id)
-             .outerjoin(StageResult, _grade_join()).where(*_queue_conditions(filters))
-             .options(selectinload(Card.collection)).order_by(*QUEUE_ORDER).limit(limit).offset(offset))
+    query = (
+        select(CardReview, Card, StageResult)
+        .join(Card, Card.id == CardReview.card_id)
+        .outerjoin(StageResult, _grade_join())
+        .where(*_queue_conditions(filters))
+        .options(selectinload(Card.collection))
+        .order_by(*QUEUE_ORDER)
+        .limit(limit)
+        .offset(offset)
+    )
     rows = []
     for review, card, result in db.session.execute(query):
         metadata = card.source_metadata or {}
         title = str(metadata.get("title") or metadata.get("Title") or card.accession or card.source_name)
-        rows.append(QueueRow(review.id, card.id, review.version, review.auto_grade, review.grade, review.decision,
-                             review.uncertainty, grade_reasons(result), card.collection.name, title,
-                             card.content_hash))
+        rows.append(
+            QueueRow(
+                review.id,
+                card.id,
+                review.version,
+                review.auto_grade,
+                review.grade,
+                review.decision,
+                review.uncertainty,
+                grade_reasons(result),
+                card.collection.name,
+                title,
+                card.content_hash,
+            )
+        )
     return QueuePage(rows, total, limit, offset)
 
 
@@ -334,20 +409,29 @@ def queue_neighbours(card_id: int, filters: QueueFilters) -> tuple[int | None, i
         return None, None
     u, base = review.uncertainty, _queue_select(filters, CardReview.card_id)
     if u is not None:
-        after = base.where(or_(CardReview.uncertainty < u, and_(CardReview.uncertainty == u, CardReview.card_id > card_id),
-                               CardReview.uncertainty.is_(None)))
-        before = base.where(or_(CardReview.uncertainty > u,
-                                and_(CardReview.uncertainty == u, CardReview.card_id < card_id)))
+        after = base.where(
+            or_(
+                CardReview.uncertainty < u,
+                and_(CardReview.uncertainty == u, CardReview.card_id > card_id),
+                CardReview.uncertainty.is_(None),
+            )
+        )
+        before = base.where(or_(CardReview.uncertainty > u, and_(CardReview.uncertainty == u, CardReview.card_id < card_id)))
         following = db.session.scalar(after.order_by(*QUEUE_ORDER).limit(1))
         previous = db.session.scalar(before.order_by(CardReview.uncertainty.asc(), CardReview.card_id.desc()).limit(1))
         return previous, following
-    following = db.session.scalar(base.where(CardReview.uncertainty.is_(None), CardReview.card_id > card_id)
-                                  .order_by(CardReview.card_id).limit(1))
-    previous = db.session.scalar(base.where(CardReview.uncertainty.is_(None), CardReview.card_id < card_id)
-                                 .order_by(CardReview.card_id.desc()).limit(1))
+    following = db.session.scalar(
+        base.where(CardReview.uncertainty.is_(None), CardReview.card_id > card_id).order_by(CardReview.card_id).limit(1)
+    )
+    previous = db.session.scalar(
+        base.where(CardReview.uncertainty.is_(None), CardReview.card_id < card_id).order_by(CardReview.card_id.desc()).limit(1)
+    )
     if previous is None:
-        previous = db.session.scalar(base.where(CardReview.uncertainty.is_not(None))
-                                     .order_by(CardReview.uncertainty.asc(), CardReview.card_id.desc()).limit(1))
+        previous = db.session.scalar(
+            base.where(CardReview.uncertainty.is_not(None))
+            .order_by(CardReview.uncertainty.asc(), CardReview.card_id.desc())
+            .limit(1)
+        )
     return previous, following
 
 
@@ -356,15 +440,24 @@ def queue_neighbours(card_id: int, filters: QueueFilters) -> tuple[int | None, i
 
 
 def review_snapshot(review: CardReview) -> dict[str, Any]:
-    return {"decision": review.decision, "grade": review.grade, "auto_grade": review.auto_grade,
-            "note": review.note, "reviewer_id": review.reviewer_id, "version": review.version}
+    return {
+        "decision": review.decision,
+        "grade": review.grade,
+        "auto_grade": review.auto_grade,
+        "note": review.note,
+        "reviewer_id": review.reviewer_id,
+        "version": review.version,
+    }
 
 
 def _last_change(review: CardReview) -> tuple[str | None, datetime | None]:
     """Who last changed this review and when, from the audit trail (else the review's own fields)."""
-    last = db.session.scalar(select(AuditEvent).where(
-        AuditEvent.entity.in_(("review", "grade")), AuditEvent.entity_id == review.id)
-        .order_by(AuditEvent.id.desc()).limit(1))
+    last = db.session.scalar(
+        select(AuditEvent)
+        .where(AuditEvent.entity.in_(("review", "grade")), AuditEvent.entity_id == review.id)
+        .order_by(AuditEvent.id.desc())
+        .limit(1)
+    )
     if last is not None:
         return last.actor, _aware(last.at)
     who = db.session.get(Person, review.reviewer_id) if review.reviewer_id else None
@@ -376,11 +469,14 @@ def _conflict(review: CardReview, expected_version: int) -> ReviewConflict:
     state = review.decision.replace("_", " ")
     if review.grade:
         state += f", grade {GRADE_NAMES[review.grade]}"
-    message = (f"Card {review.card_id} was changed by {who or 'someone'} at {_when(when)} while you had it open "
-               f"(you saw version {expected_version}, it is now version {review.version}: {state}). "
-               "Nothing was saved; reload the card to see their change before deciding.")
-    return ReviewConflict(message, review_id=review.id, card_id=review.card_id, current_version=review.version,
-                          changed_by=who, changed_at=when)
+    message = (
+        f"Card {review.card_id} was changed by {who or 'someone'} at {_when(when)} while you had it open "
+        f"(you saw version {expected_version}, it is now version {review.version}: {state}). "
+        "Nothing was saved; reload the card to see their change before deciding."
+    )
+    return ReviewConflict(
+        message, review_id=review.id, card_id=review.card_id, current_version=review.version, changed_by=who, changed_at=when
+    )
 
 
 def _gold_for_batch(kind: str, exclude: int) -> dict[int, dict[str, Any]]:
@@ -390,9 +486,13 @@ def _gold_for_batch(kind: str, exclude: int) -> dict[int, dict[str, Any]]:
     from annotation.task_errors import TaskError
 
     gold: dict[int, dict[str, Any]] = {}
-    rows = db.session.execute(select(GoldAnswer, Card).join(Card, Card.id == GoldAnswer.card_id)
-                              .where(GoldAnswer.kind == kind, GoldAnswer.card_id != exclude)
-                              .order_by(GoldAnswer.id.desc()).limit(4 * SEND_BACK_GOLD_ITEMS))
+    rows = db.session.execute(
+        select(GoldAnswer, Card)
+        .join(Card, Card.id == GoldAnswer.card_id)
+        .where(GoldAnswer.kind == kind, GoldAnswer.card_id != exclude)
+        .order_by(GoldAnswer.id.desc())
+        .limit(4 * SEND_BACK_GOLD_ITEMS)
+    )
     for row, card in rows:
         try:
             gold[row.card_id] = validate_payload(kind, row.answer, card)
@@ -413,8 +513,16 @@ class Decided:
     batch_id: int | None = None  # the crowd batch a sent-back card went into
 
 
-def decide(review_id: int, action: str, *, expected_version: int, curator: Person, grade: str | None = None,
-           note: str = "", kind: str = "crop") -> Decided:
+def decide(
+    review_id: int,
+    action: str,
+    *,
+    expected_version: int,
+    curator: Person,
+    grade: str | None = None,
+    note: str = "",
+    kind: str = "crop",
+) -> Decided:
     """Apply a curator's decision to one review, refusing it if the review moved on meanwhile.
 
     accept: the automatic grade becomes the final grade. change: ``grade`` does (a change to
@@ -449,17 +557,25 @@ def decide(review_id: int, action: str, *, expected_version: int, curator: Perso
         disputes = open_disputes(review.card_id)
         if disputes:
             db.session.rollback()
-            what = " and ".join(f"its {'judgement' if row.kind == 'judge' else 'crop'} (batch {row.batch_id}, "
-                                f"dispute {row.id})" for row in disputes)
-            raise ReviewError(f"Card {review.card_id} cannot be accepted while the crowd disagrees on {what}: "
-                              "resolve it under Disputed crowd answers first", 409)
+            what = " and ".join(
+                f"its {'judgement' if row.kind == 'judge' else 'crop'} (batch {row.batch_id}, dispute {row.id})"
+                for row in disputes
+            )
+            raise ReviewError(
+                f"Card {review.card_id} cannot be accepted while the crowd disagrees on {what}: "
+                "resolve it under Disputed crowd answers first",
+                409,
+            )
         from .orientation import flow_blockers
 
         blockers = flow_blockers(review.card)
         if blockers:
             db.session.rollback()
-            raise ReviewError(f"Card {review.card_id} cannot be accepted: {'; '.join(blockers)}. Decide its "
-                              "orientation on the card's page (or wait for the crowd) first", 409)
+            raise ReviewError(
+                f"Card {review.card_id} cannot be accepted: {'; '.join(blockers)}. Decide its "
+                "orientation on the card's page (or wait for the crowd) first",
+                409,
+            )
     before = review_snapshot(review)
     decision, final = {
         "accept": ("accepted", review.auto_grade),
@@ -481,8 +597,16 @@ def decide(review_id: int, action: str, *, expected_version: int, curator: Perso
     after = review_snapshot(review)
     if action == "send_back":
         after["sent_to"] = kind
-    record_event(entity="review", action=action, card_id=review.card_id, entity_id=review.id, actor=curator,
-                 before=before, after=after, why=note)
+    record_event(
+        entity="review",
+        action=action,
+        card_id=review.card_id,
+        entity_id=review.id,
+        actor=curator,
+        before=before,
+        after=after,
+        why=note,
+    )
     outcome = Decided(review.id, review.card_id, review.decision, review.grade, review.version)
     if action != "send_back":
         db.session.commit()
@@ -497,17 +621,23 @@ def _send_back(outcome: Decided, kind: str, curator: Person, note: str) -> Decid
     gold = _gold_for_batch(kind, outcome.card_id)
     try:
         # create_batch commits: the decision, its audit event and the batch land together.
-        batch = create_batch([outcome.card_id], kind, SEND_BACK_ANSWERS, SEND_BACK_GOLD_RATE if gold else 0.0,
-                             gold=gold, created_by=curator.id)
+        batch = create_batch(
+            [outcome.card_id], kind, SEND_BACK_ANSWERS, SEND_BACK_GOLD_RATE if gold else 0.0, gold=gold, created_by=curator.id
+        )
     except TaskError as exc:
         db.session.rollback()
-        raise ReviewError(f"Card {outcome.card_id} could not be sent back to the crowd: {exc.message}",
-                          exc.status) from exc
+        raise ReviewError(f"Card {outcome.card_id} could not be sent back to the crowd: {exc.message}", exc.status) from exc
     # The batch id exists only once create_batch has committed; link it in the trail right after.
-    record_event(entity="batch", action="created_for_send_back", card_id=outcome.card_id, entity_id=batch.id,
-                 actor=curator, before=None,
-                 after={"batch": batch.id, "kind": kind, "answers_per_item": SEND_BACK_ANSWERS,
-                        "gold_items": sorted(gold)}, why=note)
+    record_event(
+        entity="batch",
+        action="created_for_send_back",
+        card_id=outcome.card_id,
+        entity_id=batch.id,
+        actor=curator,
+        before=None,
+        after={"batch": batch.id, "kind": kind, "answers_per_item": SEND_BACK_ANSWERS, "gold_items": sorted(gold)},
+        why=note,
+    )
     db.session.commit()
     return Decided(outcome.review_id, outcome.card_id, outcome.decision, outcome.grade, outcome.version, batch.id)
 
@@ -532,26 +662,40 @@ def undo_decision(review_id: int, *, expected_version: int, curator: Person) -> 
         conflict = _conflict(review, expected_version)
         db.session.rollback()
         raise conflict
-    last = db.session.scalar(select(AuditEvent).where(AuditEvent.entity == "review", AuditEvent.entity_id == review.id)
-                             .order_by(AuditEvent.id.desc()).limit(1))
+    last = db.session.scalar(
+        select(AuditEvent)
+        .where(AuditEvent.entity == "review", AuditEvent.entity_id == review.id)
+        .order_by(AuditEvent.id.desc())
+        .limit(1)
+    )
     if last is None or last.action not in ACTIONS or not isinstance(last.before, dict):
         db.session.rollback()
         raise ReviewError(f"Card {review.card_id} has no decision to undo", 409)
     batch = None
     if last.action == "send_back":
-        batch_id = db.session.scalar(select(AuditEvent.entity_id).where(
-            AuditEvent.entity == "batch", AuditEvent.action == "created_for_send_back",
-            AuditEvent.card_id == review.card_id, AuditEvent.id > last.id).order_by(AuditEvent.id).limit(1))
+        batch_id = db.session.scalar(
+            select(AuditEvent.entity_id)
+            .where(
+                AuditEvent.entity == "batch",
+                AuditEvent.action == "created_for_send_back",
+                AuditEvent.card_id == review.card_id,
+                AuditEvent.id > last.id,
+            )
+            .order_by(AuditEvent.id)
+            .limit(1)
+        )
         batch = db.session.get(Batch, batch_id) if batch_id is not None else None
         if batch is not None:
             item_ids = [item.id for item in batch.items]
             answered = db.session.scalar(select(func.count()).select_from(Answer).where(Answer.item_id.in_(item_ids)))
-            held = db.session.scalar(select(func.count()).select_from(Reservation)
-                                     .where(Reservation.item_id.in_(item_ids)))
+            held = db.session.scalar(select(func.count()).select_from(Reservation).where(Reservation.item_id.in_(item_ids)))
             if answered or held:
                 db.session.rollback()
-                raise ReviewError(f"Card {review.card_id} cannot be taken back from crowd batch {batch.id}: "
-                                  f"annotators have already answered ({answered}) or hold tasks ({held}) in it", 409)
+                raise ReviewError(
+                    f"Card {review.card_id} cannot be taken back from crowd batch {batch.id}: "
+                    f"annotators have already answered ({answered}) or hold tasks ({held}) in it",
+                    409,
+                )
     before, previous = review_snapshot(review), last.before
     review.decision = previous.get("decision") or "pending"
     review.grade = previous.get("grade")
@@ -571,12 +715,27 @@ def undo_decision(review_id: int, *, expected_version: int, curator: Person) -> 
     after = review_snapshot(review)
     if batch is not None:
         after["removed_batch"] = batch.id
-        record_event(entity="batch", action="removed_by_undo", card_id=review.card_id, entity_id=batch.id,
-                     actor=curator, before={"batch": batch.id, "kind": batch.kind}, after=None,
-                     why=f"undo of the send-back of card {review.card_id}")
+        record_event(
+            entity="batch",
+            action="removed_by_undo",
+            card_id=review.card_id,
+            entity_id=batch.id,
+            actor=curator,
+            before={"batch": batch.id, "kind": batch.kind},
+            after=None,
+            why=f"undo of the send-back of card {review.card_id}",
+        )
         db.session.delete(batch)
-    record_event(entity="review", action="undo", card_id=review.card_id, entity_id=review.id, actor=curator,
-                 before=before, after=after, why=f"undo of {last.action.replace('_', ' ')} (audit event {last.id})")
+    record_event(
+        entity="review",
+        action="undo",
+        card_id=review.card_id,
+        entity_id=review.id,
+        actor=curator,
+        before=before,
+        after=after,
+        why=f"undo of {last.action.replace('_', ' ')} (audit event {last.id})",
+    )
     db.session.commit()
     return Decided(review.id, review.card_id, review.decision, review.grade, review.version)
 
@@ -591,13 +750,21 @@ class BulkOutcome:
     def as_json(self) -> dict[str, Any]:
         document: dict[str, Any] = {"review": self.review_id, "status": self.status, "message": self.message}
         if self.decided is not None:
-            document.update(card=self.decided.card_id, decision=self.decided.decision, grade=self.decided.grade,
-                            version=self.decided.version)
+            document.update(
+                card=self.decided.card_id, decision=self.decided.decision, grade=self.decided.grade, version=self.decided.version
+            )
         return document
 
 
-def bulk_decide(review_ids_with_versions: Sequence[tuple[int, int]], action: str, *, curator: Person,
-                grade: str | None = None, note: str = "", kind: str = "crop") -> list[BulkOutcome]:
+def bulk_decide(
+    review_ids_with_versions: Sequence[tuple[int, int]],
+    action: str,
+    *,
+    curator: Person,
+    grade: str | None = None,
+    note: str = "",
+    kind: str = "crop",
+) -> list[BulkOutcome]:
     """:func:`decide` for each (review id, version seen); one conflict or refusal never stops the others."""
     if action not in ACTIONS:
         raise ReviewError(f"Unknown action {action!r}; expected one of {', '.join(ACTIONS)}")
@@ -606,8 +773,7 @@ def bulk_decide(review_ids_with_versions: Sequence[tuple[int, int]], action: str
     outcomes = []
     for review_id, version in review_ids_with_versions:
         try:
-            decided = decide(review_id, action, expected_version=version, curator=curator, grade=grade, note=note,
-                             kind=kind)
+            decided = decide(review_id, action, expected_version=version, curator=curator, grade=grade, note=note, kind=kind)
         except ReviewConflict as exc:
             outcomes.append(BulkOutcome(review_id, "conflict", exc.message))
         except ReviewError as exc:
@@ -642,15 +808,25 @@ def disputed_aggregates(limit: int = 50, offset: int = 0) -> tuple[list[Aggregat
 
 def aggregate_answers(aggregate: Aggregate) -> list[Answer]:
     """The individual crowd answers behind an aggregate (flagged workers' answers included, marked)."""
-    return list(db.session.scalars(
-        select(Answer).join(BatchItem, Answer.item_id == BatchItem.id)
-        .where(BatchItem.batch_id == aggregate.batch_id, BatchItem.card_id == aggregate.card_id)
-        .order_by(Answer.id)))
+    return list(
+        db.session.scalars(
+            select(Answer)
+            .join(BatchItem, Answer.item_id == BatchItem.id)
+            .where(BatchItem.batch_id == aggregate.batch_id, BatchItem.card_id == aggregate.card_id)
+            .order_by(Answer.id)
+        )
+    )
 
 
 def _aggregate_snapshot(aggregate: Aggregate) -> dict[str, Any]:
-    return {"state": aggregate.state, "label": aggregate.label, "reasons": aggregate.reasons,
-            "resolved_by": aggregate.resolved_by, "batch": aggregate.batch_id, "kind": aggregate.kind}
+    return {
+        "state": aggregate.state,
+        "label": aggregate.label,
+        "reasons": aggregate.reasons,
+        "resolved_by": aggregate.resolved_by,
+        "batch": aggregate.batch_id,
+        "kind": aggregate.kind,
+    }
 
 
 @dataclass(frozen=True)
@@ -661,8 +837,7 @@ class Resolved:
     gold_id: int | None
 
 
-def resolve_aggregate(aggregate_id: int, label: Any, *, curator: Person, make_gold: bool = False,
-                      note: str = "") -> Resolved:
+def resolve_aggregate(aggregate_id: int, label: Any, *, curator: Person, make_gold: bool = False, note: str = "") -> Resolved:
     """A curator's answer for a disputed crowd aggregate becomes the card's truth.
 
     ``label`` is checked as a crowd answer would be (judge: ``is_stereo``/``upside_down``/
@@ -683,12 +858,20 @@ def resolve_aggregate(aggregate_id: int, label: Any, *, curator: Person, make_go
         raise ReviewError(f"There is no crowd aggregate {aggregate_id}", 404)
     if aggregate.state != "needs_curator":
         who = db.session.get(Person, aggregate.resolved_by) if aggregate.resolved_by else None
-        message = (f"The crowd answer for card {aggregate.card_id} was already resolved by "
-                   f"{who.username if who else 'the crowd consensus'} at {_when(aggregate.updated_at)}; "
-                   "nothing was saved. Reload to see it.")
+        message = (
+            f"The crowd answer for card {aggregate.card_id} was already resolved by "
+            f"{who.username if who else 'the crowd consensus'} at {_when(aggregate.updated_at)}; "
+            "nothing was saved. Reload to see it."
+        )
         db.session.rollback()
-        raise ReviewConflict(message, review_id=aggregate.id, card_id=aggregate.card_id, current_version=0,
-                             changed_by=who.username if who else None, changed_at=_aware(aggregate.updated_at))
+        raise ReviewConflict(
+            message,
+            review_id=aggregate.id,
+            card_id=aggregate.card_id,
+            current_version=0,
+            changed_by=who.username if who else None,
+            changed_at=_aware(aggregate.updated_at),
+        )
     card = db.session.get(Card, aggregate.card_id)
     assert card is not None
     try:
@@ -699,12 +882,19 @@ def resolve_aggregate(aggregate_id: int, label: Any, *, curator: Person, make_go
     before = _aggregate_snapshot(aggregate)
     aggregate.label, aggregate.state, aggregate.resolved_by = canonical, "approved", curator.id
     db.session.flush()
-    record_event(entity="aggregate", action="resolved", card_id=card.id, entity_id=aggregate.id, actor=curator,
-                 before=before, after=_aggregate_snapshot(aggregate), why=note)
+    record_event(
+        entity="aggregate",
+        action="resolved",
+        card_id=card.id,
+        entity_id=aggregate.id,
+        actor=curator,
+        before=before,
+        after=_aggregate_snapshot(aggregate),
+        why=note,
+    )
     gold_id = None
     if make_gold:
-        gold = db.session.scalar(select(GoldAnswer).where(GoldAnswer.card_id == card.id,
-                                                          GoldAnswer.kind == aggregate.kind))
+        gold = db.session.scalar(select(GoldAnswer).where(GoldAnswer.card_id == card.id, GoldAnswer.kind == aggregate.kind))
         gold_before = None if gold is None else {"answer": gold.answer, "made_by": gold.made_by}
         if gold is None:
             gold = GoldAnswer(card_id=card.id, kind=aggregate.kind, answer=canonical, made_by=curator.id)
@@ -712,9 +902,16 @@ def resolve_aggregate(aggregate_id: int, label: Any, *, curator: Person, make_go
         else:
             gold.answer, gold.made_by = canonical, curator.id
         db.session.flush()
-        record_event(entity="gold", action="made_gold" if gold_before is None else "replaced_gold", card_id=card.id,
-                     entity_id=gold.id, actor=curator, before=gold_before,
-                     after={"answer": canonical, "made_by": curator.id, "kind": aggregate.kind}, why=note)
+        record_event(
+            entity="gold",
+            action="made_gold" if gold_before is None else "replaced_gold",
+            card_id=card.id,
+            entity_id=gold.id,
+            actor=curator,
+            before=gold_before,
+            after={"answer": canonical, "made_by": curator.id, "kind": aggregate.kind},
+            why=note,
+        )
         gold_id = gold.id
     db.session.commit()
     return Resolved(aggregate.id, card.id, canonical, gold_id)
@@ -726,8 +923,9 @@ def resolve_aggregate(aggregate_id: int, label: Any, *, curator: Person, make_go
 
 def card_history(card_id: int) -> list[AuditEvent]:
     """Every audit event about ``card_id``, oldest first."""
-    return list(db.session.scalars(select(AuditEvent).where(AuditEvent.card_id == card_id)
-                                   .order_by(AuditEvent.at, AuditEvent.id)))
+    return list(
+        db.session.scalars(select(AuditEvent).where(AuditEvent.card_id == card_id).order_by(AuditEvent.at, AuditEvent.id))
+    )
 
 
 @dataclass

@@ -110,20 +110,36 @@ def _row(check: dict[str, Any]) -> ThresholdRow | None:
     level_words = {"few": LEVEL_WORDS[0], "some": LEVEL_WORDS[1], "failure": LEVEL_WORDS[2]}.get(level, level)
     if unit == "flag":
         beyond = level != "few"
-        return ThresholdRow(name, "yes" if value >= 0.5 else "no", "set or not", LEVEL_WORDS[1], "—",
-                            "beyond" if beyond else "within", level_words, math.inf)
+        return ThresholdRow(
+            name,
+            "yes" if value >= 0.5 else "no",
+            "set or not",
+            LEVEL_WORDS[1],
+            "—",
+            "beyond" if beyond else "within",
+            level_words,
+            math.inf,
+        )
     margin = _number(check.get("margin"))
-    limits = [(limit, lv) for limit, lv in ((_number(check.get("some")), 1), (_number(check.get("failure")), 2))
-              if limit is not None]
+    limits = [
+        (limit, lv) for limit, lv in ((_number(check.get("some")), 1), (_number(check.get("failure")), 2)) if limit is not None
+    ]
     if margin is None or not limits:
         return None
     # The threshold the margin was measured to: value - margin, matched to the nearer of the two.
     limit, limit_level = min(limits, key=lambda pair: abs((value - margin) - pair[0]))
     beyond = value > limit if direction == "above" else value < limit
     distance = _number(check.get("distance"))
-    return ThresholdRow(name, _show(value, str(unit)), f"{'>' if direction == 'above' else '<'} {_show_limit(limit, str(unit))}",
-                        LEVEL_WORDS[limit_level], _show_margin(margin, str(unit)), "beyond" if beyond else "within",
-                        level_words, math.inf if distance is None else distance)
+    return ThresholdRow(
+        name,
+        _show(value, str(unit)),
+        f"{'>' if direction == 'above' else '<'} {_show_limit(limit, str(unit))}",
+        LEVEL_WORDS[limit_level],
+        _show_margin(margin, str(unit)),
+        "beyond" if beyond else "within",
+        level_words,
+        math.inf if distance is None else distance,
+    )
 
 
 def threshold_table(metrics: dict[str, Any] | None) -> ThresholdTable | None:

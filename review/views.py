@@ -63,10 +63,17 @@ from .tasks import (
 )
 from .threshold_table import threshold_table
 
-bp = Blueprint("review", __name__, url_prefix="/review", template_folder="templates", static_folder="static",
-               static_url_path="/review-static")
+bp = Blueprint(
+    "review",
+    __name__,
+    url_prefix="/review",
+    template_folder="templates",
+    static_folder="static",
+    static_url_path="/review-static",
+)
 bp.record_once(lambda state: add_nav_link(state.app, "Review", "review.queue", "curator", order=30))
 bp.record_once(lambda state: run_hooks.register(state.app))
+
 
 @bp.app_template_global()
 def queue_thumb_url(row: Any) -> str:
@@ -86,8 +93,12 @@ def review_error(error: ReviewError) -> Any:
     db.session.rollback()
     if request.is_json or request.accept_mimetypes.best == "application/json":
         return jsonify({"error": {"code": error.status, "message": error.message}}), error.status
-    return render_template("review/message.html", title="Not saved" if error.status == 409 else "Cannot do that",
-                           message=error.message, conflict=isinstance(error, ReviewConflict)), error.status
+    return render_template(
+        "review/message.html",
+        title="Not saved" if error.status == 409 else "Cannot do that",
+        message=error.message,
+        conflict=isinstance(error, ReviewConflict),
+    ), error.status
 
 
 def _curator() -> Any:
@@ -100,10 +111,12 @@ def _filters(args: Any) -> QueueFilters:
         collection_id = parse_positive_int(collection, "collection") if collection else None
     except ValueError as exc:
         raise ReviewError(str(exc)) from None
-    return QueueFilters(grade=(args.get("grade") or "").strip() or None,
-                        collection_id=collection_id,
-                        reason=(args.get("reason") or "").strip() or None,
-                        decision=(args.get("decision") or "").strip() or "pending")
+    return QueueFilters(
+        grade=(args.get("grade") or "").strip() or None,
+        collection_id=collection_id,
+        reason=(args.get("reason") or "").strip() or None,
+        decision=(args.get("decision") or "").strip() or "pending",
+    )
 
 
 def _page_number(args: Any, name: str = "page") -> int:
@@ -123,25 +136,40 @@ def queue() -> Any:
     page = _page_number(request.args)
     per_page = int(current_app.config.get("REVIEW_PAGE_SIZE", 50))
     with read_only():
-        result = review_queue(filters.grade, filters.collection_id, filters.reason, filters.decision,
-                              limit=per_page, offset=(page - 1) * per_page)
+        result = review_queue(
+            filters.grade, filters.collection_id, filters.reason, filters.decision, limit=per_page, offset=(page - 1) * per_page
+        )
         pages = max(1, math.ceil(result.total / per_page))
         if page > pages:
             abort(404, f"Page {page} is past the last page ({pages}).")
         disputes, dispute_total = disputed_aggregates(limit=DISPUTES_SHOWN)
         collections = list(db.session.scalars(select(Collection).order_by(Collection.name)))
-        return render_template("review/queue.html", result=result, filters=filters, page=page, pages=pages,
-                               collections=collections, grades=GRADES, grade_names=GRADE_NAMES,
-                               decisions=QUEUE_DECISIONS, actions=ACTIONS, kinds=SEND_BACK_KINDS,
-                               disputes=disputes, dispute_total=dispute_total)
+        return render_template(
+            "review/queue.html",
+            result=result,
+            filters=filters,
+            page=page,
+            pages=pages,
+            collections=collections,
+            grades=GRADES,
+            grade_names=GRADE_NAMES,
+            decisions=QUEUE_DECISIONS,
+            actions=ACTIONS,
+            kinds=SEND_BACK_KINDS,
+            disputes=disputes,
+            dispute_total=dispute_total,
+        )
 
 
 @bp.route("/sync", methods=["POST"])
 @role_required("curator")
 def sync() -> Response:
     report = sync_reviews()
-    flash(f"Synced with the grader: {report.created} new, {report.updated} regraded, {report.reopened} back from "
-          f"the crowd, {report.decided_changed} decided cards with a new automatic grade.", "success")
+    flash(
+        f"Synced with the grader: {report.created} new, {report.updated} regraded, {report.reopened} back from "
+        f"the crowd, {report.decided_changed} decided cards with a new automatic grade.",
+        "success",
+    )
     return redirect(url_for("review.queue"), code=303)
 
 
@@ -169,13 +197,21 @@ def bulk() -> Any:
     else:
         values = request.form.getlist("item")
     action = str(source.get("action") or "")
-    outcomes = bulk_decide(_bulk_items(values), action, curator=_curator(), grade=source.get("grade") or None,
-                           note=str(source.get("note") or ""), kind=str(source.get("kind") or "crop"))
+    outcomes = bulk_decide(
+        _bulk_items(values),
+        action,
+        curator=_curator(),
+        grade=source.get("grade") or None,
+        note=str(source.get("note") or ""),
+        kind=str(source.get("kind") or "crop"),
+    )
     if body is not None:
         return jsonify({"outcomes": [o.as_json() for o in outcomes]})
     applied = [o for o in outcomes if o.status == "applied"]
-    flash(f"{action.replace('_', ' ').capitalize()}: applied to {len(applied)} of {len(outcomes)} cards.",
-          "success" if len(applied) == len(outcomes) else "info")
+    flash(
+        f"{action.replace('_', ' ').capitalize()}: applied to {len(applied)} of {len(outcomes)} cards.",
+        "success" if len(applied) == len(outcomes) else "info",
+    )
     for outcome in outcomes:
         if outcome.status != "applied":
             flash(outcome.message, "error")
@@ -215,18 +251,28 @@ def card_state_sentence(card: Any, latest: dict[str, Any]) -> str:
     filtered = latest.get("filter")
     if card.state == "culled" or (filtered is not None and filtered.outcome == "culled"):
         why = f" ({filtered.reason})" if filtered is not None and filtered.reason else ""
-        return (f"The filter culled this card{why}: it is not a usable stereo pair, so it is not graded and "
-                "there is nothing to review.")
+        return (
+            f"The filter culled this card{why}: it is not a usable stereo pair, so it is not graded and "
+            "there is nothing to review."
+        )
     for stage in ("filter", "rectify", "disparity", "grade"):
         result = latest.get(stage)
         if result is not None and result.status == "failed":
-            return (f"The {stage} stage failed on this card ({result.reason or 'no reason recorded'}), so it has no "
-                    "automatic grade to review.")
+            return (
+                f"The {stage} stage failed on this card ({result.reason or 'no reason recorded'}), so it has no "
+                "automatic grade to review."
+            )
     grade = latest.get("grade")
     if grade is not None and grade.status == "done":
         return "This card is graded but not yet in the review queue: sync the queue with the grader."
-    waiting = next((stage for stage in ("filter", "rectify", "disparity", "grade")
-                    if latest.get(stage) is None or latest[stage].status not in ("done", "skipped")), "grade")
+    waiting = next(
+        (
+            stage
+            for stage in ("filter", "rectify", "disparity", "grade")
+            if latest.get(stage) is None or latest[stage].status not in ("done", "skipped")
+        ),
+        "grade",
+    )
     return f"This card is not graded yet: it is waiting for its {waiting} stage."
 
 
@@ -242,17 +288,31 @@ def card(card_id: int) -> Any:
         latest = card.latest_results()
         grade_result = None
         if review is not None and review.auto_param_hash:
-            grade_result = next((r for r in card.stage_results
-                                 if r.stage == "grade" and r.param_hash == review.auto_param_hash), None)
+            grade_result = next(
+                (r for r in card.stage_results if r.stage == "grade" and r.param_hash == review.auto_param_hash), None
+            )
         previous, following = queue_neighbours(card_id, filters)
         view = crowd_view(card_id)
         orientation_panel = _orientation_panel(card)
         return render_template(
-            "review/card.html", card=card, review=review, rectify=latest.get("rectify"),
-            disparity=latest.get("disparity"), views_result=latest.get("views"), grade_result=grade_result, reasons=grade_reasons(grade_result),
-            crowd=view, crowd_boxes=_crowd_boxes(view), judgements=_judgement_counts(view.judge_answers),
-            previous=previous, following=following, filters=filters, grades=GRADES, grade_names=GRADE_NAMES,
-            kinds=SEND_BACK_KINDS, anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
+            "review/card.html",
+            card=card,
+            review=review,
+            rectify=latest.get("rectify"),
+            disparity=latest.get("disparity"),
+            views_result=latest.get("views"),
+            grade_result=grade_result,
+            reasons=grade_reasons(grade_result),
+            crowd=view,
+            crowd_boxes=_crowd_boxes(view),
+            judgements=_judgement_counts(view.judge_answers),
+            previous=previous,
+            following=following,
+            filters=filters,
+            grades=GRADES,
+            grade_names=GRADE_NAMES,
+            kinds=SEND_BACK_KINDS,
+            anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
             table=threshold_table(grade_result.metrics) if grade_result is not None else None,
             state_sentence=card_state_sentence(card, latest) if review is None else "",
             orientation_panel=orientation_panel,
@@ -267,11 +327,14 @@ def _orientation_panel(card: Any) -> dict[str, Any]:
 
     step = card.latest_results().get("orientation")
     override = db.session.scalar(select(OrientationOverride).where(OrientationOverride.card_id == card.id))
-    return {"orientation": current_orientation(card),
-            "step": step.metrics.get("flags") if step is not None and step.status == "done" else None,
-            "step_reason": step.reason if step is not None else None,
-            "override": {flag: getattr(override, flag) for flag in ("upside_down", "inverted", "swapped")}
-            if override is not None else {}}
+    return {
+        "orientation": current_orientation(card),
+        "step": step.metrics.get("flags") if step is not None and step.status == "done" else None,
+        "step_reason": step.reason if step is not None else None,
+        "override": {flag: getattr(override, flag) for flag in ("upside_down", "inverted", "swapped")}
+        if override is not None
+        else {},
+    }
 
 
 @bp.route("/cards/<int:card_id>/orientation", methods=["POST"])
@@ -283,11 +346,16 @@ def orientation_card(card_id: int) -> Any:
 
     flags = {flag: request.form.get(flag, "") for flag in ("upside_down", "inverted", "swapped")}
     after = override_orientation(card_id, flags, curator=_curator(), note=str(request.form.get("note") or ""))
-    state = ", ".join(f"{flag} {'yes' if after[flag] else 'no' if after[flag] is False else '?'}"
-                      for flag in ("upside_down", "inverted", "swapped"))
-    flash(f"Card {card_id}: orientation {state}"
-          + (f" (decided by {after['decided_by']})" if after["decided_by"] else " (still undecided)")
-          + "; the next pipeline run redoes rectification with it.", "success")
+    state = ", ".join(
+        f"{flag} {'yes' if after[flag] else 'no' if after[flag] is False else '?'}"
+        for flag in ("upside_down", "inverted", "swapped")
+    )
+    flash(
+        f"Card {card_id}: orientation {state}"
+        + (f" (decided by {after['decided_by']})" if after["decided_by"] else " (still undecided)")
+        + "; the next pipeline run redoes rectification with it.",
+        "success",
+    )
     return redirect(url_for("review.card", card_id=card_id, **_filters(request.args).query_args()), code=303)
 
 
@@ -321,18 +389,38 @@ def decide_card(card_id: int) -> Any:
         # The page's buttons without script: "accept", "change:few", "send_back", ...
         action, _, grade = request.form["choice"].partition(":")
         grade = grade or None
-    decided = decide(review_id, action, expected_version=version, curator=_curator(), grade=grade,
-                     note=str(source.get("note") or ""), kind=str(source.get("kind") or "crop"))
+    decided = decide(
+        review_id,
+        action,
+        expected_version=version,
+        curator=_curator(),
+        grade=grade,
+        note=str(source.get("note") or ""),
+        kind=str(source.get("kind") or "crop"),
+    )
     next_url = _next_url(card_id, _filters(request.args))
     _offer_undo(decided)
     if body is not None:
-        return jsonify({"card": decided.card_id, "decision": decided.decision, "grade": decided.grade,
-                        "version": decided.version, "batch": decided.batch_id, "next_url": next_url})
+        return jsonify(
+            {
+                "card": decided.card_id,
+                "decision": decided.decision,
+                "grade": decided.grade,
+                "version": decided.version,
+                "batch": decided.batch_id,
+                "next_url": next_url,
+            }
+        )
     return redirect(next_url, code=303)
 
 
-DECISION_WORDS = {"accepted": "accepted", "changed": "grade changed", "sent_back": "sent back to the crowd",
-                  "rejected": "rejected", "pending": "back to pending"}
+DECISION_WORDS = {
+    "accepted": "accepted",
+    "changed": "grade changed",
+    "sent_back": "sent back to the crowd",
+    "rejected": "rejected",
+    "pending": "back to pending",
+}
 
 
 def _offer_undo(decided: Any) -> None:
@@ -344,11 +432,16 @@ def _offer_undo(decided: Any) -> None:
     link = None
     if decided.batch_id:
         message += f"; it is in new crowd batch {decided.batch_id}, waiting for annotators"
-        link = {"url": url_for("crowd.batches") + f"#batch-{decided.batch_id}",
-                "text": f"Open batch {decided.batch_id} (invite links, progress)"}
-    session["keystone_undo"] = {"message": message + ".", "link": link,
-                                "action": url_for("review.undo", card_id=decided.card_id),
-                                "fields": {"version": decided.version}}
+        link = {
+            "url": url_for("crowd.batches") + f"#batch-{decided.batch_id}",
+            "text": f"Open batch {decided.batch_id} (invite links, progress)",
+        }
+    session["keystone_undo"] = {
+        "message": message + ".",
+        "link": link,
+        "action": url_for("review.undo", card_id=decided.card_id),
+        "fields": {"version": decided.version},
+    }
 
 
 @bp.route("/cards/<int:card_id>/undo", methods=["POST"])
@@ -363,8 +456,12 @@ def undo(card_id: int) -> Any:
     if review_id is None:
         raise ReviewError(f"Card {card_id} has no review, so no decision to undo", 404)
     restored = undo_decision(review_id, expected_version=version, curator=_curator())
-    flash(f"Undone: card {card_id} is {DECISION_WORDS.get(restored.decision, restored.decision)} again"
-          + (f" ({GRADE_NAMES[restored.grade]})" if restored.grade else "") + ".", "success")
+    flash(
+        f"Undone: card {card_id} is {DECISION_WORDS.get(restored.decision, restored.decision)} again"
+        + (f" ({GRADE_NAMES[restored.grade]})" if restored.grade else "")
+        + ".",
+        "success",
+    )
     return redirect(url_for("review.card", card_id=card_id), code=303)
 
 
@@ -405,12 +502,14 @@ def red_cyan_anaglyph(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     uint8 RGB; when the previews differ in size by rounding, both are cut to the common
     top-left region (rectified views share their pixel grid, so rows stay aligned).
     """
+
     def luma(image: np.ndarray) -> np.ndarray:
         if image.ndim == 2:
             return image
         # ITU-R BT.601 weights, as PIL's "L" conversion uses.
-        return np.clip(image[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32) + 0.5,
-                       0, 255).astype(np.uint8)
+        return np.clip(image[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32) + 0.5, 0, 255).astype(
+            np.uint8
+        )
 
     if left.size == 0 or right.size == 0:
         raise ValueError(f"Expected two non-empty views, got shapes {left.shape} and {right.shape}")
@@ -501,13 +600,26 @@ def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200
         if aggregate.kind == "crop":
             view.crop, view.crop_answers = aggregate, answers
             boxes = _crowd_boxes(view)
-        workers = {w.id: w for w in db.session.scalars(
-            select(Worker).where(Worker.id.in_({a.worker_id for a in answers})).options(selectinload(Worker.person)))}
-        return render_template("review/dispute.html", aggregate=aggregate, card=card, answers=answers, boxes=boxes,
-                               judgements=_judgement_counts(answers) if aggregate.kind == "judge" else {},
-                               workers={wid: worker_label(w) for wid, w in workers.items()},
-                               questions=JUDGE_QUESTIONS, defaults=judge_defaults(aggregate),
-                               posterior=posterior_words(aggregate), error=error, form=request.form), status
+        workers = {
+            w.id: w
+            for w in db.session.scalars(
+                select(Worker).where(Worker.id.in_({a.worker_id for a in answers})).options(selectinload(Worker.person))
+            )
+        }
+        return render_template(
+            "review/dispute.html",
+            aggregate=aggregate,
+            card=card,
+            answers=answers,
+            boxes=boxes,
+            judgements=_judgement_counts(answers) if aggregate.kind == "judge" else {},
+            workers={wid: worker_label(w) for wid, w in workers.items()},
+            questions=JUDGE_QUESTIONS,
+            defaults=judge_defaults(aggregate),
+            posterior=posterior_words(aggregate),
+            error=error,
+            form=request.form,
+        ), status
 
 
 def worker_label(worker: Any) -> str:
@@ -579,13 +691,21 @@ def dispute(aggregate_id: int) -> Any:
         kind = aggregate.kind
     try:
         label = _label_from_form(kind, request.form)
-        resolved = resolve_aggregate(aggregate_id, label, curator=_curator(),
-                                     make_gold=request.form.get("make_gold") == "on", note=request.form.get("note", ""))
+        resolved = resolve_aggregate(
+            aggregate_id,
+            label,
+            curator=_curator(),
+            make_gold=request.form.get("make_gold") == "on",
+            note=request.form.get("note", ""),
+        )
     except ReviewConflict:
         raise
     except ReviewError as exc:
         db.session.rollback()
         return _dispute_page(aggregate_id, exc.message, exc.status)
-    flash(f"Card {resolved.card_id}: your {kind} answer is now the card's truth"
-          + (" and a gold item for later batches." if resolved.gold_id else "."), "success")
+    flash(
+        f"Card {resolved.card_id}: your {kind} answer is now the card's truth"
+        + (" and a gold item for later batches." if resolved.gold_id else "."),
+        "success",
+    )
     return redirect(url_for("review.queue") + "#disputes", code=303)

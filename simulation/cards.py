@@ -129,33 +129,63 @@ _SINGLE_SOURCES = {
 
 _PUBLISHERS = (
     # (publisher on the record, name printed on the mount, side imprints left/right)
-    ("Keystone View Company", "KEYSTONE VIEW COMPANY",
-     ("KEYSTONE VIEW COMPANY", "MANUFACTURERS AND PUBLISHERS"),
-     ("MEADVILLE, PA.  NEW YORK, N.Y.", "CHICAGO, ILL.  LONDON, ENG.")),
-    ("Underwood & Underwood", "UNDERWOOD & UNDERWOOD",
-     ("UNDERWOOD & UNDERWOOD, PUBLISHERS", "NEW YORK, LONDON, TORONTO-CANADA"),
-     ("WORKS AND STUDIOS", "ARLINGTON, N.J.  WESTWOOD, N.J.")),
-    ("H. C. White Co.", "H. C. WHITE CO.",
-     ("H. C. WHITE CO., PUBLISHERS", "NORTH BENNINGTON, VT., U.S.A."),
-     ("PERFEC STEREOGRAPH", "CHICAGO, ILL.  LONDON, ENG.")),
+    (
+        "Keystone View Company",
+        "KEYSTONE VIEW COMPANY",
+        ("KEYSTONE VIEW COMPANY", "MANUFACTURERS AND PUBLISHERS"),
+        ("MEADVILLE, PA.  NEW YORK, N.Y.", "CHICAGO, ILL.  LONDON, ENG."),
+    ),
+    (
+        "Underwood & Underwood",
+        "UNDERWOOD & UNDERWOOD",
+        ("UNDERWOOD & UNDERWOOD, PUBLISHERS", "NEW YORK, LONDON, TORONTO-CANADA"),
+        ("WORKS AND STUDIOS", "ARLINGTON, N.J.  WESTWOOD, N.J."),
+    ),
+    (
+        "H. C. White Co.",
+        "H. C. WHITE CO.",
+        ("H. C. WHITE CO., PUBLISHERS", "NORTH BENNINGTON, VT., U.S.A."),
+        ("PERFEC STEREOGRAPH", "CHICAGO, ILL.  LONDON, ENG."),
+    ),
 )
 
 _MOTORCYCLE_TITLES = (
-    ("The new motor cycle in the repair shop", "North and Central America, United States, Pennsylvania, Meadville",
-     ("Motorcycles", "Repair shops")),
-    ("A motor bicycle ready for the road", "North and Central America, United States, Massachusetts, Springfield",
-     ("Motorcycles", "Transportation")),
-    ("Latest model of the motor cycle, showing engine and tank",
-     "North and Central America, United States, Wisconsin, Milwaukee", ("Motorcycles", "Engines", "Industry")),
-    ("Mechanic's garage with motor cycle", "North and Central America, United States, Illinois, Chicago",
-     ("Motorcycles", "Garages", "Tools")),
-    ("Police motor cycle at the station house", "North and Central America, United States, New York, New York",
-     ("Motorcycles", "Police")),
-    ("Racing motor cycle at the factory", "North and Central America, United States, Ohio, Toledo",
-     ("Motorcycles", "Racing", "Factories")),
+    (
+        "The new motor cycle in the repair shop",
+        "North and Central America, United States, Pennsylvania, Meadville",
+        ("Motorcycles", "Repair shops"),
+    ),
+    (
+        "A motor bicycle ready for the road",
+        "North and Central America, United States, Massachusetts, Springfield",
+        ("Motorcycles", "Transportation"),
+    ),
+    (
+        "Latest model of the motor cycle, showing engine and tank",
+        "North and Central America, United States, Wisconsin, Milwaukee",
+        ("Motorcycles", "Engines", "Industry"),
+    ),
+    (
+        "Mechanic's garage with motor cycle",
+        "North and Central America, United States, Illinois, Chicago",
+        ("Motorcycles", "Garages", "Tools"),
+    ),
+    (
+        "Police motor cycle at the station house",
+        "North and Central America, United States, New York, New York",
+        ("Motorcycles", "Police"),
+    ),
+    (
+        "Racing motor cycle at the factory",
+        "North and Central America, United States, Ohio, Toledo",
+        ("Motorcycles", "Racing", "Factories"),
+    ),
     ("The machine that conquered distance", "Europe, England, London", ("Motorcycles", "Inventions")),
-    ("Motor cycle on exhibition at the automobile show", "North and Central America, United States, New York, New York",
-     ("Motorcycles", "Exhibitions")),
+    (
+        "Motor cycle on exhibition at the automobile show",
+        "North and Central America, United States, New York, New York",
+        ("Motorcycles", "Exhibitions"),
+    ),
 )
 
 _CREATORS = ("Not Known", "B. L. Singley", "James M. Reid", "Not Known", "B. W. Kilburn")
@@ -206,9 +236,14 @@ def _layout(rng: np.random.Generator) -> _Layout:
     rx0 = left_box[2] + gutter
     right_box = (rx0, y0, rx0 + photo_w, y0 + photo_h)
     return _Layout(
-        scan_w=card_w + bed[0] + bed[2], scan_h=card_h + bed[1] + bed[3],
-        card_box=(cx0, cy0, cx0 + card_w, cy0 + card_h), photo_w=photo_w, photo_h=photo_h,
-        left_box=left_box, right_box=right_box, gutter=gutter,
+        scan_w=card_w + bed[0] + bed[2],
+        scan_h=card_h + bed[1] + bed[3],
+        card_box=(cx0, cy0, cx0 + card_w, cy0 + card_h),
+        photo_w=photo_w,
+        photo_h=photo_h,
+        left_box=left_box,
+        right_box=right_box,
+        gutter=gutter,
     )
 
 
@@ -226,14 +261,17 @@ def _smooth_noise(rng: np.random.Generator, h: int, w: int, cell: int) -> np.nda
     return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
 
 
-_MOUNT_COLOURS = np.array([
-    (206, 190, 152),  # buff
-    (221, 206, 168),  # cream
-    (158, 156, 136),  # grey-green
-    (176, 168, 152),  # grey
-    (214, 172, 104),  # orange-yellow
-    (196, 176, 140),  # tan
-], dtype=np.float32)
+_MOUNT_COLOURS = np.array(
+    [
+        (206, 190, 152),  # buff
+        (221, 206, 168),  # cream
+        (158, 156, 136),  # grey-green
+        (176, 168, 152),  # grey
+        (214, 172, 104),  # orange-yellow
+        (196, 176, 140),  # tan
+    ],
+    dtype=np.float32,
+)
 
 
 def _edge_profile(n: int, depth: float, width: float) -> np.ndarray:
@@ -248,7 +286,7 @@ def _blend_patch(scan: np.ndarray, alpha: np.ndarray, colour: np.ndarray, x: int
     x0, y0, x1, y1 = max(0, x), max(0, y), min(w, x + alpha.shape[1]), min(h, y + alpha.shape[0])
     if x1 <= x0 or y1 <= y0:
         return
-    a = alpha[y0 - y:y1 - y, x0 - x:x1 - x, None]
+    a = alpha[y0 - y : y1 - y, x0 - x : x1 - x, None]
     region = scan[y0:y1, x0:x1]
     region += (colour - region) * a
 
@@ -273,8 +311,12 @@ def _mount(rng: np.random.Generator, layout: _Layout, colour: np.ndarray | None 
 
     scan = np.empty((h, w, 3), np.float32)
     bed = float(rng.uniform(22, 42))
-    for sl in ((slice(None), slice(0, x0)), (slice(None), slice(x1, w)), (slice(0, y0), slice(x0, x1)),
-               (slice(y1, h), slice(x0, x1))):
+    for sl in (
+        (slice(None), slice(0, x0)),
+        (slice(None), slice(x1, w)),
+        (slice(0, y0), slice(x0, x1)),
+        (slice(y1, h), slice(x0, x1)),
+    ):
         scan[sl] = (bed + 3.0 * fibre[sl])[..., None]
     np.multiply(shade[..., None], colour, out=scan[y0:y1, x0:x1])
 
@@ -287,8 +329,8 @@ def _mount(rng: np.random.Generator, layout: _Layout, colour: np.ndarray | None 
         cv2.circle(spot, (size // 2, size // 2), radius, float(rng.uniform(0.15, 0.45)), -1, cv2.LINE_AA)
         spot = cv2.GaussianBlur(spot, (0, 0), 2.5)
         sx, sy = x0 + int(rng.integers(0, cw)) - size // 2, y0 + int(rng.integers(0, ch)) - size // 2
-        region = scan[max(0, sy):sy + size, max(0, sx):sx + size]
-        patch = spot[max(0, sy) - sy:, max(0, sx) - sx:][:region.shape[0], :region.shape[1]]
+        region = scan[max(0, sy) : sy + size, max(0, sx) : sx + size]
+        patch = spot[max(0, sy) - sy :, max(0, sx) - sx :][: region.shape[0], : region.shape[1]]
         region *= 1.0 - patch[..., None] * fox
 
     # Rounded card corners over the scanner bed.
@@ -297,7 +339,7 @@ def _mount(rng: np.random.Generator, layout: _Layout, colour: np.ndarray | None 
     cv2.circle(corner, (radius, radius), radius, 1.0, -1, cv2.LINE_AA)
     outside = 1.0 - corner  # alpha of the bed in the top-left corner
     for flip_y, flip_x in ((False, False), (False, True), (True, False), (True, True)):
-        a = outside[::-1 if flip_y else 1, ::-1 if flip_x else 1]
+        a = outside[:: -1 if flip_y else 1, :: -1 if flip_x else 1]
         cx = x1 - radius - 1 if flip_x else x0
         cy = y1 - radius - 1 if flip_y else y0
         _blend_patch(scan, a, np.float32(bed), cx, cy)
@@ -354,12 +396,15 @@ class _Tone:
     lut: np.ndarray  # (256, 3) float32 grey -> toned RGB
 
 
-_TONE_PALETTES = np.array([
-    # shadows, mid-tones, highlights (RGB)
-    [(40, 25, 16), (142, 104, 68), (238, 219, 180)],  # warm sepia (albumen)
-    [(31, 28, 25), (124, 116, 102), (226, 220, 204)],  # near-neutral gelatin silver
-    [(52, 31, 18), (160, 114, 64), (241, 214, 160)],  # strong yellow-brown, faded albumen
-], dtype=np.float32)
+_TONE_PALETTES = np.array(
+    [
+        # shadows, mid-tones, highlights (RGB)
+        [(40, 25, 16), (142, 104, 68), (238, 219, 180)],  # warm sepia (albumen)
+        [(31, 28, 25), (124, 116, 102), (226, 220, 204)],  # near-neutral gelatin silver
+        [(52, 31, 18), (160, 114, 64), (241, 214, 160)],  # strong yellow-brown, faded albumen
+    ],
+    dtype=np.float32,
+)
 
 
 def _tone(rng: np.random.Generator) -> _Tone:
@@ -368,9 +413,13 @@ def _tone(rng: np.random.Generator) -> _Tone:
     g = np.linspace(0.0, 1.0, 256, dtype=np.float32)
     lut = np.stack([np.interp(g, [0.0, 0.5, 1.0], palette[:, c]) for c in range(3)], axis=1).astype(np.float32)
     return _Tone(
-        blur=float(rng.uniform(0.6, 1.1)), low=float(rng.uniform(0.03, 0.12)), high=float(rng.uniform(0.86, 0.97)),
-        gamma=float(rng.uniform(0.85, 1.15)), vignette=float(rng.uniform(0.15, 0.35)),
-        grain=float(rng.uniform(0.012, 0.028)), lut=lut,
+        blur=float(rng.uniform(0.6, 1.1)),
+        low=float(rng.uniform(0.03, 0.12)),
+        high=float(rng.uniform(0.86, 0.97)),
+        gamma=float(rng.uniform(0.85, 1.15)),
+        vignette=float(rng.uniform(0.15, 0.35)),
+        grain=float(rng.uniform(0.012, 0.028)),
+        lut=lut,
     )
 
 
@@ -420,20 +469,27 @@ def _stamp(ink: np.ndarray, patch: np.ndarray, x: int, y: int) -> None:
     x1, y1 = min(w, x + patch.shape[1]), min(h, y + patch.shape[0])
     if x1 <= x0 or y1 <= y0:
         return
-    sub = patch[py0:py0 + (y1 - y0), px0:px0 + (x1 - x0)]
+    sub = patch[py0 : py0 + (y1 - y0), px0 : px0 + (x1 - x0)]
     np.maximum(ink[y0:y1, x0:x1], sub, out=ink[y0:y1, x0:x1])
 
 
-def _text_centred(ink: np.ndarray, text: str, cx: int, cy: int, font: int, scale: float, thickness: int,
-                  max_width: int | None = None) -> None:
+def _text_centred(
+    ink: np.ndarray, text: str, cx: int, cy: int, font: int, scale: float, thickness: int, max_width: int | None = None
+) -> None:
     patch = _text_block(text, font, scale, thickness)
     if max_width is not None and patch.shape[1] > max_width:
         patch = _text_block(text, font, scale * max_width / patch.shape[1], thickness)
     _stamp(ink, patch, cx - patch.shape[1] // 2, cy - patch.shape[0] // 2)
 
 
-def _apply_ink(rng: np.random.Generator, scan: np.ndarray, ink: np.ndarray, colour: np.ndarray, strength: float,
-               zones: list[tuple[int, int, int, int]] | None = None) -> None:
+def _apply_ink(
+    rng: np.random.Generator,
+    scan: np.ndarray,
+    ink: np.ndarray,
+    colour: np.ndarray,
+    strength: float,
+    zones: list[tuple[int, int, int, int]] | None = None,
+) -> None:
     """Print the ink layer inside ``zones`` (x0, y0, x1, y1; default: where there is ink): slightly
     spread, uneven coverage (letterpress on cardboard)."""
     if zones is None:
@@ -474,17 +530,28 @@ def _damage(rng: np.random.Generator, scan: np.ndarray, areas: list[tuple[int, i
         end = np.clip(end, (x0, y0), (x1 - 1, y1 - 1))  # a print's scratch stays on the print
         level = float(rng.uniform(0.35, 0.85))
         colour = bright if rng.random() < 0.6 else dark
-        mark(lambda layer, lo, a=start, b=end, v=level: cv2.line(
-            layer, tuple(int(t) for t in a - lo), tuple(int(t) for t in b - lo), v, 1, cv2.LINE_AA),
-            np.stack([start, end]), 2, colour)
+        mark(
+            lambda layer, lo, a=start, b=end, v=level: cv2.line(
+                layer, tuple(int(t) for t in a - lo), tuple(int(t) for t in b - lo), v, 1, cv2.LINE_AA
+            ),
+            np.stack([start, end]),
+            2,
+            colour,
+        )
     n_dust = int(rng.integers(15, 45))
     for _ in range(n_dust):
         x0, y0, x1, y1 = areas[int(rng.integers(len(areas)))] if areas and rng.random() < 0.8 else (0, 0, w, h)
         centre = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
         radius, level = int(rng.integers(1, 4)), float(rng.uniform(0.4, 0.95))
         colour = bright if rng.random() < 0.5 else dark
-        mark(lambda layer, lo, c=centre, r=radius, v=level: cv2.circle(
-            layer, tuple(int(t) for t in c - lo), r, v, -1, cv2.LINE_AA), centre[None, :], radius + 2, colour)
+        mark(
+            lambda layer, lo, c=centre, r=radius, v=level: cv2.circle(
+                layer, tuple(int(t) for t in c - lo), r, v, -1, cv2.LINE_AA
+            ),
+            centre[None, :],
+            radius + 2,
+            colour,
+        )
     return {"scratches": n_scratches, "dust_specks": n_dust}
 
 
@@ -495,8 +562,9 @@ def _to_uint8(scan: np.ndarray) -> np.ndarray:
 _INK = np.array([(38, 30, 26), (60, 38, 28), (30, 34, 40)], np.float32)
 
 
-def _print_mount_text(rng: np.random.Generator, scan: np.ndarray, layout: _Layout, publisher: tuple,
-                      caption: str, copyright_line: str) -> None:
+def _print_mount_text(
+    rng: np.random.Generator, scan: np.ndarray, layout: _Layout, publisher: tuple, caption: str, copyright_line: str
+) -> None:
     """Caption strip under the prints and vertical imprints on the side margins."""
     ink = np.zeros(scan.shape[:2], np.uint8)
     cx0, cy0, cx1, cy1 = layout.card_box
@@ -512,14 +580,16 @@ def _print_mount_text(rng: np.random.Generator, scan: np.ndarray, layout: _Layou
         (publisher[2], 1, cx0 + side_w // 2),
         (publisher[3], 3, cx1 - side_w // 2),
     ):
-        patches = [_text_block(line, cv2.FONT_HERSHEY_COMPLEX, 0.78 if i == 0 else 0.62, 2 if i == 0 else 1)
-                   for i, line in enumerate(lines)]
+        patches = [
+            _text_block(line, cv2.FONT_HERSHEY_COMPLEX, 0.78 if i == 0 else 0.62, 2 if i == 0 else 1)
+            for i, line in enumerate(lines)
+        ]
         width = max(p.shape[1] for p in patches)
         block = np.zeros((sum(p.shape[0] for p in patches) + 6, width), np.uint8)
         y = 0
         for p in patches:
             x = (width - p.shape[1]) // 2
-            block[y:y + p.shape[0], x:x + p.shape[1]] = p
+            block[y : y + p.shape[0], x : x + p.shape[1]] = p
             y += p.shape[0] + 6
         limit = layout.photo_h - 40
         if block.shape[1] > limit:
@@ -527,9 +597,11 @@ def _print_mount_text(rng: np.random.Generator, scan: np.ndarray, layout: _Layou
         block = np.rot90(block, rotate)
         top = layout.left_box[1] + (layout.photo_h - block.shape[0]) // 2
         _stamp(ink, np.ascontiguousarray(block), centre_x - block.shape[1] // 2, top)
-    zones = [(cx0, layout.left_box[1], layout.left_box[0], layout.left_box[3]),
-             (layout.right_box[2], layout.right_box[1], cx1, layout.right_box[3]),
-             (cx0, strip_top, cx1, cy1)]
+    zones = [
+        (cx0, layout.left_box[1], layout.left_box[0], layout.left_box[3]),
+        (layout.right_box[2], layout.right_box[1], cx1, layout.right_box[3]),
+        (cx0, strip_top, cx1, cy1),
+    ]
     _apply_ink(rng, scan, ink, _INK[int(rng.integers(len(_INK)))], float(rng.uniform(0.75, 0.92)), zones)
 
 
@@ -607,14 +679,26 @@ def make_stereo_card(seed: int, index: int, name: str | None = None) -> DemoCard
         **damage,
     }
     metadata = _record(title, year, rng, publisher[0], place, subjects)
-    return DemoCard(name=name or f"demo_stereo_{index:04d}", image=image, kind="stereo", expected_filter=("pass",),
-                    truth=truth, metadata=metadata)
+    return DemoCard(
+        name=name or f"demo_stereo_{index:04d}",
+        image=image,
+        kind="stereo",
+        expected_filter=("pass",),
+        truth=truth,
+        metadata=metadata,
+    )
 
 
 def _record(title: str, year: int, rng: np.random.Generator, publisher: str, place: str, subjects: tuple) -> dict:
     date = str(year) if rng.random() < 0.7 else f"ca. {year}"
-    return {"title": title, "date": date, "creator": _CREATORS[int(rng.integers(len(_CREATORS)))],
-            "publisher": publisher, "place": place, "subjects": tuple(subjects)}
+    return {
+        "title": title,
+        "date": date,
+        "creator": _CREATORS[int(rng.integers(len(_CREATORS)))],
+        "publisher": publisher,
+        "place": place,
+        "subjects": tuple(subjects),
+    }
 
 
 def _fit_window(rng: np.random.Generator, shape: tuple[int, int], aspect: float) -> tuple[float, float, float]:
@@ -660,13 +744,23 @@ def _make_mono(seed: int, variant: int, name: str) -> DemoCard:
     _print_mount_text(rng, scan, layout, publisher, caption, f"Copyright {year} by {publisher[0].rstrip('.')}.")
     damage = _damage(rng, scan, [tuple(b) for b in boxes])
     truth = {
-        "sources": sources, "photo_boxes": boxes, "left_box": None, "right_box": None,
-        "card_box": list(layout.card_box), "photo_shape": style, "corner_radius_px": radius, "caption": caption,
-        "upside_down": False, "inverted": False, "halves_swapped": False, **damage,
+        "sources": sources,
+        "photo_boxes": boxes,
+        "left_box": None,
+        "right_box": None,
+        "card_box": list(layout.card_box),
+        "photo_shape": style,
+        "corner_radius_px": radius,
+        "caption": caption,
+        "upside_down": False,
+        "inverted": False,
+        "halves_swapped": False,
+        **damage,
     }
     metadata = _record(title, year, rng, publisher[0], "North and Central America, United States", subjects)
-    return DemoCard(name=name, image=_to_uint8(scan), kind="mono", expected_filter=("culled", "review"),
-                    truth=truth, metadata=metadata)
+    return DemoCard(
+        name=name, image=_to_uint8(scan), kind="mono", expected_filter=("culled", "review"), truth=truth, metadata=metadata
+    )
 
 
 def _make_back(seed: int, name: str) -> DemoCard:
@@ -690,7 +784,7 @@ def _make_back(seed: int, name: str) -> DemoCard:
         y = cy0 + 90
         heading = title.upper() if column == 0 else "THE MOTOR CYCLE"
         _stamp(ink, _text_block(heading, cv2.FONT_HERSHEY_TRIPLEX, 0.75, 1), x, y - 40)
-        paragraph = " ".join(str(s) for s in sentences[column * 5:(column + 1) * 5])
+        paragraph = " ".join(str(s) for s in sentences[column * 5 : (column + 1) * 5])
         for line in textwrap.wrap(paragraph, chars_per_line):
             patch = _text_block(line, font, scale, 1)
             _stamp(ink, patch, x, y)
@@ -713,12 +807,19 @@ def _make_back(seed: int, name: str) -> DemoCard:
     _apply_ink(rng, scan, pencil, np.array([95, 95, 100], np.float32), 0.55)
     damage = _damage(rng, scan, [])
     truth = {
-        "photo_boxes": [], "left_box": None, "right_box": None, "card_box": list(layout.card_box),
-        "upside_down": False, "inverted": False, "halves_swapped": False, **damage,
+        "photo_boxes": [],
+        "left_box": None,
+        "right_box": None,
+        "card_box": list(layout.card_box),
+        "upside_down": False,
+        "inverted": False,
+        "halves_swapped": False,
+        **damage,
     }
     metadata = _record(f"{title} (card verso)", year, rng, publisher[0], place, subjects)
-    return DemoCard(name=name, image=_to_uint8(scan), kind="back", expected_filter=("culled", "review"),
-                    truth=truth, metadata=metadata)
+    return DemoCard(
+        name=name, image=_to_uint8(scan), kind="back", expected_filter=("culled", "review"), truth=truth, metadata=metadata
+    )
 
 
 def _rotate_box_180(box: list[int], width: int, height: int) -> list[int]:
@@ -734,23 +835,22 @@ def _make_upside_down(seed: int, name: str) -> DemoCard:
         truth[key] = _rotate_box_180(base.truth[key], w, h)
     # The left-eye print now lies on the right of the scan: the halves are swapped.
     truth["photo_boxes"] = [truth["right_box"], truth["left_box"]]
-    truth.update(upside_down=True, halves_swapped=True, rotation_deg=180,
-                 derived_from={"seed": seed, "index": _UPSIDE_DOWN_BASE})
+    truth.update(upside_down=True, halves_swapped=True, rotation_deg=180, derived_from={"seed": seed, "index": _UPSIDE_DOWN_BASE})
     for key in ("left_affine", "right_affine"):
         # Rotation by 180 deg: x' = (w - 1) - x, y' = (h - 1) - y.
         rotated = -np.array(base.truth[key])
         rotated[:, 2] += (w - 1, h - 1)
         truth[key] = rotated.round(6).tolist()
     image = np.ascontiguousarray(base.image[::-1, ::-1])
-    return DemoCard(name=name, image=image, kind="upside_down", expected_filter=("pass",), truth=truth,
-                    metadata=base.metadata)
+    return DemoCard(name=name, image=image, kind="upside_down", expected_filter=("pass",), truth=truth, metadata=base.metadata)
 
 
 def _make_inverted(seed: int, name: str) -> DemoCard:
     base = make_stereo_card(seed, _INVERTED_BASE)
     truth = {**base.truth, "inverted": True, "derived_from": {"seed": seed, "index": _INVERTED_BASE}}
-    return DemoCard(name=name, image=255 - base.image, kind="inverted", expected_filter=("pass",), truth=truth,
-                    metadata=base.metadata)
+    return DemoCard(
+        name=name, image=255 - base.image, kind="inverted", expected_filter=("pass",), truth=truth, metadata=base.metadata
+    )
 
 
 def make_demo_cards(seed: int = 0, n_stereo: int = 6) -> list[DemoCard]:
@@ -770,8 +870,16 @@ def make_demo_cards(seed: int = 0, n_stereo: int = 6) -> list[DemoCard]:
     out = []
     for number, card in enumerate(cards, start=1):
         metadata = {"accession": f"DEMO.{number:04d}", **card.metadata}
-        out.append(DemoCard(name=card.name, image=card.image, kind=card.kind, expected_filter=card.expected_filter,
-                            truth=card.truth, metadata=metadata))
+        out.append(
+            DemoCard(
+                name=card.name,
+                image=card.image,
+                kind=card.kind,
+                expected_filter=card.expected_filter,
+                truth=card.truth,
+                metadata=metadata,
+            )
+        )
     return out
 
 
@@ -793,8 +901,13 @@ def write_demo_cards(cards: list[DemoCard], folder: Path) -> list[Path]:
         writer.writerow(METADATA_COLUMNS)
         for card in cards:
             meta = card.metadata
-            writer.writerow([f"{card.name}.jpg", *(str(meta.get(c, "")) for c in METADATA_COLUMNS[1:-1]),
-                             SUBJECT_SEPARATOR.join(meta.get("subjects", ()))])
+            writer.writerow(
+                [
+                    f"{card.name}.jpg",
+                    *(str(meta.get(c, "")) for c in METADATA_COLUMNS[1:-1]),
+                    SUBJECT_SEPARATOR.join(meta.get("subjects", ())),
+                ]
+            )
     paths.append(csv_path)
     return paths
 
@@ -839,8 +952,9 @@ def _flatten_texture(grey: np.ndarray, amount: float) -> np.ndarray:
     return (1.0 - amount) * grey + amount * smooth
 
 
-def make_card_from_pair(left: np.ndarray, right: np.ndarray, seed: int, degradation: Degradation = Degradation(),
-                        name: str = "scene_card") -> DemoCard:
+def make_card_from_pair(
+    left: np.ndarray, right: np.ndarray, seed: int, degradation: Degradation = Degradation(), name: str = "scene_card"
+) -> DemoCard:
     """An antique card made from any rectified stereo pair (``left``/``right``: uint8 RGB or grey,
     the same shape, e.g. a Middlebury scene), spoiled by ``degradation``.
 
@@ -874,18 +988,31 @@ def make_card_from_pair(left: np.ndarray, right: np.ndarray, seed: int, degradat
     if degradation.fade > 0:
         keep = 1.0 - 0.75 * min(1.0, degradation.fade)
         centre = 0.62 + 0.1 * degradation.fade  # faded prints go pale
-        tone = _Tone(blur=tone.blur, low=centre - keep * (centre - tone.low), high=centre + keep * (tone.high - centre),
-                     gamma=tone.gamma, vignette=tone.vignette, grain=tone.grain, lut=tone.lut)
+        tone = _Tone(
+            blur=tone.blur,
+            low=centre - keep * (centre - tone.low),
+            high=centre + keep * (tone.high - centre),
+            gamma=tone.gamma,
+            vignette=tone.vignette,
+            grain=tone.grain,
+            lut=tone.lut,
+        )
     if degradation.blur_px > 0:
-        tone = _Tone(blur=float(np.hypot(tone.blur, degradation.blur_px)), low=tone.low, high=tone.high,
-                     gamma=tone.gamma, vignette=tone.vignette, grain=tone.grain, lut=tone.lut)
+        tone = _Tone(
+            blur=float(np.hypot(tone.blur, degradation.blur_px)),
+            low=tone.low,
+            high=tone.high,
+            gamma=tone.gamma,
+            vignette=tone.vignette,
+            grain=tone.grain,
+            lut=tone.lut,
+        )
     left_print = _age_print(rng, _render_source(left_src, left_affine, pw, ph), tone)
     right_print = _age_print(rng, _render_source(right_src, right_affine, pw, ph), tone)
     alpha, style, radius = _photo_mask(rng, pw, ph)
 
     scan = _mount(rng, layout)
-    left_eye_box, right_eye_box = (layout.right_box, layout.left_box) if degradation.swap else (
-        layout.left_box, layout.right_box)
+    left_eye_box, right_eye_box = (layout.right_box, layout.left_box) if degradation.swap else (layout.left_box, layout.right_box)
     _paste(scan, left_print, alpha, left_eye_box)
     _paste(scan, right_print, alpha, right_eye_box)
     _print_mount_text(rng, scan, layout, _PUBLISHERS[0], "1234-A scene with known depth.", "Copyright 1905.")
@@ -902,15 +1029,25 @@ def make_card_from_pair(left: np.ndarray, right: np.ndarray, seed: int, degradat
         return out.round(6).tolist()
 
     truth = {
-        "source": name, "crop_window": [round(wx0, 3), round(wy0, 3), round(wx0 + win_w, 3), round(wy0 + win_h, 3)],
-        "scale": round(scale, 6), "right_rotation_deg": degradation.rotation_deg,
+        "source": name,
+        "crop_window": [round(wx0, 3), round(wy0, 3), round(wx0 + win_w, 3), round(wy0 + win_h, 3)],
+        "scale": round(scale, 6),
+        "right_rotation_deg": degradation.rotation_deg,
         "right_vertical_offset_px": degradation.dy_px,
-        "left_affine": placed(left_affine, left_eye_box), "right_affine": placed(right_affine, right_eye_box),
-        "left_box": list(left_eye_box), "right_box": list(right_eye_box),
-        "photo_boxes": [list(layout.left_box), list(layout.right_box)], "card_box": list(layout.card_box),
-        "gutter_px": layout.gutter, "photo_shape": style, "corner_radius_px": radius,
-        "upside_down": False, "inverted": False, "halves_swapped": bool(degradation.swap),
+        "left_affine": placed(left_affine, left_eye_box),
+        "right_affine": placed(right_affine, right_eye_box),
+        "left_box": list(left_eye_box),
+        "right_box": list(right_eye_box),
+        "photo_boxes": [list(layout.left_box), list(layout.right_box)],
+        "card_box": list(layout.card_box),
+        "gutter_px": layout.gutter,
+        "photo_shape": style,
+        "corner_radius_px": radius,
+        "upside_down": False,
+        "inverted": False,
+        "halves_swapped": bool(degradation.swap),
         "degradation": {k: v for k, v in degradation.__dict__.items()},
-        "extra_scratches": extra, **damage,
+        "extra_scratches": extra,
+        **damage,
     }
     return DemoCard(name=name, image=image, kind="stereo", expected_filter=("pass",), truth=truth, metadata={})

@@ -282,10 +282,18 @@ def make_card(app, data_dir: Path) -> Callable[..., int]:  # type: ignore[no-unt
             if group is None:
                 group = Collection(name=collection)
             card = Card(
-                collection=group, content_hash=content_hash, stored_path=str(relative),
-                source_name=source_name or f"scan-{content_hash[:8]}{suffix}", source_path=f"/scans/{content_hash[:8]}{suffix}",
-                accession=accession, width=width, height=height, image_format=fmt, byte_size=len(payload),
-                source_metadata=metadata or {}, state=state,
+                collection=group,
+                content_hash=content_hash,
+                stored_path=str(relative),
+                source_name=source_name or f"scan-{content_hash[:8]}{suffix}",
+                source_path=f"/scans/{content_hash[:8]}{suffix}",
+                accession=accession,
+                width=width,
+                height=height,
+                image_format=fmt,
+                byte_size=len(payload),
+                source_metadata=metadata or {},
+                state=state,
             )
             db.session.add(card)
             db.session.commit()
@@ -329,16 +337,30 @@ def add_stage_result(app, data_dir: Path) -> Callable[..., int]:  # type: ignore
                     write_png(data_dir / work / f"{name}.png", image[y0:y1, x0:x1])
                     artifacts[name] = str(work / f"{name}.png")
                 metrics = {
-                    "good_match_fraction": 0.2341, "good_matches": 512, "keypoints_left": 2187,
-                    "keypoints_right": 2204, "denominator": "keypoints_left", "detect_seconds": 0.081,
-                    "match_seconds": 0.034, "left_box": left_box, "right_box": right_box,
-                    "card_size": [card.width, card.height], "split_method": "similarity",
+                    "good_match_fraction": 0.2341,
+                    "good_matches": 512,
+                    "keypoints_left": 2187,
+                    "keypoints_right": 2204,
+                    "denominator": "keypoints_left",
+                    "detect_seconds": 0.081,
+                    "match_seconds": 0.034,
+                    "left_box": left_box,
+                    "right_box": right_box,
+                    "card_size": [card.width, card.height],
+                    "split_method": "similarity",
                     **(metrics or {}),
                 }
             row = StageResult(
-                card_id=card_id, stage=stage, param_hash=param_hash, status=status, outcome=outcome,
-                reason=reason or (outcome if status == "done" else None), metrics=metrics or {},
-                artifacts=artifacts or {}, seconds=0.21, code_version="0.1.0",
+                card_id=card_id,
+                stage=stage,
+                param_hash=param_hash,
+                status=status,
+                outcome=outcome,
+                reason=reason or (outcome if status == "done" else None),
+                metrics=metrics or {},
+                artifacts=artifacts or {},
+                seconds=0.21,
+                code_version="0.1.0",
             )
             db.session.add(row)
             if update_state and stage == "filter":
@@ -393,9 +415,17 @@ def as_role(login) -> Callable[[str | None], PersonInfo | None]:  # type: ignore
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 # --use-angle/--enable-unsafe-swiftshader: WebGL without a GPU (ANGLE on SwiftShader), which
 # Chromium only allows when asked; the 3D viewer's test needs it, the others do not mind it.
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--disable-quic", "--use-angle=swiftshader",
-                 "--enable-unsafe-swiftshader"]
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-quic",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+]
 
 
 @pytest.fixture
@@ -499,8 +529,9 @@ def decide_orientation(app) -> Callable[..., list[int]]:  # type: ignore[no-unty
     from app.models import Card
     from review.models import OrientationOverride
 
-    def decide(card_ids: list[int] | None = None, *, upside_down: bool = False, inverted: bool = False,
-               swapped: bool = False) -> list[int]:
+    def decide(
+        card_ids: list[int] | None = None, *, upside_down: bool = False, inverted: bool = False, swapped: bool = False
+    ) -> list[int]:
         with app.app_context():
             ids = card_ids if card_ids is not None else list(db.session.scalars(select(Card.id).order_by(Card.id)))
             for card_id in ids:

@@ -1,5 +1,5 @@
 """The static checks configured in pyproject.toml, as part of the suite so CI enforces them:
-ruff's lint over the repository and mypy (strict on pipeline/). A finding fails the test with
+ruff's lint and format check over the repository and mypy (strict on pipeline/). A finding fails the test with
 the tool's own report."""
 
 from __future__ import annotations
@@ -20,6 +20,11 @@ def _run(*command: str) -> subprocess.CompletedProcess[str]:
 def test_ruff_finds_nothing() -> None:
     result = _run("ruff", "check", "--no-cache", "--output-format", "concise", ".")
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_ruff_format_changes_nothing() -> None:
+    result = _run("ruff", "format", "--check", "--no-cache", ".")
+    assert result.returncode == 0, "run `ruff format .`:\n" + result.stdout + result.stderr
 
 
 @pytest.mark.timeout(600)

@@ -179,9 +179,7 @@ class Reprojection:
 
 
 # ------------------------------------------------------------------------------------ GD images
-def make_gd_image(
-    intensity: np.ndarray, depth: np.ndarray, focal_px: float, valid: np.ndarray | None = None
-) -> GDImage:
+def make_gd_image(intensity: np.ndarray, depth: np.ndarray, focal_px: float, valid: np.ndarray | None = None) -> GDImage:
     """Validate and build a :class:`GDImage`.
 
     ``intensity`` (H, W): uint8 (divided by 255) or float in [0, 1]; ``depth`` (H, W) float, in the
@@ -268,9 +266,7 @@ def quad_radius(baseline: float, d_max: float, shift_px: float = SHIFT_PX) -> fl
     return r
 
 
-def look_at(
-    eye: np.ndarray, target: np.ndarray, up: np.ndarray, focal_px: float, width: int, height: int
-) -> Camera:
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray, focal_px: float, width: int, height: int) -> Camera:
     """A camera at ``eye`` (3,) whose -z axis points at ``target`` (3,), with its y axis in the
     plane of ``up`` (3,) and the view direction (gluLookAt): rows of R are ``s = f x up / |.|``,
     ``u = s x f``, ``-f`` with ``f = (target - eye) / |target - eye|``; ``t = -R eye``."""
@@ -298,8 +294,7 @@ def corner_cameras(gd: GDImage, baseline: float = 1.0, shift_px: float = SHIFT_P
     c = scene_centre(gd)
     h, w = gd.shape
     up = np.array([0.0, 1.0, 0.0])
-    return [look_at(np.array([sx * r, sy * r, 0.0]), c, up, gd.focal_px, w, h)
-            for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
+    return [look_at(np.array([sx * r, sy * r, 0.0]), c, up, gd.focal_px, w, h) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
 
 
 # --------------------------------------------------------------------------------- reprojection
@@ -374,8 +369,14 @@ def reproject(
     keep &= (_max3(da, db, dc) - dmin) <= max_relative_step * np.maximum(dmin, 1e-300)
     a, b, c = a[keep], b[keep], c[keep]
     kept = len(a)
-    finite = np.isfinite(px[a]) & np.isfinite(px[b]) & np.isfinite(px[c]) \
-        & np.isfinite(py[a]) & np.isfinite(py[b]) & np.isfinite(py[c])
+    finite = (
+        np.isfinite(px[a])
+        & np.isfinite(px[b])
+        & np.isfinite(px[c])
+        & np.isfinite(py[a])
+        & np.isfinite(py[b])
+        & np.isfinite(py[c])
+    )
     a, b, c = a[finite], b[finite], c[finite]
     xa, xb, xc, ya, yb, yc = px[a], px[b], px[c], py[a], py[b], py[c]
     inverse_z = 1.0 / zs  # inverse target depth per vertex
@@ -391,8 +392,24 @@ def reproject(
     live = (nx > 0) & (ny > 0) & (np.abs(denom) > 1e-12)
     sel = np.flatnonzero(live)
     count = (nx * ny)[sel]
-    mesh = _ScreenMesh(xa, xb, xc, ya, yb, yc, x0, y0, nx, denom,
-                       inverse_z[a], inverse_z[b], inverse_z[c], intensity[a], intensity[b], intensity[c])
+    mesh = _ScreenMesh(
+        xa,
+        xb,
+        xc,
+        ya,
+        yb,
+        yc,
+        x0,
+        y0,
+        nx,
+        denom,
+        inverse_z[a],
+        inverse_z[b],
+        inverse_z[c],
+        intensity[a],
+        intensity[b],
+        intensity[c],
+    )
 
     zbuf = np.full(th * tw, np.inf)
     ibuf = np.zeros(th * tw)
@@ -440,8 +457,7 @@ class _ScreenMesh:
     ic: np.ndarray
 
 
-def _raster_chunk(sel: np.ndarray, count: np.ndarray, mesh: _ScreenMesh, tw: int,
-                  zbuf: np.ndarray, ibuf: np.ndarray) -> None:
+def _raster_chunk(sel: np.ndarray, count: np.ndarray, mesh: _ScreenMesh, tw: int, zbuf: np.ndarray, ibuf: np.ndarray) -> None:
     """Rasterise triangles ``sel`` into the z-buffer ``zbuf`` / intensity ``ibuf`` (flat, in place)."""
     n = int(count.sum())
     rep = np.repeat(sel, count)
@@ -539,8 +555,11 @@ def training_holes(gd: GDImage, cameras: Sequence[Camera]) -> list[tuple[np.ndar
 def needs_inpainting(holes: np.ndarray | Sequence[np.ndarray]) -> tuple[bool, str]:
     """Whether a scene's views need inpainting, and why (for the stage record). ``holes``: one
     (H, W) bool mask or a sequence of them (one per corner view)."""
-    masks = [np.asarray(holes, bool)] if isinstance(holes, np.ndarray) and np.ndim(holes) == 2 \
+    masks = (
+        [np.asarray(holes, bool)]
+        if isinstance(holes, np.ndarray) and np.ndim(holes) == 2
         else [np.asarray(m, bool) for m in holes]
+    )
     if not masks or all(not m.any() for m in masks):
         return False, "no_holes: the reprojections leave no holes"
     worst = max(float(m.mean()) for m in masks if m.size)

@@ -33,6 +33,7 @@ from .synthesis import (
 
 __all__ = ["read_map", "scene_document", "views_task"]
 
+
 def read_map(data_dir: Path, relative: Any, name: str) -> np.ndarray:
     if not isinstance(relative, str) or not relative:
         raise MissingInputError(f"no {name} map recorded for this card")
@@ -52,18 +53,27 @@ def scene_document(scene: SceneViews) -> dict[str, Any]:
     h, w = scene.views[0].shape
     views = []
     for name, cam in zip(VIEW_NAMES, scene.cameras):
-        views.append({
-            "name": name, "image": f"{name}.png", "depth": f"{name}_depth.npy",
-            "rotation": cam.rotation.tolist(), "translation": cam.translation.tolist(),
-            "centre": cam.centre.tolist(), "focal_px": cam.focal_px,
-        })
+        views.append(
+            {
+                "name": name,
+                "image": f"{name}.png",
+                "depth": f"{name}_depth.npy",
+                "rotation": cam.rotation.tolist(),
+                "translation": cam.translation.tolist(),
+                "centre": cam.centre.tolist(),
+                "focal_px": cam.focal_px,
+            }
+        )
     return {
         "convention": "world = v0's camera frame; cameras look down -z with y up (OpenGL); x_cam = R x_world + t; "
-                      "pixel (u, v) with depth D is ((u - cx) D / f, -(v - cy) D / f, -D) in its camera, "
-                      "cx = (width - 1) / 2, cy = (height - 1) / 2; depth in baseline units (baseline 1)",
-        "width": w, "height": h, "views": views,
+        "pixel (u, v) with depth D is ((u - cx) D / f, -(v - cy) D / f, -D) in its camera, "
+        "cx = (width - 1) / 2, cy = (height - 1) / 2; depth in baseline units (baseline 1)",
+        "width": w,
+        "height": h,
+        "views": views,
         "scene_centre": scene_centre(scene.views[0]).tolist(),
-        "quad_radius": scene.metrics["quad_radius"], "depth_range": scene.metrics["depth_range"],
+        "quad_radius": scene.metrics["quad_radius"],
+        "depth_range": scene.metrics["depth_range"],
         "max_relative_step": MAX_RELATIVE_DEPTH_STEP,
     }
 
@@ -96,12 +106,14 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
         depth = np.where(valid, 1.0 / np.where(valid, disparity, 1.0), 0.0)  # times f below
         source = "disparity_left"
     if depth.shape != grey.shape:
-        raise InvalidInputError(f"the {source} map {depth.shape[::-1]} and the left view "
-                                f"{grey.shape[::-1]} differ in size")
+        raise InvalidInputError(f"the {source} map {depth.shape[::-1]} and the left view {grey.shape[::-1]} differ in size")
     valid &= inside
     focal_in = inputs.get("focal_px")
-    focal = float(focal_in) if isinstance(focal_in, (int, float)) and math.isfinite(focal_in) and focal_in > 0 \
+    focal = (
+        float(focal_in)
+        if isinstance(focal_in, (int, float)) and math.isfinite(focal_in) and focal_in > 0
         else DEFAULT_VERTICAL_FOV_FOCAL * grey.shape[0]
+    )
     if source == "disparity_left":
         depth = depth * focal  # D = f b / d with b = 1, as depth_from_disparity
         valid &= np.isfinite(depth)
@@ -123,13 +135,19 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
         handle.write(payload)
     artifacts["preview"] = str((work_dir / "preview.webp").relative_to(data_dir))
     metrics = {
-        **scene.metrics, "grade": inputs.get("grade"), "depth_source": source,
-        "focal_px_input": focal, "input_size": [int(grey.shape[1]), int(grey.shape[0])],
-        "preview": {"frames": len(frames), "bytes": len(payload), "size": [int(frames[0].shape[1]),
-                                                                            int(frames[0].shape[0])],
-                    "seconds": round(time.perf_counter() - preview_clock, 4)},
+        **scene.metrics,
+        "grade": inputs.get("grade"),
+        "depth_source": source,
+        "focal_px_input": focal,
+        "input_size": [int(grey.shape[1]), int(grey.shape[0])],
+        "preview": {
+            "frames": len(frames),
+            "bytes": len(payload),
+            "size": [int(frames[0].shape[1]), int(frames[0].shape[0])],
+            "seconds": round(time.perf_counter() - preview_clock, 4),
+        },
         "format": "v<i>.png 8-bit grey; v<i>_depth.npy float32 depth along the view's -z axis, baseline 1, "
-                  "finite and > 0 everywhere; views.json cameras; preview.webp animated",
+        "finite and > 0 everywhere; views.json cameras; preview.webp animated",
     }
     json.dumps(metrics, allow_nan=False)  # a NaN in the record is a bug: fail here, typed, not later
     return StageOutput(status="done", metrics=metrics, artifacts=artifacts)

@@ -235,8 +235,12 @@ def _checkpoint_exists(checkpoint: str | None) -> bool:
 
 
 def fill_holes(
-    intensity: np.ndarray, depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray,
-    checkpoint: str | None, fill_intensity: bool = True,
+    intensity: np.ndarray,
+    depth: np.ndarray,
+    hole: np.ndarray,
+    boundary: np.ndarray,
+    checkpoint: str | None,
+    fill_intensity: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, str, str | None]:
     """Fill ``hole`` (H, W) bool of a GD view: ``intensity`` (H, W) float32 in [0, 1], ``depth``
     (H, W) float32 (> 0 outside the holes), ``boundary`` (H, W) bool (the network's B input).
@@ -286,7 +290,11 @@ def _resize_depth(depth: np.ndarray, valid: np.ndarray, size: tuple[int, int]) -
 
 
 def synthesise_views(
-    grey: np.ndarray, depth: np.ndarray, valid: np.ndarray, focal_px: float, params: ViewsStageParams,
+    grey: np.ndarray,
+    depth: np.ndarray,
+    valid: np.ndarray,
+    focal_px: float,
+    params: ViewsStageParams,
 ) -> SceneViews:
     """The five GD images of a scene (module docstring, steps 2-5).
 
@@ -319,7 +327,8 @@ def synthesise_views(
     if real < params.min_depth_fraction:
         raise TooLittleDepthError(
             f"{100 * real:.1f} % of the reference view has a usable depth; at least "
-            f"{100 * params.min_depth_fraction:.0f} % is needed")
+            f"{100 * params.min_depth_fraction:.0f} % is needed"
+        )
 
     # v0: fill the pixels without depth so every GD image is a complete mesh.
     missing = ~partial.valid
@@ -328,8 +337,9 @@ def synthesise_views(
     depth0 = partial.depth
     if missing.any():
         no_boundary = np.zeros_like(missing)
-        _, depth0, v0_method, v0_note = fill_holes(partial.intensity, partial.depth, missing, no_boundary,
-                                                   params.checkpoint, fill_intensity=False)
+        _, depth0, v0_method, v0_note = fill_holes(
+            partial.intensity, partial.depth, missing, no_boundary, params.checkpoint, fill_intensity=False
+        )
     v0 = make_gd_image(partial.intensity, depth0, focal)
     if not v0.valid.all():  # filled depth always lies inside the known range: a bug if not
         raise NonFiniteOutputError("the reference view's filled depth left invalid pixels")
@@ -348,7 +358,8 @@ def synthesise_views(
     if worst > params.max_hole_fraction:
         raise MostlyHolesError(
             f"holes cover {100 * worst:.1f} % of a corner view (at most {100 * params.max_hole_fraction:.0f} % "
-            "may be invented); the depth has steps everywhere")
+            "may be invented); the depth has steps everywhere"
+        )
 
     needed, why = needs_inpainting(holes)
     views = [v0]
@@ -364,31 +375,45 @@ def synthesise_views(
                 i_out, d_out = r.intensity, r.depth
             views.append(make_gd_image(i_out, d_out, cam.focal_px))
         inpainting: dict[str, Any] = {
-            "status": "done", "method": "network" if methods == {"network"} else CLASSICAL_FILL,
-            "reason": why, "checkpoint": params.checkpoint, "note": "; ".join(sorted(notes)) or None,
+            "status": "done",
+            "method": "network" if methods == {"network"} else CLASSICAL_FILL,
+            "reason": why,
+            "checkpoint": params.checkpoint,
+            "note": "; ".join(sorted(notes)) or None,
         }
     else:
         views.extend(make_gd_image(r.intensity, r.depth, cam.focal_px) for cam, r in zip(corners, renders))
-        inpainting = {"status": "skipped", "method": None, "reason": f"not needed: {why.split(': ', 1)[-1]}",
-                      "checkpoint": params.checkpoint, "note": None}
+        inpainting = {
+            "status": "skipped",
+            "method": None,
+            "reason": f"not needed: {why.split(': ', 1)[-1]}",
+            "checkpoint": params.checkpoint,
+            "note": None,
+        }
     for i, view in enumerate(views):
         if not (view.valid.all() and np.isfinite(view.depth).all() and np.isfinite(view.intensity).all()):
             raise NonFiniteOutputError(f"view v{i} has pixels without a finite positive depth after filling")
     cameras = [ref, *corners]
     all_depths = np.concatenate([v.depth.ravel() for v in views])
     metrics = {
-        "size": [w, h], "scale": round(w / w0, 6), "focal_px": round(focal, 4),
-        "corner_focal_px": round(float(focal * zoom), 4), "zoom": round(float(zoom), 6), "shift_px": round(shift, 3),
+        "size": [w, h],
+        "scale": round(w / w0, 6),
+        "focal_px": round(focal, 4),
+        "corner_focal_px": round(float(focal * zoom), 4),
+        "zoom": round(float(zoom), 6),
+        "shift_px": round(shift, 3),
         "quad_radius": float(np.linalg.norm(corners[0].centre[:2]) / math.sqrt(2.0)),
         "scene_centre_depth": float(-scene_centre(v0)[2]),
         "depth_range": [float(all_depths.min()), float(all_depths.max())],
         "reference_depth_filled_fraction": round(float(missing.mean()), 6),
-        "reference_depth_fill": v0_method, "reference_depth_note": v0_note,
+        "reference_depth_fill": v0_method,
+        "reference_depth_note": v0_note,
         "hole_fractions": fractions,
         "boundary_fractions": [round(float(r.boundary.mean()), 6) for r in renders],
         "dropped_triangles": [r.dropped_triangles for r in renders],
         "inpainting": inpainting,
-        "seconds_reference": round(seconds_v0, 4), "seconds_reproject": round(seconds_reproject, 4),
+        "seconds_reference": round(seconds_v0, 4),
+        "seconds_reproject": round(seconds_reproject, 4),
         "seconds_fill": round(time.perf_counter() - clock - seconds_v0 - seconds_reproject, 4),
     }
     return SceneViews(views=views, cameras=cameras, holes=holes, metrics=metrics)
@@ -462,6 +487,7 @@ def encode_webp(frames: list[np.ndarray], frame_ms: int) -> bytes:
 
     pictures = [Image.fromarray(f) for f in frames]
     buffer = io.BytesIO()
-    pictures[0].save(buffer, format="WEBP", save_all=True, append_images=pictures[1:], duration=frame_ms,
-                     loop=0, quality=80, method=4)
+    pictures[0].save(
+        buffer, format="WEBP", save_all=True, append_images=pictures[1:], duration=frame_ms, loop=0, quality=80, method=4
+    )
     return buffer.getvalue()

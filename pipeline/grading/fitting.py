@@ -37,8 +37,15 @@ def agreement(truth: Sequence[int] | np.ndarray, predicted: Sequence[int] | np.n
     matrix = np.zeros((k, k), np.int64)
     np.add.at(matrix, (np.asarray(truth, np.int64), np.asarray(predicted, np.int64)), 1)
     n = int(matrix.sum())
-    out: dict[str, Any] = {"labels": n, "order": list(GRADES), "confusion": matrix.tolist(),
-                           "accuracy": None, "cohen_kappa": None, "macro_f1": None, "per_class": {}}
+    out: dict[str, Any] = {
+        "labels": n,
+        "order": list(GRADES),
+        "confusion": matrix.tolist(),
+        "accuracy": None,
+        "cohen_kappa": None,
+        "macro_f1": None,
+        "per_class": {},
+    }
     if n == 0:
         return out
     rows, columns = matrix.sum(1), matrix.sum(0)
@@ -95,9 +102,17 @@ class FitReport:
     objective: str = "macro_f1"
 
     def as_dict(self) -> dict[str, Any]:
-        return {"thresholds": self.thresholds.to_dict(), "held_out": self.held_out, "baseline": self.baseline,
-                "training": self.training, "labels": self.labels, "folds": self.folds, "seed": self.seed,
-                "changed": list(self.changed), "objective": self.objective}
+        return {
+            "thresholds": self.thresholds.to_dict(),
+            "held_out": self.held_out,
+            "baseline": self.baseline,
+            "training": self.training,
+            "labels": self.labels,
+            "folds": self.folds,
+            "seed": self.seed,
+            "changed": list(self.changed),
+            "objective": self.objective,
+        }
 
 
 def _matrix_of(rows: Sequence[GradeMeasurements]) -> np.ndarray:
@@ -126,8 +141,7 @@ def _levels(column: np.ndarray, threshold: Threshold) -> np.ndarray:
 def _predict(values: np.ndarray, thresholds: GradeThresholds) -> np.ndarray:
     if values.shape[0] == 0:
         return np.zeros(0, np.int64)
-    return np.max(np.stack([_levels(values[:, j], getattr(thresholds, name))
-                            for j, name in enumerate(RULES)], axis=1), axis=1)
+    return np.max(np.stack([_levels(values[:, j], getattr(thresholds, name)) for j, name in enumerate(RULES)], axis=1), axis=1)
 
 
 def _candidates(column: np.ndarray, name: str) -> list[float | None]:
@@ -163,8 +177,10 @@ def _fit(values: np.ndarray, truth: np.ndarray, base: GradeThresholds, sweeps: i
                 rule = current[name]
                 for candidate in candidates[name]:
                     trial = replace(rule, **{level_name: candidate})
-                    if trial.some is not None and trial.failure is not None and (
-                        (trial.failure < trial.some) if trial.direction == "above" else (trial.failure > trial.some)
+                    if (
+                        trial.some is not None
+                        and trial.failure is not None
+                        and ((trial.failure < trial.some) if trial.direction == "above" else (trial.failure > trial.some))
                     ):
                         continue  # a failure threshold short of the some threshold
                     column = _levels(values[:, j], trial)
@@ -224,13 +240,15 @@ def fit_thresholds(
     needed = max(MIN_LABELS, folds)
     if n < needed:
         raise NotEnoughLabelsError(
-            f"{n} curator labels; at least {needed} are needed to fit and cross-validate ({needed - n} more)")
+            f"{n} curator labels; at least {needed} are needed to fit and cross-validate ({needed - n} more)"
+        )
     truth = np.array(truth_list, np.int64)
     classes = sorted({GRADES[t] for t in truth_list})
     if len(classes) < 2:
         raise NotEnoughLabelsError(
             f"all {n} curator labels are {classes[0]!r}: grade at least one card of another class "
-            "(few, some, failure) before fitting")
+            "(few, some, failure) before fitting"
+        )
     matrix = _matrix_of(measured)
     rng = np.random.default_rng(seed)
     predicted = np.full(n, -1, np.int64)
@@ -246,7 +264,10 @@ def fit_thresholds(
         held_out=agreement(truth, predicted),
         baseline=agreement(truth, _predict(matrix, base)),
         training=agreement(truth, _predict(matrix, fitted)),
-        labels=n, folds=folds, seed=seed, changed=_changes(base, fitted),
+        labels=n,
+        folds=folds,
+        seed=seed,
+        changed=_changes(base, fitted),
     )
 
 
@@ -263,14 +284,16 @@ class TrueErrorBands:
     def __post_init__(self) -> None:
         if not (0.0 <= self.few_below <= self.failure_above <= 100.0):
             raise InvalidInputError(
-                f"Expected 0 <= few_below <= failure_above <= 100 (percent), got {self.few_below}, {self.failure_above}")
+                f"Expected 0 <= few_below <= failure_above <= 100 (percent), got {self.few_below}, {self.failure_above}"
+            )
 
     def label(self, true_bad2: float) -> str:
         return "few" if true_bad2 < self.few_below else "failure" if true_bad2 > self.failure_above else "some"
 
 
-def labels_from_true_error(results: Sequence[Mapping[str, Any]], bands: TrueErrorBands = TrueErrorBands()
-                           ) -> list[tuple[Mapping[str, Any], str]]:
+def labels_from_true_error(
+    results: Sequence[Mapping[str, Any]], bands: TrueErrorBands = TrueErrorBands()
+) -> list[tuple[Mapping[str, Any], str]]:
     """``(measurements, grade the true error calls for)`` for every graded card of a
     ``keystone bench grade --json`` document's ``results`` (cards the pipeline stopped have no
     measurements and are left out). Raises :class:`InvalidInputError` for an entry without a

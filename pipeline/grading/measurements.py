@@ -193,8 +193,9 @@ def _check_map(values: Any, name: str, shape: tuple[int, int], disparity: bool =
         return array
     (h, w), (mh, mw) = shape, array.shape
     if min(mh, mw) < 2 or abs((mw / mh) / (w / h) - 1.0) > 0.03:
-        raise InvalidInputError(f"{name}: expected shape {shape} (the views') or the same aspect at another size, "
-                                f"got {array.shape}")
+        raise InvalidInputError(
+            f"{name}: expected shape {shape} (the views') or the same aspect at another size, got {array.shape}"
+        )
     resized = cv2.resize(array, (w, h), interpolation=cv2.INTER_NEAREST)
     return resized * np.float32(w / mw) if disparity else resized
 
@@ -384,14 +385,16 @@ def measure_card(
             notes["photometric_error_rel"] = "a view has no contrast where the disparity matches"
         else:
             values["photometric_error_rel"] = float(
-                np.mean(np.abs((a - a.mean()) / spread_a - (b - b.mean()) / spread_b)) / math.sqrt(2.0))
+                np.mean(np.abs((a - a.mean()) / spread_a - (b - b.mean()) / spread_b)) / math.sqrt(2.0)
+            )
 
     values.update(_scene_values(grey_l, d_left, covered, inside_l, notes))
     return GradeMeasurements(**values, notes=tuple(sorted(notes.items())))
 
 
-def _scene_values(grey: np.ndarray, d_left: np.ndarray, covered: np.ndarray, inside: np.ndarray,
-                  notes: dict[str, str]) -> dict[str, Any]:
+def _scene_values(
+    grey: np.ndarray, d_left: np.ndarray, covered: np.ndarray, inside: np.ndarray, notes: dict[str, str]
+) -> dict[str, Any]:
     """The scene checks (:mod:`.scene_checks`) on the left view and its covered disparities."""
     disp = np.where(covered, d_left, np.nan).astype(np.float32)
     out: dict[str, Any] = {}

@@ -25,8 +25,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["BorderIntrusion", "Reflection", "border_intrusion", "depth_order", "reflection_symmetry",
-           "sky_near_fraction", "streak_fraction"]
+__all__ = [
+    "BorderIntrusion",
+    "Reflection",
+    "border_intrusion",
+    "depth_order",
+    "reflection_symmetry",
+    "sky_near_fraction",
+    "streak_fraction",
+]
 
 CHECK_SIDE = 256  # px: depth ordering, sky, reflections and the border are judged at this longer side
 STREAK_SIDE = 512  # px: streaks are a few rows thick; judged at this longer side (rows kept by striding)
@@ -71,8 +78,8 @@ def depth_order(disp: np.ndarray, inside: np.ndarray) -> float | None:
     rows = np.flatnonzero(valid.any(axis=1))
     top, bottom = rows[0], rows[-1] + 1
     third = max(1, (bottom - top) // 3)
-    upper = small[top:top + third][valid[top:top + third]]
-    lower = small[bottom - third:bottom][valid[bottom - third:bottom]]
+    upper = small[top : top + third][valid[top : top + third]]
+    lower = small[bottom - third : bottom][valid[bottom - third : bottom]]
     values = small[valid]
     p5, p95 = np.percentile(values, [5, 95])
     if upper.size < 10 or lower.size < 10 or p95 - p5 < 1.0:
@@ -135,8 +142,9 @@ def sky_near_fraction(grey: np.ndarray, disp: np.ndarray, inside: np.ndarray) ->
     have a disparity (nothing to compare with)."""
     small_grey, _ = _shrink(grey, CHECK_SIDE)
     sh, sw = small_grey.shape
-    small_disp = cv2.resize(np.where(np.isfinite(disp), disp, np.nan).astype(np.float32), (sw, sh),
-                            interpolation=cv2.INTER_NEAREST)
+    small_disp = cv2.resize(
+        np.where(np.isfinite(disp), disp, np.nan).astype(np.float32), (sw, sh), interpolation=cv2.INTER_NEAREST
+    )
     inside_u8 = cv2.resize(inside.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST)
     small_inside = np.asarray(cv2.erode(inside_u8, np.ones((5, 5), np.uint8)) > 0)
     has = small_inside & np.isfinite(small_disp)
@@ -149,7 +157,7 @@ def sky_near_fraction(grey: np.ndarray, disp: np.ndarray, inside: np.ndarray) ->
     if rows.size == 0:
         return None
     upper = np.zeros_like(small_inside)
-    upper[rows[0]:rows[0] + max(1, (rows[-1] + 1 - rows[0]) // 2)] = True
+    upper[rows[0] : rows[0] + max(1, (rows[-1] + 1 - rows[0]) // 2)] = True
     region = upper & small_inside
     if not region.any():
         return None
@@ -185,8 +193,7 @@ def reflection_symmetry(grey: np.ndarray, disp: np.ndarray, inside: np.ndarray) 
     if sh < 32:
         return None
     g = cv2.GaussianBlur(small_grey.astype(np.float32), (0, 0), 1.0)
-    d = cv2.resize(np.where(np.isfinite(disp), disp, np.nan).astype(np.float32), (sw, sh),
-                   interpolation=cv2.INTER_NEAREST)
+    d = cv2.resize(np.where(np.isfinite(disp), disp, np.nan).astype(np.float32), (sw, sh), interpolation=cv2.INTER_NEAREST)
     ok = cv2.resize(inside.astype(np.uint8), (sw, sh), interpolation=cv2.INTER_NEAREST).astype(bool) & np.isfinite(d)
     if ok.sum() < 100:
         return None

@@ -16,8 +16,7 @@ from typing import Any, Literal
 from ..errors import InvalidInputError
 from .measurements import GradeMeasurements
 
-__all__ = ["GRADES", "RULES", "GradeParams", "GradeResult", "GradeThresholds", "Threshold", "grade",
-           "paper_distribution"]
+__all__ = ["GRADES", "RULES", "GradeParams", "GradeResult", "GradeThresholds", "Threshold", "grade", "paper_distribution"]
 
 Grade = Literal["few", "some", "failure"]
 GRADES: tuple[Grade, Grade, Grade] = ("few", "some", "failure")
@@ -47,6 +46,7 @@ class Threshold:
 
     def level(self, value: float) -> int:
         """0 few, 1 some, 2 failure."""
+
         def beyond(threshold: float) -> bool:
             return value > threshold if self.direction == "above" else value < threshold
 
@@ -76,29 +76,61 @@ RULES: dict[str, _Rule] = {
     "aspect_change": _Rule("above", "excess", "rectification changed the aspect ratio by x{v}", "ratio"),
     "rotation_deg": _Rule("above", "ratio", "rectification turned a view by {v}", "deg"),
     "kept_fraction": _Rule("below", "complement", "rectification kept only {v} of a view", "percent"),
-    "swapped": _Rule("above", "flag", "eyes swapped on the card (the halves were exchanged: check the depth is not "
-                                      "reversed)", "flag"),
+    "swapped": _Rule(
+        "above", "flag", "eyes swapped on the card (the halves were exchanged: check the depth is not reversed)", "flag"
+    ),
     "row_misalignment_px": _Rule("above", "ratio", "rows of the two views are misaligned by {v}", "px"),
     "coverage": _Rule("below", "complement", "disparity covers {v} of the view", "percent"),
     "lr_consistency": _Rule("below", "complement", "left and right disparities agree on only {v} of the pixels", "percent"),
     "confident_fraction": _Rule("below", "complement", "only {v} of the disparities are confident", "percent"),
-    "disparity_range_rel": _Rule("below", "ratio", "disparity spans only {range_px} ({v} of the width): little depth to "
-                                                   "see", "percent1"),
+    "disparity_range_rel": _Rule(
+        "below", "ratio", "disparity spans only {range_px} ({v} of the width): little depth to see", "percent1"
+    ),
     "textured_fraction": _Rule("below", "ratio", "low texture: only {v} of the view is textured", "percent"),
-    "photometric_error_rel": _Rule("above", "ratio", "the right view warped by the disparity misses the left by {grey} on "
-                                                     "average, {v} of the difference between unrelated images", "number"),
-    "depth_order": _Rule("below", "linear", "the depth ordering reads {v}: the top of the picture comes out nearer than "
-                                            "the bottom (upside down, eyes swapped, or a near blob high up)", "number", span=0.5),
-    "streak_fraction": _Rule("above", "ratio", "{v} of the disparity is row streaks (runs along rows that break against "
-                                               "the rows above and below)", "percent"),
-    "sky_near_fraction": _Rule("above", "ratio", "{v} of the upper half is textureless (sky, blank print) yet reads nearer "
-                                                 "than the textured scene", "percent"),
-    "reflection_symmetry": _Rule("above", "linear", "the picture mirrors itself about row {horizon} in intensity and depth "
-                                                    "(symmetry {v}): a reflection read as a second scene", "number", span=0.3),
-    "border_line": _Rule("above", "ratio", "a straight edge with a plain strip outside it runs along {v} of the {side} "
-                                           "border: card edge or mount inside the crop", "percent"),
-    "border_strokes": _Rule("above", "ratio", "{v} of a border strip is ink-like strokes: mount text or a caption inside "
-                                              "the crop", "percent1"),
+    "photometric_error_rel": _Rule(
+        "above",
+        "ratio",
+        "the right view warped by the disparity misses the left by {grey} on "
+        "average, {v} of the difference between unrelated images",
+        "number",
+    ),
+    "depth_order": _Rule(
+        "below",
+        "linear",
+        "the depth ordering reads {v}: the top of the picture comes out nearer than "
+        "the bottom (upside down, eyes swapped, or a near blob high up)",
+        "number",
+        span=0.5,
+    ),
+    "streak_fraction": _Rule(
+        "above",
+        "ratio",
+        "{v} of the disparity is row streaks (runs along rows that break against the rows above and below)",
+        "percent",
+    ),
+    "sky_near_fraction": _Rule(
+        "above",
+        "ratio",
+        "{v} of the upper half is textureless (sky, blank print) yet reads nearer than the textured scene",
+        "percent",
+    ),
+    "reflection_symmetry": _Rule(
+        "above",
+        "linear",
+        "the picture mirrors itself about row {horizon} in intensity and depth "
+        "(symmetry {v}): a reflection read as a second scene",
+        "number",
+        span=0.3,
+    ),
+    "border_line": _Rule(
+        "above",
+        "ratio",
+        "a straight edge with a plain strip outside it runs along {v} of the {side} border: card edge or mount inside the crop",
+        "percent",
+    ),
+    "border_strokes": _Rule(
+        "above", "ratio", "{v} of a border strip is ink-like strokes: mount text or a caption inside the crop", "percent1"
+    ),
 }
 
 
@@ -119,11 +151,16 @@ def _format(value: float, unit: str, beside: float | None = None) -> str:
 
 def _context(m: GradeMeasurements) -> dict[str, str]:
     """Companion figures some reasons quote beside their own value."""
+
     def show(value: float | None, text: str) -> str:
         return "?" if value is None else text.format(value)
 
-    return {"range_px": show(m.disparity_range_px, "{:.1f} px"), "grey": show(m.photometric_error, "{:.1f} grey levels"),
-            "horizon": show(m.reflection_row_px, "{:.0f}"), "side": m.border_side or "crop's"}
+    return {
+        "range_px": show(m.disparity_range_px, "{:.1f} px"),
+        "grey": show(m.photometric_error, "{:.1f} grey levels"),
+        "horizon": show(m.reflection_row_px, "{:.0f}"),
+        "side": m.border_side or "crop's",
+    }
 
 
 def _threshold_text(threshold: float, unit: str) -> str:
@@ -229,24 +266,28 @@ class GradeThresholds:
                 raise InvalidInputError(f"{name}: expected a Threshold, got {type(rule).__name__}")
             if rule.direction != spec.direction:
                 raise InvalidInputError(
-                    f"{name}: direction must be {spec.direction!r} (what the measurement means), "
-                    f"got {rule.direction!r}")
+                    f"{name}: direction must be {spec.direction!r} (what the measurement means), got {rule.direction!r}"
+                )
             for level in ("some", "failure"):
                 value = getattr(rule, level)
-                if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))
-                                          or not math.isfinite(value)):
+                if value is not None and (
+                    isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+                ):
                     raise InvalidInputError(f"{name}.{level}: expected a finite number or null, got {value!r}")
             if rule.some is not None and rule.failure is not None:
                 ordered = rule.failure >= rule.some if rule.direction == "above" else rule.failure <= rule.some
                 if not ordered:
                     raise InvalidInputError(
                         f"{name}: the failure threshold {rule.failure} must be beyond the some threshold "
-                        f"{rule.some} ({rule.direction})")
+                        f"{rule.some} ({rule.direction})"
+                    )
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """``{measurement: {"direction", "some", "failure"}}`` (JSON-safe)."""
-        return {name: {"direction": t.direction, "some": t.some, "failure": t.failure}
-                for name, t in ((n, getattr(self, n)) for n in RULES)}
+        return {
+            name: {"direction": t.direction, "some": t.some, "failure": t.failure}
+            for name, t in ((n, getattr(self, n)) for n in RULES)
+        }
 
     @classmethod
     def from_dict(cls, document: Mapping[str, Any]) -> GradeThresholds:
@@ -276,8 +317,6 @@ class GradeParams:
     """The grade stage's parameters (hashed by :func:`pipeline.records.param_hash`)."""
 
     thresholds: GradeThresholds = field(default_factory=GradeThresholds)
-
-
 
 
 @dataclass(frozen=True)
@@ -328,12 +367,18 @@ def _distance(name: str, value: float, threshold: float) -> float:
     return abs(math.log(max(value, tiny) / max(threshold, tiny)))
 
 
-def _threshold_entry(name: str, value: float, limit: float, level_name: str, grade_now: int,
-                     grade_across: int) -> dict[str, Any]:
+def _threshold_entry(name: str, value: float, limit: float, level_name: str, grade_now: int, grade_across: int) -> dict[str, Any]:
     distance = _distance(name, value, limit)
-    return {"measurement": name, "value": round(value, 6), "threshold": limit, "margin": round(value - limit, 6),
-            "level": level_name, "distance": None if not math.isfinite(distance) else round(distance, 4),
-            "changes_grade": grade_across != grade_now, "grade_if_crossed": GRADES[grade_across]}
+    return {
+        "measurement": name,
+        "value": round(value, 6),
+        "threshold": limit,
+        "margin": round(value - limit, 6),
+        "level": level_name,
+        "distance": None if not math.isfinite(distance) else round(distance, 4),
+        "changes_grade": grade_across != grade_now,
+        "grade_if_crossed": GRADES[grade_across],
+    }
 
 
 def _far(entry: dict[str, Any]) -> float:
@@ -342,7 +387,7 @@ def _far(entry: dict[str, Any]) -> float:
 
 
 def _nearest_text(entry: dict[str, Any]) -> str:
-    """"coverage 83 % is 3 points from its some threshold (< 80 %)"."""
+    """ "coverage 83 % is 3 points from its some threshold (< 80 %)"."""
     name = entry["measurement"]
     rule = RULES[name]
     value, limit = entry["value"], entry["threshold"]
@@ -353,8 +398,10 @@ def _nearest_text(entry: dict[str, Any]) -> str:
         gap = f"{abs(value - limit):.2f} {rule.unit}"
     else:
         gap = f"{abs(value - limit):.3g}"
-    return (f"{name} {_format(value, rule.unit, limit)} is {gap} from its {entry['level']} threshold "
-            f"({op} {_threshold_text(limit, rule.unit)})")
+    return (
+        f"{name} {_format(value, rule.unit, limit)} is {gap} from its {entry['level']} threshold "
+        f"({op} {_threshold_text(limit, rule.unit)})"
+    )
 
 
 def grade(measurements: GradeMeasurements | Mapping[str, Any], thresholds: GradeThresholds | None = None) -> GradeResult:
@@ -383,9 +430,20 @@ def grade(measurements: GradeMeasurements | Mapping[str, Any], thresholds: Grade
         if raw is None:
             why = m.note_for(name) or "not measured"
             notes.append(f"note: {name} not graded ({why})")
-            checks.append({"measurement": name, "value": None, "unit": rule.unit,
-                           "direction": threshold.direction, "some": threshold.some, "failure": threshold.failure,
-                           "level": None, "margin": None, "distance": None, "note": why})
+            checks.append(
+                {
+                    "measurement": name,
+                    "value": None,
+                    "unit": rule.unit,
+                    "direction": threshold.direction,
+                    "some": threshold.some,
+                    "failure": threshold.failure,
+                    "level": None,
+                    "margin": None,
+                    "distance": None,
+                    "note": why,
+                }
+            )
             continue
         value = float(raw)
         values[name] = value
@@ -431,23 +489,40 @@ def grade(measurements: GradeMeasurements | Mapping[str, Any], thresholds: Grade
                 any_nearest = entry
             if entry["changes_grade"] and math.isfinite(distance) and (mattering is None or distance < _far(mattering)):
                 mattering = entry
-        checks.append({"measurement": name, "value": round(values[name], 6), "unit": RULES[name].unit,
-                       "direction": threshold.direction, "some": threshold.some, "failure": threshold.failure,
-                       "level": GRADES[level], "margin": None if own_nearest is None else own_nearest["margin"],
-                       "distance": None if own_nearest is None else own_nearest["distance"]})
+        checks.append(
+            {
+                "measurement": name,
+                "value": round(values[name], 6),
+                "unit": RULES[name].unit,
+                "direction": threshold.direction,
+                "some": threshold.some,
+                "failure": threshold.failure,
+                "level": GRADES[level],
+                "margin": None if own_nearest is None else own_nearest["margin"],
+                "distance": None if own_nearest is None else own_nearest["distance"],
+            }
+        )
     checks.sort(key=lambda row: list(RULES).index(row["measurement"]))
 
-    nearest = mattering if mattering is not None else (
-        any_nearest if any_nearest is not None and any_nearest["distance"] is not None else None)
+    nearest = (
+        mattering
+        if mattering is not None
+        else (any_nearest if any_nearest is not None and any_nearest["distance"] is not None else None)
+    )
     if mattering is not None:
         uncertainty = max(0.0, 1.0 - mattering["distance"] / UNCERTAINTY_SPAN)
-        uncertainty_reason = (f"uncertainty {uncertainty:.2f}: {_nearest_text(mattering)}; crossing it would make "
-                              f"the grade {mattering['grade_if_crossed']} "
-                              f"(1 = on the threshold, 0 = a factor of 4 or more away)")
+        uncertainty_reason = (
+            f"uncertainty {uncertainty:.2f}: {_nearest_text(mattering)}; crossing it would make "
+            f"the grade {mattering['grade_if_crossed']} "
+            f"(1 = on the threshold, 0 = a factor of 4 or more away)"
+        )
     else:
         uncertainty = 0.0
-        uncertainty_reason = ("uncertainty 0.00: no single measurement crossing a threshold would change the grade"
-                              if levels else "uncertainty 0.00: nothing was measured")
+        uncertainty_reason = (
+            "uncertainty 0.00: no single measurement crossing a threshold would change the grade"
+            if levels
+            else "uncertainty 0.00: nothing was measured"
+        )
     if worst == 0:
         summary = f"few: every measurement within thresholds ({len(levels)} of {len(RULES)} measured)"
         if nearest is not None:
@@ -455,6 +530,14 @@ def grade(measurements: GradeMeasurements | Mapping[str, Any], thresholds: Grade
         reasons.append(summary)
     elif nearest is not None and nearest["measurement"] not in deciding:
         reasons.append(f"nearest: {_nearest_text(nearest)}")
-    return GradeResult(grade=GRADES[worst], reasons=reasons + notes, uncertainty=round(uncertainty, 4),
-                       deciding=deciding, levels=levels, notes=notes, nearest=nearest, checks=checks,
-                       uncertainty_reason=uncertainty_reason)
+    return GradeResult(
+        grade=GRADES[worst],
+        reasons=reasons + notes,
+        uncertainty=round(uncertainty, 4),
+        deciding=deciding,
+        levels=levels,
+        notes=notes,
+        nearest=nearest,
+        checks=checks,
+        uncertainty_reason=uncertainty_reason,
+    )

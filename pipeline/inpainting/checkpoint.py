@@ -22,17 +22,29 @@ CONFIG_NAME = "config.json"
 Checkpoint: TypeAlias = "tuple[InpaintConfig, torch.nn.Module, torch.nn.Module, dict[str, Any]]"
 
 
-def save_checkpoint(out_dir: Path, step: int, config: InpaintConfig, nets: Sequence[torch.nn.Module],
-                    opts: Sequence[torch.optim.Optimizer], losses: list[list[float]]) -> None:
+def save_checkpoint(
+    out_dir: Path,
+    step: int,
+    config: InpaintConfig,
+    nets: Sequence[torch.nn.Module],
+    opts: Sequence[torch.optim.Optimizer],
+    losses: list[list[float]],
+) -> None:
     """``out_dir/checkpoint.pt`` (networks, optimisers, step, configuration, losses so far),
     written atomically, and the configuration alone in ``out_dir/config.json``."""
     import torch
 
     from ..io import atomic_write, write_json
 
-    state = {"step": step, "config": asdict(config), "losses": losses,
-             "intensity": nets[0].state_dict(), "depth": nets[1].state_dict(),
-             "opt_intensity": opts[0].state_dict(), "opt_depth": opts[1].state_dict()}
+    state = {
+        "step": step,
+        "config": asdict(config),
+        "losses": losses,
+        "intensity": nets[0].state_dict(),
+        "depth": nets[1].state_dict(),
+        "opt_intensity": opts[0].state_dict(),
+        "opt_depth": opts[1].state_dict(),
+    }
     with atomic_write(out_dir / CHECKPOINT_NAME) as handle:
         torch.save(state, handle)
     write_json(out_dir / CONFIG_NAME, {"config": asdict(config), "step": step})

@@ -72,8 +72,9 @@ def background_fill(dhat: np.ndarray, hole: np.ndarray) -> np.ndarray:
     return v.astype(np.float32)
 
 
-def baseline_inpaint(values: np.ndarray, hole: np.ndarray, method: str, channel: str = "intensity",
-                     radius: int = 3) -> np.ndarray:
+def baseline_inpaint(
+    values: np.ndarray, hole: np.ndarray, method: str, channel: str = "intensity", radius: int = 3
+) -> np.ndarray:
     """Classical filling of ``hole`` in ``values`` (H, W) float in [0, 1] (intensity or D^).
     ``method``: ``telea`` / ``navier-stokes`` (``cv2.inpaint``; intensity is quantised to 8 bits as
     OpenCV's usual input; D^, in [0, 1] on known pixels, is scaled to 16 bits (D^ * 65535, a step
@@ -109,8 +110,15 @@ def classical_init(intensity: np.ndarray, dhat: np.ndarray, fill: np.ndarray) ->
     return np.stack([i0, d0]).astype(np.float32)
 
 
-def run_networks(nets: Sequence[torch.nn.Module], intensity: np.ndarray, dhat: np.ndarray, hole: np.ndarray,
-                 boundary: np.ndarray, known: np.ndarray, guide: np.ndarray | None = None) -> list[np.ndarray]:
+def run_networks(
+    nets: Sequence[torch.nn.Module],
+    intensity: np.ndarray,
+    dhat: np.ndarray,
+    hole: np.ndarray,
+    boundary: np.ndarray,
+    known: np.ndarray,
+    guide: np.ndarray | None = None,
+) -> list[np.ndarray]:
     """The networks (intensity, then depth) on one (H, W) view; ``guide`` (2, H, W) =
     :func:`classical_init` (computed here when a guided network needs it and none is given).
     Returns their outputs, (H, W) float32 each, non-finite values set to 0. Deterministic: the
@@ -133,15 +141,19 @@ def run_networks(nets: Sequence[torch.nn.Module], intensity: np.ndarray, dhat: n
     try:
         with torch.no_grad():
             xt, mt = torch.from_numpy(x[None]), torch.from_numpy(mp[None])
-            outs = [net.eval()(xt, mt, gt if net.guided else None)[0, 0, :h, :w].numpy().astype(np.float32)
-                    for net in nets]
+            outs = [net.eval()(xt, mt, gt if net.guided else None)[0, 0, :h, :w].numpy().astype(np.float32) for net in nets]
     finally:
         torch.use_deterministic_algorithms(was)
     return [np.nan_to_num(o, nan=0.0, posinf=0.0, neginf=0.0) for o in outs]
 
 
-def inpaint(gd_intensity: np.ndarray, gd_depth: np.ndarray, hole: np.ndarray, boundary: np.ndarray,
-            checkpoint: Checkpoint | str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+def inpaint(
+    gd_intensity: np.ndarray,
+    gd_depth: np.ndarray,
+    hole: np.ndarray,
+    boundary: np.ndarray,
+    checkpoint: Checkpoint | str | os.PathLike[str],
+) -> tuple[np.ndarray, np.ndarray]:
     """Fill ``hole`` (H, W) bool in a GD view: returns ``(intensity, depth)`` (H, W) float32, the
     composite (network output in the holes, the input elsewhere). ``gd_depth`` <= 0 / non-finite
     counts as unknown and is filled too. ``checkpoint``: a path (file or folder) or the tuple from
@@ -160,8 +172,9 @@ def inpaint(gd_intensity: np.ndarray, gd_depth: np.ndarray, hole: np.ndarray, bo
         return img.copy(), dep.astype(np.float32)
     known = ~fill
     dhat, lo, hi = normalise_known(np.where(ok, dep, 0.0), known)
-    oi, od = run_networks([net_i, net_d], img, dhat, fill.astype(np.float32),
-                          np.asarray(boundary, np.float32) * known, np.ones_like(img))
+    oi, od = run_networks(
+        [net_i, net_d], img, dhat, fill.astype(np.float32), np.asarray(boundary, np.float32) * known, np.ones_like(img)
+    )
     out_i = np.where(fill, np.clip(oi, 0.0, 1.0), img).astype(np.float32)
     if not known.any():  # no depth scale to return to: a constant depth of 1
         return out_i, np.ones_like(img)

@@ -57,8 +57,9 @@ class InpaintConfig:
 _LEGACY = {"guided": False, "schedule": "constant", "augment": False}
 
 
-def partial_conv2d(x: torch.Tensor, mask: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None,
-                   stride: int = 1, padding: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+def partial_conv2d(
+    x: torch.Tensor, mask: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None = None, stride: int = 1, padding: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Partial convolution (Liu et al. 2018). ``x`` (N, C, H, W), ``mask`` (N, 1, H, W) in {0, 1},
     ``weight`` (O, C, k, k). Returns ``(out, new_mask)``: ``out = conv(x * mask) * k*k / sum(mask)
     + b`` where ``sum(mask) > 0``, else 0; ``new_mask`` = 1 where ``sum(mask) > 0``."""
@@ -110,11 +111,13 @@ def build_network(config: InpaintConfig, channel: str = "depth") -> torch.nn.Mod
     class PartialUNet(nn.Module):
         def __init__(self, depth: int, width: int, guided: bool, out_index: int) -> None:
             super().__init__()
-            chans = [3] + [width * 2 ** i for i in range(depth)]
+            chans = [3] + [width * 2**i for i in range(depth)]
             skip0 = 3 + GUIDE_CHANNELS + 1 if guided else 3  # (x, guide, mask) at full resolution
             self.enc = nn.ModuleList(PConv(chans[i], chans[i + 1], 5 if i == 0 else 3, 2) for i in range(depth))
-            self.dec = nn.ModuleList(PConv(chans[i + 1] + (chans[i] if i > 0 else skip0), chans[i] if i > 0 else width, 3, 1)
-                                     for i in reversed(range(depth)))
+            self.dec = nn.ModuleList(
+                PConv(chans[i + 1] + (chans[i] if i > 0 else skip0), chans[i] if i > 0 else width, 3, 1)
+                for i in reversed(range(depth))
+            )
             self.out = PConv(width, 1, 3, 1)
             self.guide_in = nn.Conv2d(GUIDE_CHANNELS, chans[1], 5, stride=2, padding=2, bias=False) if guided else None
             if guided:
@@ -144,14 +147,15 @@ def build_network(config: InpaintConfig, channel: str = "depth") -> torch.nn.Mod
                 h = nn.functional.leaky_relu(h, 0.2)
             out: torch.Tensor = self.out(h, torch.ones_like(hm))[0]
             if guide is not None and self.guided:
-                out = out + guide[:, self.out_index:self.out_index + 1]
+                out = out + guide[:, self.out_index : self.out_index + 1]
             return out
 
     return PartialUNet(config.depth, config.width, config.guided, 0 if channel == "intensity" else 1)
 
 
-def network_inputs(intensity: np.ndarray, dhat: np.ndarray, hole: np.ndarray,
-                   boundary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def network_inputs(
+    intensity: np.ndarray, dhat: np.ndarray, hole: np.ndarray, boundary: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(3, H, W) network input ``(I M, D^ M, B M)`` and (1, H, W) mask ``M = 1 - hole``, float32."""
     m = 1.0 - hole
     x = np.stack([intensity * m, dhat * m, boundary * m]).astype(np.float32)

@@ -56,8 +56,16 @@ def make_samples(gd_images: Iterable[GDImage], shift_px: float | None = None) ->
             known = gd.valid & ~hole
             dhat, _, _ = normalise_known(gd.depth, known)
             intensity = gd.intensity.astype(np.float32)
-            samples.append(Sample(intensity, dhat, hole.astype(np.float32), boundary.astype(np.float32),
-                                  gd.valid.astype(np.float32), classical_init(intensity, dhat, ~known)))
+            samples.append(
+                Sample(
+                    intensity,
+                    dhat,
+                    hole.astype(np.float32),
+                    boundary.astype(np.float32),
+                    gd.valid.astype(np.float32),
+                    classical_init(intensity, dhat, ~known),
+                )
+            )
     return samples
 
 
@@ -69,8 +77,7 @@ def _motorcycle() -> tuple[np.ndarray, np.ndarray]:
     return grey, np.asarray(disp, np.float32)
 
 
-def builtin_gd_images(size: int, train_fraction: float = 0.6,
-                      stride: int | None = None) -> tuple[list[GDImage], list[GDImage]]:
+def builtin_gd_images(size: int, train_fraction: float = 0.6, stride: int | None = None) -> tuple[list[GDImage], list[GDImage]]:
     """GD images from scikit-image's Motorcycle (left view + ground-truth disparity; depth
     ``D = f / d`` up to scale, invalid disparity -> invalid depth), downscaled so the image is
     2 and 3 crop sizes high. Returns ``(train, test)``: ``size`` x ``size`` crops whose columns lie in
@@ -98,8 +105,11 @@ def builtin_gd_images(size: int, train_fraction: float = 0.6,
                     gi, di, vi = g[sl], depth[sl], ok[sl]
                     if flip:
                         gi, di, vi = gi[:, ::-1], di[:, ::-1], vi[:, ::-1]
-                    train.append(make_gd_image(np.ascontiguousarray(gi), np.ascontiguousarray(di),
-                                               MOTORCYCLE_FOCAL_PX * s, np.ascontiguousarray(vi)))
+                    train.append(
+                        make_gd_image(
+                            np.ascontiguousarray(gi), np.ascontiguousarray(di), MOTORCYCLE_FOCAL_PX * s, np.ascontiguousarray(vi)
+                        )
+                    )
             for x in range(split, w - size + 1, st):
                 sl = (slice(y, y + size), slice(x, x + size))
                 if ok[sl].mean() < 0.5:
@@ -108,8 +118,9 @@ def builtin_gd_images(size: int, train_fraction: float = 0.6,
     return train, test
 
 
-def crop_gd_images(gd_images: Iterable[GDImage], size: int, stride: int | None = None, min_valid: float = 0.5,
-                   flips: bool = True) -> list[GDImage]:
+def crop_gd_images(
+    gd_images: Iterable[GDImage], size: int, stride: int | None = None, min_valid: float = 0.5, flips: bool = True
+) -> list[GDImage]:
     """``size`` x ``size`` training crops of whole GD images (e.g. the catalogue's own v0 views),
     each downscaled first so its shorter side is at most 3 crop sizes (focal scaled with it), plus
     horizontal flips. Crops with less than ``min_valid`` valid depth are dropped."""
@@ -133,10 +144,11 @@ def crop_gd_images(gd_images: Iterable[GDImage], size: int, stride: int | None =
                 sl = (slice(y, y + size), slice(x, x + size))
                 if valid[sl].mean() < min_valid:
                     continue
-                for flip in ((False, True) if flips else (False,)):
+                for flip in (False, True) if flips else (False,):
                     gi, di, vi = intensity[sl], depth[sl], valid[sl]
                     if flip:
                         gi, di, vi = gi[:, ::-1], di[:, ::-1], vi[:, ::-1]
-                    crops.append(make_gd_image(np.ascontiguousarray(gi), np.ascontiguousarray(di), focal,
-                                               np.ascontiguousarray(vi)))
+                    crops.append(
+                        make_gd_image(np.ascontiguousarray(gi), np.ascontiguousarray(di), focal, np.ascontiguousarray(vi))
+                    )
     return crops

@@ -32,8 +32,14 @@ class TrainingResult(TypedDict):
     networks: list[torch.nn.Module]  # [intensity, depth], in eval mode
 
 
-def inpainting_loss(output: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, known: torch.Tensor | None = None,
-                    hole_weight: float = 6.0, tv_weight: float = 0.1) -> torch.Tensor:
+def inpainting_loss(
+    output: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    known: torch.Tensor | None = None,
+    hole_weight: float = 6.0,
+    tv_weight: float = 0.1,
+) -> torch.Tensor:
     """``mean(K M |O-G|) + hole_weight mean(K (1-M) |O-G|) + tv_weight TV(M G + (1-M) O)`` over
     tensors of the same shape (N, 1, H, W); ``mask`` M = 1 on known input pixels; ``known`` K = 1
     where ground truth exists (default all). Returns a scalar tensor."""
@@ -63,8 +69,13 @@ def stack_samples(samples: list[Sample], multiple: int) -> tuple[np.ndarray, ...
     return tuple(np.stack(a) for a in (xs, ms, gs, its, ds, ks))
 
 
-def train(samples: list[Sample], config: InpaintConfig, out_dir: str | os.PathLike[str] | None,
-          resume: bool = True, stop_at: int | None = None) -> TrainingResult:
+def train(
+    samples: list[Sample],
+    config: InpaintConfig,
+    out_dir: str | os.PathLike[str] | None,
+    resume: bool = True,
+    stop_at: int | None = None,
+) -> TrainingResult:
     """Train the intensity and depth networks (Adam) for ``config.steps`` steps in total.
 
     Each step draws a batch of ``config.batch_size`` samples from a generator seeded by
@@ -94,13 +105,14 @@ def train(samples: list[Sample], config: InpaintConfig, out_dir: str | os.PathLi
         if stored.architecture() != config.architecture():
             raise InvalidInputError(
                 f"the checkpoint in {out} has another architecture (depth, width, guided) = "
-                f"{stored.architecture()}, not {config.architecture()}: train without resume or into another folder")
+                f"{stored.architecture()}, not {config.architecture()}: train without resume or into another folder"
+            )
         nets[0].load_state_dict(state["intensity"])
         nets[1].load_state_dict(state["depth"])
         opts[0].load_state_dict(state["opt_intensity"])
         opts[1].load_state_dict(state["opt_depth"])
         start, losses = int(state["step"]), list(state.get("losses", []))
-    multiple = 2 ** config.depth
+    multiple = 2**config.depth
     x, m, g, gi, gd, k = (torch.from_numpy(a) for a in stack_samples(samples, multiple))
     for n in nets:
         n.train()
@@ -136,5 +148,11 @@ def train(samples: list[Sample], config: InpaintConfig, out_dir: str | os.PathLi
         save_checkpoint(out, step, config, nets, opts, losses)
     for n in nets:
         n.eval()
-    return {"step": step, "start_step": start, "losses": losses, "seconds": time.perf_counter() - t0,
-            "checkpoint": str(out / CHECKPOINT_NAME) if out is not None else None, "networks": nets}
+    return {
+        "step": step,
+        "start_step": start,
+        "losses": losses,
+        "seconds": time.perf_counter() - t0,
+        "checkpoint": str(out / CHECKPOINT_NAME) if out is not None else None,
+        "networks": nets,
+    }

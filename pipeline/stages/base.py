@@ -49,8 +49,7 @@ def failure_reason(exc: Exception) -> str:
     return f"internal_error: {traceback.format_exception_only(type(exc), exc)[-1].strip()}"
 
 
-def stage_task(stage: str) -> Callable[[Callable[[CardTask, ParamsT], StageOutput]],
-                                       Callable[[CardTask, ParamsT], StageRecord]]:
+def stage_task(stage: str) -> Callable[[Callable[[CardTask, ParamsT], StageOutput]], Callable[[CardTask, ParamsT], StageRecord]]:
     """Decorate a stage body ``(task, params) -> StageOutput`` into the task workers run.
 
     The decorated function keeps the body's name and module, so ``functools.partial(task,
@@ -66,14 +65,26 @@ def stage_task(stage: str) -> Callable[[Callable[[CardTask, ParamsT], StageOutpu
                 output = body(task, params)
             except Exception as exc:  # noqa: BLE001 - one bad card never stops a batch: record why, go on
                 return StageRecord(
-                    card_id=task.card_id, stage=stage, param_hash=phash, status="failed",
-                    reason=failure_reason(exc), started_at=started, seconds=time.perf_counter() - clock,
+                    card_id=task.card_id,
+                    stage=stage,
+                    param_hash=phash,
+                    status="failed",
+                    reason=failure_reason(exc),
+                    started_at=started,
+                    seconds=time.perf_counter() - clock,
                     code_version=CODE_VERSION,
                 )
             return StageRecord(
-                card_id=task.card_id, stage=stage, param_hash=phash, status=output.status,
-                outcome=output.outcome, reason=output.reason, metrics=output.metrics,
-                artifacts=output.artifacts, started_at=started, seconds=time.perf_counter() - clock,
+                card_id=task.card_id,
+                stage=stage,
+                param_hash=phash,
+                status=output.status,
+                outcome=output.outcome,
+                reason=output.reason,
+                metrics=output.metrics,
+                artifacts=output.artifacts,
+                started_at=started,
+                seconds=time.perf_counter() - clock,
                 code_version=CODE_VERSION,
             )
 

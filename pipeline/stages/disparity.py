@@ -66,8 +66,9 @@ def upsample_map(values: np.ndarray, size: tuple[int, int], value_scale: float =
     return out
 
 
-def disparity_at_work_side(left: np.ndarray, right: np.ndarray, backend: str, params: DisparityParams,
-                           work_side: int | None) -> tuple[DisparityResult, float]:
+def disparity_at_work_side(
+    left: np.ndarray, right: np.ndarray, backend: str, params: DisparityParams, work_side: int | None
+) -> tuple[DisparityResult, float]:
     """:func:`estimate_disparity` at the working resolution, maps in the given views' pixels.
 
     ``left``/``right``: rectified views of one size ``(H, W)``; ``params.disparity_range`` in
@@ -86,6 +87,7 @@ def disparity_at_work_side(left: np.ndarray, right: np.ndarray, backend: str, pa
     if scale >= 1.0 or small == (width, height):
         return estimate_disparity(left, right, backend, params), 1.0
     sx = small[0] / width
+
     def shrink(view: np.ndarray) -> np.ndarray:
         return cv2.resize(np.ascontiguousarray(view), small, interpolation=cv2.INTER_AREA)
 
@@ -95,7 +97,8 @@ def disparity_at_work_side(left: np.ndarray, right: np.ndarray, backend: str, pa
     size = (width, height)
     confidence = upsample_map(result.confidence, size)
     return replace(
-        result, disp_left=upsample_map(result.disp_left, size, 1.0 / sx),
+        result,
+        disp_left=upsample_map(result.disp_left, size, 1.0 / sx),
         disp_right=upsample_map(result.disp_right, size, 1.0 / sx),
         confidence=np.nan_to_num(confidence, nan=0.0),
     ), sx
@@ -135,7 +138,9 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
         margin = params.range_margin_px + 0.1 * (high - low)
         search = (low - margin, high + margin)
     result, work_scale = disparity_at_work_side(
-        left, right, params.backend,
+        left,
+        right,
+        params.backend,
         DisparityParams(disparity_range=search, block_size=params.block_size, consistency_px=params.consistency_px),
         params.work_side,
     )
@@ -149,9 +154,12 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
 
     work_dir = Path(task.work_dir)
     maps = {
-        "disparity_left": result.disp_left, "disparity_right": result.disp_right,
-        "confidence": result.confidence, "depth": depth,
-        "disparity_512": disp_512, "depth_512": depth_512,
+        "disparity_left": result.disp_left,
+        "disparity_right": result.disp_right,
+        "confidence": result.confidence,
+        "depth": depth,
+        "disparity_512": disp_512,
+        "depth_512": depth_512,
     }
     artifacts = {}
     for name, values in maps.items():
@@ -166,12 +174,19 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
     values = disp[covered]
     percentiles = np.percentile(values, [5, 50, 95]).tolist() if values.size else [None, None, None]
     metrics = {
-        "backend": result.backend, "seconds_estimate": round(result.seconds, 4),
-        "coverage": round(float(covered.mean()), 4), "confident_fraction": round(result.confident_fraction, 4),
-        "disparity_p5": percentiles[0], "disparity_p50": percentiles[1], "disparity_p95": percentiles[2],
-        "depth_valid_fraction": round(float(depth_valid.mean()), 4), "focal_px": focal,
-        "search_range": list(search) if search else None, "flags": list(result.flags),
-        "work_scale": round(work_scale, 6), "work_size": [round(left.shape[1] * work_scale), round(left.shape[0] * work_scale)],
+        "backend": result.backend,
+        "seconds_estimate": round(result.seconds, 4),
+        "coverage": round(float(covered.mean()), 4),
+        "confident_fraction": round(result.confident_fraction, 4),
+        "disparity_p5": percentiles[0],
+        "disparity_p50": percentiles[1],
+        "disparity_p95": percentiles[2],
+        "depth_valid_fraction": round(float(depth_valid.mean()), 4),
+        "focal_px": focal,
+        "search_range": list(search) if search else None,
+        "flags": list(result.flags),
+        "work_scale": round(work_scale, 6),
+        "work_size": [round(left.shape[1] * work_scale), round(left.shape[0] * work_scale)],
         "vertical_model": list(result.vertical_model) if result.vertical_model else None,
         "convention": "x_right = x_left - d; depth = focal_px * baseline / d with baseline 1 (up to scale)",
     }

@@ -49,14 +49,20 @@ def grade_task(task: CardTask, params: GradeParams) -> StageOutput:
     maps = {name: load_map(data_dir / task.inputs[name]) for name in ("disparity_left", "disparity_right", "confidence")}
     if left.ndim != right.ndim:  # one stored grey, the other RGB: compare them as grey
         left, right = to_grey(left), to_grey(right)
-    measurements = measure_card(left, right, maps["disparity_left"], maps["disparity_right"], maps["confidence"],
-                                task.inputs.get("metrics") or {})
+    measurements = measure_card(
+        left, right, maps["disparity_left"], maps["disparity_right"], maps["confidence"], task.inputs.get("metrics") or {}
+    )
     result = grade(measurements, params.thresholds)
     metrics = {
         **measurements.as_dict(),
-        "reasons": list(result.reasons), "notes": list(result.notes), "uncertainty": result.uncertainty,
-        "deciding": list(result.deciding), "levels": dict(result.levels),
-        "nearest": result.nearest, "checks": list(result.checks), "uncertainty_reason": result.uncertainty_reason,
+        "reasons": list(result.reasons),
+        "notes": list(result.notes),
+        "uncertainty": result.uncertainty,
+        "deciding": list(result.deciding),
+        "levels": dict(result.levels),
+        "nearest": result.nearest,
+        "checks": list(result.checks),
+        "uncertainty_reason": result.uncertainty_reason,
         "thresholds_hash": param_hash(params.thresholds),
     }
     return StageOutput(status="done", outcome=result.grade, reason="; ".join(result.reasons), metrics=metrics)

@@ -70,8 +70,12 @@ def orientation_metrics(estimate: OrientationEstimate, areas: PhotoAreas | None)
     for flag in FLAGS:
         one = getattr(estimate, flag)
         words = _flag_words(estimate, flag) if estimate.undecidable is None else [estimate.undecidable]
-        flags[flag] = {"p": round(one.probability, 4), "decided": bool(one.decided and estimate.undecidable is None),
-                       "value": one.value if estimate.undecidable is None else None, "evidence": words}
+        flags[flag] = {
+            "p": round(one.probability, 4),
+            "decided": bool(one.decided and estimate.undecidable is None),
+            "value": one.value if estimate.undecidable is None else None,
+            "evidence": words,
+        }
     metrics: dict[str, Any] = {
         "flags": flags,
         "decision": "auto" if estimate.decided else "ask",
@@ -84,11 +88,16 @@ def orientation_metrics(estimate: OrientationEstimate, areas: PhotoAreas | None)
     }
     if areas is not None:
         metrics.update(
-            photo_left_box=[int(v) for v in areas.left_box], photo_right_box=[int(v) for v in areas.right_box],
-            photo_area_confidence=areas.confidence, photo_area_fallback=areas.fallback_reason,
+            photo_left_box=[int(v) for v in areas.left_box],
+            photo_right_box=[int(v) for v in areas.right_box],
+            photo_area_confidence=areas.confidence,
+            photo_area_fallback=areas.fallback_reason,
             photo_area_evidence=list(areas.evidence),
-            photo_area_source=(f"photo area (confidence {areas.confidence:.2f})" if not areas.is_fallback
-                               else f"filter split kept by the photo-area finder: {areas.fallback_reason}"),
+            photo_area_source=(
+                f"photo area (confidence {areas.confidence:.2f})"
+                if not areas.is_fallback
+                else f"filter split kept by the photo-area finder: {areas.fallback_reason}"
+            ),
         )
     return metrics
 
@@ -111,11 +120,9 @@ def _scaled_areas(areas: PhotoAreas, scale: tuple[float, float], shape: tuple[in
 
     def scaled(box: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
         x0, y0 = min(width - 1, math.ceil(box[0] * sx)), min(height - 1, math.ceil(box[1] * sy))
-        return (x0, y0, max(x0 + 1, min(width, math.floor(box[2] * sx))),
-                max(y0 + 1, min(height, math.floor(box[3] * sy))))
+        return (x0, y0, max(x0 + 1, min(width, math.floor(box[2] * sx))), max(y0 + 1, min(height, math.floor(box[3] * sy))))
 
-    return replace(areas, left_box=scaled(areas.left_box), right_box=scaled(areas.right_box),
-                   gutter_x=round(areas.gutter_x * sx))
+    return replace(areas, left_box=scaled(areas.left_box), right_box=scaled(areas.right_box), gutter_x=round(areas.gutter_x * sx))
 
 
 @stage_task("orientation")
@@ -131,9 +138,11 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
     estimate = estimate_orientation(card, tuple(boxes[0]), tuple(boxes[1]), params.orientation)
     clock = time.perf_counter()
     found = estimate.photo_areas
-    reused = (found is not None
-              and params.orientation.arch_working_width == params.photo_area.working_width
-              and params.photo_area == type(params.photo_area)(working_width=params.photo_area.working_width))
+    reused = (
+        found is not None
+        and params.orientation.arch_working_width == params.photo_area.working_width
+        and params.photo_area == type(params.photo_area)(working_width=params.photo_area.working_width)
+    )
     if found is not None and reused:
         # The estimator's arched-top cue found them already, on a negative read as a positive
         # (measured: the photo-area finder misses more boxes on negatives as scanned).
@@ -141,8 +150,7 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
     else:
         areas = find_photo_areas(255 - card if estimate.inverted.value else card, params.photo_area)
     metrics = orientation_metrics(estimate, areas)
-    metrics["photo_area_read_as_positive"] = bool(estimate.photo_areas_inverted if reused
-                                                  else estimate.inverted.value)
+    metrics["photo_area_read_as_positive"] = bool(estimate.photo_areas_inverted if reused else estimate.inverted.value)
     metrics["seconds_photo_area"] = round(time.perf_counter() - clock, 4)
     metrics["card_size"] = [int(card.shape[1]), int(card.shape[0])]
     return StageOutput(outcome=metrics["decision"], reason=_reason(metrics), metrics=metrics)

@@ -68,8 +68,9 @@ def filter_matches(task: CardTask, card_shape: tuple[int, ...]) -> tuple[np.ndar
     matches = matches.astype(np.float64)
     if task.inputs.get("upside_down"):
         height, width = card_shape[:2]
-        matches = np.column_stack([width - 1 - matches[:, 0], height - 1 - matches[:, 1],
-                                   width - 1 - matches[:, 2], height - 1 - matches[:, 3]])
+        matches = np.column_stack(
+            [width - 1 - matches[:, 0], height - 1 - matches[:, 1], width - 1 - matches[:, 2], height - 1 - matches[:, 3]]
+        )
     return matches, float(scale)
 
 
@@ -141,9 +142,12 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
                 except PipelineError:
                     alignment = None
         if alignment is None:
-            alignment = align_crops(card, boxes[0], boxes[1],
-                                    CropAlignParams(ratio=params.ratio, max_side=params.max_side,
-                                                    max_keypoints=params.max_keypoints))
+            alignment = align_crops(
+                card,
+                boxes[0],
+                boxes[1],
+                CropAlignParams(ratio=params.ratio, max_side=params.max_side, max_keypoints=params.max_keypoints),
+            )
             before = (*alignment.left_box_before, *alignment.right_box_before)
             longest = max(before[2] - before[0], before[3] - before[1], before[6] - before[4], before[7] - before[5])
             match_scale = max(1.0, longest / params.max_side)
@@ -151,10 +155,8 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
         crop_record = {"status": "done", **alignment.metrics(), "match_source": source}
         matches = (*alignment.matches_in_crops(), match_scale)
     except PipelineError as exc:
-        crop_record = {"status": "failed", "reason": exc.reason(), "left_box": list(boxes[0]),
-                       "right_box": list(boxes[1])}
-    split = CardSplit(left_box=boxes[0], right_box=boxes[1], gutter_x=0, method="recorded",
-                      confidence=1.0)
+        crop_record = {"status": "failed", "reason": exc.reason(), "left_box": list(boxes[0]), "right_box": list(boxes[1])}
+    split = CardSplit(left_box=boxes[0], right_box=boxes[1], gutter_x=0, method="recorded", confidence=1.0)
     left, right = (np.ascontiguousarray(half) for half in crop_halves(card, split))
     # The paper puts the principal point at the centre of the full image where known: the
     # whole left photo as split from the card, in the aligned crop's pixels.
@@ -164,8 +166,9 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
         rect_full = rectify_pair(left, right, params, principal_point=principal_point)
     else:
         pts_l, pts_r, match_scale = matches  # match_scale: crop px per SIFT px
-        rect_full = rectify_matches(pts_l, pts_r, left.shape[1::-1], right.shape[1::-1], params,
-                                    principal_point=principal_point, match_scale=match_scale)
+        rect_full = rectify_matches(
+            pts_l, pts_r, left.shape[1::-1], right.shape[1::-1], params, principal_point=principal_point, match_scale=match_scale
+        )
     # The views are stored (and disparity runs) at the working resolution; the homographies keep
     # the full-resolution crops as input: H = S H_full, S the resize of the rectified frame.
     rect = scale_rectification(rect_full, stored_view_scale(rect_full.size, params.work_side))
@@ -180,26 +183,37 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     camera = work_dir / "rectification.json"
     scaling = scaling_matrix(rect.size[0] / rect_full.size[0], rect.size[1] / rect_full.size[1])
     view = right if rect.swapped else left  # the crop H_l maps
-    write_json(camera, {
-        # Read by `keystone check-homographies` (pipeline.homography_quality): "convention",
-        # "pixel_origin", "width" and "height" are its keys.
-        "convention": "column", "pixel_origin": "centre",
-        "convention_detail": "column vectors, x' ~ H x, pixels with the origin at the top-left pixel centre; "
-                             "H_l/H_r map the full-resolution cropped left/right halves (boxes in card pixels) to "
-                             "the stored rectified views of size (H_l the right half's crop when swapped); "
-                             "disparity d = x_left - x_right >= 0 in the stored views' px",
-        "working_resolution": {
-            "view_scale": rect.view_scale, "work_side": params.work_side,
-            "S": scaling.tolist(), "full_size": [int(v) for v in rect_full.size],
-            "H_l_full": rect_full.H_l.tolist(), "H_r_full": rect_full.H_r.tolist(), "K_full": rect_full.K.tolist(),
-            "convention": "stored view px = S (full-resolution rectified px), S = [[s,0,(s-1)/2],[0,s,(s-1)/2],"
-                          "[0,0,1]] for the top-left pixel-centre origin; H_l = S H_l_full, K = S K_full; "
-                          "for crops resized by S_in: H_work = S H_full S_in^-1, so H_full = S^-1 H_work S_in",
+    write_json(
+        camera,
+        {
+            # Read by `keystone check-homographies` (pipeline.homography_quality): "convention",
+            # "pixel_origin", "width" and "height" are its keys.
+            "convention": "column",
+            "pixel_origin": "centre",
+            "convention_detail": "column vectors, x' ~ H x, pixels with the origin at the top-left pixel centre; "
+            "H_l/H_r map the full-resolution cropped left/right halves (boxes in card pixels) to "
+            "the stored rectified views of size (H_l the right half's crop when swapped); "
+            "disparity d = x_left - x_right >= 0 in the stored views' px",
+            "working_resolution": {
+                "view_scale": rect.view_scale,
+                "work_side": params.work_side,
+                "S": scaling.tolist(),
+                "full_size": [int(v) for v in rect_full.size],
+                "H_l_full": rect_full.H_l.tolist(),
+                "H_r_full": rect_full.H_r.tolist(),
+                "K_full": rect_full.K.tolist(),
+                "convention": "stored view px = S (full-resolution rectified px), S = [[s,0,(s-1)/2],[0,s,(s-1)/2],"
+                "[0,0,1]] for the top-left pixel-centre origin; H_l = S H_l_full, K = S K_full; "
+                "for crops resized by S_in: H_work = S H_full S_in^-1, so H_full = S^-1 H_work S_in",
+            },
+            "width": int(view.shape[1]),
+            "height": int(view.shape[0]),
+            "left_box": list(boxes[0]),
+            "right_box": list(boxes[1]),
+            **rect.metrics(),
+            "implied_pose": implied_pose(rect_full.H_l, rect_full.H_r, rect_full.K),
         },
-        "width": int(view.shape[1]), "height": int(view.shape[0]),
-        "left_box": list(boxes[0]), "right_box": list(boxes[1]), **rect.metrics(),
-        "implied_pose": implied_pose(rect_full.H_l, rect_full.H_r, rect_full.K),
-    })
+    )
     artifacts["rectification"] = str(camera.relative_to(task.data_dir))
     status: StageStatus = "done" if rect.warp_needed else "skipped"
     reason = rect.reason if rect.warp_needed else f"not needed: {rect.reason}"
@@ -214,7 +228,8 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     metrics["orientation_used"] = {flag: task.inputs.get(flag) for flag in ("upside_down", "inverted", "swapped")}
     metrics["crop_alignment"] = crop_record
     # The boxes cut, in the card's pixels as scanned (the boxes above are on the oriented card).
-    metrics["scanned_boxes"] = {eye: _as_scanned(card.shape[:2], box, task.inputs)
-                                for eye, box in (("left_eye", boxes[0]), ("right_eye", boxes[1]))}
+    metrics["scanned_boxes"] = {
+        eye: _as_scanned(card.shape[:2], box, task.inputs) for eye, box in (("left_eye", boxes[0]), ("right_eye", boxes[1]))
+    }
     metrics["box_source"] = task.inputs.get("box_source", "filter split")
     return StageOutput(status=status, reason=reason, metrics=metrics, artifacts=artifacts)

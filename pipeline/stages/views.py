@@ -31,8 +31,16 @@ from ..view_synthesis import (
 from ..views import MAX_RELATIVE_DEPTH_STEP, scene_centre
 from .base import StageOutput, stage_task
 
-__all__ = ["MESH_MAX_VERTICES", "WEB_JPEG_QUALITY", "is_colour", "mesh_grid", "read_map", "scene_document",
-           "viewer_mesh_png", "views_task"]
+__all__ = [
+    "MESH_MAX_VERTICES",
+    "WEB_JPEG_QUALITY",
+    "is_colour",
+    "mesh_grid",
+    "read_map",
+    "scene_document",
+    "viewer_mesh_png",
+    "views_task",
+]
 
 # What the browser viewer downloads per view (app/static/viewer.js): the picture as a JPEG, and the
 # depth as a 16-bit quantised inverse depth on the viewer's mesh grid, packed into an 8-bit RGB PNG
@@ -105,19 +113,29 @@ def scene_document(scene: SceneViews, mesh: dict[str, Any] | None = None) -> dic
     h, w = scene.views[0].shape
     views = []
     for name, cam in zip(VIEW_NAMES, scene.cameras):
-        views.append({
-            "name": name, "image": f"{name}.png", "depth": f"{name}_depth.npy",
-            "web_image": f"{name}.jpg", "mesh": f"{name}_mesh.png",
-            "rotation": cam.rotation.tolist(), "translation": cam.translation.tolist(),
-            "centre": cam.centre.tolist(), "focal_px": cam.focal_px,
-        })
+        views.append(
+            {
+                "name": name,
+                "image": f"{name}.png",
+                "depth": f"{name}_depth.npy",
+                "web_image": f"{name}.jpg",
+                "mesh": f"{name}_mesh.png",
+                "rotation": cam.rotation.tolist(),
+                "translation": cam.translation.tolist(),
+                "centre": cam.centre.tolist(),
+                "focal_px": cam.focal_px,
+            }
+        )
     return {
         "convention": "world = v0's camera frame; cameras look down -z with y up (OpenGL); x_cam = R x_world + t; "
-                      "pixel (u, v) with depth D is ((u - cx) D / f, -(v - cy) D / f, -D) in its camera, "
-                      "cx = (width - 1) / 2, cy = (height - 1) / 2; depth in baseline units (baseline 1)",
-        "width": w, "height": h, "views": views,
+        "pixel (u, v) with depth D is ((u - cx) D / f, -(v - cy) D / f, -D) in its camera, "
+        "cx = (width - 1) / 2, cy = (height - 1) / 2; depth in baseline units (baseline 1)",
+        "width": w,
+        "height": h,
+        "views": views,
         "scene_centre": scene_centre(scene.views[0]).tolist(),
-        "quad_radius": scene.metrics["quad_radius"], "depth_range": scene.metrics["depth_range"],
+        "quad_radius": scene.metrics["quad_radius"],
+        "depth_range": scene.metrics["depth_range"],
         "max_relative_step": MAX_RELATIVE_DEPTH_STEP,
         "max_stretch_px": scene.metrics.get("max_stretch_px"),
         "colour": scene.views[0].intensity.ndim == 3,
@@ -155,12 +173,14 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
         depth = np.where(valid, 1.0 / np.where(valid, disparity, 1.0), 0.0)  # times f below
         source = "disparity_left"
     if depth.shape != grey.shape:
-        raise InvalidInputError(f"the {source} map {depth.shape[::-1]} and the left view "
-                                f"{grey.shape[::-1]} differ in size")
+        raise InvalidInputError(f"the {source} map {depth.shape[::-1]} and the left view {grey.shape[::-1]} differ in size")
     valid &= inside
     focal_in = inputs.get("focal_px")
-    focal = float(focal_in) if isinstance(focal_in, (int, float)) and math.isfinite(focal_in) and focal_in > 0 \
+    focal = (
+        float(focal_in)
+        if isinstance(focal_in, (int, float)) and math.isfinite(focal_in) and focal_in > 0
         else DEFAULT_VERTICAL_FOV_FOCAL * grey.shape[0]
+    )
     if source == "disparity_left":
         depth = depth * focal  # D = f b / d with b = 1, as depth_from_disparity
         valid &= np.isfinite(depth)
@@ -177,8 +197,10 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
         pixels = np.clip(np.round(view.intensity * 255.0), 0, 255).astype(np.uint8)
         write_png(work_dir / f"{name}.png", pixels)
         write_npy(work_dir / f"{name}_depth.npy", view.depth.astype(np.float32))
-        web = {"web": (f"{name}.jpg", encode_jpeg(pixels, quality=WEB_JPEG_QUALITY)),
-               "mesh": (f"{name}_mesh.png", viewer_mesh_png(view.depth, xs, ys, inverse_range))}
+        web = {
+            "web": (f"{name}.jpg", encode_jpeg(pixels, quality=WEB_JPEG_QUALITY)),
+            "mesh": (f"{name}_mesh.png", viewer_mesh_png(view.depth, xs, ys, inverse_range)),
+        }
         for kind, (file_name, payload) in web.items():
             with atomic_write(work_dir / file_name) as handle:
                 handle.write(payload)
@@ -186,9 +208,14 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
             viewer_bytes += len(payload)
         artifacts[name] = str((work_dir / f"{name}.png").relative_to(data_dir))
         artifacts[f"{name}_depth"] = str((work_dir / f"{name}_depth.npy").relative_to(data_dir))
-    mesh = {"step": step, "columns": len(xs), "rows": len(ys), "inverse_depth_range": list(inverse_range),
-            "encoding": "v<i>_mesh.png: 8-bit RGB on the grid x = 0, step, .. and the last column (rows "
-                        "alike); q = 256 R + G, 1/D = lo + q / 65535 (hi - lo), (lo, hi) = inverse_depth_range"}
+    mesh = {
+        "step": step,
+        "columns": len(xs),
+        "rows": len(ys),
+        "inverse_depth_range": list(inverse_range),
+        "encoding": "v<i>_mesh.png: 8-bit RGB on the grid x = 0, step, .. and the last column (rows "
+        "alike); q = 256 R + G, 1/D = lo + q / 65535 (hi - lo), (lo, hi) = inverse_depth_range",
+    }
     write_json(work_dir / "views.json", scene_document(scene, mesh))
     artifacts["scene"] = str((work_dir / "views.json").relative_to(data_dir))
     preview_clock = time.perf_counter()
@@ -198,15 +225,22 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
         handle.write(payload)
     artifacts["preview"] = str((work_dir / "preview.webp").relative_to(data_dir))
     metrics = {
-        **scene.metrics, "grade": inputs.get("grade"), "depth_source": source,
-        "focal_px_input": focal, "input_size": [int(grey.shape[1]), int(grey.shape[0])],
-        "preview": {"frames": len(frames), "bytes": len(payload), "size": [int(frames[0].shape[1]),
-                                                                            int(frames[0].shape[0])],
-                    "seconds": round(time.perf_counter() - preview_clock, 4)},
-        "colour": colour, "viewer_bytes": viewer_bytes,
+        **scene.metrics,
+        "grade": inputs.get("grade"),
+        "depth_source": source,
+        "focal_px_input": focal,
+        "input_size": [int(grey.shape[1]), int(grey.shape[0])],
+        "preview": {
+            "frames": len(frames),
+            "bytes": len(payload),
+            "size": [int(frames[0].shape[1]), int(frames[0].shape[0])],
+            "seconds": round(time.perf_counter() - preview_clock, 4),
+        },
+        "colour": colour,
+        "viewer_bytes": viewer_bytes,
         "format": "v<i>.png 8-bit grey, or RGB where the rectified view is colour; v<i>_depth.npy float32 depth "
-                  "along the view's -z axis, baseline 1, finite and > 0 everywhere; views.json cameras; "
-                  "v<i>.jpg and v<i>_mesh.png (quantised inverse depth) for the viewer; preview.webp animated",
+        "along the view's -z axis, baseline 1, finite and > 0 everywhere; views.json cameras; "
+        "v<i>.jpg and v<i>_mesh.png (quantised inverse depth) for the viewer; preview.webp animated",
     }
     json.dumps(metrics, allow_nan=False)  # a NaN in the record is a bug: fail here, typed, not later
     return StageOutput(status="done", metrics=metrics, artifacts=artifacts)

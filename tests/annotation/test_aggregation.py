@@ -28,11 +28,7 @@ from annotation.aggregation import (
 
 def answers_from(table: dict[str, dict[str, int]]) -> list[LabelAnswer]:
     """``{worker: {item: label}}`` -> answers."""
-    return [
-        LabelAnswer(item, worker, label)
-        for worker, row in table.items()
-        for item, label in row.items()
-    ]
+    return [LabelAnswer(item, worker, label) for worker, row in table.items() for item, label in row.items()]
 
 
 # --- majority vote ---------------------------------------------------------------------------
@@ -281,23 +277,15 @@ def tight_box() -> BoxConsensus:
 
 
 def test_confident_card_is_approved() -> None:
-    assert is_confident(
-        {"is_stereo": 0.99, "upside_down": 0.97}, {"left": tight_box(), "right": tight_box()}
-    )
+    assert is_confident({"is_stereo": 0.99, "upside_down": 0.97}, {"left": tight_box(), "right": tight_box()})
 
 
 def test_each_rule_sends_the_card_to_a_curator() -> None:
-    rules = ConfidenceRules(
-        min_posterior=0.95, min_boxes_kept=2, max_box_mad_px=8.0, min_box_mean_iou=0.8
-    )
-    assert unconfident_reasons({"inverted": 0.9}, rules=rules) == (
-        "inverted: posterior 0.900 < 0.95",
-    )
+    rules = ConfidenceRules(min_posterior=0.95, min_boxes_kept=2, max_box_mad_px=8.0, min_box_mean_iou=0.8)
+    assert unconfident_reasons({"inverted": 0.9}, rules=rules) == ("inverted: posterior 0.900 < 0.95",)
     assert unconfident_reasons({"inverted": float("nan")}, rules=rules)
     single = consensus_box([(10, 20, 110, 220)])
-    assert unconfident_reasons(boxes={"left": single}, rules=rules) == (
-        "left box: 1 boxes kept < 2",
-    )
+    assert unconfident_reasons(boxes={"left": single}, rules=rules) == ("left box: 1 boxes kept < 2",)
     loose = consensus_box([(0, 0, 100, 100), (20, 20, 100, 100), (10, 10, 100, 100)])
     reasons = unconfident_reasons(boxes={"right": loose}, rules=rules)
     assert reasons == ("right box: spread 10.0 px > 8.0 px",)

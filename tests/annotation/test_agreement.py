@@ -122,9 +122,7 @@ def test_units_with_a_single_answer_are_ignored() -> None:
     extra = np.full((2, 3), nan)
     extra[0] = [1, 0, 1]  # answered by one worker only: no pair, no information
     R = np.concatenate([BINARY_TWO_CODERS, extra], axis=1)
-    assert krippendorff_alpha_nominal(R) == pytest.approx(
-        krippendorff_alpha_nominal(BINARY_TWO_CODERS)
-    )
+    assert krippendorff_alpha_nominal(R) == pytest.approx(krippendorff_alpha_nominal(BINARY_TWO_CODERS))
     assert gwet_ac1(R) != gwet_ac1(BINARY_TWO_CODERS)  # pi_k uses every rated unit (Gwet 2008)
     assert percent_agreement(R) == pytest.approx(0.6)
 

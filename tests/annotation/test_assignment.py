@@ -48,9 +48,7 @@ def test_prefers_the_item_closest_to_completion() -> None:
     ]
     items = [item("empty"), item("one", "x")]
     got = next_assignment(items, holds, set(), "w1", NOW, policy=NO_GOLD)
-    assert (
-        isinstance(got, Assignment) and got.item_id == "empty"
-    )  # "one" is full: 1 answer + 2 holds
+    assert isinstance(got, Assignment) and got.item_id == "empty"  # "one" is full: 1 answer + 2 holds
 
 
 def test_each_item_gets_exactly_n_answers_from_n_different_workers() -> None:
@@ -72,9 +70,7 @@ def test_each_item_gets_exactly_n_answers_from_n_different_workers() -> None:
     assert served == 30
     assert all(len(v) == 3 for v in answered.values())
     items = [BatchItem(k, frozenset(v)) for k, v in answered.items()]
-    assert next_assignment(items, [], set(), "newcomer", NOW, policy=NO_GOLD) == NoTask(
-        NoTaskReason.BATCH_COMPLETE
-    )
+    assert next_assignment(items, [], set(), "newcomer", NOW, policy=NO_GOLD) == NoTask(NoTaskReason.BATCH_COMPLETE)
 
 
 def test_open_reservations_block_and_expired_ones_return_to_the_pool() -> None:
@@ -137,9 +133,7 @@ def test_gold_draw_is_deterministic_and_gold_is_not_capped_at_n() -> None:
 def test_no_gold_only_work_once_the_regular_items_are_done() -> None:
     policy = AssignmentPolicy(answers_per_item=1, gold_rate=1.0)
     items = [item("c1", "x"), item("g1")]
-    assert next_assignment(items, [], {"g1"}, "w1", NOW, policy=policy) == NoTask(
-        NoTaskReason.BATCH_COMPLETE
-    )
+    assert next_assignment(items, [], {"g1"}, "w1", NOW, policy=policy) == NoTask(NoTaskReason.BATCH_COMPLETE)
 
 
 def test_gold_falls_back_to_regular_work_when_the_worker_saw_all_gold() -> None:

@@ -50,10 +50,7 @@ class SimWorker:
         return 1 - truth  # adversary
 
 
-WORKERS = [
-    SimWorker(f"honest{i}", "honest", acc)
-    for i, acc in enumerate([0.95, 0.92, 0.9, 0.85, 0.8, 0.75, 0.65, 0.6])
-] + [
+WORKERS = [SimWorker(f"honest{i}", "honest", acc) for i, acc in enumerate([0.95, 0.92, 0.9, 0.85, 0.8, 0.75, 0.65, 0.6])] + [
     SimWorker("spam_random1", "random"),
     SimWorker("spam_random2", "random"),
     SimWorker("spam_valid", "always_valid"),
@@ -124,9 +121,7 @@ def test_gold_accuracy_flags_the_spammers_and_the_adversary() -> None:
     joint: dict[tuple[str, str], int] = {}
     for bit, q in enumerate(QUESTIONS):
         for a in answers[q]:
-            joint[(a.item_id, str(a.worker_id))] = joint.get((a.item_id, str(a.worker_id)), 0) | (
-                a.label << bit
-            )
+            joint[(a.item_id, str(a.worker_id))] = joint.get((a.item_id, str(a.worker_id)), 0) | (a.label << bit)
     joint_answers = [LabelAnswer(c, w, label) for (c, w), label in joint.items()]
     joint_truth = {c: sum(truth[q][c] << bit for bit, q in enumerate(QUESTIONS)) for c in gold_ids}
     scores = gold_accuracy(joint_answers, joint_truth)
@@ -134,9 +129,7 @@ def test_gold_accuracy_flags_the_spammers_and_the_adversary() -> None:
     print("\nGold accuracy (all three questions right):")
     for w in WORKERS:
         s = scores[w.name]
-        print(
-            f"  {w.name:13s} {s.correct:2d}/{s.total:2d} = {s.accuracy:.2f}{'  FLAGGED' if w.name in flagged else ''}"
-        )
+        print(f"  {w.name:13s} {s.correct:2d}/{s.total:2d} = {s.accuracy:.2f}{'  FLAGGED' if w.name in flagged else ''}")
     assert {"spam_random1", "spam_random2", "spam_valid", "adversary"} <= flagged
     assert not flagged & {"honest0", "honest1", "honest2", "honest3", "honest4"}
 

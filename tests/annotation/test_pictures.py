@@ -15,7 +15,7 @@ def _square_card(shift: int = 8) -> tuple[np.ndarray, list[int], list[int]]:
     square = rng.integers(0, 255, (40, 40, 1), dtype=np.uint8).repeat(3, axis=2)
     left, right = background.copy(), background.copy()
     left[28:68, 50:90] = square
-    right[28:68, 50 - shift:90 - shift] = square
+    right[28:68, 50 - shift : 90 - shift] = square
     return np.hstack([left, right]), [0, 0, 128, 96], [128, 0, 256, 96]
 
 

@@ -36,8 +36,12 @@ def test_hot_queries_walk_their_indexes(app, bare_cards):  # type: ignore[no-unt
         # Bound, not literal: SQLite's compiler leaves the IS (NOT DISTINCT FROM) operand a placeholder.
         compiled = queries.OPEN_TASKS.compile(connection)
         bound = {"worker_id": worker, "session_id": 1, "kind": "judge", "now": utcnow().isoformat(" ")}
-        mine = "\n".join(row[-1] for row in connection.exec_driver_sql(
-            f"EXPLAIN QUERY PLAN {compiled.string}", tuple(bound[name] for name in compiled.positiontup)))
+        mine = "\n".join(
+            row[-1]
+            for row in connection.exec_driver_sql(
+                f"EXPLAIN QUERY PLAN {compiled.string}", tuple(bound[name] for name in compiled.positiontup)
+            )
+        )
         assert "ix_crowd_reservations_held" in mine, mine
         opened = plan(queries.OPEN_BATCHES, kind="judge")
         assert "ix_crowd_batch_items_unfinished" in opened, opened

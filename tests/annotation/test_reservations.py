@@ -23,24 +23,35 @@ def _pure_view(batch_id: int, now) -> tuple[list[strategy.BatchItem], list[strat
     items = db.session.scalars(select(BatchItem).where(BatchItem.batch_id == batch_id)).all()
     ids = [it.id for it in items]
     answered: dict[int, set[int]] = {}
-    for item_id, worker_id in db.session.execute(select(Answer.item_id, Answer.worker_id).where(
-            Answer.item_id.in_(ids), Answer.flagged.is_(False))):
+    for item_id, worker_id in db.session.execute(
+        select(Answer.item_id, Answer.worker_id).where(Answer.item_id.in_(ids), Answer.flagged.is_(False))
+    ):
         answered.setdefault(item_id, set()).add(worker_id)
-    holds = [strategy.Reservation(r.item_id, r.worker_id, r.expires_at if r.expires_at.tzinfo else
-                                  r.expires_at.replace(tzinfo=now.tzinfo))
-             for r in db.session.scalars(select(Reservation).where(Reservation.item_id.in_(ids),
-                                                                   Reservation.answered_at.is_(None)))]
+    holds = [
+        strategy.Reservation(
+            r.item_id, r.worker_id, r.expires_at if r.expires_at.tzinfo else r.expires_at.replace(tzinfo=now.tzinfo)
+        )
+        for r in db.session.scalars(select(Reservation).where(Reservation.item_id.in_(ids), Reservation.answered_at.is_(None)))
+    ]
     flagged = set(db.session.scalars(select(Worker.id).where(Worker.flagged.is_(True))))
-    return ([strategy.BatchItem(it.id, frozenset(answered.get(it.id, ())), it.rank) for it in items], holds,
-            {it.id for it in items if it.is_gold}, flagged)
+    return (
+        [strategy.BatchItem(it.id, frozenset(answered.get(it.id, ())), it.rank) for it in items],
+        holds,
+        {it.id for it in items if it.is_gold},
+        flagged,
+    )
 
 
 def _assert_counters_match_rows(batch_id: int) -> None:
     for item in db.session.scalars(select(BatchItem).where(BatchItem.batch_id == batch_id)):
-        usable = db.session.scalar(select(func.count()).select_from(Answer).where(
-            Answer.item_id == item.id, Answer.flagged.is_(False)))
-        held = db.session.scalar(select(func.count()).select_from(Reservation).where(
-            Reservation.item_id == item.id, Reservation.answered_at.is_(None), Reservation.released_at.is_(None)))
+        usable = db.session.scalar(
+            select(func.count()).select_from(Answer).where(Answer.item_id == item.id, Answer.flagged.is_(False))
+        )
+        held = db.session.scalar(
+            select(func.count())
+            .select_from(Reservation)
+            .where(Reservation.item_id == item.id, Reservation.answered_at.is_(None), Reservation.released_at.is_(None))
+        )
         assert (item.answers, item.taken) == (usable, usable + held), f"item {item.id}"
 
 
@@ -87,16 +98,15 @@ def test_the_index_walk_makes_the_pure_strategys_choices(app, bare_cards):  # ty
                 now += timedelta(minutes=rng.choice([3, 6, 11]))  # some holds lapse
             else:
                 items, holds, gold_ids, flagged = _pure_view(batch_id, now)
-                policy = strategy.AssignmentPolicy(answers_per_item=3, gold_rate=0.3, seed=batch_id,
-                                                   reservation_ttl=timedelta(minutes=10))
-                expected = strategy.next_assignment(items, holds, gold_ids, worker, now, policy=policy,
-                                                    flagged_workers=flagged)
+                policy = strategy.AssignmentPolicy(
+                    answers_per_item=3, gold_rate=0.3, seed=batch_id, reservation_ttl=timedelta(minutes=10)
+                )
+                expected = strategy.next_assignment(items, holds, gold_ids, worker, now, policy=policy, flagged_workers=flagged)
                 tasks, why = next_tasks(worker, "judge", hold=len(held) + 1, now=now)
                 if isinstance(expected, strategy.Assignment):
                     new = [t for t in tasks if t.reservation_token not in {h.reservation_token for h in held}]
                     assert len(new) == 1 and why is None
-                    chosen = db.session.scalar(select(Reservation.item_id).where(
-                        Reservation.token == new[0].reservation_token))
+                    chosen = db.session.scalar(select(Reservation.item_id).where(Reservation.token == new[0].reservation_token))
                     assert chosen == expected.item_id, f"step {step}"
                     decisions["gold" if expected.is_gold else "task"] += 1
                 else:
@@ -105,9 +115,14 @@ def test_the_index_walk_makes_the_pure_strategys_choices(app, bare_cards):  # ty
                     decisions[expected.reason] += 1
             db.session.rollback()
             _assert_counters_match_rows(batch_id)
-        per_item = dict(db.session.execute(select(Answer.item_id, func.count()).join(BatchItem).where(
-            BatchItem.batch_id == batch_id, BatchItem.is_gold.is_(False), Answer.flagged.is_(False))
-            .group_by(Answer.item_id)).all())
+        per_item = dict(
+            db.session.execute(
+                select(Answer.item_id, func.count())
+                .join(BatchItem)
+                .where(BatchItem.batch_id == batch_id, BatchItem.is_gold.is_(False), Answer.flagged.is_(False))
+                .group_by(Answer.item_id)
+            ).all()
+        )
     # The run exercised every branch, and no item ever went past N usable answers.
     assert all(v > 0 for v in decisions.values()), decisions
     assert max(per_item.values()) <= 3
@@ -140,8 +155,7 @@ def test_a_lapsed_hold_is_released_once_and_renewed_not_duplicated(app, bare_car
         submit(second, theirs.reservation_token, JUDGE_OK, "their-answer-1", now=later)
         # The first worker comes back after it is done: nothing left, and still one row of theirs.
         assert next_tasks(first, hold=1, now=later)[1].reason == strategy.NoTaskReason.BATCH_COMPLETE
-        assert db.session.scalar(select(func.count()).select_from(Reservation).where(
-            Reservation.worker_id == first)) == 1
+        assert db.session.scalar(select(func.count()).select_from(Reservation).where(Reservation.worker_id == first)) == 1
 
 
 @pytest.mark.both_databases

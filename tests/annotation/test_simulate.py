@@ -55,15 +55,18 @@ def test_crop_crowd_approves_boxes_near_the_truth_and_disputes_the_hard_card(app
                 error = [abs(a - b) for a, b in zip(aggregate.label[half], truth[half], strict=True)]
                 assert max(error) < 4.0, (card_id, half, aggregate.label[half], truth[half])
         # Through the real use cases: N answers per item from N distinct invited workers, nothing left held.
-        pairs = db.session.execute(select(Answer.item_id, Answer.worker_id).join(BatchItem)
-                                   .where(BatchItem.batch_id == summary["batch"])).all()
+        pairs = db.session.execute(
+            select(Answer.item_id, Answer.worker_id).join(BatchItem).where(BatchItem.batch_id == summary["batch"])
+        ).all()
         assert len(pairs) == len(set(pairs)) == 15
-        per_item = db.session.execute(select(Answer.item_id, func.count(func.distinct(Answer.worker_id)))
-                                      .join(BatchItem).where(BatchItem.batch_id == summary["batch"])
-                                      .group_by(Answer.item_id)).all()
+        per_item = db.session.execute(
+            select(Answer.item_id, func.count(func.distinct(Answer.worker_id)))
+            .join(BatchItem)
+            .where(BatchItem.batch_id == summary["batch"])
+            .group_by(Answer.item_id)
+        ).all()
         assert sorted(count for _, count in per_item) == [3] * 5
-        assert db.session.scalar(select(func.count()).select_from(Reservation)
-                                 .where(Reservation.answered_at.is_(None))) == 0
+        assert db.session.scalar(select(func.count()).select_from(Reservation).where(Reservation.answered_at.is_(None))) == 0
         names = [w["name"] for w in summary["workers"]]
         assert names == [f"sim-0-{i}" for i in range(6)] and [w["spammer"] for w in summary["workers"]][-1]
         assert {w.provider for w in db.session.scalars(select(Worker))} == {"invite"}
@@ -75,8 +78,12 @@ def test_judge_crowd_with_gold_approves_the_truth_and_refills_flagged_slots(app,
     cards = split_cards(10)
     regular = cards[:6]
     # Gold over-represents the rare answers, as curators are told to pick it.
-    gold = {cards[6]: JUDGE_OK, cards[7]: {**JUDGE_OK, "upside_down": True},
-            cards[8]: {**JUDGE_OK, "inverted": True}, cards[9]: {**JUDGE_OK, "is_stereo": False, "swapped": True}}
+    gold = {
+        cards[6]: JUDGE_OK,
+        cards[7]: {**JUDGE_OK, "upside_down": True},
+        cards[8]: {**JUDGE_OK, "inverted": True},
+        cards[9]: {**JUDGE_OK, "is_stereo": False, "swapped": True},
+    }
     truth = {regular[0]: {"upside_down": True}, regular[1]: {"swapped": True}}
     with app.app_context():
         summary = seed_simulated_crowd(regular, kind="judge", seed=8, gold=gold, truth=truth)
@@ -98,17 +105,27 @@ def test_judge_crowd_with_gold_approves_the_truth_and_refills_flagged_slots(app,
         # answers (pending 0) although every item needs 4 usable ones.
         flagged = list(db.session.scalars(select(Worker.id).where(Worker.flagged.is_(True))))
         assert summary["flagged_workers"] == len(flagged) >= 1 and summary["pending"] == 0
-        assert db.session.scalar(select(func.count()).select_from(Answer).where(Answer.worker_id.in_(flagged),
-                                                                            Answer.flagged.is_(False))) == 0
-        usable = dict(db.session.execute(
-            select(Answer.item_id, func.count()).join(BatchItem)
-            .where(BatchItem.batch_id == batch.id, BatchItem.is_gold.is_(False), Answer.flagged.is_(False))
-            .group_by(Answer.item_id)).all())
+        assert (
+            db.session.scalar(
+                select(func.count()).select_from(Answer).where(Answer.worker_id.in_(flagged), Answer.flagged.is_(False))
+            )
+            == 0
+        )
+        usable = dict(
+            db.session.execute(
+                select(Answer.item_id, func.count())
+                .join(BatchItem)
+                .where(BatchItem.batch_id == batch.id, BatchItem.is_gold.is_(False), Answer.flagged.is_(False))
+                .group_by(Answer.item_id)
+            ).all()
+        )
         assert sorted(usable.values()) == [4] * 6
-        gold_answers = db.session.scalar(select(func.count()).select_from(Answer).join(BatchItem)
-                                         .where(BatchItem.is_gold.is_(True)))
-        regular_answers = db.session.scalar(select(func.count()).select_from(Answer).join(BatchItem)
-                                            .where(BatchItem.is_gold.is_(False)))
+        gold_answers = db.session.scalar(
+            select(func.count()).select_from(Answer).join(BatchItem).where(BatchItem.is_gold.is_(True))
+        )
+        regular_answers = db.session.scalar(
+            select(func.count()).select_from(Answer).join(BatchItem).where(BatchItem.is_gold.is_(False))
+        )
         assert gold_answers > 0 and summary["answers"] == gold_answers + regular_answers > 6 * 4
 
 
@@ -120,8 +137,9 @@ def test_cards_without_a_split_are_skipped_and_unknown_cards_refused(app, split_
         unsplit = make_card(state="review")
         summary = seed_simulated_crowd([unsplit], kind="crop")
         assert summary["batch"] is None and summary["answers"] == 0
-        assert summary["skipped"] == [{"card": unsplit, "reason": "no filter split boxes (left_box/right_box) "
-                                                                  "and no truth given"}]
+        assert summary["skipped"] == [
+            {"card": unsplit, "reason": "no filter split boxes (left_box/right_box) and no truth given"}
+        ]
         with pytest.raises(TaskError, match="No card with id 999") as refused:
             seed_simulated_crowd([unsplit, 999], kind="judge")
         assert refused.value.status == 404

@@ -32,14 +32,30 @@ def make_card_with_views(app, data_dir, make_card, add_stage_result) -> Callable
         write_png(data_dir / "rect" / "left.png", view)
         write_npy(data_dir / "rect" / "disparity_left.npy", np.where(np.isfinite(d), d, np.nan).astype(np.float32))
         card_id = make_card(state="pass")
-        task = CardTask(card_id=card_id, content_hash="c" * 64, image_path="",
-                        work_dir=str(data_dir / "derived" / "views"), data_dir=str(data_dir),
-                        inputs={"left": "rect/left.png", "disparity_left": "rect/disparity_left.npy",
-                                "focal_px": 3979.911 * scale, "grade": grade})
+        task = CardTask(
+            card_id=card_id,
+            content_hash="c" * 64,
+            image_path="",
+            work_dir=str(data_dir / "derived" / "views"),
+            data_dir=str(data_dir),
+            inputs={
+                "left": "rect/left.png",
+                "disparity_left": "rect/disparity_left.npy",
+                "focal_px": 3979.911 * scale,
+                "grade": grade,
+            },
+        )
         record = views_task(task, ViewsStageParams(preview_side=120, preview_frames=4))
         assert record.status == "done", record.reason
-        add_stage_result(card_id, "views", status="done", outcome=None, param_hash=record.param_hash,
-                         metrics=record.metrics, artifacts=record.artifacts)
+        add_stage_result(
+            card_id,
+            "views",
+            status="done",
+            outcome=None,
+            param_hash=record.param_hash,
+            metrics=record.metrics,
+            artifacts=record.artifacts,
+        )
         return card_id, record
 
     return make
@@ -80,10 +96,18 @@ def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, c
     with app.app_context():
         sync_reviews()
         review_id, version = db.session.execute(
-            select(CardReview.id, CardReview.version).where(CardReview.card_id == card_id)).one()
+            select(CardReview.id, CardReview.version).where(CardReview.card_id == card_id)
+        ).one()
         batch = create_batch([crop_card_id], "crop", 1000, 0.0)  # room for many workers' answers
-        aggregate = Aggregate(batch_id=batch.id, card_id=crop_card_id, kind="crop", state="needs_curator", answers=2,
-                              label={"left": [0, 0, 280, 200], "right": [300, 0, 590, 200]}, reasons="disputed")
+        aggregate = Aggregate(
+            batch_id=batch.id,
+            card_id=crop_card_id,
+            kind="crop",
+            state="needs_curator",
+            answers=2,
+            label={"left": [0, 0, 280, 200], "right": [300, 0, 590, 200]},
+            reasons="disputed",
+        )
         db.session.add(aggregate)
         db.session.commit()
         aggregate_id = aggregate.id

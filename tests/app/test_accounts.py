@@ -56,8 +56,7 @@ def token_of(client, url: str = "/auth/login") -> str:  # type: ignore[no-untype
 
 
 def attempt(client, username: str, password: str, **kwargs):  # type: ignore[no-untyped-def]
-    return client.post("/auth/login", data={"username": username, "password": password,
-                                            "csrf_token": token_of(client)}, **kwargs)
+    return client.post("/auth/login", data={"username": username, "password": password, "csrf_token": token_of(client)}, **kwargs)
 
 
 def events(app, action: str | None = None) -> list[AuthEvent]:  # type: ignore[no-untyped-def]
@@ -88,8 +87,9 @@ def test_the_sixth_wrong_password_is_refused_with_429_and_retry_after(app, clien
     assert 'name="csrf_token"' in html  # the login form is still there for later
 
     failed = events(app, "login_failed")
-    assert [(e.username, e.person_id, e.reason, e.address) for e in failed] == \
-        [(person.username, person.id, "wrong password", "127.0.0.1")] * 5
+    assert [(e.username, e.person_id, e.reason, e.address) for e in failed] == [
+        (person.username, person.id, "wrong password", "127.0.0.1")
+    ] * 5
     [throttled] = events(app, "login_throttled")
     assert throttled.username == person.username and throttled.address == "127.0.0.1"
     assert throttled.reason == "account: 5 wrong passwords in the window; retry after 870 s"
@@ -156,8 +156,11 @@ def test_an_address_that_guesses_across_accounts_is_throttled(app, client, make_
     other = app.test_client()
     elsewhere = {"REMOTE_ADDR": "192.0.2.7"}
     token = token_of(other)
-    response = other.post("/auth/login", data={"username": people[0].username, "password": people[0].password,
-                                               "csrf_token": token}, environ_base=elsewhere)
+    response = other.post(
+        "/auth/login",
+        data={"username": people[0].username, "password": people[0].password, "csrf_token": token},
+        environ_base=elsewhere,
+    )
     assert response.status_code == 302
     assert events(app, "login")[-1].address == "192.0.2.7"
 
@@ -177,8 +180,15 @@ def test_every_server_process_counts_against_one_budget(app, client, database, t
     person = make_person("curator")
     for _ in range(5):
         attempt(client, person.username, "guess")
-    other_process = create_app({"TESTING": True, "SQLALCHEMY_DATABASE_URI": database, "SECRET_KEY": "test-secret",
-                                "KEYSTONE_DATA_DIR": str(tmp_path / "data"), "KEYSTONE_CLOCK": clock})
+    other_process = create_app(
+        {
+            "TESTING": True,
+            "SQLALCHEMY_DATABASE_URI": database,
+            "SECRET_KEY": "test-secret",
+            "KEYSTONE_DATA_DIR": str(tmp_path / "data"),
+            "KEYSTONE_CLOCK": clock,
+        }
+    )
     try:
         response = attempt(other_process.test_client(), person.username, person.password)
         assert response.status_code == 429
@@ -199,8 +209,9 @@ def test_concurrent_guesses_cannot_outrun_the_count(app, make_person, clock):
 
     def guess(index: int) -> None:
         start.wait()
-        response = clients[index].post("/auth/login", data={"username": person.username, "password": f"guess-{index}",
-                                                            "csrf_token": tokens[index]})
+        response = clients[index].post(
+            "/auth/login", data={"username": person.username, "password": f"guess-{index}", "csrf_token": tokens[index]}
+        )
         codes.append(response.status_code)
 
     threads = [threading.Thread(target=guess, args=(i,)) for i in range(len(clients))]
@@ -236,15 +247,18 @@ def test_lockout_of_counts_only_inside_the_window():
         policy.budget("planet")
 
 
-@pytest.mark.parametrize("raw, key", [
-    ("203.0.113.9", "203.0.113.9"),
-    ("2001:db8:1:2:3:4:5:6", "2001:db8:1:2::/64"),
-    ("2001:db8:1:2:ffff::1", "2001:db8:1:2::/64"),  # the same /64: one budget
-    ("::ffff:198.51.100.4", "198.51.100.4"),
-    ("fe80::1%eth0", "fe80::/64"),
-    (None, "unknown"),
-    ("not-an-address", "not-an-address"),
-])
+@pytest.mark.parametrize(
+    "raw, key",
+    [
+        ("203.0.113.9", "203.0.113.9"),
+        ("2001:db8:1:2:3:4:5:6", "2001:db8:1:2::/64"),
+        ("2001:db8:1:2:ffff::1", "2001:db8:1:2::/64"),  # the same /64: one budget
+        ("::ffff:198.51.100.4", "198.51.100.4"),
+        ("fe80::1%eth0", "fe80::/64"),
+        (None, "unknown"),
+        ("not-an-address", "not-an-address"),
+    ],
+)
 def test_addresses_are_throttled_by_host_or_ipv6_network(raw, key):
     assert normalise_address(raw) == key
 
@@ -256,9 +270,17 @@ def test_forwarded_for_is_ignored_unless_proxies_are_configured(app, client, mak
     attempt(client, "b", "guess", headers={"X-Forwarded-For": "198.51.100.2"})
     assert attempt(client, "c", "guess", headers={"X-Forwarded-For": "198.51.100.3"}).status_code == 429
 
-    behind_proxy = create_app({"TESTING": True, "SQLALCHEMY_DATABASE_URI": database, "SECRET_KEY": "test-secret",
-                               "KEYSTONE_DATA_DIR": str(tmp_path / "data"), "KEYSTONE_CLOCK": clock,
-                               "KEYSTONE_TRUSTED_PROXIES": 1, "KEYSTONE_LOGIN_FAILURES_PER_ADDRESS": 2})
+    behind_proxy = create_app(
+        {
+            "TESTING": True,
+            "SQLALCHEMY_DATABASE_URI": database,
+            "SECRET_KEY": "test-secret",
+            "KEYSTONE_DATA_DIR": str(tmp_path / "data"),
+            "KEYSTONE_CLOCK": clock,
+            "KEYSTONE_TRUSTED_PROXIES": 1,
+            "KEYSTONE_LOGIN_FAILURES_PER_ADDRESS": 2,
+        }
+    )
     try:
         proxied = behind_proxy.test_client()
         # The proxy appends the real client; whatever the client itself put first is not trusted.
@@ -375,10 +397,16 @@ def test_session_length_and_secure_cookies_come_from_the_environment(tmp_path, m
     assert application.config["SESSION_COOKIE_SAMESITE"] == "Lax"
 
 
-@pytest.mark.parametrize("name, value", [("KEYSTONE_SESSION_HOURS", "a day"), ("KEYSTONE_SESSION_HOURS", "0"),
-                                         ("KEYSTONE_LOGIN_FAILURES_PER_ACCOUNT", "0"),
-                                         ("KEYSTONE_LOGIN_WINDOW_MINUTES", "-5"),
-                                         ("KEYSTONE_TRUSTED_PROXIES", "one")])
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("KEYSTONE_SESSION_HOURS", "a day"),
+        ("KEYSTONE_SESSION_HOURS", "0"),
+        ("KEYSTONE_LOGIN_FAILURES_PER_ACCOUNT", "0"),
+        ("KEYSTONE_LOGIN_WINDOW_MINUTES", "-5"),
+        ("KEYSTONE_TRUSTED_PROXIES", "one"),
+    ],
+)
 def test_bad_account_settings_say_which_and_why(tmp_path, monkeypatch, name, value):
     monkeypatch.setenv(name, value)
     with pytest.raises(ValueError, match=f"Expected {name} to be a .*, got '{value}'"):
@@ -393,9 +421,11 @@ def test_a_form_posted_after_the_session_expired_says_so_and_links_to_login(app,
     login("admin")
     token = token_of(client, "/auth/people")
     client.delete_cookie("session")  # what the browser does when the cookie expires
-    response = client.post("/auth/people", data={"username": "grace", "password": "longenough1",
-                                                 "roles": ["curator"], "csrf_token": token},
-                           headers={"Referer": "http://localhost/auth/people"})
+    response = client.post(
+        "/auth/people",
+        data={"username": "grace", "password": "longenough1", "roles": ["curator"], "csrf_token": token},
+        headers={"Referer": "http://localhost/auth/people"},
+    )
     assert response.status_code == 400
     html = response.get_data(as_text=True)
     assert "Your session expired: log in again." in html and "CSRF" not in html
@@ -410,8 +440,9 @@ def test_a_really_expired_cookie_gives_the_same_message(app, client, login):
     token = token_of(client, "/auth/people")
     app.permanent_session_lifetime = timedelta(seconds=1)
     time.sleep(2.1)
-    response = client.post("/auth/people", data={"username": "x", "csrf_token": token},
-                           headers={"Referer": "http://localhost/auth/people?tab=add"})
+    response = client.post(
+        "/auth/people", data={"username": "x", "csrf_token": token}, headers={"Referer": "http://localhost/auth/people?tab=add"}
+    )
     assert response.status_code == 400
     html = response.get_data(as_text=True)
     assert "Your session expired: log in again." in html and "/auth/login?next=/auth/people?tab%3Dadd" in html
@@ -430,8 +461,11 @@ def test_the_expired_message_as_json(client, login):
 def test_the_login_form_itself_after_expiry_links_to_a_fresh_login_form(client):
     token = token_of(client, "/auth/login?next=/cards")
     client.delete_cookie("session")
-    response = client.post("/auth/login", data={"username": "a", "password": "b", "csrf_token": token},
-                           headers={"Referer": "http://localhost/auth/login?next=/cards"})
+    response = client.post(
+        "/auth/login",
+        data={"username": "a", "password": "b", "csrf_token": token},
+        headers={"Referer": "http://localhost/auth/login?next=/cards"},
+    )
     assert response.status_code == 400
     assert 'href="/auth/login?next=/cards"' in response.get_data(as_text=True)
 
@@ -448,8 +482,11 @@ def test_a_form_opened_before_logging_in_says_so(client, make_person):
     person = make_person("curator")
     token = token_of(client, "/auth/login")  # a second tab, still on the login page
     attempt(client, person.username, person.password)
-    response = client.post("/auth/login", data={"username": "x", "password": "y", "csrf_token": token},
-                           headers={"Referer": "http://localhost/auth/login"})
+    response = client.post(
+        "/auth/login",
+        data={"username": "x", "password": "y", "csrf_token": token},
+        headers={"Referer": "http://localhost/auth/login"},
+    )
     assert response.status_code == 400
     html = response.get_data(as_text=True)
     assert "This form was opened before you logged in. (Reload /auth/login and submit it again.)" in html
@@ -498,9 +535,13 @@ def test_people_from_before_the_migration_get_version_one_and_can_log_in(app, cl
             config.attributes["connection"] = connection
             command.downgrade(config, "0004")
         with db.engine.begin() as connection:
-            connection.execute(text("INSERT INTO people (username, display_name, password_hash, active, created_at) "
-                                    "VALUES ('ada', 'Ada', :hash, :yes, CURRENT_TIMESTAMP)"),
-                               {"hash": generate_password_hash("longenough1"), "yes": True})
+            connection.execute(
+                text(
+                    "INSERT INTO people (username, display_name, password_hash, active, created_at) "
+                    "VALUES ('ada', 'Ada', :hash, :yes, CURRENT_TIMESTAMP)"
+                ),
+                {"hash": generate_password_hash("longenough1"), "yes": True},
+            )
         upgrade(db.engine)
         assert db.session.scalar(select(Person.session_version).where(Person.username == "ada")) == 1
         db.session.remove()

@@ -29,8 +29,9 @@ def test_login_page_has_a_csrf_protected_form(client):
 
 def test_login_with_the_right_password_logs_in_and_goes_to_the_catalogue(client, make_person, csrf_token):
     person = make_person("curator")
-    response = client.post("/auth/login", data={"username": person.username, "password": person.password,
-                                                 "csrf_token": csrf_token()})
+    response = client.post(
+        "/auth/login", data={"username": person.username, "password": person.password, "csrf_token": csrf_token()}
+    )
     assert response.status_code == 302 and response.headers["Location"] == "/"
     assert logged_in_as(client) == str(person.id)
     assert client.get("/").headers["Location"] == "/cards"
@@ -38,8 +39,9 @@ def test_login_with_the_right_password_logs_in_and_goes_to_the_catalogue(client,
 
 def test_login_with_a_wrong_password_fails(client, make_person, csrf_token):
     person = make_person("admin")
-    response = client.post("/auth/login", data={"username": person.username, "password": "not the password",
-                                                 "csrf_token": csrf_token()})
+    response = client.post(
+        "/auth/login", data={"username": person.username, "password": "not the password", "csrf_token": csrf_token()}
+    )
     assert response.status_code == 200
     assert "Wrong username or password." in response.get_data(as_text=True)
     assert logged_in_as(client) is None
@@ -47,16 +49,16 @@ def test_login_with_a_wrong_password_fails(client, make_person, csrf_token):
 
 
 def test_login_as_an_unknown_person_gives_the_same_message(client, csrf_token):
-    response = client.post("/auth/login", data={"username": "nobody", "password": "whatever1",
-                                                 "csrf_token": csrf_token()})
+    response = client.post("/auth/login", data={"username": "nobody", "password": "whatever1", "csrf_token": csrf_token()})
     assert "Wrong username or password." in response.get_data(as_text=True)
     assert logged_in_as(client) is None
 
 
 def test_a_disabled_person_cannot_log_in(client, make_person, csrf_token):
     person = make_person("curator", active=False)
-    response = client.post("/auth/login", data={"username": person.username, "password": person.password,
-                                                 "csrf_token": csrf_token()})
+    response = client.post(
+        "/auth/login", data={"username": person.username, "password": person.password, "csrf_token": csrf_token()}
+    )
     assert response.status_code == 403 and "disabled" in response.get_data(as_text=True)
     assert logged_in_as(client) is None
 
@@ -73,19 +75,31 @@ def test_passwords_are_stored_hashed(app, make_person):
 
 def test_login_follows_a_local_next(client, make_person, csrf_token):
     person = make_person("curator")
-    response = client.post("/auth/login", data={"username": person.username, "password": person.password,
-                                                 "next": "/cards?state=pass", "csrf_token": csrf_token()})
+    response = client.post(
+        "/auth/login",
+        data={"username": person.username, "password": person.password, "next": "/cards?state=pass", "csrf_token": csrf_token()},
+    )
     assert response.headers["Location"] == "/cards?state=pass"
 
 
-@pytest.mark.parametrize("target", [
-    "https://evil.example/", "//evil.example/", "/\\evil.example", "\\\\evil.example", "http:evil.example",
-    "javascript:alert(1)", "cards", "/\t/evil.example",
-])
+@pytest.mark.parametrize(
+    "target",
+    [
+        "https://evil.example/",
+        "//evil.example/",
+        "/\\evil.example",
+        "\\\\evil.example",
+        "http:evil.example",
+        "javascript:alert(1)",
+        "cards",
+        "/\t/evil.example",
+    ],
+)
 def test_login_refuses_to_redirect_off_site(client, make_person, csrf_token, target):
     person = make_person("curator")
-    response = client.post("/auth/login", data={"username": person.username, "password": person.password,
-                                                 "next": target, "csrf_token": csrf_token()})
+    response = client.post(
+        "/auth/login", data={"username": person.username, "password": person.password, "next": target, "csrf_token": csrf_token()}
+    )
     assert response.status_code == 302
     assert response.headers["Location"] == "/"
 
@@ -102,8 +116,15 @@ def test_anonymous_visit_goes_to_login_with_next_and_comes_back(client, make_per
     page = client.get(response.headers["Location"]).get_data(as_text=True)
     assert 'value="/cards?state=review"' in page
     person = make_person("exporter")
-    done = client.post("/auth/login", data={"username": person.username, "password": person.password,
-                                             "next": "/cards?state=review", "csrf_token": csrf_token()})
+    done = client.post(
+        "/auth/login",
+        data={
+            "username": person.username,
+            "password": person.password,
+            "next": "/cards?state=review",
+            "csrf_token": csrf_token(),
+        },
+    )
     assert done.headers["Location"] == "/cards?state=review"
 
 
@@ -179,10 +200,16 @@ def test_people_page_lists_people_with_roles(client, login, make_person):
 @pytest.mark.both_databases
 def test_admin_adds_a_person_who_can_then_log_in(app, client, login, csrf_token):
     login("admin")
-    response = client.post("/auth/people", data={
-        "username": "grace", "display_name": "Grace H", "password": "longenough1",
-        "roles": ["curator", "exporter"], "csrf_token": csrf_token("/auth/people"),
-    })
+    response = client.post(
+        "/auth/people",
+        data={
+            "username": "grace",
+            "display_name": "Grace H",
+            "password": "longenough1",
+            "roles": ["curator", "exporter"],
+            "csrf_token": csrf_token("/auth/people"),
+        },
+    )
     assert response.status_code == 302
     assert "grace" in client.get("/auth/people").get_data(as_text=True)
     with app.app_context():
@@ -197,21 +224,30 @@ def test_admin_adds_a_person_who_can_then_log_in(app, client, login, csrf_token)
 def test_adding_a_duplicate_username_is_a_form_error_not_a_500(app, client, login, csrf_token, make_person):
     login("admin")
     make_person("annotator", username="dup")
-    response = client.post("/auth/people", data={
-        "username": "dup", "password": "longenough1", "roles": ["curator"], "csrf_token": csrf_token("/auth/people"),
-    })
+    response = client.post(
+        "/auth/people",
+        data={
+            "username": "dup",
+            "password": "longenough1",
+            "roles": ["curator"],
+            "csrf_token": csrf_token("/auth/people"),
+        },
+    )
     assert response.status_code == 409
     assert "already exists" in response.get_data(as_text=True)
     with app.app_context():
         assert db.session.scalar(select(func.count()).select_from(Person).where(Person.username == "dup")) == 1
 
 
-@pytest.mark.parametrize("form, message", [
-    ({"username": "x", "password": "short", "roles": ["curator"]}, "at least 8"),
-    ({"username": "x", "password": "longenough1"}, "at least one role"),
-    ({"username": "bad name", "password": "longenough1", "roles": ["curator"]}, "letters, digits"),
-    ({"username": "x", "password": "longenough1", "roles": ["emperor"]}, "not a valid choice"),
-])
+@pytest.mark.parametrize(
+    "form, message",
+    [
+        ({"username": "x", "password": "short", "roles": ["curator"]}, "at least 8"),
+        ({"username": "x", "password": "longenough1"}, "at least one role"),
+        ({"username": "bad name", "password": "longenough1", "roles": ["curator"]}, "letters, digits"),
+        ({"username": "x", "password": "longenough1", "roles": ["emperor"]}, "not a valid choice"),
+    ],
+)
 def test_invalid_person_forms_say_why(app, client, login, csrf_token, form, message):
     login("admin")
     response = client.post("/auth/people", data={**form, "csrf_token": csrf_token("/auth/people")})

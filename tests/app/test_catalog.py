@@ -16,8 +16,12 @@ STAFF_MATRIX = [(None, 302), ("annotator", 403), ("curator", 200), ("exporter", 
 def filtered_card(make_card, add_stage_result) -> int:
     card_id = make_card(
         accession="1996.0009.17827",
-        metadata={"title": "Niagara Falls from below", "Subjects": "Falls\nRivers",
-                  "odd column from the museum": "kept <b>as text</b>", "url": "https://example.org/objects/1"},
+        metadata={
+            "title": "Niagara Falls from below",
+            "Subjects": "Falls\nRivers",
+            "odd column from the museum": "kept <b>as text</b>",
+            "url": "https://example.org/objects/1",
+        },
     )
     add_stage_result(card_id, outcome="pass")
     return card_id
@@ -148,11 +152,18 @@ def test_catalogue_filters_by_stage_status(client, login, make_card, add_stage_r
     assert titles("stage=filter") == {"Done card", "Failed card", "Culled card", "Pending card"}
 
 
-@pytest.mark.parametrize("query, message", [
-    ("state=lost", "Unknown state"), ("stage=paint&status=done", "Unknown stage"),
-    ("stage=filter&status=maybe", "Unknown status"), ("status=done", "needs a stage"),
-    ("page=0", "positive whole number"), ("page=abc", "positive whole number"), ("collection=x", "positive whole number"),
-])
+@pytest.mark.parametrize(
+    "query, message",
+    [
+        ("state=lost", "Unknown state"),
+        ("stage=paint&status=done", "Unknown stage"),
+        ("stage=filter&status=maybe", "Unknown status"),
+        ("status=done", "needs a stage"),
+        ("page=0", "positive whole number"),
+        ("page=abc", "positive whole number"),
+        ("collection=x", "positive whole number"),
+    ],
+)
 def test_catalogue_rejects_filters_that_name_nothing(client, login, query, message):
     login("curator")
     response = client.get(f"/cards?{query}")
@@ -300,8 +311,10 @@ def test_unversioned_image_urls_revalidate(client, login, filtered_card):
     login("curator")
     response = client.get(f"/cards/{filtered_card}/image/filter/left")
     assert response.status_code == 200 and response.headers["Cache-Control"] == "private, no-cache"
-    assert client.get(f"/cards/{filtered_card}/image/filter/left",
-                      headers={"If-None-Match": response.headers["ETag"]}).status_code == 304
+    assert (
+        client.get(f"/cards/{filtered_card}/image/filter/left", headers={"If-None-Match": response.headers["ETag"]}).status_code
+        == 304
+    )
 
 
 def test_a_rerun_changes_the_artifact_etag(client, login, filtered_card, add_stage_result):
@@ -329,15 +342,18 @@ def test_artifact_images_match_the_recorded_halves(client, login, filtered_card,
     assert np.array_equal(left, card[:, :296]) and np.array_equal(right, card[:, 308:])
 
 
-@pytest.mark.parametrize("route", [
-    "image/filter/disparity",      # a name the result did not record
-    "image/rectify/left",          # a stage with no result
-    "image/filter/left.png",
-    "image/filter/..%2F..%2F..%2Fetc%2Fpasswd",
-    "image/filter/%2E%2E",
-    "image/../../../etc/passwd",
-    "image/original/../../secret",
-])
+@pytest.mark.parametrize(
+    "route",
+    [
+        "image/filter/disparity",  # a name the result did not record
+        "image/rectify/left",  # a stage with no result
+        "image/filter/left.png",
+        "image/filter/..%2F..%2F..%2Fetc%2Fpasswd",
+        "image/filter/%2E%2E",
+        "image/../../../etc/passwd",
+        "image/original/../../secret",
+    ],
+)
 def test_unrecorded_artifacts_and_traversal_attempts_are_404(client, login, filtered_card, route):
     login("curator")
     response = client.get(f"/cards/{filtered_card}/{route}")
@@ -385,8 +401,12 @@ def test_an_undecodable_original_is_404_with_the_reason(client, login, make_card
 def test_card_page_shows_the_grade_with_its_reasons(client, login, make_card, add_stage_result) -> None:  # type: ignore[no-untyped-def]
     login("curator")
     card_id = make_card()
-    add_stage_result(card_id, "grade", outcome="failure", metrics={
-        "reasons": ["failure: rows of the two views are misaligned by 6.0 px (> 4 px)"], "uncertainty": 0.25})
+    add_stage_result(
+        card_id,
+        "grade",
+        outcome="failure",
+        metrics={"reasons": ["failure: rows of the two views are misaligned by 6.0 px (> 4 px)"], "uncertainty": 0.25},
+    )
     html = client.get(f"/cards/{card_id}").get_data(as_text=True)
     assert '<span class="grade grade-failure">failure</span>' in html and "uncertainty 0.25" in html
     assert "<li>failure: rows of the two views are misaligned by 6.0 px (&gt; 4 px)</li>" in html

@@ -15,11 +15,7 @@ from app.geometry import check_homographies_command
 
 
 def _write(path: Path, H_l: np.ndarray, H_r: np.ndarray, **extra: object) -> Path:
-    path.write_text(
-        json.dumps(
-            {"H_l": H_l.tolist(), "H_r": H_r.tolist(), "convention": "column", **extra}
-        )
-    )
+    path.write_text(json.dumps({"H_l": H_l.tolist(), "H_r": H_r.tolist(), "convention": "column", **extra}))
     return path
 
 
@@ -50,43 +46,28 @@ def test_bad_file_gives_error_entry_exit_1_and_others_go_on(tmp_path: Path):
     broken.write_bytes(b"\x00garbage")
     infinite = np.array([[1.0, 0, 0], [0, 1.0, 0], [-0.5 / 610, -0.5 / 771, 1.0]])
     far = _write(tmp_path / "04773.json", infinite, np.eye(3), width=610, height=771)
-    result = CliRunner().invoke(
-        check_homographies_command, [str(good), str(broken), str(far), "--json"]
-    )
+    result = CliRunner().invoke(check_homographies_command, [str(good), str(broken), str(far), "--json"])
     assert result.exit_code == 1
     doc = json.loads(result.output)  # strict JSON: no NaN / Infinity tokens
     assert "NaN" not in result.output and "Infinity" not in result.output
     by_id = {r["id"]: r for r in doc["results"]}
     assert by_id["04771"]["error"] and "verdict" not in by_id["04771"]
     assert by_id["04733"]["verdict"] == "good"
-    assert (
-        by_id["04773"]["verdict"] == "bad"
-        and by_id["04773"]["metrics"]["bounded"] is False
-    )
+    assert by_id["04773"]["verdict"] == "bad" and by_id["04773"]["metrics"]["bounded"] is False
 
 
 def test_table_output(tmp_path: Path):
     _write(tmp_path / "04733.json", np.eye(3), np.eye(3))
-    result = CliRunner().invoke(
-        check_homographies_command, [str(tmp_path / "04733.json")]
-    )
+    result = CliRunner().invoke(check_homographies_command, [str(tmp_path / "04733.json")])
     assert result.exit_code == 0
-    assert (
-        "04733" in result.output
-        and "good" in result.output
-        and "1 item(s): 1 good" in result.output
-    )
+    assert "04733" in result.output and "good" in result.output and "1 item(s): 1 good" in result.output
 
 
 def test_size_option(tmp_path: Path):
     _write(tmp_path / "04733.json", np.eye(3), np.eye(3))
-    result = CliRunner().invoke(
-        check_homographies_command, [str(tmp_path), "--size", "500x400", "--json"]
-    )
+    result = CliRunner().invoke(check_homographies_command, [str(tmp_path), "--size", "500x400", "--json"])
     assert json.loads(result.output)["results"][0]["metrics"]["width"] == 500.0
-    bad = CliRunner().invoke(
-        check_homographies_command, [str(tmp_path), "--size", "big"]
-    )
+    bad = CliRunner().invoke(check_homographies_command, [str(tmp_path), "--size", "big"])
     assert bad.exit_code == 2
 
 
@@ -104,16 +85,12 @@ def test_real_keystonedepth_files(shared_data: Path):
     assert by_id["04733"]["verdict"] == "good"  # human label good
     assert by_id["04857"]["verdict"] == "bad"  # human label bad
     # Their projective indicator for 04857: 2.7 (left), 2.74 (right).
-    assert by_id["04857"]["metrics"]["min_projective_log10"] == pytest.approx(
-        2.74, abs=0.02
-    )
+    assert by_id["04857"]["metrics"]["min_projective_log10"] == pytest.approx(2.74, abs=0.02)
 
 
 def test_folder_scan_skips_non_homography_json(tmp_path: Path):
     _write(tmp_path / "04733.json", np.eye(3), np.eye(3))
-    (tmp_path / "proj_components_r1_60.json").write_text(
-        json.dumps({"0": ["04733", 4.6]})
-    )
+    (tmp_path / "proj_components_r1_60.json").write_text(json.dumps({"0": ["04733", 4.6]}))
     result = CliRunner().invoke(check_homographies_command, [str(tmp_path), "--json"])
     assert result.exit_code == 0
     doc = json.loads(result.output)
@@ -142,12 +119,17 @@ def _stage_rectification(tmp_path: Path) -> Path:
     keystone = np.array([[1.0, 0.0, 0.0], [0.01, 1.0, 6.0], [5e-5, 0.0, 1.0]])
     right = cv2.warpPerspective(right, keystone, (w, h), borderMode=cv2.BORDER_REPLICATE)
     card = np.full((h + 40, 2 * w + 60, 3), 200, np.uint8)
-    card[20:20 + h, 20:20 + w], card[20:20 + h, w + 40:2 * w + 40] = left, right
+    card[20 : 20 + h, 20 : 20 + w], card[20 : 20 + h, w + 40 : 2 * w + 40] = left, right
     write_png(tmp_path / "card.png", card)
     (tmp_path / "work").mkdir()
-    task = CardTask(card_id=1, content_hash="x", image_path=str(tmp_path / "card.png"), work_dir=str(tmp_path / "work"),
-                    data_dir=str(tmp_path), inputs={"left_box": [20, 20, 20 + w, 20 + h],
-                                                    "right_box": [w + 40, 20, 2 * w + 40, 20 + h]})
+    task = CardTask(
+        card_id=1,
+        content_hash="x",
+        image_path=str(tmp_path / "card.png"),
+        work_dir=str(tmp_path / "work"),
+        data_dir=str(tmp_path),
+        inputs={"left_box": [20, 20, 20 + w, 20 + h], "right_box": [w + 40, 20, 2 * w + 40, 20 + h]},
+    )
     record = rectify_task(task, RectifyParams())
     assert record.status == "done", record.reason
     return tmp_path / record.artifacts["rectification"]

@@ -49,12 +49,41 @@ def test_every_command_has_help(runner):
 # The command tree before the features registered their own commands (register_cli): moving
 # registration must neither lose nor add a command.
 COMMAND_TREE = {
-    "bench", "bench catalogue", "bench crowd", "bench disparity", "bench export", "bench filter", "bench grade",
-    "bench grade-real", "bench inpainting", "bench pipeline", "bench rectify", "bench views",
-    "bench workres", "cards", "check-homographies", "crowd",
-    "crowd aggregate", "crowd create-batch", "crowd export", "crowd invite", "demo", "export", "grade",
-    "grade fit", "grade show", "ingest", "init", "report", "run", "serve", "train-inpainting", "users",
-    "users add", "users list", "verify",
+    "bench",
+    "bench catalogue",
+    "bench crowd",
+    "bench disparity",
+    "bench export",
+    "bench filter",
+    "bench grade",
+    "bench grade-real",
+    "bench inpainting",
+    "bench pipeline",
+    "bench rectify",
+    "bench views",
+    "bench workres",
+    "cards",
+    "check-homographies",
+    "crowd",
+    "crowd aggregate",
+    "crowd create-batch",
+    "crowd export",
+    "crowd invite",
+    "demo",
+    "export",
+    "grade",
+    "grade fit",
+    "grade show",
+    "ingest",
+    "init",
+    "report",
+    "run",
+    "serve",
+    "train-inpainting",
+    "users",
+    "users add",
+    "users list",
+    "verify",
 }
 
 
@@ -63,8 +92,10 @@ def test_the_command_tree_is_the_features_registrations():
 
 
 def test_importing_the_command_imports_no_feature():
-    code = ("import sys, app.cli; "
-            "print(sorted(m for m in ('annotation', 'review', 'exports', 'app.runs', 'app.bench') if m in sys.modules))")
+    code = (
+        "import sys, app.cli; "
+        "print(sorted(m for m in ('annotation', 'review', 'exports', 'app.runs', 'app.bench') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout
 
@@ -78,7 +109,9 @@ def test_init_reports_json_and_is_idempotent(app, runner):
 
 
 def test_users_add_and_list(runner):
-    result = runner.invoke(cli, ["users", "add", "ada", "--role", "curator", "--role", "exporter", "--password", "long enough pw"])
+    result = runner.invoke(
+        cli, ["users", "add", "ada", "--role", "curator", "--role", "exporter", "--password", "long enough pw"]
+    )
     assert result.exit_code == 0, result.output
     again = runner.invoke(cli, ["users", "add", "ada", "--role", "curator", "--password", "long enough pw"])
     assert again.exit_code == 1 and "already exists" in again.output

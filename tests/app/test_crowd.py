@@ -105,8 +105,7 @@ def test_workers_never_get_an_item_twice_and_items_get_exactly_n(app, client, ca
     for items in seen.values():
         assert len(items) == len(set(items)), f"worker got an item twice: {items}"
     with app.app_context():
-        per_item = dict(db.session.execute(
-            select(Answer.item_id, func.count()).group_by(Answer.item_id)).all())
+        per_item = dict(db.session.execute(select(Answer.item_id, func.count()).group_by(Answer.item_id)).all())
         assert sorted(per_item.values()) == [2, 2, 2, 2]
         assert db.session.get(Batch, batch) is not None
     assert sum(len(v) for v in seen.values()) == 8
@@ -150,8 +149,10 @@ def test_double_submit_and_replay_store_one_answer(app, client, cards):
 
 def _state(app):  # type: ignore[no-untyped-def]
     with app.app_context():
-        return (db.session.scalar(select(func.count()).select_from(Answer)),
-                [(r.token, r.answered_at) for r in db.session.scalars(select(Reservation).order_by(Reservation.id))])
+        return (
+            db.session.scalar(select(func.count()).select_from(Answer)),
+            [(r.token, r.answered_at) for r in db.session.scalars(select(Reservation).order_by(Reservation.id))],
+        )
 
 
 @pytest.mark.parametrize(
@@ -175,8 +176,11 @@ def test_bad_crop_answers_are_refused_and_change_nothing(app, client, cards, bod
     t = invite(app, client, "cropper")
     task = fetch(client, t, "crop")["tasks"][0]
     before = _state(app)
-    raw = body if body.startswith(("{\"token", "[")) else (
-        f'{{"token": "{task["token"]}", "key": "bad-input-key", "answer": {body}}}')
+    raw = (
+        body
+        if body.startswith(('{"token', "["))
+        else (f'{{"token": "{task["token"]}", "key": "bad-input-key", "answer": {body}}}')
+    )
     response = api(client, "submit", t, data=raw, content_type="application/json")
     assert response.status_code == status, response.get_data(as_text=True)
     assert message in response.get_json()["error"]["message"]
@@ -187,9 +191,11 @@ def test_bad_crop_answers_are_refused_and_change_nothing(app, client, cards, bod
 
 @pytest.mark.parametrize(
     ("payload", "message"),
-    [({"is_stereo": "yes", "upside_down": False, "inverted": False}, "is_stereo to be true or false"),
-     ({"is_stereo": True, "upside_down": False}, "inverted to be true or false"),
-     ([True, False, False], "Expected a JSON object as the answer")],
+    [
+        ({"is_stereo": "yes", "upside_down": False, "inverted": False}, "is_stereo to be true or false"),
+        ({"is_stereo": True, "upside_down": False}, "inverted to be true or false"),
+        ([True, False, False], "Expected a JSON object as the answer"),
+    ],
 )
 def test_bad_judgements_are_refused(app, client, cards, payload, message):
     new_batch(app, cards(1), n=1)
@@ -276,8 +282,7 @@ def test_mturk_preview_disables_submit_and_may_be_framed_by_mturk(app, client, c
 
 def test_mturk_assignment_posts_back_to_turk_submit_to(app, client, cards):
     new_batch(app, cards(1), n=1)
-    url = ("/crowd/mturk?assignmentId=A123&hitId=H1&workerId=W9"
-           "&turkSubmitTo=https%3A%2F%2Fworkersandbox.mturk.com")
+    url = "/crowd/mturk?assignmentId=A123&hitId=H1&workerId=W9&turkSubmitTo=https%3A%2F%2Fworkersandbox.mturk.com"
     page = client.get(url)
     html = page.get_data(as_text=True)
     assert page.status_code == 200 and "Set-Cookie" not in page.headers  # no reliance on cookies
@@ -286,8 +291,9 @@ def test_mturk_assignment_posts_back_to_turk_submit_to(app, client, cards):
     task = fetch(client, t)["tasks"][0]
     stored = answer(client, t, task["token"], JUDGE_OK, "mturk-key-1")
     assert stored.status_code == 201
-    assert stored.get_json()["finish"] == {"post": {"url": "https://workersandbox.mturk.com/mturk/externalSubmit",
-                                                    "fields": {"assignmentId": "A123"}}}
+    assert stored.get_json()["finish"] == {
+        "post": {"url": "https://workersandbox.mturk.com/mturk/externalSubmit", "fields": {"assignmentId": "A123"}}
+    }
     evil = client.get("/crowd/mturk?assignmentId=A1&hitId=H&workerId=W&turkSubmitTo=https%3A%2F%2Fevil.example")
     assert evil.status_code == 400 and "turkSubmitTo" in evil.get_data(as_text=True)
 
@@ -323,8 +329,10 @@ def test_invite_link_shows_progress_and_bad_links_404(app, client, cards):
 # Roles
 
 
-@pytest.mark.parametrize(("role", "cards_status", "batches_status"),
-                         [("annotator", 403, 403), ("curator", 200, 200), ("exporter", 200, 403), ("admin", 200, 200)])
+@pytest.mark.parametrize(
+    ("role", "cards_status", "batches_status"),
+    [("annotator", 403, 403), ("curator", 200, 200), ("exporter", 200, 403), ("admin", 200, 200)],
+)
 def test_roles_on_staff_pages(client, as_role, role, cards_status, batches_status):
     as_role(role)
     assert client.get("/cards").status_code == cards_status
@@ -361,8 +369,11 @@ def _answer_all(app, client, tokens, kind, choose):  # type: ignore[no-untyped-d
                 break
             task = data["tasks"][0]
             with app.app_context():
-                card = db.session.scalar(select(BatchItem.card_id).join(Reservation, Reservation.item_id == BatchItem.id)
-                                         .where(Reservation.token == task["token"]))
+                card = db.session.scalar(
+                    select(BatchItem.card_id)
+                    .join(Reservation, Reservation.item_id == BatchItem.id)
+                    .where(Reservation.token == task["token"])
+                )
             assert answer(client, t, task["token"], choose(w, card), f"sim-{w}-{step}-{kind}").status_code == 201
 
 
@@ -376,6 +387,7 @@ def test_judge_aggregation_stores_approved_and_needs_curator(app, client, cards)
     # Everyone agrees on the 8 clear cards; on `split` two of three say upside-down.
     def choose(w, card):  # type: ignore[no-untyped-def]
         return {**JUDGE_OK, "upside_down": w != 0} if card == split else JUDGE_OK
+
     _answer_all(app, client, tokens, "judge", choose)
     from annotation.results import aggregate_batch
 
@@ -411,6 +423,7 @@ def test_crop_aggregation_consensus_within_pixels_and_disputes(app, client, card
         if card == disputed and w > 0:
             return {"left": [100.0 * w, 20.0, 100.0 * w + 60.0, 80.0], "right": truth["right"]}
         return {h: [v + jitter for v in box] for h, box in truth.items()}
+
     _answer_all(app, client, tokens, "crop", choose)
     from annotation.results import aggregate_batch
 
@@ -462,8 +475,9 @@ def test_cli_create_invite_aggregate_export(app, runner, client, cards, tmp_path
     app.cli.add_command(crowd_group)  # app/cli.py registers it on `keystone`
     review = cards(2, state="review")
     other = cards(1, state="pass")
-    created = runner.invoke(args=["crowd", "create-batch", "--from-review", "--cards", str(other[0]),
-                                  "--n", "1", "--gold-rate", "0", "--json"])
+    created = runner.invoke(
+        args=["crowd", "create-batch", "--from-review", "--cards", str(other[0]), "--n", "1", "--gold-rate", "0", "--json"]
+    )
     assert created.exit_code == 0, created.output
     doc = json.loads(created.output)
     assert doc["items"] == 3 and doc["answers_per_item"] == 1 and doc["gold_items"] == 0
@@ -554,8 +568,9 @@ def test_concurrent_workers_lose_and_duplicate_nothing(app, cards):
 
 
 def prolific(client, pid: str, session: str, study: str = "study-1", address: str = "192.0.2.1"):  # type: ignore[no-untyped-def]
-    return client.get(f"/crowd/prolific?PROLIFIC_PID={pid}&STUDY_ID={study}&SESSION_ID={session}",
-                      environ_overrides={"REMOTE_ADDR": address})
+    return client.get(
+        f"/crowd/prolific?PROLIFIC_PID={pid}&STUDY_ID={study}&SESSION_ID={session}", environ_overrides={"REMOTE_ADDR": address}
+    )
 
 
 def prolific_token(client, pid: str, session: str, **kwargs) -> str:  # type: ignore[no-untyped-def]
@@ -588,8 +603,7 @@ def test_a_borrowed_participant_id_cannot_see_undo_or_complete_the_first_session
     theirs = fetch(client, borrowed)
     # Still one worker for the N-answers rule: never the item this participant answered or holds.
     assert theirs["answered"] == 0 and len(theirs["tasks"]) == 2
-    assert {item_of(app, t["token"]) for t in theirs["tasks"]}.isdisjoint(
-        {answered_item, item_of(app, preloaded["token"])})
+    assert {item_of(app, t["token"]) for t in theirs["tasks"]}.isdisjoint({answered_item, item_of(app, preloaded["token"])})
     assert {t["token"] for t in theirs["tasks"]}.isdisjoint({task["token"], preloaded["token"]})
     assert client.get(f"/crowd/finish?t={borrowed}").status_code == 303
     with app.app_context():
@@ -643,8 +657,11 @@ def test_new_sessions_are_limited_per_address_and_per_study(app, client, cards):
     retry = int(refused.headers["Retry-After"])
     assert 3590 <= retry <= 3600
     assert "Too many new sessions from your network address" in refused.get_data(as_text=True)
-    as_json = client.get("/crowd/prolific?PROLIFIC_PID=j&STUDY_ID=study-1&SESSION_ID=j",
-                         headers={"Accept": "application/json"}, environ_overrides={"REMOTE_ADDR": "192.0.2.1"})
+    as_json = client.get(
+        "/crowd/prolific?PROLIFIC_PID=j&STUDY_ID=study-1&SESSION_ID=j",
+        headers={"Accept": "application/json"},
+        environ_overrides={"REMOTE_ADDR": "192.0.2.1"},
+    )
     assert as_json.status_code == 429 and as_json.get_json()["error"]["code"] == 429
     # Reopening a session already made is never limited; another address is not limited by this one.
     assert prolific(client, "probe-3", "probe-session-3").status_code == 200
@@ -652,11 +669,11 @@ def test_new_sessions_are_limited_per_address_and_per_study(app, client, cards):
 
     # Per study, across addresses.
     app.config["KEYSTONE_CROWD_SESSIONS_PER_STUDY"] = 3
-    opened = [prolific(client, f"s-{i}", f"s-session-{i}", study="small", address=f"198.51.100.{i}").status_code
-              for i in range(4)]
+    opened = [
+        prolific(client, f"s-{i}", f"s-session-{i}", study="small", address=f"198.51.100.{i}").status_code for i in range(4)
+    ]
     assert opened == [200, 200, 200, 429]
-    assert "in this study" in prolific(client, "s-9", "s-9", study="small", address="198.51.100.99").get_data(
-        as_text=True)
+    assert "in this study" in prolific(client, "s-9", "s-9", study="small", address="198.51.100.99").get_data(as_text=True)
     assert prolific(client, "s-9", "s-9", study="other", address="198.51.100.99").status_code == 200
 
     # The window slides: once the address's sessions are older than it, new ones open again.
@@ -677,14 +694,15 @@ def test_a_flagged_participant_stays_flagged_in_new_sessions_and_new_ids_from_it
         data = fetch(client, spammer)
         if not data["tasks"]:
             break
-        assert answer(client, spammer, data["tasks"][0]["token"], {**JUDGE_OK, "inverted": True},
-                      f"spam-key-{step:03d}").status_code == 201
+        assert (
+            answer(client, spammer, data["tasks"][0]["token"], {**JUDGE_OK, "inverted": True}, f"spam-key-{step:03d}").status_code
+            == 201
+        )
     assert data["reason"] == "worker_flagged"
 
     # The same participant id in a new session, from anywhere: still flagged.
     again = prolific_token(client, "spammer", "spam-2", address="203.0.113.50")
-    assert fetch(client, again) == {"tasks": [], "answered": 0, "reason": "worker_flagged", "retry_after": None,
-                                   "positions": {}}
+    assert fetch(client, again) == {"tasks": [], "answered": 0, "reason": "worker_flagged", "retry_after": None, "positions": {}}
     # A new participant id in the same study from the spammer's address gets no work either.
     renamed = prolific_token(client, "spammer-renamed", "spam-3", address=spam_address)
     assert fetch(client, renamed)["reason"] == "worker_flagged"
@@ -711,8 +729,7 @@ def test_one_ipv6_subscriber_counts_as_one_client_and_studies_can_be_closed(app,
     assert client_network("::ffff:192.0.2.9") == "192.0.2.9" and client_network("192.0.2.9") == "192.0.2.9"
     new_batch(app, cards(1), n=1)
     app.config["KEYSTONE_CROWD_SESSIONS_PER_ADDRESS"] = 2
-    opened = [prolific(client, f"v6-{i}", f"v6-session-{i}", address=f"2001:db8:1:2::{i + 1:x}").status_code
-              for i in range(3)]
+    opened = [prolific(client, f"v6-{i}", f"v6-session-{i}", address=f"2001:db8:1:2::{i + 1:x}").status_code for i in range(3)]
     assert opened == [200, 200, 429]
     assert prolific(client, "v6-x", "v6-session-x", address="2001:db8:1:3::1").status_code == 200  # another /64
     app.config["KEYSTONE_CROWD_STUDIES"] = "study-open, study-2"

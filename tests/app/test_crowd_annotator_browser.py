@@ -20,8 +20,12 @@ NO_SIDEWAYS_SCROLL = "document.documentElement.scrollWidth <= window.innerWidth"
 
 def stored(app) -> list[tuple[int, dict]]:  # type: ignore[no-untyped-def]
     with app.app_context():
-        return [(card, payload) for card, payload in db.session.execute(
-            select(BatchItem.card_id, Answer.payload).join(Answer, Answer.item_id == BatchItem.id).order_by(Answer.id))]
+        return [
+            (card, payload)
+            for card, payload in db.session.execute(
+                select(BatchItem.card_id, Answer.payload).join(Answer, Answer.item_id == BatchItem.id).order_by(Answer.id)
+            )
+        ]
 
 
 def wait_for_answers(page, app, count: int) -> None:  # type: ignore[no-untyped-def]
@@ -48,8 +52,9 @@ def pinch(cdp, centre: tuple[float, float], from_gap: float, to_gap: float, step
 
     cdp.send("Input.dispatchTouchEvent", {"type": "touchStart", "touchPoints": points(from_gap)})
     for i in range(1, steps + 1):
-        cdp.send("Input.dispatchTouchEvent",
-                 {"type": "touchMove", "touchPoints": points(from_gap + (to_gap - from_gap) * i / steps)})
+        cdp.send(
+            "Input.dispatchTouchEvent", {"type": "touchMove", "touchPoints": points(from_gap + (to_gap - from_gap) * i / steps)}
+        )
     cdp.send("Input.dispatchTouchEvent", {"type": "touchEnd", "touchPoints": []})
 
 
@@ -83,8 +88,11 @@ def test_annotator_walks_the_invite_link_through_judge_and_crop(app, server, bro
         card = db.session.get(Card, crop_card)
         proposal = proposed_boxes(card)
         width, height = card.width, card.height
-    options = ({"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True, "device_scale_factor": 2}
-               if phone else {"viewport": {"width": 1366, "height": 800}})
+    options = (
+        {"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True, "device_scale_factor": 2}
+        if phone
+        else {"viewport": {"width": 1366, "height": 800}}
+    )
     context = browser.new_context(**options)
     page = context.new_page()
     click = page.tap if phone else page.click
@@ -171,19 +179,23 @@ def test_annotator_walks_the_invite_link_through_judge_and_crop(app, server, bro
     assert page.evaluate(NO_SIDEWAYS_SCROLL)
     page.screenshot(path=str(SHOTS / f"{device}-6-finished.png"), full_page=True)
     page.goto(link)  # coming back later: the same link, the finished screen, nothing to press
-    assert page.is_visible("#finished") and page.is_hidden("#submit-answer") and "keeps your place" in page.inner_text("#finished")
+    assert (
+        page.is_visible("#finished") and page.is_hidden("#submit-answer") and "keeps your place" in page.inner_text("#finished")
+    )
     context.close()
 
 
 # On a phone only (the narrow layout is the one that can break; the suite's time is short).
 @pytest.mark.parametrize("device", ["phone"])
-def test_a_curator_makes_a_batch_and_an_invite_link_on_the_web(app, server, browser, make_person, make_card,
-                                                              card_image, device):
+def test_a_curator_makes_a_batch_and_an_invite_link_on_the_web(app, server, browser, make_person, make_card, card_image, device):
     phone = device == "phone"
     card_id = make_card(card_image(), state="review")
     person = make_person("curator", username=f"cur-{device}")
-    options = ({"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True}
-               if phone else {"viewport": {"width": 1366, "height": 800}})
+    options = (
+        {"viewport": {"width": 390, "height": 844}, "has_touch": True, "is_mobile": True}
+        if phone
+        else {"viewport": {"width": 1366, "height": 800}}
+    )
     context = browser.new_context(**options)
     page = context.new_page()
     page.goto(f"{server}/auth/login")

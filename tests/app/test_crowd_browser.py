@@ -88,7 +88,9 @@ def test_a_second_annotator_never_gets_the_same_assignment(app, server, browser,
     for page in (first, second):
         page.wait_for_selector("#status:has-text('Card')", timeout=15_000)
     with app.app_context():
-        held = [(r.worker_id, r.item_id) for r in db.session.scalars(select(Reservation).where(Reservation.answered_at.is_(None)))]
+        held = [
+            (r.worker_id, r.item_id) for r in db.session.scalars(select(Reservation).where(Reservation.answered_at.is_(None)))
+        ]
     by_worker: dict[int, set[int]] = {}
     for worker, item in held:
         by_worker.setdefault(worker, set()).add(item)
@@ -99,8 +101,9 @@ def test_a_second_annotator_never_gets_the_same_assignment(app, server, browser,
     worker, item, _ = answers(app)[0]
     with app.app_context():
         again = db.session.scalars(
-            select(Reservation).where(Reservation.worker_id == worker, Reservation.item_id == item,
-                                      Reservation.answered_at.is_(None))
+            select(Reservation).where(
+                Reservation.worker_id == worker, Reservation.item_id == item, Reservation.answered_at.is_(None)
+            )
         ).all()
     assert again == []  # alice is never given the card she answered
 
@@ -136,7 +139,10 @@ def test_mturk_preview_disables_submit_and_an_accepted_hit_posts_back(app, serve
 def test_prolific_participants_are_redirected_with_the_completion_code(app, server, browser, batch):
     page = browser.new_page()
     landed: list[str] = []
-    page.route("https://app.prolific.com/**", lambda route, request: (landed.append(request.url), route.fulfill(status=200, body="thanks")))
+    page.route(
+        "https://app.prolific.com/**",
+        lambda route, request: (landed.append(request.url), route.fulfill(status=200, body="thanks")),
+    )
     page.goto(f"{server}/crowd/prolific?PROLIFIC_PID=P123&STUDY_ID=S1&SESSION_ID=X1")
     page.wait_for_selector("#status:has-text('Card')", timeout=15_000)
     page.keyboard.press("Escape")
@@ -149,8 +155,7 @@ def test_prolific_participants_are_redirected_with_the_completion_code(app, serv
     assert re.match(r"https://app\.prolific\.com/submissions/complete", landed[0])
 
 
-def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, server, browser, make_card, card_image,
-                                                                    wait_until):
+def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, server, browser, make_card, card_image, wait_until):
     from annotation.batches import create_batch
 
     card_id = make_card(card_image(), state="pass")
@@ -179,7 +184,9 @@ def test_annotator_draws_both_boxes_with_the_mouse_in_original_pixels(app, serve
     wait_for_answers(page, app, 1)
     payload = answers(app)[0][2]
     width, height = 604, 200  # the card's pixels, whatever size the page shows it at
-    expected = {"left": [0.05 * width, 0.10 * height, 0.45 * width, 0.90 * height],
-                "right": [0.55 * width, 0.10 * height, 0.95 * width, 0.90 * height]}
+    expected = {
+        "left": [0.05 * width, 0.10 * height, 0.45 * width, 0.90 * height],
+        "right": [0.55 * width, 0.10 * height, 0.95 * width, 0.90 * height],
+    }
     for half in ("left", "right"):
         assert payload[half] == pytest.approx(expected[half], abs=3.0)

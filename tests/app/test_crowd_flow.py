@@ -81,7 +81,9 @@ def test_one_link_serves_judge_then_crop_then_a_finished_screen(app, client, car
     assert data["positions"] == {str(judge_batch): {"done": 0, "total": 2}}
     for step in range(2):
         task = api(client, "next", t, {"kind": "judge"}).get_json()["tasks"][0]
-        assert api(client, "submit", t, {"token": task["token"], "answer": JUDGE_OK, "key": f"judge-{step:04d}"}).status_code == 201
+        assert (
+            api(client, "submit", t, {"token": task["token"], "answer": JUDGE_OK, "key": f"judge-{step:04d}"}).status_code == 201
+        )
     data = api(client, "next", t, {"kind": "judge"}).get_json()
     assert data["tasks"] == [] and data["reason"] == "batch_complete"
     # The same link now opens the crop page (nothing typed by hand), with no later kind to go to.
@@ -117,21 +119,32 @@ def test_proposed_boxes_come_from_orientation_then_photo_areas_then_the_filter(a
         assert found.source == "photo_area"
         assert 0 <= found.left[0] < found.left[2] <= 296 + 6 and 296 + 6 <= found.right[0] < found.right[2] <= 604
         assert found.left[3] <= 200 and found.right[3] <= 200
-    add_stage_result(card_id, "orientation", outcome=None,
-                     metrics={"photo_left_box": [10, 12, 280, 190], "photo_right_box": [318, 12, 590, 190]})
+    add_stage_result(
+        card_id,
+        "orientation",
+        outcome=None,
+        metrics={"photo_left_box": [10, 12, 280, 190], "photo_right_box": [318, 12, 590, 190]},
+    )
     with app.app_context():
         card = db.session.get(Card, card_id)
-        assert proposed_boxes(card).as_json() == {"left": [10.0, 12.0, 280.0, 190.0],
-                                                  "right": [318.0, 12.0, 590.0, 190.0], "source": "orientation"}
+        assert proposed_boxes(card).as_json() == {
+            "left": [10.0, 12.0, 280.0, 190.0],
+            "right": [318.0, 12.0, 590.0, 190.0],
+            "source": "orientation",
+        }
     # An orientation result without usable boxes, and an original that cannot be read: the filter's split.
-    add_stage_result(card_id, "orientation", outcome=None, param_hash="fedcba9876543210",
-                     metrics={"photo_left_box": [1, 2, "x", 4]})
+    add_stage_result(
+        card_id, "orientation", outcome=None, param_hash="fedcba9876543210", metrics={"photo_left_box": [1, 2, "x", 4]}
+    )
     with app.app_context():
         card = db.session.get(Card, card_id)
         (data_dir / card.stored_path).unlink()
         _photo_area_cache.clear()
-        assert proposed_boxes(card).as_json() == {"left": [0.0, 0.0, 296.0, 200.0], "right": [308.0, 0.0, 604.0, 200.0],
-                                                  "source": "filter"}
+        assert proposed_boxes(card).as_json() == {
+            "left": [0.0, 0.0, 296.0, 200.0],
+            "right": [308.0, 0.0, 604.0, 200.0],
+            "source": "filter",
+        }
 
 
 @pytest.mark.both_databases
@@ -196,6 +209,7 @@ def test_eye_order_wiggles_show_the_photos_in_both_orders(app, client, cards):
             for index in range(gif.n_frames):
                 gif.seek(index)
                 frames[order].append(gif.convert("L").copy())
+
     # Swapped starts with the other photo than "as is" (each GIF has its own palette, so the
     # same picture differs by a grey level or two; the two photos differ by their parallax).
     def difference(a: Image.Image, b: Image.Image) -> float:
@@ -272,8 +286,11 @@ def test_batches_page_counts_needed_answers_and_curators_manage_the_crowd(app, c
     page = client.get("/crowd/batches").get_data(as_text=True)
     assert "<strong>2 of 4</strong> answers needed (50 %)" in page and "2 cards × 2 answers; 0 of 2 complete" in page
     token = csrf_token("/crowd/batches")
-    made = client.post("/crowd/batches/new", data={"csrf_token": token, "cards": f"{ids[2]}", "kind": "crop",
-                                                   "answers_per_item": "2", "gold_rate": "0"}, follow_redirects=True)
+    made = client.post(
+        "/crowd/batches/new",
+        data={"csrf_token": token, "cards": f"{ids[2]}", "kind": "crop", "answers_per_item": "2", "gold_rate": "0"},
+        follow_redirects=True,
+    )
     assert made.status_code == 200 and f"Batch {batch + 1} created: 1 crop cards, 2 answers each" in made.get_data(as_text=True)
     invited = client.post("/crowd/invites", data={"csrf_token": token, "name": "Kim"}, follow_redirects=True)
     assert re.search(r"Invite link for Kim .*http://localhost/crowd/invite/", invited.get_data(as_text=True))
@@ -304,22 +321,26 @@ def test_curators_check_prolific_submissions(app, client, cards, login, csrf_tok
     client.get(f"/crowd/finish?t={t}")
     client.get("/crowd/prolific?PROLIFIC_PID=idle-pid&STUDY_ID=s1&SESSION_ID=x2")
     login("curator")
-    checked = client.post("/crowd/submissions", data={"csrf_token": csrf_token("/crowd/batches"),
-                                                     "participants": "done-pid\nidle-pid\nstranger"})
+    checked = client.post(
+        "/crowd/submissions", data={"csrf_token": csrf_token("/crowd/batches"), "participants": "done-pid\nidle-pid\nstranger"}
+    )
     text = checked.get_data(as_text=True)
     assert checked.status_code == 200 and "Checked 3 submissions: 1 to approve, 0 to reject, 2 unknown." in text
     assert re.search(r'<textarea id="approve-ids" readonly rows="1">done-pid</textarea>', text)
     assert "never reached the completion step" in text and "never opened this study here" in text
 
 
-@pytest.mark.parametrize("form, status, words", [
-    ({"cards": "1, two"}, 400, "whole numbers"),
-    ({"cards": "999"}, 404, "No card with id 999"),
-    ({"cards": ""}, 400, "No cards"),
-    ({"cards": "1", "kind": "paint"}, 400, "judge or crop"),
-    ({"cards": "1", "answers_per_item": "0"}, 400, "answers per item"),
-    ({"cards": "1", "gold_rate": "lots"}, 400, "gold rate to be a number"),
-])
+@pytest.mark.parametrize(
+    "form, status, words",
+    [
+        ({"cards": "1, two"}, 400, "whole numbers"),
+        ({"cards": "999"}, 404, "No card with id 999"),
+        ({"cards": ""}, 400, "No cards"),
+        ({"cards": "1", "kind": "paint"}, 400, "judge or crop"),
+        ({"cards": "1", "answers_per_item": "0"}, 400, "answers per item"),
+        ({"cards": "1", "gold_rate": "lots"}, 400, "gold rate to be a number"),
+    ],
+)
 def test_bad_batch_forms_get_a_reason_never_a_500(app, client, cards, login, csrf_token, form, status, words):
     cards(1)
     login("curator")
@@ -337,6 +358,8 @@ def test_crowd_management_needs_a_curator_and_a_csrf_token(app, client, cards, l
     client.post("/auth/logout", data={"csrf_token": csrf_token("/cards")})
     login("curator")
     assert client.post("/crowd/invites", data={"name": "no-token"}).status_code == 400
-    assert client.post("/crowd/workers/999/flag", data={"csrf_token": csrf_token("/crowd/batches"),
-                                                       "flagged": "1"}).status_code == 404
+    assert (
+        client.post("/crowd/workers/999/flag", data={"csrf_token": csrf_token("/crowd/batches"), "flagged": "1"}).status_code
+        == 404
+    )
     assert client.post("/crowd/invites", data={"csrf_token": csrf_token("/crowd/batches"), "name": ""}).status_code == 400

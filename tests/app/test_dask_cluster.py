@@ -48,8 +48,14 @@ def scans(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _spawn(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "dask", *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True, env=env)
+    return subprocess.Popen(
+        [sys.executable, "-m", "dask", *args],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        env=env,
+    )
 
 
 def _stop(process: subprocess.Popen[str]) -> None:
@@ -82,8 +88,20 @@ class Cluster:
         # Workers import the project's pipeline by name, as they would on a cluster node
         # where the project is installed.
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path.cwd()), os.environ.get("PYTHONPATH")]))}
-        worker = _spawn("worker", self.address, "--host", "127.0.0.1", "--nworkers", "1", "--nthreads", "1",
-                        "--no-dashboard", "--memory-limit", "2GiB", env=env)
+        worker = _spawn(
+            "worker",
+            self.address,
+            "--host",
+            "127.0.0.1",
+            "--nworkers",
+            "1",
+            "--nthreads",
+            "1",
+            "--no-dashboard",
+            "--memory-limit",
+            "2GiB",
+            env=env,
+        )
         assert worker.stderr is not None
         worker.stderr.close()
         self.workers.append(worker)
@@ -129,8 +147,10 @@ def _decide_orientation(instance: Path) -> None:
     import sqlite3
 
     with sqlite3.connect(instance / "keystone.sqlite3") as connection:
-        connection.execute("INSERT INTO orientation_overrides (card_id, upside_down, inverted, swapped, note, updated_at) "
-                           "SELECT id, 0, 0, 0, 'test: made upright', CURRENT_TIMESTAMP FROM cards")
+        connection.execute(
+            "INSERT INTO orientation_overrides (card_id, upside_down, inverted, swapped, note, updated_at) "
+            "SELECT id, 0, 0, 0, 'test: made upright', CURRENT_TIMESTAMP FROM cards"
+        )
 
 
 def _outcomes(instance: Path) -> dict[str, dict[str, tuple]]:
@@ -142,8 +162,13 @@ def _outcomes(instance: Path) -> dict[str, dict[str, tuple]]:
         for stage in STAGES.split(","):
             entry = card["stages"][stage]
             metrics = entry.get("metrics") or {}
-            row[stage] = (entry["status"], entry.get("outcome"), entry.get("reason"),
-                          metrics.get("good_match_fraction"), metrics.get("grade"))
+            row[stage] = (
+                entry["status"],
+                entry.get("outcome"),
+                entry.get("reason"),
+                metrics.get("good_match_fraction"),
+                metrics.get("grade"),
+            )
         table[card["source"]] = row
     return table
 
@@ -154,8 +179,9 @@ def test_dask_cluster_gives_the_local_pools_outcomes(tmp_path, scans, cluster):
         _keystone(instance, "ingest", str(scans), "--json")
         _decide_orientation(instance)
     _keystone(local, "run", "--stages", STAGES, "--workers", "2", "--json")
-    report = json.loads(_keystone(remote, "run", "--stages", STAGES, "--executor", "dask",
-                                  "--scheduler", cluster.address, "--json").stdout)
+    report = json.loads(
+        _keystone(remote, "run", "--stages", STAGES, "--executor", "dask", "--scheduler", cluster.address, "--json").stdout
+    )
     assert [stage["processed"] for stage in report["stages"]][0] == 6
     assert all(stage["failed"] == 0 for stage in report["stages"]), report
     expected, got = _outcomes(local), _outcomes(remote)
@@ -171,9 +197,13 @@ def test_a_worker_killed_mid_run_costs_only_its_cards_in_flight(tmp_path, scans,
     _keystone(instance, "ingest", str(scans), "--json")
     _decide_orientation(instance)
     env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(instance)}
-    run = subprocess.Popen([sys.executable, "-m", "app", "run", "--stages", STAGES, "--executor", "dask",
-                            "--scheduler", cluster.address, "--json"], env=env, stdout=subprocess.PIPE,
-                           stderr=subprocess.PIPE, text=True)
+    run = subprocess.Popen(
+        [sys.executable, "-m", "app", "run", "--stages", STAGES, "--executor", "dask", "--scheduler", cluster.address, "--json"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     victim = cluster.workers[0]
     killed_with_work = False
     with Client(cluster.address, timeout=30) as client:

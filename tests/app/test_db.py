@@ -22,8 +22,18 @@ WRITES_EACH = 15
 
 def test_concurrent_read_then_write_transactions(app):
     with app.app_context():
-        card = Card(collection=Collection(name="c"), content_hash="b" * 64, stored_path="x", source_name="x.jpg",
-                    source_path="/x.jpg", width=10, height=10, image_format="PNG", byte_size=1, source_metadata={})
+        card = Card(
+            collection=Collection(name="c"),
+            content_hash="b" * 64,
+            stored_path="x",
+            source_name="x.jpg",
+            source_path="/x.jpg",
+            width=10,
+            height=10,
+            image_format="PNG",
+            byte_size=1,
+            source_metadata={},
+        )
         db.session.add(card)
         db.session.commit()
         card_id = card.id
@@ -37,8 +47,15 @@ def test_concurrent_read_then_write_transactions(app):
             for attempt in range(WRITES_EACH):
                 try:
                     seen = db.session.scalar(select(func.count()).select_from(StageResult))  # read ...
-                    db.session.add(StageResult(card_id=card_id, stage="filter", param_hash=f"{index}-{attempt}",
-                                               status="done", metrics={"seen": seen}))  # ... then write
+                    db.session.add(
+                        StageResult(
+                            card_id=card_id,
+                            stage="filter",
+                            param_hash=f"{index}-{attempt}",
+                            status="done",
+                            metrics={"seen": seen},
+                        )
+                    )  # ... then write
                     db.session.commit()
                 except BaseException as exc:  # noqa: BLE001 - collected and asserted below
                     db.session.rollback()
@@ -98,8 +115,10 @@ def test_one_writer_lets_one_process_in_at_a_time(app, tmp_path):
     if not app.config["SQLALCHEMY_DATABASE_URI"].startswith("sqlite"):
         pytest.skip("the process gate is SQLite's")
     log = tmp_path / "stays.txt"
-    workers = [subprocess.Popen([sys.executable, "-c", GATED_WRITER, app.config["SQLALCHEMY_DATABASE_URI"],
-                                 str(log), "40"]) for _ in range(3)]
+    workers = [
+        subprocess.Popen([sys.executable, "-c", GATED_WRITER, app.config["SQLALCHEMY_DATABASE_URI"], str(log), "40"])
+        for _ in range(3)
+    ]
     assert [w.wait(120) for w in workers] == [0, 0, 0]
     stays = sorted(tuple(map(float, line.split())) for line in log.read_text().splitlines())
     assert len(stays) == 120

@@ -35,8 +35,9 @@ def test_demo_builds_routes_and_is_rerunnable(tmp_path: Path, monkeypatch):
     with sqlite3.connect(folder / "keystone.sqlite3") as connection:
         batches = dict(connection.execute("SELECT kind, count(*) FROM crowd_batches GROUP BY kind").fetchall())
         answers = connection.execute("SELECT count(*) FROM crowd_answers").fetchone()[0]
-        grades = dict(connection.execute(
-            "SELECT outcome, count(*) FROM stage_results WHERE stage = 'grade' GROUP BY outcome").fetchall())
+        grades = dict(
+            connection.execute("SELECT outcome, count(*) FROM stage_results WHERE stage = 'grade' GROUP BY outcome").fetchall()
+        )
         decisions = dict(connection.execute("SELECT decision, count(*) FROM card_reviews GROUP BY decision").fetchall())
         releases = connection.execute("SELECT version, card_count FROM releases").fetchall()
         views = connection.execute("SELECT count(*) FROM stage_results WHERE stage = 'views' AND status = 'done'").fetchone()[0]
@@ -58,8 +59,11 @@ def test_demo_builds_routes_and_is_rerunnable(tmp_path: Path, monkeypatch):
     assert "not published again" in again.output  # same data: no new release
     assert (folder / "demo-logins.txt").read_text() == logins
 
-    listing = runner.invoke(cli, ["cards", "--json"], env={"KEYSTONE_DATABASE_URL": f"sqlite:///{folder / 'keystone.sqlite3'}",
-                                                            "KEYSTONE_DATA_DIR": str(folder / "data")})
+    listing = runner.invoke(
+        cli,
+        ["cards", "--json"],
+        env={"KEYSTONE_DATABASE_URL": f"sqlite:///{folder / 'keystone.sqlite3'}", "KEYSTONE_DATA_DIR": str(folder / "data")},
+    )
     assert listing.exit_code == 0, listing.output
     cards = {card["source"]: card for card in json.loads(listing.stdout)["cards"]}
     assert len(cards) == 11
@@ -74,8 +78,9 @@ def test_demo_builds_routes_and_is_rerunnable(tmp_path: Path, monkeypatch):
     assert any(card["orientation"]["decided_by"] == "curator" for card in cards.values())
     with sqlite3.connect(folder / "keystone.sqlite3") as connection:
         assert connection.execute("SELECT count(*) FROM audit_events WHERE entity = 'orientation'").fetchone()[0] >= 1
-        released = [row[0] for row in connection.execute(
-            "SELECT card_id FROM card_reviews WHERE decision IN ('accepted', 'changed')")]
+        released = [
+            row[0] for row in connection.execute("SELECT card_id FROM card_reviews WHERE decision IN ('accepted', 'changed')")
+        ]
     # ... and nothing undecided is graded, accepted or released.
     for card in cards.values():
         if card["orientation"]["decided_by"] is None:

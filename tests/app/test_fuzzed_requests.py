@@ -15,25 +15,32 @@ from typing import Any
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-FUZZ = settings(max_examples=60, deadline=None, database=None, derandomize=True,
-                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
-                                       HealthCheck.data_too_large])
+FUZZ = settings(
+    max_examples=60,
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 
 # Numbers a JSON body may carry: plausible pixel coordinates, and the hostile ones (integers
 # of hundreds of digits, NaN, infinities, values past 2**53 or a 64-bit integer).
-plausible = st.one_of(st.integers(min_value=-50, max_value=700),
-                      st.floats(min_value=-50, max_value=700, allow_nan=False))
+plausible = st.one_of(st.integers(min_value=-50, max_value=700), st.floats(min_value=-50, max_value=700, allow_nan=False))
 hostile = st.one_of(
     st.integers(min_value=-(10**400), max_value=10**400),
     st.floats(allow_nan=True, allow_infinity=True),
     st.sampled_from([2**31, 2**53, 2**53 + 1, 2**63, -(2**63) - 1, 1e300, 5e-324, math.nan, -math.inf]),
 )
 numbers = st.one_of(plausible, hostile)
-text = st.one_of(st.text(max_size=30), st.sampled_from(["", "\x00", "judge", "crop", "a" * 300, "²", "\ud800"]),
-                 st.text(st.characters(categories=["Cs"]), min_size=1, max_size=2))  # lone surrogates
+text = st.one_of(
+    st.text(max_size=30),
+    st.sampled_from(["", "\x00", "judge", "crop", "a" * 300, "²", "\ud800"]),
+    st.text(st.characters(categories=["Cs"]), min_size=1, max_size=2),
+)  # lone surrogates
 scalars = st.one_of(st.none(), st.booleans(), numbers, text)
-json_values = st.recursive(scalars, lambda inner: st.one_of(
-    st.lists(inner, max_size=5), st.dictionaries(text, inner, max_size=5)), max_leaves=25)
+json_values = st.recursive(
+    scalars, lambda inner: st.one_of(st.lists(inner, max_size=5), st.dictionaries(text, inner, max_size=5)), max_leaves=25
+)
 
 
 @st.composite
@@ -49,8 +56,6 @@ def boxes(draw: st.DrawFn) -> Any:
     if shape == "one hostile":
         box[draw(st.integers(min_value=0, max_value=3))] = draw(st.one_of(hostile, text, st.booleans(), st.none()))
     return box
-
-
 
 
 def mostly(common: st.SearchStrategy[Any], rare: st.SearchStrategy[Any]) -> st.SearchStrategy[Any]:
@@ -88,10 +93,13 @@ def crowd_calls(draw: st.DrawFn) -> list[tuple[str, str]]:
     """
     shaped = {
         "next": st.fixed_dictionaries({"kind": st.one_of(st.sampled_from(["crop", "judge"]), scalars)}),
-        "submit": st.fixed_dictionaries({
-            "token": mostly(st.just("<task>"), scalars),
-            "answer": answers,
-            "key": mostly(st.uuids().map(str), st.one_of(text, scalars))}),
+        "submit": st.fixed_dictionaries(
+            {
+                "token": mostly(st.just("<task>"), scalars),
+                "answer": answers,
+                "key": mostly(st.uuids().map(str), st.one_of(text, scalars)),
+            }
+        ),
         "undo": st.just({}),
     }
     calls = []
@@ -126,8 +134,9 @@ def test_the_crowd_api_never_answers_5xx(app, client, hostile_world, calls):
     task_token = tasks[0]["token"] if tasks else "no-open-task"
     for path, body in calls:
         body = body.replace('"<task>"', json.dumps(task_token))
-        response = client.post(f"/crowd/api/{path}", headers=crowd, data=body.encode("utf-8", "surrogatepass"),
-                               content_type="application/json")
+        response = client.post(
+            f"/crowd/api/{path}", headers=crowd, data=body.encode("utf-8", "surrogatepass"), content_type="application/json"
+        )
         assert response.status_code < 500, (path, body[:200], response.get_data(as_text=True)[:300])
         assert response.is_json, (path, response.status_code)
         if response.status_code >= 400:
@@ -135,8 +144,7 @@ def test_the_crowd_api_never_answers_5xx(app, client, hostile_world, calls):
 
 
 def _fields(draw: st.DrawFn, names: dict[str, st.SearchStrategy[str]]) -> dict[str, str]:
-    return {name: value for name, strategy in names.items()
-            if (value := draw(mostly(strategy, st.none()))) is not None}
+    return {name: value for name, strategy in names.items() if (value := draw(mostly(strategy, st.none()))) is not None}
 
 
 form_text = st.one_of(st.text(max_size=40), st.sampled_from(["", "\x00", "9" * 400, "-1", "²", "1e400", "NaN", "a" * 6000]))
@@ -151,26 +159,55 @@ coordinate_text = mostly(st.floats(min_value=-10, max_value=600).map(str), numer
 def review_forms(draw: st.DrawFn) -> tuple[str, dict[str, str]]:
     form = draw(st.sampled_from(["decide", "bulk", "dispute", "preview", "login", "people"]))
     if form == "decide":
-        fields = _fields(draw, {"choice": st.one_of(form_text, st.sampled_from(["accept", "change:few", "change:x",
-                                                                               "send_back", "reject", "change:"])),
-                                "version": version_text, "note": form_text, "kind": form_text, "action": form_text})
+        fields = _fields(
+            draw,
+            {
+                "choice": st.one_of(
+                    form_text, st.sampled_from(["accept", "change:few", "change:x", "send_back", "reject", "change:"])
+                ),
+                "version": version_text,
+                "note": form_text,
+                "kind": form_text,
+                "action": form_text,
+            },
+        )
     elif form == "bulk":
-        fields = _fields(draw, {"item": mostly(st.builds(lambda v: f"<review>:{v}", version_text),
-                                               st.builds(lambda a, b: f"{a}:{b}", numeric_text, numeric_text)),
-                                "action": st.one_of(form_text, st.sampled_from(["accept", "reject", "change"])),
-                                "grade": form_text, "note": form_text})
+        fields = _fields(
+            draw,
+            {
+                "item": mostly(
+                    st.builds(lambda v: f"<review>:{v}", version_text),
+                    st.builds(lambda a, b: f"{a}:{b}", numeric_text, numeric_text),
+                ),
+                "action": st.one_of(form_text, st.sampled_from(["accept", "reject", "change"])),
+                "grade": form_text,
+                "note": form_text,
+            },
+        )
     elif form == "dispute":
         names = {f"{half}_{corner}": coordinate_text for half in ("left", "right") for corner in ("x0", "y0", "x1", "y1")}
         fields = _fields(draw, {**names, "make_gold": st.sampled_from(["on", "off", ""]), "note": form_text})
     elif form == "preview":
-        fields = _fields(draw, {"min_grade": st.one_of(form_text, st.sampled_from(["few", "some"])),
-                                "formats": st.one_of(form_text, st.sampled_from(["webdataset", "parquet", "folder"])),
-                                "notes": form_text})
+        fields = _fields(
+            draw,
+            {
+                "min_grade": st.one_of(form_text, st.sampled_from(["few", "some"])),
+                "formats": st.one_of(form_text, st.sampled_from(["webdataset", "parquet", "folder"])),
+                "notes": form_text,
+            },
+        )
     elif form == "login":
         fields = _fields(draw, {"username": form_text, "password": form_text, "next": form_text})
     else:
-        fields = _fields(draw, {"username": form_text, "password": form_text, "display_name": form_text,
-                                "roles": st.one_of(form_text, st.sampled_from(["curator", "admin"]))})
+        fields = _fields(
+            draw,
+            {
+                "username": form_text,
+                "password": form_text,
+                "display_name": form_text,
+                "roles": st.one_of(form_text, st.sampled_from(["curator", "admin"])),
+            },
+        )
     return form, fields
 
 
@@ -184,15 +221,22 @@ def test_the_main_forms_never_answer_5xx(app, client, hostile_world, case, with_
     from review.models import CardReview
 
     form, fields = case
-    url = {"decide": f"/review/cards/{hostile_world.card_id}/decide", "bulk": "/review/bulk",
-           "dispute": f"/review/disputes/{hostile_world.aggregate_id}", "preview": "/releases/preview",
-           "login": "/auth/login", "people": "/auth/people"}[form]
+    url = {
+        "decide": f"/review/cards/{hostile_world.card_id}/decide",
+        "bulk": "/review/bulk",
+        "dispute": f"/review/disputes/{hostile_world.aggregate_id}",
+        "preview": "/releases/preview",
+        "login": "/auth/login",
+        "people": "/auth/people",
+    }[form]
     if form == "login" and fields.get("password") and fields.get("username"):
         fields["password"] = fields["password"][:12]  # each login hashes: keep the slow path short
     with app.app_context():
         version = db.session.scalar(select(CardReview.version).where(CardReview.id == hostile_world.review_id))
-    fields = {name: value.replace("<version>", str(version)).replace("<review>", str(hostile_world.review_id))
-              for name, value in fields.items()}
+    fields = {
+        name: value.replace("<version>", str(version)).replace("<review>", str(hostile_world.review_id))
+        for name, value in fields.items()
+    }
     if with_token:
         fields["csrf_token"] = hostile_world.csrf
     response = client.post(url, data=fields, query_string={"page": query, "collection": query} if query else None)

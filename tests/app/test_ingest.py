@@ -42,7 +42,9 @@ def png_bomb(path: Path, width: int = 60_000, height: int = 60_000) -> None:
         return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload))
 
     header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 1024)) + chunk(b"IEND", b""))
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 1024)) + chunk(b"IEND", b"")
+    )
 
 
 @pytest.fixture
@@ -51,7 +53,7 @@ def scans(tmp_path: Path) -> Path:
     (folder / "box 1").mkdir(parents=True)
     Image.fromarray(stereo_card()).save(folder / "1996.0009.17827.jpg", quality=92)
     Image.fromarray(stereo_card(shift=3)).save(folder / "box 1" / "card_b.png")
-    grey16 = (stereo_card()[..., 0].astype(np.uint16) * 257)
+    grey16 = stereo_card()[..., 0].astype(np.uint16) * 257
     Image.fromarray(grey16).save(folder / "box 1" / "card_c.tif")
     Image.fromarray(stereo_card(shift=6)).save(folder / "card_d.jps", format="JPEG")
     (folder / "notes.txt").write_text("not an image, ignored inside folders")
@@ -232,8 +234,9 @@ def test_real_emuseum_exports(app, runner, shared_data, tmp_path):
     card_path = tmp_path / "1996.0009.17827.png"
     Image.fromarray(stereo_card()).save(card_path)
     for name in ("keystone_mast_records.csv", "photo_infos_1370.csv"):
-        result, report = invoke(runner, "ingest", str(card_path), "--metadata",
-                                str(shared_data / "keystone_mast_metadata" / name), "--json")
+        result, report = invoke(
+            runner, "ingest", str(card_path), "--metadata", str(shared_data / "keystone_mast_metadata" / name), "--json"
+        )
         assert report["metadata"]["rows"] == 1371
         assert report["metadata"]["matched"] == 1
         assert result.exit_code == 1  # 1,370 rows have no image here, each listed
@@ -296,8 +299,10 @@ def test_named_pipes_are_rejected_without_blocking(app, runner, scans, tmp_path)
     result, report = invoke(runner, "ingest", str(scans), str(named), "--json")
     assert result.exit_code == 1 and report["ingested"] == 4
     reasons = {Path(r["path"]).name: r["reason"] for r in report["rejected"]}
-    assert reasons == {"pipe.jpg": "a named pipe (FIFO), not an image file",
-                       "named-pipe.png": "a named pipe (FIFO), not an image file"}
+    assert reasons == {
+        "pipe.jpg": "a named pipe (FIFO), not an image file",
+        "named-pipe.png": "a named pipe (FIFO), not an image file",
+    }
 
 
 def test_linked_folder_inside_a_folder_is_reported_not_skipped(app, runner, scans, tmp_path):
@@ -373,13 +378,33 @@ def test_unreadable_folders_and_files_are_rejected_items_for_an_unprivileged_use
         locked_csv.write_text("file_name,title\ncard_b.png,Falls\n")
         locked_csv.chmod(0)
         (root / "instance").mkdir()
-        env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(root / "instance"), "KEYSTONE_DATA_DIR": str(root / "data"),
-               "KEYSTONE_DATABASE_URL": f"sqlite:///{root / 'instance' / 'keystone.sqlite3'}",
-               "KEYSTONE_SECRET_KEY": "test-secret", "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+        env = {
+            **os.environ,
+            "KEYSTONE_INSTANCE_PATH": str(root / "instance"),
+            "KEYSTONE_DATA_DIR": str(root / "data"),
+            "KEYSTONE_DATABASE_URL": f"sqlite:///{root / 'instance' / 'keystone.sqlite3'}",
+            "KEYSTONE_SECRET_KEY": "test-secret",
+            "PYTHONPATH": str(Path(__file__).resolve().parents[2]),
+        }
         done = subprocess.run(
-            [sys.executable, "-c", UNPRIVILEGED_INGEST, str(root), str(account.pw_uid), str(account.pw_gid),
-             str(work), str(locked_file), str(locked_folder), "--metadata", str(locked_csv)],
-            env=env, capture_output=True, text=True, timeout=300, check=False,
+            [
+                sys.executable,
+                "-c",
+                UNPRIVILEGED_INGEST,
+                str(root),
+                str(account.pw_uid),
+                str(account.pw_gid),
+                str(work),
+                str(locked_file),
+                str(locked_folder),
+                "--metadata",
+                str(locked_csv),
+            ],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
         )
         assert done.returncode == 0, done.stderr[-3000:]
         outcome = json.loads(done.stdout.strip().splitlines()[-1])
@@ -404,8 +429,7 @@ def test_unreadable_folders_and_files_are_rejected_items_for_an_unprivileged_use
 
 def _metadata_report(runner, scans, csv_path):  # type: ignore[no-untyped-def]
     result, report = invoke(runner, "ingest", str(scans), "--metadata", str(csv_path), "--json")
-    reasons = {r["path"].rsplit(":", 1)[-1] if r["path"] != str(csv_path) else "file": r["reason"]
-               for r in report["rejected"]}
+    reasons = {r["path"].rsplit(":", 1)[-1] if r["path"] != str(csv_path) else "file": r["reason"] for r in report["rejected"]}
     return result, report, reasons
 
 
@@ -425,8 +449,12 @@ def test_unterminated_quote_rejects_its_row_alone(app, runner, scans, tmp_path):
     assert "line 3" in reasons["2"] and "unterminated quote" in reasons["2"]
     with app.app_context():
         titles = dict(db.session.execute(select(Card.source_name, Card.source_metadata["title"].as_string())).all())
-    assert titles == {"card_b.png": "Falls", "card_c.tif": None, "card_d.jps": "Quoted, fine",
-                      "1996.0009.17827.jpg": "End of the Trail"}
+    assert titles == {
+        "card_b.png": "Falls",
+        "card_c.tif": None,
+        "card_d.jps": "Quoted, fine",
+        "1996.0009.17827.jpg": "End of the Trail",
+    }
 
 
 def test_stray_quote_that_would_merge_rows_is_undone_line_by_line(app, runner, scans, tmp_path):
@@ -485,8 +513,10 @@ def test_duplicated_column_is_an_error_for_that_column_and_the_rest_loads(app, r
     csv_path.write_text("file_name,Title,photographer,title \ncard_b.png,Falls,Kilburn,Cascade\n")
     result, report, reasons = _metadata_report(runner, scans, csv_path)
     assert result.exit_code == 1 and report["metadata"]["matched"] == 1
-    assert reasons == {"file": "metadata: column 'Title / title' appears 2 times (columns 2 and 4): none of its "
-                               "values is loaded; rename or remove the copies and ingest the file again"}
+    assert reasons == {
+        "file": "metadata: column 'Title / title' appears 2 times (columns 2 and 4): none of its "
+        "values is loaded; rename or remove the copies and ingest the file again"
+    }
     with app.app_context():
         card = db.session.scalar(select(Card).where(Card.source_name == "card_b.png"))
         assert card.source_metadata == {"file_name": "card_b.png", "photographer": "Kilburn", "creator": "Kilburn"}

@@ -26,9 +26,10 @@ def test_train_inpainting_checkpoints_and_resumes(tmp_path):
 
 def test_train_on_the_catalogues_own_gd_images(runner, tmp_path, make_card_with_views) -> None:  # type: ignore[no-untyped-def]
     card_id, record = make_card_with_views(160, "few")
-    result = runner.invoke(train_inpainting_command,
-                           ["--out", str(tmp_path / "run"), "--source", "catalogue", "--size", "32", "--steps", "2",
-                            "--json"])
+    result = runner.invoke(
+        train_inpainting_command,
+        ["--out", str(tmp_path / "run"), "--source", "catalogue", "--size", "32", "--steps", "2", "--json"],
+    )
     assert result.exit_code == 0, result.output
     document = json.loads(result.output)
     assert document["source"] == "catalogue" and document["step"] == 2

@@ -10,17 +10,26 @@ from app.json_body import MAX_DEPTH, MAX_SAFE_INTEGER, JSONBodyError, parse_json
 
 
 def test_ordinary_bodies_parse_as_json_does():
-    for raw in ('{"token": "abc", "key": "k-12345678", "answer": {"left": [0, 0.5, 280, 200], "right": [1e2, 0, 590, 2e2]}}',
-                '{"kind": "crop"}', "[]", '{"a": [[[[1]]]], "b": null, "c": true, "d": "\\u00e9\\ud83d\\ude00"}',
-                f'{{"n": {MAX_SAFE_INTEGER}, "m": {-MAX_SAFE_INTEGER}}}'):
+    for raw in (
+        '{"token": "abc", "key": "k-12345678", "answer": {"left": [0, 0.5, 280, 200], "right": [1e2, 0, 590, 2e2]}}',
+        '{"kind": "crop"}',
+        "[]",
+        '{"a": [[[[1]]]], "b": null, "c": true, "d": "\\u00e9\\ud83d\\ude00"}',
+        f'{{"n": {MAX_SAFE_INTEGER}, "m": {-MAX_SAFE_INTEGER}}}',
+    ):
         assert parse_json(raw.encode()) == json.loads(raw)
 
 
 def test_depth_is_bounded_and_a_probe_deep_enough_to_overflow_the_parser_is_400():
     at_limit = "[" * MAX_DEPTH + "]" * MAX_DEPTH
     assert parse_json(at_limit.encode()) == json.loads(at_limit)
-    for raw in ("[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1), '{"a":' * 40 + "1" + "}" * 40,
-                '[{"a": [' * 11 + "1" + "]}]" * 11, "[" * 100_000 + "]" * 100_000, '{"a":' * 100_000):
+    for raw in (
+        "[" * (MAX_DEPTH + 1) + "]" * (MAX_DEPTH + 1),
+        '{"a":' * 40 + "1" + "}" * 40,
+        '[{"a": [' * 11 + "1" + "]}]" * 11,
+        "[" * 100_000 + "]" * 100_000,
+        '{"a":' * 100_000,
+    ):
         with pytest.raises(JSONBodyError, match=f"Expected JSON nested at most {MAX_DEPTH} levels deep, got "):
             parse_json(raw.encode())
     # Brackets in strings do not count, however many.
@@ -28,16 +37,19 @@ def test_depth_is_bounded_and_a_probe_deep_enough_to_overflow_the_parser_is_400(
     assert parse_json(json.dumps([["[" * 40]] * 20).encode()) == [["[" * 40]] * 20
 
 
-@pytest.mark.parametrize(("raw", "message"), [
-    ("[NaN]", "Expected finite numbers in the JSON body, got NaN."),
-    ("[Infinity]", "got Infinity."),
-    ("[-Infinity]", "got -Infinity."),
-    ("[1e400]", "got 1e400 (out of range)."),
-    ("[-1.5e309]", "got -1.5e309 (out of range)."),
-    (f"[{MAX_SAFE_INTEGER + 1}]", "Expected whole numbers within +-2**53 in the JSON body, got one of 16 digits."),
-    ("[" + "9" * 400 + "]", "got one of 400 digits."),
-    ("[-" + "1" * 5000 + "]", "got one of 5000 digits."),
-])
+@pytest.mark.parametrize(
+    ("raw", "message"),
+    [
+        ("[NaN]", "Expected finite numbers in the JSON body, got NaN."),
+        ("[Infinity]", "got Infinity."),
+        ("[-Infinity]", "got -Infinity."),
+        ("[1e400]", "got 1e400 (out of range)."),
+        ("[-1.5e309]", "got -1.5e309 (out of range)."),
+        (f"[{MAX_SAFE_INTEGER + 1}]", "Expected whole numbers within +-2**53 in the JSON body, got one of 16 digits."),
+        ("[" + "9" * 400 + "]", "got one of 400 digits."),
+        ("[-" + "1" * 5000 + "]", "got one of 5000 digits."),
+    ],
+)
 def test_numbers_must_be_finite_and_bounded(raw, message):
     with pytest.raises(JSONBodyError) as caught:
         parse_json(raw.encode())
@@ -45,16 +57,19 @@ def test_numbers_must_be_finite_and_bounded(raw, message):
     assert caught.value.code == 400
 
 
-@pytest.mark.parametrize(("raw", "reason"), [
-    (b'{"token": "x", "answer": ', "Expecting value at character 25"),
-    (b"{'single': 1}", "Expecting property name enclosed in double quotes"),
-    (b"[1, 2,]", "Expecting value"),
-    (b"\xff\xfe\xfa", "not UTF-8 text"),
-    ('{"a": "\\u0000"}'.encode("utf-16"), "not UTF-8 text"),  # a NUL escape in UTF-16 would slip past
-    (b"", "Expecting value at character 0"),
-    (b'{"a": 1} {"b": 2}', "Extra data"),
-    (b'["\x01"]', "Invalid control character"),
-])
+@pytest.mark.parametrize(
+    ("raw", "reason"),
+    [
+        (b'{"token": "x", "answer": ', "Expecting value at character 25"),
+        (b"{'single': 1}", "Expecting property name enclosed in double quotes"),
+        (b"[1, 2,]", "Expecting value"),
+        (b"\xff\xfe\xfa", "not UTF-8 text"),
+        ('{"a": "\\u0000"}'.encode("utf-16"), "not UTF-8 text"),  # a NUL escape in UTF-16 would slip past
+        (b"", "Expecting value at character 0"),
+        (b'{"a": 1} {"b": 2}', "Extra data"),
+        (b'["\x01"]', "Invalid control character"),
+    ],
+)
 def test_malformed_json_says_where(raw, reason):
     with pytest.raises(JSONBodyError) as caught:
         parse_json(raw)
@@ -72,8 +87,10 @@ def test_the_loader_refuses_bodies_of_the_wrong_type_and_unstorable_text(app):
         (b'{"a": ["\\udbff"]}', "application/json", "may not contain lone surrogates"),
     ]
     for raw, content_type, message in cases:
-        with (app.test_request_context("/crowd/api/next", method="POST", data=raw, content_type=content_type),
-              pytest.raises(JSONBodyError, match=message)):
+        with (
+            app.test_request_context("/crowd/api/next", method="POST", data=raw, content_type=content_type),
+            pytest.raises(JSONBodyError, match=message),
+        ):
             load_json_body()
     with app.test_request_context("/crowd/api/next", method="POST", data=b"{}", content_type="text/plain"):
         with pytest.raises(NotJSONError) as caught:

@@ -23,8 +23,7 @@ METHODS = ("GET", "POST", "PUT", "PATCH", "DELETE")
 
 
 def _url(rule: str, int_value: str) -> str:
-    return re.sub(r"<(?:(\w+)(?:\([^)]*\))?:)?(\w+)>",
-                  lambda m: int_value if m.group(1) == "int" else "x", rule)
+    return re.sub(r"<(?:(\w+)(?:\([^)]*\))?:)?(\w+)>", lambda m: int_value if m.group(1) == "int" else "x", rule)
 
 
 def _id_rules(app):  # type: ignore[no-untyped-def]
@@ -38,9 +37,19 @@ def test_every_int_in_a_route_is_a_database_id(app):
     rules = _id_rules(app)
     endpoints = {rule.endpoint for rule in rules}
     # The card pages of the catalogue, the review and the viewer, the images, the disputes.
-    assert {"catalog.card_page", "catalog.original_image", "catalog.thumb_image", "catalog.artifact_image",
-            "review.card", "review.decide_card", "review.history", "review.anaglyph", "review.dispute",
-            "viewer.card_view", "viewer.view_file"} <= endpoints
+    assert {
+        "catalog.card_page",
+        "catalog.original_image",
+        "catalog.thumb_image",
+        "catalog.artifact_image",
+        "review.card",
+        "review.decide_card",
+        "review.history",
+        "review.anaglyph",
+        "review.dispute",
+        "viewer.card_view",
+        "viewer.view_file",
+    } <= endpoints
     for rule in rules:
         converters = [c for c in rule._converters.values() if isinstance(c, IntegerConverter)]
         assert converters and all(type(c) is DatabaseIdConverter for c in converters), rule.rule
@@ -60,13 +69,19 @@ def test_ids_outside_the_database_range_are_404_on_every_route(app, client, host
 @pytest.mark.both_databases
 def test_the_largest_id_both_databases_hold_is_an_ordinary_missing_card(client, hostile_world):
     largest = DATABASE_ID_MAX
-    for url in (f"/cards/{largest}", f"/cards/{largest}/image/thumb", f"/review/cards/{largest}",
-                f"/viewer/cards/{largest}", f"/review/disputes/{largest}"):
+    for url in (
+        f"/cards/{largest}",
+        f"/cards/{largest}/image/thumb",
+        f"/review/cards/{largest}",
+        f"/viewer/cards/{largest}",
+        f"/review/disputes/{largest}",
+    ):
         response = client.get(url)
         assert response.status_code == 404, url
         assert str(largest) in response.get_data(as_text=True)
-    decided = client.post(f"/review/cards/{largest}/decide", json={"action": "accept", "version": 1},
-                          headers={"X-CSRFToken": hostile_world.csrf})
+    decided = client.post(
+        f"/review/cards/{largest}/decide", json={"action": "accept", "version": 1}, headers={"X-CSRFToken": hostile_world.csrf}
+    )
     assert decided.status_code == 404 and "has no review yet" in decided.get_json()["error"]["message"]
 
 
@@ -81,8 +96,10 @@ def test_a_huge_id_is_a_404_page_that_says_so(client, hostile_world):
 def test_a_database_id_converter_may_narrow_its_range_but_not_widen_it(app):
     from werkzeug.routing import Map, Rule
 
-    urls = Map([Rule("/a/<int(max=99):n>", endpoint="a"), Rule("/b/<int(max=99999999999):n>", endpoint="b")],
-               converters={"int": DatabaseIdConverter}).bind("localhost")
+    urls = Map(
+        [Rule("/a/<int(max=99):n>", endpoint="a"), Rule("/b/<int(max=99999999999):n>", endpoint="b")],
+        converters={"int": DatabaseIdConverter},
+    ).bind("localhost")
     assert urls.match("/a/99") == ("a", {"n": 99})
     assert urls.match(f"/b/{DATABASE_ID_MAX}") == ("b", {"n": DATABASE_ID_MAX})
     for url in ("/a/100", f"/b/{DATABASE_ID_MAX + 1}", "/a/0"):
@@ -107,16 +124,36 @@ def test_parse_positive_int_reads_ids_in_range():
 
 
 CATALOGUE_QUERIES = [
-    ("page=-1", 400), ("page=abc", 400), ("page=0", 400), ("page=%C2%B2", 400), ("page=1e9", 400),
-    ("page=" + "9" * 30, 400), (f"page={DATABASE_ID_MAX}", 404), ("page=2", 404),
-    ("collection=" + "9" * 30, 400), (f"collection={DATABASE_ID_MAX + 1}", 400), (f"collection={DATABASE_ID_MAX}", 404),
-    ("state=lost", 400), ("stage=paint&status=done", 400), ("stage=filter&status=maybe", 400),
-    ("state=" + "x" * 5000, 400), ("page=1&page=abc", 200), ("state=pass&stage=grade&status=done", 200),
+    ("page=-1", 400),
+    ("page=abc", 400),
+    ("page=0", 400),
+    ("page=%C2%B2", 400),
+    ("page=1e9", 400),
+    ("page=" + "9" * 30, 400),
+    (f"page={DATABASE_ID_MAX}", 404),
+    ("page=2", 404),
+    ("collection=" + "9" * 30, 400),
+    (f"collection={DATABASE_ID_MAX + 1}", 400),
+    (f"collection={DATABASE_ID_MAX}", 404),
+    ("state=lost", 400),
+    ("stage=paint&status=done", 400),
+    ("stage=filter&status=maybe", 400),
+    ("state=" + "x" * 5000, 400),
+    ("page=1&page=abc", 200),
+    ("state=pass&stage=grade&status=done", 200),
 ]
 REVIEW_QUERIES = [
-    ("page=-1", 400), ("page=abc", 400), ("page=%C2%B2", 400), ("page=" + "9" * 30, 400),
-    (f"page={DATABASE_ID_MAX}", 404), ("collection=" + "9" * 30, 400), (f"collection={DATABASE_ID_MAX}", 200),
-    ("grade=great", 400), ("decision=maybe", 400), ("reason=" + "x" * 300, 400), ("reason=%00", 400),
+    ("page=-1", 400),
+    ("page=abc", 400),
+    ("page=%C2%B2", 400),
+    ("page=" + "9" * 30, 400),
+    (f"page={DATABASE_ID_MAX}", 404),
+    ("collection=" + "9" * 30, 400),
+    (f"collection={DATABASE_ID_MAX}", 200),
+    ("grade=great", 400),
+    ("decision=maybe", 400),
+    ("reason=" + "x" * 300, 400),
+    ("reason=%00", 400),
     ("grade=some&decision=all", 200),
 ]
 
@@ -124,8 +161,11 @@ REVIEW_QUERIES = [
 @pytest.mark.both_databases
 def test_bad_query_strings_are_400_or_404_never_500(client, hostile_world):
     wrong = []
-    for path, cases in (("/cards", CATALOGUE_QUERIES), ("/review/", REVIEW_QUERIES),
-                        (f"/review/cards/{hostile_world.card_id}", REVIEW_QUERIES)):
+    for path, cases in (
+        ("/cards", CATALOGUE_QUERIES),
+        ("/review/", REVIEW_QUERIES),
+        (f"/review/cards/{hostile_world.card_id}", REVIEW_QUERIES),
+    ):
         for query, status in cases:
             if path.startswith("/review/cards/") and (status == 404 or query.startswith("page=")):
                 status = 200  # a card page has no pages: it reads the queue's filters, not its page
@@ -150,23 +190,29 @@ def test_review_decisions_with_absurd_versions_and_selections(client, hostile_wo
     for item in ("9" * 30 + ":1", "1:" + "9" * 5000, "²:1", "1"):
         response = client.post("/review/bulk", data={"item": item, "action": "accept", "csrf_token": hostile_world.csrf})
         assert response.status_code == 400 and "review:version" in response.get_data(as_text=True)
-    not_a_list = client.post("/review/bulk", json={"items": {"review": 1}, "action": "accept"},
-                             headers={"X-CSRFToken": hostile_world.csrf})
+    not_a_list = client.post(
+        "/review/bulk", json={"items": {"review": 1}, "action": "accept"}, headers={"X-CSRFToken": hostile_world.csrf}
+    )
     assert not_a_list.status_code == 400 and "list" in not_a_list.get_json()["error"]["message"]
-    accepted = client.post(url, json={"action": "accept", "version": hostile_world.review_version},
-                           headers={"X-CSRFToken": hostile_world.csrf})
+    accepted = client.post(
+        url, json={"action": "accept", "version": hostile_world.review_version}, headers={"X-CSRFToken": hostile_world.csrf}
+    )
     assert accepted.status_code == 200 and accepted.get_json()["decision"] == "accepted"
 
 
 @pytest.mark.both_databases
 def test_nul_characters_are_400_in_paths_query_strings_forms_and_json(client, csrf_token, hostile_world):
-    for url in ("/crowd/invite/abc%00def", "/releases/1.0%00/README.md", "/cards?state=pass%00",
-                "/crowd/prolific?PROLIFIC_PID=a%00b&STUDY_ID=s&SESSION_ID=t", "/review/?reason=a%00"):
+    for url in (
+        "/crowd/invite/abc%00def",
+        "/releases/1.0%00/README.md",
+        "/cards?state=pass%00",
+        "/crowd/prolific?PROLIFIC_PID=a%00b&STUDY_ID=s&SESSION_ID=t",
+        "/review/?reason=a%00",
+    ):
         response = client.get(url)
         assert response.status_code == 400, url
         assert "may not contain NUL characters" in response.get_data(as_text=True)
-    login = client.post("/auth/login", data={"username": "admin\x00", "password": "x" * 10,
-                                             "csrf_token": hostile_world.csrf})
+    login = client.post("/auth/login", data={"username": "admin\x00", "password": "x" * 10, "csrf_token": hostile_world.csrf})
     assert login.status_code == 400 and "NUL" in login.get_data(as_text=True)
     crowd = {"X-Crowd-Token": hostile_world.worker_token}
     for body in ({"kind": "crop\x00"}, {"token": "a\x00", "key": "nul-key-123", "answer": {}}, {"a\x00": 1}):
@@ -179,13 +225,17 @@ def test_nul_characters_are_400_in_paths_query_strings_forms_and_json(client, cs
 def test_lone_surrogates_in_json_text_are_400(client, hostile_world):
     # Valid JSON escapes that no database can encode (UnicodeEncodeError on SQLite and PostgreSQL).
     crowd = {"X-Crowd-Token": hostile_world.worker_token}
-    for body in ('{"token": "\\ud800", "key": "surrogate-1", "answer": {}}',
-                 '{"token": "x", "key": "\\udfffsurrogate", "answer": {}}', '{"kind": "crop", "\\udc80": 1}'):
+    for body in (
+        '{"token": "\\ud800", "key": "surrogate-1", "answer": {}}',
+        '{"token": "x", "key": "\\udfffsurrogate", "answer": {}}',
+        '{"kind": "crop", "\\udc80": 1}',
+    ):
         response = client.post("/crowd/api/submit", headers=crowd, data=body, content_type="application/json")
         assert response.status_code == 400, body
         assert "lone surrogates" in response.get_json()["error"]["message"]
-    paired = client.post("/crowd/api/next", headers=crowd, data='{"kind": "crop", "note": "\\ud83d\\ude00"}',
-                         content_type="application/json")
+    paired = client.post(
+        "/crowd/api/next", headers=crowd, data='{"kind": "crop", "note": "\\ud83d\\ude00"}', content_type="application/json"
+    )
     assert paired.status_code == 200  # a surrogate pair is one ordinary character (an emoji)
 
 
@@ -207,9 +257,14 @@ def test_odd_urls_headers_and_cookies_are_4xx(client, hostile_world):
         response = client.post("/crowd/api/next", headers={"X-Crowd-Token": token}, json={})
         assert response.status_code == 403 and "worker token" in response.get_json()["error"]["message"]
     thumb = f"/cards/{hostile_world.card_id}/image/thumb"
-    for headers in ({"Range": "bytes=9999999999999999999999-"}, {"Range": "bytes=-0"}, {"If-None-Match": '"' * 1000},
-                    {"If-Modified-Since": "Mon, 99 Foo 99999 99:99:99 GMT"}, {"If-Range": "x"},
-                    {"Accept": "application/json;q=NaN"}):
+    for headers in (
+        {"Range": "bytes=9999999999999999999999-"},
+        {"Range": "bytes=-0"},
+        {"If-None-Match": '"' * 1000},
+        {"If-Modified-Since": "Mon, 99 Foo 99999 99:99:99 GMT"},
+        {"If-Range": "x"},
+        {"Accept": "application/json;q=NaN"},
+    ):
         assert client.get(thumb, headers=headers).status_code in (200, 206, 416), headers
     client.set_cookie("session", "garbage")
     client.set_cookie("remember_token", "1|" + "a" * 100)
@@ -243,8 +298,9 @@ def test_wrong_methods_are_405_on_every_route(app, client, hostile_world):
 
 
 def test_a_64_mb_form_is_refused_before_it_is_read(client):
-    response = client.post("/auth/login", data=b"username=" + b"x" * (64 * 1024 * 1024),
-                           content_type="application/x-www-form-urlencoded")
+    response = client.post(
+        "/auth/login", data=b"username=" + b"x" * (64 * 1024 * 1024), content_type="application/x-www-form-urlencoded"
+    )
     assert response.status_code == 413 and response.mimetype == "text/html"
     assert "the limit here is 1,048,576 bytes" in response.get_data(as_text=True)
 
@@ -255,20 +311,26 @@ def test_the_crowd_api_takes_at_most_64_kb(client, hostile_world):
     assert len(padded) < 64 * 1024
     assert client.post("/crowd/api/next", headers=headers, data=padded, content_type="application/json").status_code == 200
     for size in (64 * 1024 + 1, 64 * 1024 * 1024):
-        response = client.post("/crowd/api/submit", headers=headers, data=b"{" + b" " * size + b"}",
-                               content_type="application/json")
+        response = client.post(
+            "/crowd/api/submit", headers=headers, data=b"{" + b" " * size + b"}", content_type="application/json"
+        )
         assert response.status_code == 413
         assert response.get_json()["error"]["message"] == (
-            f"This request's body is {size + 2:,} bytes; the limit here is 65,536 bytes.")
+            f"This request's body is {size + 2:,} bytes; the limit here is 65,536 bytes."
+        )
 
 
 def test_a_chunked_body_is_cut_off_at_the_limit(client, hostile_world):
     # No Content-Length: the server says the stream ends (wsgi.input_terminated), Werkzeug reads
     # it only up to the limit, then answers 413.
     body = b'{"kind": "judge", "padding": "' + b"x" * (200 * 1024) + b'"}'
-    response = client.post("/crowd/api/next", input_stream=io.BytesIO(body), content_type="application/json",
-                           headers={"X-Crowd-Token": hostile_world.worker_token},
-                           environ_overrides={"wsgi.input_terminated": True})
+    response = client.post(
+        "/crowd/api/next",
+        input_stream=io.BytesIO(body),
+        content_type="application/json",
+        headers={"X-Crowd-Token": hostile_world.worker_token},
+        environ_overrides={"wsgi.input_terminated": True},
+    )
     assert response.status_code == 413 and response.get_json()["error"]["code"] == 413
 
 
@@ -277,8 +339,9 @@ def test_the_limits_come_from_the_environment(monkeypatch, tmp_path):
 
     monkeypatch.setenv("KEYSTONE_MAX_REQUEST_BYTES", "2048")
     monkeypatch.setenv("KEYSTONE_API_MAX_BYTES", "512")
-    app = create_app({"SQLALCHEMY_DATABASE_URI": f"sqlite:///{tmp_path / 'k.sqlite3'}", "SECRET_KEY": "x"},
-                     instance_path=tmp_path / "instance")
+    app = create_app(
+        {"SQLALCHEMY_DATABASE_URI": f"sqlite:///{tmp_path / 'k.sqlite3'}", "SECRET_KEY": "x"}, instance_path=tmp_path / "instance"
+    )
     assert app.config["MAX_CONTENT_LENGTH"] == 2048 and app.config["KEYSTONE_API_MAX_BYTES"] == 512
     client = app.test_client()
     assert client.post("/crowd/api/next", data="x" * 513, content_type="application/json").status_code == 413
@@ -296,7 +359,8 @@ def test_deeply_nested_json_is_400_everywhere(client, hostile_world):
         response = client.post(f"/crowd/api/{path}", headers=crowd, data=nested, content_type="application/json")
         assert response.status_code == 400
         assert response.get_json()["error"]["message"] == (
-            "Expected JSON nested at most 32 levels deep, got one nested too deep to parse.")
+            "Expected JSON nested at most 32 levels deep, got one nested too deep to parse."
+        )
     shallow_but_too_deep = "[" * 33 + "]" * 33
     response = client.post("/crowd/api/next", headers=crowd, data=shallow_but_too_deep, content_type="application/json")
     assert response.get_json()["error"]["message"] == "Expected JSON nested at most 32 levels deep, got deeper."
@@ -331,15 +395,20 @@ def test_absurd_box_coordinates_are_400_and_store_nothing(app, client, hostile_w
     crowd = {"X-Crowd-Token": hostile_world.worker_token}
     task = client.post("/crowd/api/next", headers=crowd, json={"kind": "crop"}).get_json()["tasks"][0]
     for coordinate, message in ABSURD_COORDINATES:
-        body = (f'{{"token": "{task["token"]}", "key": "absurd-box-1", '
-                f'"answer": {{"left": [0, 0, {coordinate}, 100], "right": [300, 0, 590, 200]}}}}')
+        body = (
+            f'{{"token": "{task["token"]}", "key": "absurd-box-1", '
+            f'"answer": {{"left": [0, 0, {coordinate}, 100], "right": [300, 0, 590, 200]}}}}'
+        )
         response = client.post("/crowd/api/submit", headers=crowd, data=body, content_type="application/json")
         assert response.status_code == 400, (coordinate[:20], response.get_data(as_text=True)[:300])
         assert message in response.get_json()["error"]["message"], coordinate[:20]
     with app.app_context():
         assert db.session.scalar(select(func.count()).select_from(Answer)) == 0
-    good = client.post("/crowd/api/submit", headers=crowd, json={
-        "token": task["token"], "key": "sane-box-1", "answer": {"left": [0, 0, 280, 200], "right": [300, 0, 590, 200]}})
+    good = client.post(
+        "/crowd/api/submit",
+        headers=crowd,
+        json={"token": task["token"], "key": "sane-box-1", "answer": {"left": [0, 0, 280, 200], "right": [300, 0, 590, 200]}},
+    )
     assert good.status_code == 201
 
 
@@ -382,8 +451,12 @@ def test_images_are_served_when_the_preview_cache_cannot_be_written(app, client,
     crowd = {"X-Crowd-Token": hostile_world.worker_token}
     task = client.post("/crowd/api/next", headers=crowd, json={"kind": "crop"}).get_json()["tasks"][0]
     with caplog.at_level(logging.WARNING, logger=app.logger.name):
-        for url in (f"/cards/{hostile_world.card_id}/image/original", f"/cards/{hostile_world.card_id}/image/thumb",
-                    f"/cards/{hostile_world.crop_card_id}/image/thumb", task["image_url"]):
+        for url in (
+            f"/cards/{hostile_world.card_id}/image/original",
+            f"/cards/{hostile_world.card_id}/image/thumb",
+            f"/cards/{hostile_world.crop_card_id}/image/thumb",
+            task["image_url"],
+        ):
             response = client.get(url)
             assert response.status_code == 200, url
             assert response.mimetype == "image/jpeg" and response.data[:2] == b"\xff\xd8"
@@ -424,9 +497,11 @@ def test_an_unhandled_exception_is_logged_and_a_bare_500(app, client, caplog):
         api = client.get("/crowd/api/test-broken")
         page = client.get("/test-broken")
     assert api.status_code == 500 and api.get_json()["error"] == {
-        "code": 500, "name": "Internal Server Error",
+        "code": 500,
+        "name": "Internal Server Error",
         "message": "The server encountered an internal error and was unable to complete your request. "
-                   "Either the server is overloaded or there is an error in the application."}
+        "Either the server is overloaded or there is an error in the application.",
+    }
     assert page.status_code == 500 and page.mimetype == "text/html"
     for response in (api, page):
         text = response.get_data(as_text=True)
@@ -453,10 +528,24 @@ def test_an_error_page_that_cannot_render_falls_back_to_a_bare_one(app, client, 
 @pytest.mark.both_databases
 def test_a_curators_dispute_answer_with_absurd_coordinates_is_400(client, hostile_world):
     url = f"/review/disputes/{hostile_world.aggregate_id}"
-    sane = {"left_x0": "0", "left_y0": "0", "left_x1": "280", "left_y1": "200",
-            "right_x0": "300", "right_y0": "0", "right_x1": "590", "right_y1": "200"}
-    for value, message in (("9" * 400, "finite number"), ("1e400", "finite number"), ("nan", "finite number"),
-                           ("-inf", "finite number"), ("1e300", "inside the 596x200 image"), ("²", "a number")):
+    sane = {
+        "left_x0": "0",
+        "left_y0": "0",
+        "left_x1": "280",
+        "left_y1": "200",
+        "right_x0": "300",
+        "right_y0": "0",
+        "right_x1": "590",
+        "right_y1": "200",
+    }
+    for value, message in (
+        ("9" * 400, "finite number"),
+        ("1e400", "finite number"),
+        ("nan", "finite number"),
+        ("-inf", "finite number"),
+        ("1e300", "inside the 596x200 image"),
+        ("²", "a number"),
+    ):
         response = client.post(url, data={**sane, "right_x1": value, "csrf_token": hostile_world.csrf})
         assert response.status_code == 400, (value[:20], response.status_code)
         assert message in response.get_data(as_text=True), value[:20]

@@ -14,9 +14,16 @@ pytestmark = pytest.mark.both_databases
 
 def _card(collection: Collection, content_hash: str = "a" * 64, **overrides) -> Card:
     values = dict(
-        collection=collection, content_hash=content_hash, stored_path=f"originals/{content_hash[:2]}/{content_hash}.jpg",
-        source_name="card.jpg", source_path="/scans/card.jpg", width=1400, height=700, image_format="JPEG",
-        byte_size=12345, source_metadata={"Title": "Niagara", "Subjects": "Falls\nRivers", "extra column": "kept"},
+        collection=collection,
+        content_hash=content_hash,
+        stored_path=f"originals/{content_hash[:2]}/{content_hash}.jpg",
+        source_name="card.jpg",
+        source_path="/scans/card.jpg",
+        width=1400,
+        height=700,
+        image_format="JPEG",
+        byte_size=12345,
+        source_metadata={"Title": "Niagara", "Subjects": "Falls\nRivers", "extra column": "kept"},
     )
     values.update(overrides)
     return Card(**values)
@@ -28,9 +35,20 @@ def test_card_round_trip_with_metadata_and_results(app):
         card = _card(collection)
         db.session.add(card)
         db.session.flush()
-        db.session.add(StageResult(card_id=card.id, stage="filter", param_hash="0123456789abcdef", status="done",
-                                   outcome="pass", reason="pass", metrics={"good_match_fraction": 0.25, "denominator": "keypoints_left"},
-                                   artifacts={"left": "derived/x/left.jpg"}, seconds=0.2, code_version="0.1.0"))
+        db.session.add(
+            StageResult(
+                card_id=card.id,
+                stage="filter",
+                param_hash="0123456789abcdef",
+                status="done",
+                outcome="pass",
+                reason="pass",
+                metrics={"good_match_fraction": 0.25, "denominator": "keypoints_left"},
+                artifacts={"left": "derived/x/left.jpg"},
+                seconds=0.2,
+                code_version="0.1.0",
+            )
+        )
         db.session.commit()
         db.session.expire_all()
         loaded = db.session.scalar(select(Card).where(Card.content_hash == "a" * 64))

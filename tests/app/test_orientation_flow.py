@@ -40,9 +40,19 @@ def _approve_judge(app, card_id: int, batch_id: int, label: dict, state: str = "
     from annotation.models import Aggregate
 
     with app.app_context():
-        db.session.add(Aggregate(batch_id=batch_id, card_id=card_id, kind="judge", label=label,
-                                 posterior={"upside_down": 0.99, "inverted": 0.98}, confident=state == "approved",
-                                 state=state, answers=5, reasons="" if state == "approved" else "inverted: 0.6 < 0.95"))
+        db.session.add(
+            Aggregate(
+                batch_id=batch_id,
+                card_id=card_id,
+                kind="judge",
+                label=label,
+                posterior={"upside_down": 0.99, "inverted": 0.98},
+                confident=state == "approved",
+                state=state,
+                answers=5,
+                reasons="" if state == "approved" else "inverted: 0.6 < 0.95",
+            )
+        )
         db.session.commit()
 
 
@@ -61,8 +71,7 @@ def flow_cards(tmp_path: Path, runner) -> Path:  # type: ignore[no-untyped-def]
     return folder
 
 
-def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
-        app, runner, client, login, csrf_token, flow_cards):  # type: ignore[no-untyped-def]
+def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(app, runner, client, login, csrf_token, flow_cards):  # type: ignore[no-untyped-def]
     first = _run(runner)
     stages = {s["stage"]: s for s in first["stages"]}
     assert [s["stage"] for s in first["stages"]] == ["filter", "orientation", "rectify", "disparity", "grade"]
@@ -94,38 +103,49 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     ids = {name: card["id"] for name, card in cards.items()}
     # The crowd: the turned card is upside down (the judge asked the eye order); the negative is
     # inverted, and the judge did not ask the eye order: it stays undecided until a person says.
-    _approve_judge(app, ids["turned.png"], batch_doc["batch"],
-                   {"is_stereo": True, "upside_down": True, "inverted": False, "swapped": False})
-    _approve_judge(app, ids["negative.png"], batch_doc["batch"],
-                   {"is_stereo": True, "upside_down": False, "inverted": True})
+    _approve_judge(
+        app, ids["turned.png"], batch_doc["batch"], {"is_stereo": True, "upside_down": True, "inverted": False, "swapped": False}
+    )
+    _approve_judge(app, ids["negative.png"], batch_doc["batch"], {"is_stereo": True, "upside_down": False, "inverted": True})
     # A curator decides the upright card on its review page (a form POST with the CSRF token).
     curator = login("curator")
     page = client.get(f"/review/cards/{ids['upright.png']}")
     assert page.status_code == 200 and 'id="orientation-form"' in page.get_data(as_text=True)
     token = csrf_token(f"/review/cards/{ids['upright.png']}")
-    refused = client.post(f"/review/cards/{ids['upright.png']}/orientation",
-                          data={"upside_down": "no", "inverted": "no", "swapped": "no"})
+    refused = client.post(
+        f"/review/cards/{ids['upright.png']}/orientation", data={"upside_down": "no", "inverted": "no", "swapped": "no"}
+    )
     assert refused.status_code == 400  # no CSRF token
-    response = client.post(f"/review/cards/{ids['upright.png']}/orientation",
-                           data={"upside_down": "no", "inverted": "no", "swapped": "no", "note": "looked at it",
-                                 "csrf_token": token})
+    response = client.post(
+        f"/review/cards/{ids['upright.png']}/orientation",
+        data={"upside_down": "no", "inverted": "no", "swapped": "no", "note": "looked at it", "csrf_token": token},
+    )
     assert response.status_code == 303
-    bad = client.post(f"/review/cards/{ids['upright.png']}/orientation",
-                      data={"upside_down": "sideways", "csrf_token": token})
+    bad = client.post(f"/review/cards/{ids['upright.png']}/orientation", data={"upside_down": "sideways", "csrf_token": token})
     assert bad.status_code == 400 and "upside_down" in bad.get_data(as_text=True)
 
     cards = _cards(runner)
     negative = cards["negative.png"]
     assert negative["orientation"]["inverted"] is True and negative["orientation"]["swapped"] is None
-    assert negative["stages"]["judge"] == {"status": "pending", "outcome": None, "reason":
-                                           "waiting for people (swapped undecided)",
-                                           "metrics": negative["stages"]["judge"]["metrics"]}
+    assert negative["stages"]["judge"] == {
+        "status": "pending",
+        "outcome": None,
+        "reason": "waiting for people (swapped undecided)",
+        "metrics": negative["stages"]["judge"]["metrics"],
+    }
     token = csrf_token(f"/review/cards/{ids['negative.png']}")
-    assert client.post(f"/review/cards/{ids['negative.png']}/orientation",
-                       data={"swapped": "no", "csrf_token": token}).status_code == 303
+    assert (
+        client.post(f"/review/cards/{ids['negative.png']}/orientation", data={"swapped": "no", "csrf_token": token}).status_code
+        == 303
+    )
     cards = _cards(runner)
-    assert cards["upright.png"]["orientation"] == {"upside_down": False, "inverted": False, "swapped": False,
-                                                   "decided_by": "curator", "confidence": 1.0}
+    assert cards["upright.png"]["orientation"] == {
+        "upside_down": False,
+        "inverted": False,
+        "swapped": False,
+        "decided_by": "curator",
+        "confidence": 1.0,
+    }
     assert cards["turned.png"]["orientation"]["decided_by"] == "crowd"
     assert cards["turned.png"]["orientation"]["upside_down"] is True
     negative = cards["negative.png"]["orientation"]  # the crowd's inverted, the curator's eye order
@@ -134,8 +154,7 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     with app.app_context():
         from review.models import AuditEvent
 
-        event = db.session.scalar(select(AuditEvent).where(AuditEvent.entity == "orientation")
-                                  .order_by(AuditEvent.id))
+        event = db.session.scalar(select(AuditEvent).where(AuditEvent.entity == "orientation").order_by(AuditEvent.id))
         assert event.card_id == ids["upright.png"] and event.actor == curator.username
         assert event.before["decided_by"] is None and event.after["decided_by"] == "curator"
         assert event.why == "looked at it"
@@ -169,15 +188,18 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
             review = db.session.scalar(select(CardReview).where(CardReview.card_id == ids[name]))
             decide(review.id, "change", expected_version=review.version, curator=person, grade="some")
     token = csrf_token(f"/review/cards/{ids['upright.png']}")
-    client.post(f"/review/cards/{ids['upright.png']}/orientation",
-                data={"upside_down": "", "inverted": "", "swapped": "", "csrf_token": token})
+    client.post(
+        f"/review/cards/{ids['upright.png']}/orientation",
+        data={"upside_down": "", "inverted": "", "swapped": "", "csrf_token": token},
+    )
     assert _cards(runner)["upright.png"]["orientation"]["decided_by"] is None
     from annotation.batches import create_batch
 
     with app.app_context():
         dispute_batch = create_batch([ids["turned.png"]], "judge", 3, 0.0).id
-    _approve_judge(app, ids["turned.png"], dispute_batch,
-                   {"is_stereo": True, "upside_down": True, "inverted": False}, state="needs_curator")
+    _approve_judge(
+        app, ids["turned.png"], dispute_batch, {"is_stereo": True, "upside_down": True, "inverted": False}, state="needs_curator"
+    )
     with app.app_context():
         person = db.session.get(Person, curator.id)
         review = db.session.scalar(select(CardReview).where(CardReview.card_id == ids["upright.png"]))
@@ -195,8 +217,7 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     published = runner.invoke(cli, ["export", "--out", str(flow_cards.parent / "releases"), "--json"])
     assert published.exit_code == 0, published.output
     release = json.loads(published.stdout)
-    assert release["cards"] == 1 and {row["card_id"] for row in release["excluded"]} == {ids["upright.png"],
-                                                                                         ids["turned.png"]}
+    assert release["cards"] == 1 and {row["card_id"] for row in release["excluded"]} == {ids["upright.png"], ids["turned.png"]}
     released = [json.loads(line) for line in (Path(release["path"]) / "cards.jsonl").read_text().splitlines()]
     assert [row["card_id"] for row in released] == [ids["negative.png"]]
     assert released[0]["orientation_corrections"] == ["intensities inverted"]
@@ -215,8 +236,15 @@ def test_a_confident_step_decides_and_its_correction_is_applied(app, runner, flo
         stages = original()
         params = OrientationStageParams(orientation=OrientationParams(auto_probability=0.6))
         spec = stages["orientation"]
-        stages["orientation"] = runs.StageSpec("orientation", params, functools.partial(orientation_task, params=params),
-                                               spec.eligible_states, spec.inputs, spec.requires, spec.ready)
+        stages["orientation"] = runs.StageSpec(
+            "orientation",
+            params,
+            functools.partial(orientation_task, params=params),
+            spec.eligible_states,
+            spec.inputs,
+            spec.requires,
+            spec.ready,
+        )
         return stages
 
     monkeypatch.setattr(runs, "available_stages", lenient)
@@ -226,16 +254,15 @@ def test_a_confident_step_decides_and_its_correction_is_applied(app, runner, flo
     auto = {name: card for name, card in cards.items() if card["orientation"]["decided_by"] == "auto"}
     assert auto, {name: card["stages"]["orientation"]["reason"] for name, card in cards.items()}
     assert stages["rectify"]["processed"] == len(auto)
-    truth = {"upright.png": (False, False, False), "turned.png": (True, False, False),
-             "negative.png": (False, True, False)}
+    truth = {"upright.png": (False, False, False), "turned.png": (True, False, False), "negative.png": (False, True, False)}
     for name, card in auto.items():
         orientation = card["orientation"]
         assert (orientation["upside_down"], orientation["inverted"], orientation["swapped"]) == truth[name]
         assert orientation["confidence"] >= 0.6
-        assert card["stages"]["judge"]["status"] == "skipped" and "orientation step decided" in \
-            card["stages"]["judge"]["reason"]
+        assert card["stages"]["judge"]["status"] == "skipped" and "orientation step decided" in card["stages"]["judge"]["reason"]
         assert card["stages"]["rectify"]["status"] in ("done", "skipped")
         assert card["stages"]["rectify"]["metrics"]["orientation_used"] == dict(
-            zip(("upside_down", "inverted", "swapped"), truth[name]))
+            zip(("upside_down", "inverted", "swapped"), truth[name])
+        )
     for name in set(cards) - set(auto):
         assert cards[name]["stages"]["rectify"]["status"] == "pending"

@@ -22,9 +22,12 @@ def _trail(app, person_id: int) -> list[tuple[str, str, dict, dict]]:  # type: i
     from review.models import AuditEvent
 
     with app.app_context():
-        return [(e.action, e.actor, e.before, e.after) for e in db.session.scalars(
-            select(AuditEvent).where(AuditEvent.entity == "person", AuditEvent.entity_id == person_id)
-            .order_by(AuditEvent.id))]
+        return [
+            (e.action, e.actor, e.before, e.after)
+            for e in db.session.scalars(
+                select(AuditEvent).where(AuditEvent.entity == "person", AuditEvent.entity_id == person_id).order_by(AuditEvent.id)
+            )
+        ]
 
 
 def _log_in(app, password: str, username: str) -> int:  # type: ignore[no-untyped-def]
@@ -50,8 +53,10 @@ def test_deactivate_then_reactivate_with_the_audit_trail(app, client, login, mak
     assert client.post(f"/auth/people/{target}/active", data={"csrf_token": token, "active": "1"}).status_code == 303
     assert _log_in(app, annotator.password, annotator.username) == 302
     trail = _trail(app, target)
-    assert [(action, actor) for action, actor, _, _ in trail] == [("deactivated", admin.username),
-                                                                   ("reactivated", admin.username)]
+    assert [(action, actor) for action, actor, _, _ in trail] == [
+        ("deactivated", admin.username),
+        ("reactivated", admin.username),
+    ]
     assert trail[0][2]["active"] is True and trail[0][3]["active"] is False
 
 
@@ -85,8 +90,7 @@ def test_roles_change_and_bad_input(app, client, login, make_person, csrf_token)
     assert changed.status_code == 303
     action, _, before, after = _trail(app, target)[-1]
     assert action == "roles_changed" and before["roles"] == ["annotator"] and after["roles"] == ["curator", "exporter"]
-    for data, status in [({"roles": []}, 400), ({"roles": ["wizard"]}, 400),
-                         ({"roles": ["curator", "exporter"]}, 409)]:
+    for data, status in [({"roles": []}, 400), ({"roles": ["wizard"]}, 400), ({"roles": ["curator", "exporter"]}, 409)]:
         response = client.post(f"/auth/people/{target}/roles", data={"csrf_token": token, **data})
         assert response.status_code == status
     assert client.post("/auth/people/99999/roles", data={"csrf_token": token, "roles": ["curator"]}).status_code == 404

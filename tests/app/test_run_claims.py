@@ -44,15 +44,25 @@ def cards(make_card, card_image) -> list[int]:  # type: ignore[no-untyped-def]
 
 
 def _env(app, tmp_path: Path) -> dict[str, str]:  # type: ignore[no-untyped-def]
-    return {**os.environ, "PYTHONPATH": str(REPO), "KEYSTONE_DATABASE_URL": app.config["SQLALCHEMY_DATABASE_URI"],
-            "KEYSTONE_DATA_DIR": app.config["KEYSTONE_DATA_DIR"], "KEYSTONE_SECRET_KEY": "test-secret",
-            "KEYSTONE_INSTANCE_PATH": str(tmp_path / "instance")}
+    return {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "KEYSTONE_DATABASE_URL": app.config["SQLALCHEMY_DATABASE_URI"],
+        "KEYSTONE_DATA_DIR": app.config["KEYSTONE_DATA_DIR"],
+        "KEYSTONE_SECRET_KEY": "test-secret",
+        "KEYSTONE_INSTANCE_PATH": str(tmp_path / "instance"),
+    }
 
 
 def _start_run(app, tmp_path: Path, *args: str) -> subprocess.Popen[str]:  # type: ignore[no-untyped-def]
-    return subprocess.Popen([sys.executable, "-m", "app", "run", "--stages", "filter", "--json", *args],
-                            cwd=REPO, env=_env(app, tmp_path), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "app", "run", "--stages", "filter", "--json", *args],
+        cwd=REPO,
+        env=_env(app, tmp_path),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _filter_rows(app) -> int:  # type: ignore[no-untyped-def]
@@ -90,6 +100,7 @@ class _Barrier:
             if not Path("/proc/self/fd").is_dir():  # no /proc to look in: give the runs time instead
                 time.sleep(5)
                 return len(processes)
+
             # A run that has the database open is at (or just before) its first write, which waits.
             def has_open(pid: int) -> bool:
                 folder = Path(f"/proc/{pid}/fd")
@@ -97,6 +108,7 @@ class _Barrier:
                     return any(os.readlink(fd) == self.path for fd in folder.iterdir())
                 except OSError:
                     return False
+
             return sum(has_open(process.pid) for process in processes)
         return self.connection.execute(
             "SELECT count(*) FROM pg_locks WHERE relation = 'stage_claims'::regclass AND NOT granted"
@@ -138,8 +150,9 @@ def test_two_concurrent_runs_compute_each_card_stage_once(app, cards, tmp_path, 
         assert report["still_held"] == 0 and report["failed"] == 0
     assert sum(report["done_by_other_run"] for report in reports) == CARDS
     assert _claims(app) == []
-    print(f"\n[{database.split(':')[0]}] two concurrent runs over {CARDS} cards computed {processed} = "
-          f"{sum(processed)} card-stages")
+    print(
+        f"\n[{database.split(':')[0]}] two concurrent runs over {CARDS} cards computed {processed} = {sum(processed)} card-stages"
+    )
 
 
 def test_a_killed_run_blocks_nobody_for_longer_than_its_claim_ttl(app, cards, tmp_path, runner):
@@ -169,9 +182,17 @@ def test_a_killed_run_blocks_nobody_for_longer_than_its_claim_ttl(app, cards, tm
 def _claim(app, card_id: int, driver: str, expires_in_s: float) -> None:  # type: ignore[no-untyped-def]
     now = utcnow()
     with app.app_context():
-        db.session.add(StageClaim(card_id=card_id, stage="filter", param_hash="0" * 16, driver=driver,
-                                  claimed_at=now - timedelta(seconds=300), heartbeat_at=now - timedelta(seconds=60),
-                                  expires_at=now + timedelta(seconds=expires_in_s)))
+        db.session.add(
+            StageClaim(
+                card_id=card_id,
+                stage="filter",
+                param_hash="0" * 16,
+                driver=driver,
+                claimed_at=now - timedelta(seconds=300),
+                heartbeat_at=now - timedelta(seconds=60),
+                expires_at=now + timedelta(seconds=expires_in_s),
+            )
+        )
         db.session.commit()
 
 
@@ -189,8 +210,7 @@ def test_a_live_claim_is_respected_and_no_wait_exits_3(app, cards, runner):
     result = runner.invoke(cli, ["run", "--stages", "filter", "--no-wait", "--json"])
     assert result.exit_code == 3, result.output
     report = json.loads(result.stdout)["stages"][0]
-    assert (report["processed"], report["held_by_other_run"], report["still_held"], report["taken_over"]) == \
-        (CARDS - 1, 1, 1, 0)
+    assert (report["processed"], report["held_by_other_run"], report["still_held"], report["taken_over"]) == (CARDS - 1, 1, 1, 0)
     assert "left 1 card(s) that another run holds (busy-host:77:live0001)" in result.stderr
     with app.app_context():
         assert db.session.scalar(select(StageResult).where(StageResult.card_id == cards[5])) is None
@@ -203,8 +223,7 @@ def test_a_waiting_run_takes_over_a_claim_once_it_lapses(app, cards, runner):
     result = runner.invoke(cli, ["run", "--stages", "filter", "--json", "--claim-ttl-s", "4"])
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)["stages"][0]
-    assert (report["processed"], report["held_by_other_run"], report["taken_over"], report["still_held"]) == \
-        (CARDS, 1, 1, 0)
+    assert (report["processed"], report["held_by_other_run"], report["taken_over"], report["still_held"]) == (CARDS, 1, 1, 0)
     assert time.monotonic() - clock >= 1.0
     assert "filter: waiting for 1 card(s) held by another run (slow-host:78:live0002)" in result.stderr
     assert _filter_rows(app) == CARDS and _claims(app) == []
@@ -221,16 +240,37 @@ def test_write_records_upserts_a_row_another_transaction_inserted_meanwhile(app,
     other = create_engine(database)
     connection = other.connect()
     transaction = connection.begin()
-    connection.execute(StageResult.__table__.insert().values(
-        card_id=cards[0], stage="filter", param_hash="p" * 16, status="failed", reason="first", metrics={},
-        artifacts={}, code_version="other", created_at=utcnow()))
+    connection.execute(
+        StageResult.__table__.insert().values(
+            card_id=cards[0],
+            stage="filter",
+            param_hash="p" * 16,
+            status="failed",
+            reason="first",
+            metrics={},
+            artifacts={},
+            code_version="other",
+            created_at=utcnow(),
+        )
+    )
     errors: list[BaseException] = []
 
     def write() -> None:
         with app.app_context():
             try:
-                write_records([StageRecord(card_id=cards[0], stage="filter", param_hash="p" * 16, status="done",
-                                           outcome="pass", reason="second", code_version="mine")])
+                write_records(
+                    [
+                        StageRecord(
+                            card_id=cards[0],
+                            stage="filter",
+                            param_hash="p" * 16,
+                            status="done",
+                            outcome="pass",
+                            reason="second",
+                            code_version="mine",
+                        )
+                    ]
+                )
             except Exception as exc:  # noqa: BLE001 - reported to the test thread
                 errors.append(exc)
 
@@ -251,8 +291,9 @@ def test_a_failed_result_is_retried_under_a_claim(app, cards, runner, add_stage_
     from pipeline.filter import FilterParams
     from pipeline.records import param_hash
 
-    add_stage_result(cards[7], status="failed", outcome=None, reason="unreadable_image: truncated",
-                     param_hash=param_hash(FilterParams()))
+    add_stage_result(
+        cards[7], status="failed", outcome=None, reason="unreadable_image: truncated", param_hash=param_hash(FilterParams())
+    )
     result = runner.invoke(cli, ["run", "--stages", "filter", "--json"])
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)["stages"][0]

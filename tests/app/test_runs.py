@@ -57,11 +57,25 @@ def test_filter_routes_cards_and_cards_json_has_the_documented_shape(app, runner
     assert set(by_source) == {"stereo.jpg", "stereo_mirrored_scene.png", "two_unrelated_photos.png"}
     for card in listing:
         assert set(card) >= {"id", "source", "accession", "stages", "orientation"}
-        assert set(card["stages"]) == {"filter", "orientation", "judge", "crop", "rectify", "disparity", "grade",
-                                       "review", "views"}
+        assert set(card["stages"]) == {
+            "filter",
+            "orientation",
+            "judge",
+            "crop",
+            "rectify",
+            "disparity",
+            "grade",
+            "review",
+            "views",
+        }
         # DESIGN.md: null flags while undecided (the orientation step has not run yet).
-        assert card["orientation"] == {"upside_down": None, "inverted": None, "swapped": None, "decided_by": None,
-                                       "confidence": None}
+        assert card["orientation"] == {
+            "upside_down": None,
+            "inverted": None,
+            "swapped": None,
+            "decided_by": None,
+            "confidence": None,
+        }
         assert set(card["stages"]["filter"]) >= {"status", "reason", "metrics"}
     stereo = by_source["stereo.jpg"]["stages"]["filter"]
     assert stereo["status"] == "done" and stereo["outcome"] == "pass"
@@ -225,8 +239,13 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
     graded = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
     # The orientation step runs too (it adds nothing here: the photos fill their halves, so
     # the photo-area finder keeps the split and rectification's inputs do not change).
-    assert [(r["stage"], r["processed"]) for r in graded] == [("filter", 0), ("orientation", 2), ("rectify", 0),
-                                                              ("disparity", 0), ("grade", 2)]
+    assert [(r["stage"], r["processed"]) for r in graded] == [
+        ("filter", 0),
+        ("orientation", 2),
+        ("rectify", 0),
+        ("disparity", 0),
+        ("grade", 2),
+    ]
     assert graded[4]["failed"] == 0 and sum(graded[4]["outcomes"].values()) == 2
     again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
     assert [r["processed"] for r in again] == [0, 0, 0, 0, 0]
@@ -238,8 +257,18 @@ def _approve(app, card_id: int, kind: str, label: dict) -> None:  # type: ignore
 
     with app.app_context():
         batch = create_batch([card_id], kind, 1, 0.0)
-        db.session.add(Aggregate(batch_id=batch.id, card_id=card_id, kind=kind, label=label, posterior={},
-                                 confident=True, state="approved", answers=1))
+        db.session.add(
+            Aggregate(
+                batch_id=batch.id,
+                card_id=card_id,
+                kind=kind,
+                label=label,
+                posterior={},
+                confident=True,
+                state="approved",
+                answers=1,
+            )
+        )
         db.session.commit()
 
 
@@ -276,8 +305,13 @@ def test_rectify_consumes_approved_crowd_judgements_and_boxes(app, runner, tmp_p
     second = json.loads(runner.invoke(cli, ["run", "--stages", "rectify", "--json"]).stdout)["stages"][0]
     assert second["processed"] == 2 and second["failed"] == 0  # the judged review card, and the turned card
     listing = {c["id"]: c for c in _cards(runner)["cards"]}
-    assert listing[turned_id]["orientation"] == {"upside_down": True, "inverted": False, "swapped": False,
-                                                 "decided_by": "crowd", "confidence": 1.0}
+    assert listing[turned_id]["orientation"] == {
+        "upside_down": True,
+        "inverted": False,
+        "swapped": False,
+        "decided_by": "crowd",
+        "confidence": 1.0,
+    }
 
     by_id = {c["id"]: c["stages"]["rectify"] for c in _cards(runner)["cards"]}
     crowd = by_id[review_id]["metrics"]

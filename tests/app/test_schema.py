@@ -25,8 +25,9 @@ def test_models_and_migrations_agree(app):
     with app.app_context(), db.engine.connect() as connection:
         context = MigrationContext.configure(connection, opts={"compare_type": True, "include_object": include_object})
         diff = compare_metadata(context, target_metadata())
-        indexes = {index["name"] for table in inspect(connection).get_table_names()
-                   for index in inspect(connection).get_indexes(table)}
+        indexes = {
+            index["name"] for table in inspect(connection).get_table_names() for index in inspect(connection).get_indexes(table)
+        }
     assert diff == []
     # Autogenerate cannot compare these, so check the migrations made them.
     assert EXPRESSION_INDEXES <= indexes
@@ -37,8 +38,7 @@ def test_migrations_reach_head_and_ensure_is_idempotent(app):
         assert current_revision(db.engine) == head_revision(db.engine) == "0009a"
         assert ensure_schema(db.engine) is False
         tables = set(inspect(db.engine).get_table_names())
-    assert {"collections", "cards", "stage_results", "people", "person_roles", "metadata_records",
-            "stage_claims"} <= tables
+    assert {"collections", "cards", "stage_results", "people", "person_roles", "metadata_records", "stage_claims"} <= tables
 
 
 def test_downgrade_to_base_and_back(app):

@@ -31,8 +31,13 @@ def _group_pids(leader: int) -> set[int]:
 
 def _start_server(env: dict[str, str], *options: str) -> tuple[subprocess.Popen[str], int, str]:
     """`keystone serve --port 0 OPTIONS`: the process, the port it listens on and its "serving on" line."""
-    server = subprocess.Popen([sys.executable, "-m", "app", "serve", "--port", "0", *options], env=env,
-                              stderr=subprocess.PIPE, text=True, start_new_session=True)
+    server = subprocess.Popen(
+        [sys.executable, "-m", "app", "serve", "--port", "0", *options],
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     assert server.stderr is not None
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
@@ -54,10 +59,10 @@ def _stop_server(server: subprocess.Popen[str]) -> str:
     return rest
 
 
-
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="counts the server's processes in Linux /proc")
-@pytest.mark.parametrize("options", [["--processes", "1"], ["--processes", "2", "--threads", "2"], []],
-                         ids=["waitress", "gunicorn-gthread", "default"])
+@pytest.mark.parametrize(
+    "options", [["--processes", "1"], ["--processes", "2", "--threads", "2"], []], ids=["waitress", "gunicorn-gthread", "default"]
+)
 def test_serve_answers_from_the_requested_processes_and_stops_cleanly(tmp_path, options):
     from app.serving import default_processes, default_threads, describe
 
@@ -119,8 +124,9 @@ def _serving_worker(workers: set[int], server_port: int, client_port: int) -> in
     return None
 
 
-def _fetch(port: int, path: str, workers: set[int], cookie: str | None = None, method: str = "GET",
-           body: str | None = None) -> tuple[int, dict[str, str], str, int | None]:
+def _fetch(
+    port: int, path: str, workers: set[int], cookie: str | None = None, method: str = "GET", body: str | None = None
+) -> tuple[int, dict[str, str], str, int | None]:
     """One request on its own connection: status, headers, body and the worker that served it.
 
     The connection is opened first and the worker found while it waits for the request line
@@ -168,8 +174,12 @@ def test_default_server_gives_each_request_its_own_identity(tmp_path):
 
     env = {**os.environ, "KEYSTONE_INSTANCE_PATH": str(tmp_path / "instance")}
     password = "correct horse battery"
-    subprocess.run([sys.executable, "-m", "app", "users", "add", "boss", "--role", "admin", "--password", password],
-                   env=env, check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, "-m", "app", "users", "add", "boss", "--role", "admin", "--password", password],
+        env=env,
+        check=True,
+        capture_output=True,
+    )
     options = [] if default_processes() >= 2 else ["--processes", "2"]
     server, port, _ = _start_server(env, *options)
     try:
@@ -213,8 +223,7 @@ def test_an_oversized_body_is_refused_at_the_door(tmp_path, options):
         connection = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
         body = b"x" * (2 * 1024 * 1024)
         try:
-            connection.request("POST", "/auth/login", body=body,
-                               headers={"Content-Type": "application/x-www-form-urlencoded"})
+            connection.request("POST", "/auth/login", body=body, headers={"Content-Type": "application/x-www-form-urlencoded"})
             response = connection.getresponse()
             status, text = response.status, response.read().decode(errors="replace")
         except (BrokenPipeError, ConnectionResetError):

@@ -41,18 +41,25 @@ def records(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     left, right = (cv2.resize(v, (v.shape[1] // 2, v.shape[0] // 2), interpolation=cv2.INTER_AREA) for v in (left, right))
     h, w = left.shape[:2]
     card = np.full((h + 40, 2 * w + 60, 3), 200, np.uint8)
-    card[20:20 + h, 20:20 + w], card[20:20 + h, w + 40:2 * w + 40] = left, right
+    card[20 : 20 + h, 20 : 20 + w], card[20 : 20 + h, w + 40 : 2 * w + 40] = left, right
     write_png(root / "card.png", card)
 
     def task(stage: str, inputs: dict[str, Any]) -> CardTask:
         (root / stage).mkdir()
-        return CardTask(card_id=1, content_hash="x", image_path=str(root / "card.png"), work_dir=str(root / stage),
-                        data_dir=str(root), inputs=inputs)
+        return CardTask(
+            card_id=1,
+            content_hash="x",
+            image_path=str(root / "card.png"),
+            work_dir=str(root / stage),
+            data_dir=str(root),
+            inputs=inputs,
+        )
 
     found = {"filter": filter_task(task("filter", {}), FilterParams())}
     assert found["filter"].status == "done", found["filter"].reason
-    found["rectify"] = rectify_task(task("rectify", {k: found["filter"].metrics[k] for k in ("left_box", "right_box")}),
-                                    RectifyParams())
+    found["rectify"] = rectify_task(
+        task("rectify", {k: found["filter"].metrics[k] for k in ("left_box", "right_box")}), RectifyParams()
+    )
     assert found["rectify"].status in ("done", "skipped"), found["rectify"].reason
     found["disparity"] = disparity_task(task("disparity", _runs_input("rectified_pair", found)), DisparityStageParams())
     assert found["disparity"].status == "done", found["disparity"].reason
@@ -61,8 +68,12 @@ def records(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
 def _card(found: dict[str, Any]) -> Any:
     """A stand-in for app.models.Card as the input builders read it: the latest result per stage."""
-    results = {stage: SimpleNamespace(stage=stage, status=r.status, outcome=r.outcome, metrics=r.metrics,
-                                      artifacts=r.artifacts, param_hash=r.param_hash) for stage, r in found.items()}
+    results = {
+        stage: SimpleNamespace(
+            stage=stage, status=r.status, outcome=r.outcome, metrics=r.metrics, artifacts=r.artifacts, param_hash=r.param_hash
+        )
+        for stage, r in found.items()
+    }
     return SimpleNamespace(state="pass", latest_results=lambda: results)
 
 
@@ -85,6 +96,5 @@ def test_the_input_contracts_name_every_key_the_driver_builds(records: dict[str,
     assert set(_runs_input("rectified_pair", records)) == _keys(DisparityInputs)
     grade = _runs_input("grade_inputs", records)
     assert set(grade) == _keys(GradeInputs) and set(grade["metrics"]) == {"filter", "rectify", "disparity"}
-    graded = {**records, "grade": SimpleNamespace(status="done", outcome="few", metrics={}, artifacts={},
-                                                  param_hash="g")}
+    graded = {**records, "grade": SimpleNamespace(status="done", outcome="few", metrics={}, artifacts={}, param_hash="g")}
     assert set(_runs_input("views_inputs", graded)) == _keys(ViewsInputs) - {"depth"}

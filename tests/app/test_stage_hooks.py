@@ -29,16 +29,16 @@ def test_features_register_what_a_run_needs(app):
     hooks = stage_hooks(app)
     assert sorted(p.__module__ for p in hooks.decisions) == ["annotation.run_hooks", "review.run_hooks"]
     assert sorted(p.__module__ for p in hooks.people_work) == ["annotation.run_hooks", "review.run_hooks"]
-    assert set(hooks.stage_params) == {"grade"} and [h.__module__ for h in hooks.after_write["grade"]] == [
-        "review.run_hooks"]
+    assert set(hooks.stage_params) == {"grade"} and [h.__module__ for h in hooks.after_write["grade"]] == ["review.run_hooks"]
 
 
 def test_providers_merge_per_card_and_hooks_run_in_order(app):
     with app.app_context():
         hooks = stage_hooks()
         calls: list[tuple[str, list[int]]] = []
-        hooks.after_write.setdefault("unit", []).extend([lambda ids: calls.append(("a", ids)),
-                                                         lambda ids: calls.append(("b", ids))])
+        hooks.after_write.setdefault("unit", []).extend(
+            [lambda ids: calls.append(("a", ids)), lambda ids: calls.append(("b", ids))]
+        )
         after_write("unit", [3, 4])
         after_write("nobody-listens", [5])
         assert calls == [("a", [3, 4]), ("b", [3, 4])]

@@ -8,8 +8,15 @@ import re
 import pytest
 from PIL import Image
 
-FORMATS = {"anaglyph": "image/jpeg", "wiggle_gif": "image/gif", "wiggle_webp": "image/webp",
-           "sbs_full": "image/jpeg", "sbs_half": "image/jpeg", "jps": "image/x-jps", "mpo": "image/mpo"}
+FORMATS = {
+    "anaglyph": "image/jpeg",
+    "wiggle_gif": "image/gif",
+    "wiggle_webp": "image/webp",
+    "sbs_full": "image/jpeg",
+    "sbs_half": "image/jpeg",
+    "jps": "image/x-jps",
+    "mpo": "image/mpo",
+}
 
 
 @pytest.fixture
@@ -57,8 +64,9 @@ def test_annotators_cannot_download_stereo_files(client, login, rectified_card) 
     assert client.get(f"/cards/{rectified_card}/stereo/anaglyph").status_code == 403
 
 
-def test_stereo_downloads_need_a_rectified_pair_and_a_known_format(client, login, make_card, add_stage_result,
-                                                                 card_image, rectified_card) -> None:
+def test_stereo_downloads_need_a_rectified_pair_and_a_known_format(
+    client, login, make_card, add_stage_result, card_image, rectified_card
+) -> None:
     only_filtered = make_card(image=card_image((200, 150)))
     add_stage_result(only_filtered, "filter")
     login("curator")

@@ -50,15 +50,35 @@ def _save_mpo(path: Path, left: np.ndarray, right: np.ndarray | None) -> Path:
 def test_pairs_are_matched_by_name_in_every_documented_pattern(tmp_path) -> None:
     from app.stereo_ingest import StereoOptions, plan_stereo
 
-    names = ["7995l-image.jpg", "7995r-image.jpg", "card_L.png", "card_r.png", "cardL.jpg", "cardR.jpg",
-             "Niagara-left.tif", "Niagara-Right.tif", "scan 12 left.jpg", "scan 12 right.jpg",
-             "Hall.jpg", "Parlor.jpg", "lonely_L.jpg", "Views of the R. River.jpg", "plain.jpg", "photo.jps",
-             "camera.mpo"]
+    names = [
+        "7995l-image.jpg",
+        "7995r-image.jpg",
+        "card_L.png",
+        "card_r.png",
+        "cardL.jpg",
+        "cardR.jpg",
+        "Niagara-left.tif",
+        "Niagara-Right.tif",
+        "scan 12 left.jpg",
+        "scan 12 right.jpg",
+        "Hall.jpg",
+        "Parlor.jpg",
+        "lonely_L.jpg",
+        "Views of the R. River.jpg",
+        "plain.jpg",
+        "photo.jps",
+        "camera.mpo",
+    ]
     files = [tmp_path / name for name in names]
     plan = plan_stereo(files, StereoOptions())
     pairs = {(left.name, right.name) for left, right, _how in plan.pairs}
-    assert pairs == {("7995l-image.jpg", "7995r-image.jpg"), ("card_L.png", "card_r.png"), ("cardL.jpg", "cardR.jpg"),
-                     ("Niagara-left.tif", "Niagara-Right.tif"), ("scan 12 left.jpg", "scan 12 right.jpg")}
+    assert pairs == {
+        ("7995l-image.jpg", "7995r-image.jpg"),
+        ("card_L.png", "card_r.png"),
+        ("cardL.jpg", "cardR.jpg"),
+        ("Niagara-left.tif", "Niagara-Right.tif"),
+        ("scan 12 left.jpg", "scan 12 right.jpg"),
+    }
     assert [p.name for p in plan.singles] == ["Hall.jpg", "Parlor.jpg", "Views of the R. River.jpg", "plain.jpg"]
     assert [p.name for p in plan.mpos] == ["camera.mpo"]
     assert [(p.name, order) for p, order, _why in plan.side_by_side] == [("photo.jps", "cross")]
@@ -75,8 +95,7 @@ def test_pairs_are_matched_by_name_in_every_documented_pattern(tmp_path) -> None
 
 
 @pytest.mark.both_databases
-def test_an_mpo_becomes_one_card_with_its_original_kept_as_it_came(app, runner, client, login, tmp_path,
-                                                                    data_dir) -> None:
+def test_an_mpo_becomes_one_card_with_its_original_kept_as_it_came(app, runner, client, login, tmp_path, data_dir) -> None:
     left, right = _motorcycle_views()
     mpo = _save_mpo(tmp_path / "camera.mpo", left, right)
     result = runner.invoke(args=["ingest", str(mpo), "--json"])
@@ -151,8 +170,9 @@ def test_bad_pairs_get_a_reason_each_while_the_rest_goes_on(app, runner, tmp_pat
     Image.fromarray(right[:200, :300]).save(small)
     pairs = tmp_path / "csv" / "pairs.csv"
     pairs.write_text("left,right\nbig.png,small.png\nbig.png,gone.png\n")
-    result = runner.invoke(args=["ingest", str(good_left), str(good_right), str(one_frame), str(lonely),
-                                 "--pairs", str(pairs), "--json"])
+    result = runner.invoke(
+        args=["ingest", str(good_left), str(good_right), str(one_frame), str(lonely), "--pairs", str(pairs), "--json"]
+    )
     assert result.exit_code == 1
     report = json.loads(result.output)
     assert report["ingested"] == 1 and report["cards"][0]["stereo"]["kind"] == "pair"
@@ -167,16 +187,16 @@ def test_bad_pairs_get_a_reason_each_while_the_rest_goes_on(app, runner, tmp_pat
     assert card.stereo_source["matched_by"] == "file names (good_<eye>.png)"
 
 
-def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(app, runner, client, login, tmp_path,
-                                                                              data_dir, shared_data,
-                                                                              decide_orientation) -> None:
+def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(
+    app, runner, client, login, tmp_path, data_dir, shared_data, decide_orientation
+) -> None:
     """An MPO made from a real Keystone-Mast scan's halves, the depthy 7995 left/right pair (two
     files that used to be two culled cards) and a real JPS (stored parallel: the check says so)."""
     from pipeline.io import read_image
 
     scan = read_image(shared_data / "stereocards/keystone_mast_raw_scans/09995.jpg")
     half = scan.shape[1] // 2
-    mpo = _save_mpo(tmp_path / "09995.mpo", np.ascontiguousarray(scan[:, :half]), np.ascontiguousarray(scan[:, half:2 * half]))
+    mpo = _save_mpo(tmp_path / "09995.mpo", np.ascontiguousarray(scan[:, :half]), np.ascontiguousarray(scan[:, half : 2 * half]))
     depthy = shared_data / "stereocards/cropped_pairs/depthy_7995"
     jps = shared_data / "stereocards/cropped_pairs/jps/8618s.jps"
     result = runner.invoke(args=["ingest", str(mpo), str(depthy), str(jps), "--json"])
@@ -189,7 +209,9 @@ def test_real_stereo_inputs_become_one_card_each_and_run_through_the_pipeline(ap
     pair = cards["7995l-image.jpg"]
     assert [o["source_name"] for o in pair.stereo_source["originals"]] == ["7995l-image.jpg", "7995r-image.jpg"]
     assert [o["sha256"] for o in pair.stereo_source["originals"]] == [
-        _sha(depthy / "7995l-image.jpg"), _sha(depthy / "7995r-image.jpg")]
+        _sha(depthy / "7995l-image.jpg"),
+        _sha(depthy / "7995r-image.jpg"),
+    ]
     assert (pair.width, pair.height) == (2 * 1121, 1119)
     # The JPS is stored parallel whatever its convention says; the check notices.
     check = cards["8618s.jps"].stereo_source["eye_order_check"]
@@ -227,5 +249,9 @@ def test_a_pairs_csv_alone_is_enough_and_a_bad_csv_is_one_rejection(app, runner,
     no_header = tmp_path / "no-header.csv"
     no_header.write_text("a.png,b.png\n")
     bad = json.loads(runner.invoke(args=["ingest", "--pairs", str(no_header), "--json"]).output)
-    assert bad["rejected"] == [{"path": str(no_header), "reason": "cannot read the pairs CSV: expected a header with "
-                                "'left' and 'right' columns, got ['a.png', 'b.png']"}]
+    assert bad["rejected"] == [
+        {
+            "path": str(no_header),
+            "reason": "cannot read the pairs CSV: expected a header with 'left' and 'right' columns, got ['a.png', 'b.png']",
+        }
+    ]

@@ -45,12 +45,17 @@ def mesh_drops(path, scene: dict, focal: float) -> tuple[int, int]:  # type: ign
 
 
 def settle(page, frames_before: int, wait_until) -> None:  # type: ignore[no-untyped-def]
-    wait_until(page, "(() => { const c = document.getElementById('viewer-canvas');"
-                     f" return +c.dataset.frames > {int(frames_before)} && c.dataset.moving === '0'; }})()", 20)
+    wait_until(
+        page,
+        "(() => { const c = document.getElementById('viewer-canvas');"
+        f" return +c.dataset.frames > {int(frames_before)} && c.dataset.moving === '0'; }})()",
+        20,
+    )
 
 
-def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app, server, browser, make_person, wait_until,
-                                                                              data_dir, card_with_views):
+def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(
+    app, server, browser, make_person, wait_until, data_dir, card_with_views
+):
     card_id, record = card_with_views
     person = make_person("annotator")
     page = browser.new_page(viewport={"width": 900, "height": 800})
@@ -110,8 +115,9 @@ def test_the_viewer_renders_the_scene_and_the_picture_moves_with_the_pointer(app
     page.close()
 
 
-def test_the_viewer_shows_colour_and_a_card_transfers_under_1_5_mb(app, server, browser, make_person, wait_until,
-                                                                    data_dir, make_card_with_views):
+def test_the_viewer_shows_colour_and_a_card_transfers_under_1_5_mb(
+    app, server, browser, make_person, wait_until, data_dir, make_card_with_views
+):
     """At the views' working size (512 px wide): everything the page downloads, measured by the
     browser (response bodies and headers of every request from the page load on), is under 1.5 MB,
     the picture is in colour, and the float32 depth maps and the preview are never fetched."""

@@ -14,8 +14,18 @@ from app.models import Card, Collection, Person, StageResult
 
 pytestmark = pytest.mark.both_databases
 
-OPERATIONS = ("plan_filter", "plan_rectify", "plan_disparity", "plan_grade", "cards_json", "catalogue_page",
-              "catalogue_deep_page", "review_queue", "report", "export_plan")
+OPERATIONS = (
+    "plan_filter",
+    "plan_rectify",
+    "plan_disparity",
+    "plan_grade",
+    "cards_json",
+    "catalogue_page",
+    "catalogue_deep_page",
+    "review_queue",
+    "report",
+    "export_plan",
+)
 
 
 def test_bench_catalogue_times_every_operation_and_leaves_the_database_as_it_found_it(app, runner):

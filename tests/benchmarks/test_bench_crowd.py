@@ -17,8 +17,11 @@ from benchmarks.crowd import latency_summary, run_crowd_bench
 ANNOTATORS, TASKS, N, REPLAY_EVERY = 50, 4, 3, 2
 
 
-@pytest.fixture(scope="module", params=[(None, 0.5, "sqlite"), (1, 0.0, "sqlite"), (None, 0.5, "postgresql")],
-                ids=["default-server", "waitress-all-at-once", "default-server-postgresql"])
+@pytest.fixture(
+    scope="module",
+    params=[(None, 0.5, "sqlite"), (1, 0.0, "sqlite"), (None, 0.5, "postgresql")],
+    ids=["default-server", "waitress-all-at-once", "default-server-postgresql"],
+)
 def report(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The default server (one gunicorn process per core here: SQLite writers in several
     processes), annotators arriving over half a second; a lone waitress process with 8
@@ -30,8 +33,17 @@ def report(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
         cluster = request.getfixturevalue("postgres_cluster")  # skips when no PostgreSQL binaries
         database_url = cluster.url(cluster.create_database())
     root: Path = tmp_path_factory.mktemp("crowd-load")
-    report = run_crowd_bench(ANNOTATORS, TASKS, n=N, think_ms=(0.0, 20.0), ramp_s=ramp_s, replay_every=REPLAY_EVERY,
-                             server_processes=processes, root=root, database_url=database_url)
+    report = run_crowd_bench(
+        ANNOTATORS,
+        TASKS,
+        n=N,
+        think_ms=(0.0, 20.0),
+        ramp_s=ramp_s,
+        replay_every=REPLAY_EVERY,
+        server_processes=processes,
+        root=root,
+        database_url=database_url,
+    )
     assert report["database"] == backend
     return report
 

@@ -34,8 +34,9 @@ def tiny_scene(tmp_path: Path) -> Path:
 
 
 def test_json_shape_one_backend_one_scene(tiny_scene: Path):
-    result = CliRunner().invoke(bench_disparity_command, [
-        "--scene", str(tiny_scene), "--backend", "keystone", "--repeats", "1", "--json"])
+    result = CliRunner().invoke(
+        bench_disparity_command, ["--scene", str(tiny_scene), "--backend", "keystone", "--repeats", "1", "--json"]
+    )
     assert result.exit_code == 0, result.output
     doc = json.loads(result.output)  # stdout is exactly one JSON document
     assert doc["default_backend"] == "keystone"
@@ -58,9 +59,23 @@ def test_json_shape_one_backend_one_scene(tiny_scene: Path):
 def test_table_and_plot(tiny_scene: Path, tmp_path: Path):
     pytest.importorskip("matplotlib")
     plot = tmp_path / "pareto.png"
-    result = CliRunner().invoke(bench_disparity_command, [
-        "--scene", str(tiny_scene), "--backend", "dis-ultrafast", "--backend", "sgbm",
-        "--perturbation", "none", "--repeats", "1", "--plot", str(plot)])
+    result = CliRunner().invoke(
+        bench_disparity_command,
+        [
+            "--scene",
+            str(tiny_scene),
+            "--backend",
+            "dis-ultrafast",
+            "--backend",
+            "sgbm",
+            "--perturbation",
+            "none",
+            "--repeats",
+            "1",
+            "--plot",
+            str(plot),
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert "dis-ultrafast" in result.output and "sgbm" in result.output and "Pareto front" in result.output
     assert "held-out" in result.output

@@ -68,8 +68,12 @@ def test_the_truth_itself_scores_no_error_and_a_flat_map_scores_much(clean_run, 
 def test_spearman_and_summary():
     assert spearman([0, 1, 2, 2], [1.0, 5.0, 9.0, 8.0]) == pytest.approx(0.9487, abs=1e-4)
     assert spearman([1, 1, 1], [1.0, 2.0, 3.0]) is None
-    results = [{"grade": "few", "true_bad2": 20.0}, {"grade": "some", "true_bad2": 40.0},
-               {"grade": "failure", "true_bad2": 90.0}, {"grade": "culled", "true_bad2": 100.0}]
+    results = [
+        {"grade": "few", "true_bad2": 20.0},
+        {"grade": "some", "true_bad2": 40.0},
+        {"grade": "failure", "true_bad2": 90.0},
+        {"grade": "culled", "true_bad2": 100.0},
+    ]
     summary = summarise(results)
     assert summary["ordered"] and summary["stopped"] == 1 and summary["spearman"] == 1.0
     assert summary["median_true_bad2"] == {"few": 20.0, "some": 40.0, "failure": 90.0}

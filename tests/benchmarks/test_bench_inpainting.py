@@ -25,7 +25,8 @@ def test_bench_inpainting_json_shape():
     assert set(inits) == {("navier-stokes", "intensity"), ("background-fill", "depth")}
     # the intensity init is Navier-Stokes itself: the same fill, the same error
     assert inits[("navier-stokes", "intensity")] == pytest.approx(
-        next(r["l1"] for r in doc["results"] if r["method"] == "navier-stokes" and r["channel"] == "intensity"))
+        next(r["l1"] for r in doc["results"] if r["method"] == "navier-stokes" and r["channel"] == "intensity")
+    )
     paired = doc["depth_per_sample"]
     assert paired["samples"] == doc["test_samples"] and 0 <= paired["network_beats_best_classical"] <= paired["samples"]
     low, high = paired["bootstrap_ci95"]

@@ -16,8 +16,12 @@ import review
 
 
 def test_no_product_module_imports_the_benchmarks():
-    modules = [f"{package.__name__}.{m.name}" for package in (app, annotation, review, pipeline, exports)
-               for m in pkgutil.iter_modules(package.__path__) if m.name != "__main__"]
+    modules = [
+        f"{package.__name__}.{m.name}"
+        for package in (app, annotation, review, pipeline, exports)
+        for m in pkgutil.iter_modules(package.__path__)
+        if m.name != "__main__"
+    ]
     code = (
         "import importlib, json, sys\n"
         f"for name in {modules!r}: importlib.import_module(name)\n"

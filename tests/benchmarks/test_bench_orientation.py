@@ -22,9 +22,18 @@ def synthetic_rows(seed: int = 0, cards: int = 6) -> list[dict]:
             for cue, flags in CUE_FLAGS.items():
                 sign = 1.0 - 2.0 * parity(truth, flags)
                 values[cue] = sign * (0.8 if cue == "smooth_bright" else rng.normal(0.3, 0.4))
-            rows.append({"card": f"card{card}", "truth": dict(zip(FLAGS, truth)), "values": values,
-                         "undecidable": None, "tie_decided": False, "tie_right": True,
-                         "seconds": 0.1, "cpu_seconds": 0.1})
+            rows.append(
+                {
+                    "card": f"card{card}",
+                    "truth": dict(zip(FLAGS, truth)),
+                    "values": values,
+                    "undecidable": None,
+                    "tie_decided": False,
+                    "tie_right": True,
+                    "seconds": 0.1,
+                    "cpu_seconds": 0.1,
+                }
+            )
     return rows
 
 

@@ -34,8 +34,7 @@ def test_bench_pipeline_refuses_an_unknown_stage(runner):
 def test_bench_pipeline_runs_full_and_working_resolution_side_by_side(runner):
     """The 3000 px Motorcycle card: the working resolution costs less than full resolution in the
     same run, and each variant reports its own peak memory and medians per scan size."""
-    result = runner.invoke(cli, ["bench", "pipeline", "--synthetic", "--stages", "filter,rectify,disparity,grade",
-                                 "--json"])
+    result = runner.invoke(cli, ["bench", "pipeline", "--synthetic", "--stages", "filter,rectify,disparity,grade", "--json"])
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
     assert set(document["variants"]) == {"full", "work"}

@@ -21,8 +21,21 @@ from benchmarks.rectify import (
     synthetic_pairs,
 )
 
-KEYS = {"pair", "kind", "method", "dy_median", "dy_p95", "midline_deviation", "aspect_change", "epe", "bad2",
-        "coverage", "gt_dy_p95", "seconds", "error"}
+KEYS = {
+    "pair",
+    "kind",
+    "method",
+    "dy_median",
+    "dy_p95",
+    "midline_deviation",
+    "aspect_change",
+    "epe",
+    "bad2",
+    "coverage",
+    "gt_dy_p95",
+    "seconds",
+    "error",
+}
 
 
 @pytest.fixture(scope="module")

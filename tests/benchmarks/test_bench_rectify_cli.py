@@ -9,8 +9,7 @@ from click.testing import CliRunner
 
 from benchmarks.rectify import bench_rectify_command
 
-ROW_KEYS = {"pair", "method", "dy_median", "dy_p95", "midline_deviation", "aspect_change", "epe", "bad2",
-            "seconds", "error"}
+ROW_KEYS = {"pair", "method", "dy_median", "dy_p95", "midline_deviation", "aspect_change", "epe", "bad2", "seconds", "error"}
 
 
 def test_json_shape_quick() -> None:

@@ -20,8 +20,11 @@ LARGEST_CYCLE_NOW = 2
 
 def _product_graph() -> dict[str, set[str]]:
     graph = import_graph()
-    return {name: {t for t in targets if t.split(".")[0] in PRODUCT_PACKAGES}
-            for name, targets in graph.items() if name.split(".")[0] in PRODUCT_PACKAGES}
+    return {
+        name: {t for t in targets if t.split(".")[0] in PRODUCT_PACKAGES}
+        for name, targets in graph.items()
+        if name.split(".")[0] in PRODUCT_PACKAGES
+    }
 
 
 def test_strongly_connected_components_on_a_known_graph() -> None:

@@ -41,10 +41,15 @@ def processed_cards(app, runner, make_card, add_stage_result, decide_orientation
     def make(count: int) -> list[int]:
         ids = []
         for number in range(count):
-            card_id = make_card(accession=f"1996.0009.{17827 + number}",
-                                metadata={"title": f"Motorcycle {number}", "date": "1890",
-                                          "url": f"https://emuseum.example.org/objects/{17827 + number}"},
-                                image=_variant(number))
+            card_id = make_card(
+                accession=f"1996.0009.{17827 + number}",
+                metadata={
+                    "title": f"Motorcycle {number}",
+                    "date": "1890",
+                    "url": f"https://emuseum.example.org/objects/{17827 + number}",
+                },
+                image=_variant(number),
+            )
             add_stage_result(card_id, "filter")
             ids.append(card_id)
         decide_orientation(ids)
@@ -64,6 +69,6 @@ def _variant(number: int) -> Any:
     left, right, _ = data.stereo_motorcycle()
     half = (296, 200)
     x0 = 12 * number
-    views = [np.asarray(Image.fromarray(v[:, x0:x0 + 700]).resize(half, Image.Resampling.BOX)) for v in (left, right)]
+    views = [np.asarray(Image.fromarray(v[:, x0 : x0 + 700]).resize(half, Image.Resampling.BOX)) for v in (left, right)]
     strip = np.full((half[1], 12, 3), 200, np.uint8)
     return np.concatenate([views[0], strip, views[1]], axis=1)

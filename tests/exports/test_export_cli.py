@@ -19,8 +19,20 @@ def test_export_json_then_verify_json(runner, tmp_path, processed_cards, review_
     assert plan["dry_run"] is True and plan["version"] == "1.0.0" and plan["cards"] == 2
     assert plan["changes"]["added"] == ids and not (tmp_path / "out").exists()
 
-    result = runner.invoke(args=["export", "--out", str(tmp_path / "out"), "--min-grade", "few",
-                                 "--format", "parquet,keystonedepth", "--notes", "first cut", "--json"])
+    result = runner.invoke(
+        args=[
+            "export",
+            "--out",
+            str(tmp_path / "out"),
+            "--min-grade",
+            "few",
+            "--format",
+            "parquet,keystonedepth",
+            "--notes",
+            "first cut",
+            "--json",
+        ]
+    )
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
     assert {"version", "path", "cards", "formats", "changes", "seconds", "files"} <= document.keys()
@@ -37,7 +49,8 @@ def test_export_json_then_verify_json(runner, tmp_path, processed_cards, review_
     broken = runner.invoke(args=["verify", document["path"], "--json"])
     assert broken.exit_code == 1
     assert json.loads(broken.stdout)["problems"] == [
-        {"path": "README.md", "problem": "sha256 does not match SHA256SUMS (file changed or corrupted)"}]
+        {"path": "README.md", "problem": "sha256 does not match SHA256SUMS (file changed or corrupted)"}
+    ]
     human = runner.invoke(args=["verify", document["path"]])
     assert human.exit_code == 1 and "README.md: sha256 does not match" in human.output
 
@@ -52,7 +65,10 @@ def test_export_without_accepted_cards_exits_1_with_a_clear_error(runner, tmp_pa
 
 def test_export_refuses_an_unknown_format(runner, tmp_path) -> None:
     result = runner.invoke(args=["export", "--out", str(tmp_path / "out"), "--format", "zip"])
-    assert result.exit_code == 2 and "Expected formats from keystonedepth, parquet, webdataset, views, stereo, got zip" in result.output
+    assert (
+        result.exit_code == 2
+        and "Expected formats from keystonedepth, parquet, webdataset, views, stereo, got zip" in result.output
+    )
 
 
 def test_bench_export_small(runner) -> None:
@@ -97,5 +113,9 @@ def test_bench_export_10000_cards_stays_under_500_mb(runner) -> None:
 def test_verify_of_a_missing_folder_exits_1(runner, tmp_path) -> None:
     result = runner.invoke(args=["verify", str(tmp_path / "nowhere"), "--no-mlcroissant", "--json"])
     assert result.exit_code == 1
-    assert json.loads(result.stdout) == {"ok": False, "path": str(tmp_path / "nowhere"), "checked": 0,
-                                         "problems": [{"path": str(tmp_path / "nowhere"), "problem": "not a folder"}]}
+    assert json.loads(result.stdout) == {
+        "ok": False,
+        "path": str(tmp_path / "nowhere"),
+        "checked": 0,
+        "problems": [{"path": str(tmp_path / "nowhere"), "problem": "not a folder"}],
+    }

@@ -7,8 +7,9 @@ import hashlib
 from pathlib import Path
 
 
-def test_an_exporter_previews_with_defaults_publishes_and_downloads(app, server, screen_page, make_person, look,
-                                                                    processed_cards, review_card, tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_an_exporter_previews_with_defaults_publishes_and_downloads(
+    app, server, screen_page, make_person, look, processed_cards, review_card, tmp_path
+) -> None:  # type: ignore[no-untyped-def]
     app.config["KEYSTONE_RELEASES_DIR"] = str(tmp_path / "releases")
     ids = processed_cards(2)
     review_card(ids[0], "few")

@@ -43,8 +43,9 @@ def test_the_form_has_no_required_checkbox_and_the_server_asks_for_a_format(clie
     assert unknown.status_code == 400
 
 
-def test_publish_refuses_a_changed_plan_and_an_identical_release_and_downloads_match(exporter_with_cards, client,
-                                                                       review_card) -> None:
+def test_publish_refuses_a_changed_plan_and_an_identical_release_and_downloads_match(
+    exporter_with_cards, client, review_card
+) -> None:
     ids, form = exporter_with_cards
     no_digest = client.post("/releases/publish", data=form)
     assert no_digest.status_code == 400 and "Preview the release first" in no_digest.get_data(as_text=True)
@@ -69,8 +70,9 @@ def test_publish_refuses_a_changed_plan_and_an_identical_release_and_downloads_m
 
         digest = plan_digest(plan_release(min_grade="some", formats=("parquet",), notes="again"))
     again = client.post("/releases/publish", data={**form, "notes": "again", "plan_digest": digest})
-    assert again.status_code == 409 and "exactly the same cards, files and formats as release 1.0.0" in \
-        again.get_data(as_text=True)
+    assert again.status_code == 409 and "exactly the same cards, files and formats as release 1.0.0" in again.get_data(
+        as_text=True
+    )
 
     _downloads_match_the_release(client)
     _nothing_outside_a_release_is_served(client)
@@ -100,8 +102,14 @@ def _downloads_match_the_release(client) -> None:  # type: ignore[no-untyped-def
 
 
 def _nothing_outside_a_release_is_served(client) -> None:  # type: ignore[no-untyped-def]
-    for name in ["../../../etc/passwd", "..%2F..%2Fkeystone.sqlite3", "/etc/passwd", "nothing-here.txt", "%00",
-                 "data/../../1.0.0"]:
+    for name in [
+        "../../../etc/passwd",
+        "..%2F..%2Fkeystone.sqlite3",
+        "/etc/passwd",
+        "nothing-here.txt",
+        "%00",
+        "data/../../1.0.0",
+    ]:
         assert client.get(f"/releases/1.0.0/files/{name}", follow_redirects=True).status_code in (400, 404), name
     assert client.get("/releases/9.9.9/archive.tar").status_code == 404
     assert client.get("/releases/9.9.9/").status_code == 404

@@ -21,17 +21,27 @@ def test_a_release_with_the_stereo_format_verifies(app, runner, tmp_path, proces
     review_card(ids[1], "some")
     with app.app_context():  # as app.stereo_ingest records an MPO's card
         db.session.get(Card, ids[0]).stereo_source = {
-            "kind": "mpo", "frames": 2, "eye_order": "parallel",
-            "originals": [{"role": "mpo", "source_name": "camera.mpo", "source_path": "/home/someone/camera.mpo",
-                           "sha256": "ab" * 32, "stored_path": "originals/ab/x.mpo", "bytes": 1234}]}
+            "kind": "mpo",
+            "frames": 2,
+            "eye_order": "parallel",
+            "originals": [
+                {
+                    "role": "mpo",
+                    "source_name": "camera.mpo",
+                    "source_path": "/home/someone/camera.mpo",
+                    "sha256": "ab" * 32,
+                    "stored_path": "originals/ab/x.mpo",
+                    "bytes": 1234,
+                }
+            ],
+        }
         db.session.commit()
     result = runner.invoke(args=["export", "--out", str(tmp_path / "out"), "--format", "keystonedepth,stereo", "--json"])
     assert result.exit_code == 0, result.output
     report = json.loads(result.output)
     assert report["formats"] == ["keystonedepth", "stereo"]
     assert report["stereo"]["cards"] == 2 and report["stereo"]["cards_without"] == 0
-    assert set(report["stereo"]["per_card"]) == {"anaglyph", "wiggle_gif", "wiggle_webp", "sbs_full", "sbs_half",
-                                                 "jps", "mpo"}
+    assert set(report["stereo"]["per_card"]) == {"anaglyph", "wiggle_gif", "wiggle_webp", "sbs_full", "sbs_half", "jps", "mpo"}
     root = Path(report["path"])
     sums = {line.split("  ", 1)[1] for line in (root / "SHA256SUMS").read_text().splitlines()}
     croissant = json.loads((root / "croissant.json").read_text())
@@ -46,12 +56,18 @@ def test_a_release_with_the_stereo_format_verifies(app, runner, tmp_path, proces
             assert (root / relative).is_file() and relative in sums and relative in described
         with Image.open(root / "stereo" / key / "pair.mpo") as mpo:
             assert mpo.n_frames == 2
-        with Image.open(root / "processed/rectified/rectified_LR" / f"{key}L.png") as left, \
-                Image.open(root / "stereo" / key / "cross.jps") as jps:
+        with (
+            Image.open(root / "processed/rectified/rectified_LR" / f"{key}L.png") as left,
+            Image.open(root / "stereo" / key / "cross.jps") as jps,
+        ):
             assert jps.size == (2 * left.width, left.height)
     records = [json.loads(line) for line in (root / "cards.jsonl").read_text().splitlines()]
-    assert records[0]["stereo_source"] == {"kind": "mpo", "frames": 2, "eye_order": "parallel", "originals": [
-        {"role": "mpo", "source_name": "camera.mpo", "sha256": "ab" * 32, "bytes": 1234}]}
+    assert records[0]["stereo_source"] == {
+        "kind": "mpo",
+        "frames": 2,
+        "eye_order": "parallel",
+        "originals": [{"role": "mpo", "source_name": "camera.mpo", "sha256": "ab" * 32, "bytes": 1234}],
+    }
     assert "stereo_source" not in records[1]
     assert "stereo" in {record["@id"] for record in croissant["recordSet"]}
     assert "stereo/stereo.jsonl" in described and "`stereo/<id>/`" in (root / "README.md").read_text()
@@ -80,9 +96,13 @@ def test_verify_names_a_one_frame_mpo_and_a_missing_stereo_file(app, tmp_path, p
         image.convert("RGB").save(mpo, format="JPEG")  # one frame left
     sums = root / "SHA256SUMS"
     new_sha = hashlib.sha256(mpo.read_bytes()).hexdigest()
-    sums.write_text("\n".join(
-        f"{new_sha}  {line.split('  ', 1)[1]}" if line.endswith(f"stereo/{key}/pair.mpo") else line
-        for line in sums.read_text().splitlines()) + "\n")
+    sums.write_text(
+        "\n".join(
+            f"{new_sha}  {line.split('  ', 1)[1]}" if line.endswith(f"stereo/{key}/pair.mpo") else line
+            for line in sums.read_text().splitlines()
+        )
+        + "\n"
+    )
     (root / "stereo" / key / "wiggle.gif").unlink()
     sums.write_text("".join(line + "\n" for line in sums.read_text().splitlines() if not line.endswith("wiggle.gif")))
     problems = verify_release(root, validate_croissant=False).problems

@@ -37,15 +37,28 @@ def make_views(app, data_dir, add_stage_result):  # type: ignore[no-untyped-def]
             latest = card.latest_results()
             rectify, disparity = latest["rectify"], latest["disparity"]
             task = CardTask(
-                card_id=card_id, content_hash=card.content_hash, image_path=str(data_dir / card.stored_path),
+                card_id=card_id,
+                content_hash=card.content_hash,
+                image_path=str(data_dir / card.stored_path),
                 work_dir=str(card_work_dir(data_dir, card.content_hash, "views", param_hash(settings))),
                 data_dir=str(data_dir),
-                inputs={"left": rectify.artifacts["left"], "disparity_left": disparity.artifacts["disparity_left"],
-                        "focal_px": disparity.metrics.get("focal_px"), "grade": "few"})
+                inputs={
+                    "left": rectify.artifacts["left"],
+                    "disparity_left": disparity.artifacts["disparity_left"],
+                    "focal_px": disparity.metrics.get("focal_px"),
+                    "grade": "few",
+                },
+            )
         record = views_task(task, settings)
         assert record.status == "done", record.reason
-        add_stage_result(card_id, "views", outcome=None, param_hash=record.param_hash,
-                         metrics={**record.metrics, "inputs_digest": "views-test"}, artifacts=record.artifacts)
+        add_stage_result(
+            card_id,
+            "views",
+            outcome=None,
+            param_hash=record.param_hash,
+            metrics={**record.metrics, "inputs_digest": "views-test"},
+            artifacts=record.artifacts,
+        )
         return record.artifacts
 
     return run
@@ -78,8 +91,11 @@ def test_views_are_released_for_cards_that_have_them(app, tmp_path, three_cards,
     report = _publish(app, tmp_path / "out")
     root = Path(report.path)
     assert report.cards == 3
-    assert report.views == {"cards_with_views": 1, "cards_without_views": 2,
-                            "without": {"views not run": 1, "views skipped: not needed: graded failure": 1}}
+    assert report.views == {
+        "cards_with_views": 1,
+        "cards_without_views": 2,
+        "without": {"views not run": 1, "views skipped: not needed: graded failure": 1},
+    }
     key = f"{ids[0]:05d}"
     for relative in view_files(key):
         assert (root / relative).is_file(), relative
@@ -144,8 +160,9 @@ def test_verify_passes_and_catches_a_flipped_byte_in_a_views_file(app, tmp_path,
     data[len(data) // 2] ^= 0x01
     target.write_bytes(bytes(data))
     report = verify_release(root, validate_croissant=False)
-    assert report.problems == [{"path": f"views/{ids[0]:05d}/v1_depth.exr",
-                                "problem": "sha256 does not match SHA256SUMS (file changed or corrupted)"}]
+    assert report.problems == [
+        {"path": f"views/{ids[0]:05d}/v1_depth.exr", "problem": "sha256 does not match SHA256SUMS (file changed or corrupted)"}
+    ]
 
 
 def test_verify_names_an_incomplete_views_folder(app, tmp_path, three_cards) -> None:
@@ -163,7 +180,8 @@ def test_verify_names_an_incomplete_views_folder(app, tmp_path, three_cards) -> 
 
 
 def test_views_releases_are_byte_identical_and_a_changed_views_result_is_a_changed_card(
-        app, tmp_path, three_cards, make_views) -> None:
+    app, tmp_path, three_cards, make_views
+) -> None:
     ids, _ = three_cards
     first = _publish(app, tmp_path / "a")
     second = _publish(app, tmp_path / "b")
@@ -189,8 +207,7 @@ def test_views_releases_are_byte_identical_and_a_changed_views_result_is_a_chang
     plain = _publish(app, tmp_path / "d", formats=("keystonedepth",))
     assert plain.views is None and not (Path(plain.path) / "views").exists()
     assert {entry["card_id"] for entry in plain.changes["changed"]} == set(ids[:2])
-    assert all(why[0].startswith("views removed") for why in
-               (entry["why"] for entry in plain.changes["changed"]))
+    assert all(why[0].startswith("views removed") for why in (entry["why"] for entry in plain.changes["changed"]))
 
 
 def test_views_is_an_optional_format(runner) -> None:

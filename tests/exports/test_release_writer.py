@@ -11,8 +11,9 @@ import pytest
 
 
 def _files(root: Path) -> dict[str, str]:
-    return {p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        p.relative_to(root).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()
+    }
 
 
 def _publish(app, out: Path, **options):  # type: ignore[no-untyped-def]
@@ -35,10 +36,20 @@ def test_release_layouts_hold_the_pipeline_outputs(app, tmp_path, processed_card
     assert report.version == "1.0.0" and root == (tmp_path / "out" / "1.0.0").resolve()
     assert report.cards == 2 and report.grades == {"few": 1, "some": 1}
     key = f"{ids[0]:05d}"
-    for relative in (f"cropped/cropped_full_LR/{key}L.png", f"cropped/cropped_full_LR/{key}R.png",
-                     f"processed/rectified/disp_info_LR/{key}L.exr", f"processed/rectified/disp_info_LR/{key}R.exr",
-                     f"processed/depth_512/{key}.exr", "README.md", "CHANGELOG.md", "croissant.json", "SHA256SUMS",
-                     "cards.jsonl", "data/train-00000-of-00001.parquet", "webdataset/keystone-000000.tar"):
+    for relative in (
+        f"cropped/cropped_full_LR/{key}L.png",
+        f"cropped/cropped_full_LR/{key}R.png",
+        f"processed/rectified/disp_info_LR/{key}L.exr",
+        f"processed/rectified/disp_info_LR/{key}R.exr",
+        f"processed/depth_512/{key}.exr",
+        "README.md",
+        "CHANGELOG.md",
+        "croissant.json",
+        "SHA256SUMS",
+        "cards.jsonl",
+        "data/train-00000-of-00001.parquet",
+        "webdataset/keystone-000000.tar",
+    ):
         assert (root / relative).is_file(), relative
     assert not (root / f"cropped/cropped_full_LR/{ids[2]:05d}L.png").exists()
     assert not list((tmp_path / "out").glob(".*partial*"))
@@ -108,8 +119,7 @@ def _date(text: str) -> float:
     return datetime.fromisoformat(text).timestamp()
 
 
-def test_versions_follow_the_changes_and_data_files_stay_byte_identical(app, tmp_path, processed_cards,
-                                                                       review_card) -> None:
+def test_versions_follow_the_changes_and_data_files_stay_byte_identical(app, tmp_path, processed_cards, review_card) -> None:
     ids = processed_cards(3)
     review_card(ids[0], "few")
     review_card(ids[1], "some")
@@ -132,8 +142,9 @@ def test_versions_follow_the_changes_and_data_files_stay_byte_identical(app, tmp
     review_card(ids[0], "some", decision="changed", auto_grade="few")
     fourth = _publish(app, tmp_path / "d")
     assert fourth.version == "2.0.0"
-    assert fourth.changes["changed"] == [{"card_id": ids[0], "why": ["grade changed (few -> some)",
-                                                                       "review decision changed (accepted -> changed)"]}]
+    assert fourth.changes["changed"] == [
+        {"card_id": ids[0], "why": ["grade changed (few -> some)", "review decision changed (accepted -> changed)"]}
+    ]
     changelog = (Path(fourth.path) / "CHANGELOG.md").read_text()
     assert f"card {ids[0]:05d}: grade changed (few -> some)" in changelog and "Against 1.1.0: a major release" in changelog
 
@@ -159,8 +170,7 @@ def test_same_inputs_give_byte_identical_releases(app, tmp_path, processed_cards
     assert _files(Path(first.path)) == _files(Path(second.path))
 
 
-def test_a_crash_mid_release_leaves_no_release_and_no_row(app, tmp_path, processed_cards, review_card,
-                                                          monkeypatch) -> None:
+def test_a_crash_mid_release_leaves_no_release_and_no_row(app, tmp_path, processed_cards, review_card, monkeypatch) -> None:
     from app.db import db
     from exports import writers
     from exports.models import Release
@@ -199,8 +209,9 @@ def test_nothing_accepted_is_a_clear_error(app, tmp_path, processed_cards, revie
     assert not (tmp_path / "out").exists() or list((tmp_path / "out").iterdir()) == []
 
 
-def test_a_card_with_a_missing_artifact_is_left_out_with_the_reason(app, tmp_path, processed_cards, review_card,
-                                                                   data_dir) -> None:
+def test_a_card_with_a_missing_artifact_is_left_out_with_the_reason(
+    app, tmp_path, processed_cards, review_card, data_dir
+) -> None:
     from sqlalchemy import select
 
     from app.db import db
@@ -214,21 +225,22 @@ def test_a_card_with_a_missing_artifact_is_left_out_with_the_reason(app, tmp_pat
         (data_dir / row.artifacts["depth_512"]).unlink()
     report = _publish(app, tmp_path / "out")
     assert report.cards == 1
-    assert report.excluded == [{"card_id": ids[1], "reason": f"disparity artifact 'depth_512' is missing on disk "
-                                                            f"({row.artifacts['depth_512']})"}]
+    assert report.excluded == [
+        {"card_id": ids[1], "reason": f"disparity artifact 'depth_512' is missing on disk ({row.artifacts['depth_512']})"}
+    ]
     assert f"card {ids[1]:05d}: disparity artifact 'depth_512' is missing" in (Path(report.path) / "CHANGELOG.md").read_text()
 
 
-def test_hugging_face_datasets_loads_the_parquet_shards(app, tmp_path, processed_cards, review_card,
-                                                        monkeypatch) -> None:
+def test_hugging_face_datasets_loads_the_parquet_shards(app, tmp_path, processed_cards, review_card, monkeypatch) -> None:
     monkeypatch.setenv("HF_DATASETS_OFFLINE", "1")  # a local folder: nothing to fetch from a hub
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     datasets = pytest.importorskip("datasets", reason="Hugging Face datasets is not installed (pip install datasets)")
     ids = processed_cards(1)
     review_card(ids[0], "few")
     report = _publish(app, tmp_path / "out", formats=("parquet",))
-    loaded = datasets.load_dataset("parquet", data_files=str(Path(report.path) / "data" / "*.parquet"), split="train",
-                                   cache_dir=str(tmp_path / "hf-cache"))
+    loaded = datasets.load_dataset(
+        "parquet", data_files=str(Path(report.path) / "data" / "*.parquet"), split="train", cache_dir=str(tmp_path / "hf-cache")
+    )
     assert isinstance(loaded.features["rectified_left"], datasets.Image)
     row = loaded[0]
     assert row["card_id"] == ids[0] and row["grade"] == "few"

@@ -8,8 +8,7 @@ from pathlib import Path
 import pytest
 
 
-@pytest.mark.parametrize("role, status", [(None, 302), ("annotator", 403), ("curator", 403),
-                                          ("exporter", 200), ("admin", 200)])
+@pytest.mark.parametrize("role, status", [(None, 302), ("annotator", 403), ("curator", 403), ("exporter", 200), ("admin", 200)])
 def test_who_sees_the_releases_page(client, as_role, role, status) -> None:
     as_role(role)
     assert client.get("/releases/").status_code == status
@@ -32,8 +31,7 @@ def test_publishing_needs_the_csrf_token(client, login) -> None:
 
 
 @pytest.mark.both_databases
-def test_preview_then_publish_from_the_page(app, client, login, csrf_token, processed_cards, review_card,
-                                           tmp_path) -> None:
+def test_preview_then_publish_from_the_page(app, client, login, csrf_token, processed_cards, review_card, tmp_path) -> None:
     app.config["KEYSTONE_RELEASES_DIR"] = str(tmp_path / "releases")
     ids = processed_cards(2)
     review_card(ids[0], "few")
@@ -53,8 +51,9 @@ def test_preview_then_publish_from_the_page(app, client, login, csrf_token, proc
 
     digest = re.search(r'name="plan_digest"[^>]*value="([0-9a-f]{64})"', html).group(1)
     cards = re.search(r'name="planned_cards"[^>]*value="([0-9,]*)"', html).group(1)
-    published = client.post("/releases/publish", data={**form, "plan_digest": digest, "planned_version": "1.0.0",
-                                                       "planned_cards": cards})
+    published = client.post(
+        "/releases/publish", data={**form, "plan_digest": digest, "planned_version": "1.0.0", "planned_cards": cards}
+    )
     assert published.status_code == 303
     listing = client.get("/releases/").get_data(as_text=True)
     assert "Published release 1.0.0: 2 cards" in listing and "from the web" in listing

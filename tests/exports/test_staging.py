@@ -45,8 +45,13 @@ with atomic_write(sys.argv[1]) as handle:
 
 
 def _exporter(out: Path, version: str, mode: str) -> tuple[subprocess.Popen[str], Path]:
-    child = subprocess.Popen([sys.executable, "-c", EXPORTER, str(out), version, mode], stdin=subprocess.PIPE,
-                             stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    child = subprocess.Popen(
+        [sys.executable, "-c", EXPORTER, str(out), version, mode],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     assert child.stdout is not None
     return child, Path(child.stdout.readline().strip())
 
@@ -115,7 +120,8 @@ def test_unlocked_partial_folders_go_only_when_nothing_in_them_changed_lately(tm
 
 
 def test_export_clears_killed_exports_and_publishes_world_readable_under_any_umask(
-        app, runner, tmp_path, processed_cards, review_card) -> None:
+    app, runner, tmp_path, processed_cards, review_card
+) -> None:
     ids = processed_cards(1)
     review_card(ids[0], "few")
     out = tmp_path / "out"
@@ -143,8 +149,7 @@ def test_export_clears_killed_exports_and_publishes_world_readable_under_any_uma
 
 
 @pytest.mark.parametrize("age_minutes, kept", [(11, False), (2, True)])
-def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, data_dir, make_card, age_minutes,
-                                                                 kept) -> None:
+def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, data_dir, make_card, age_minutes, kept) -> None:
     """A writer killed inside atomic_write leaves its .tmp: the next ``keystone run`` removes it
     from the card's work folder before the card runs again (and a killed ingest's from the store)
     once older than ten minutes, and leaves a fresh one (a concurrent writer's) alone."""
@@ -161,7 +166,8 @@ def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, dat
     leftovers = []
     for target in (work / "left.png", data_dir / "originals" / "ab" / ("ab" * 32 + ".png")):
         killed = subprocess.run(
-            [sys.executable, "-c", KILLED_WRITER, str(target)], env={**os.environ, "PYTHONPATH": str(REPO)}, check=False)
+            [sys.executable, "-c", KILLED_WRITER, str(target)], env={**os.environ, "PYTHONPATH": str(REPO)}, check=False
+        )
         assert killed.returncode == -signal.SIGKILL
         (leftover,) = target.parent.glob(f".{target.name}.*.tmp")
         then = time.time() - age_minutes * 60

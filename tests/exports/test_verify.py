@@ -33,9 +33,13 @@ def test_a_sound_release_passes_and_mlcroissant_validates_it_offline(release: Pa
     assert report.ok, report.problems
     assert report.checked == len((release / "SHA256SUMS").read_text().splitlines()) > 20
     mlcroissant = pytest.importorskip("mlcroissant", reason="mlcroissant is not installed (pip install mlcroissant)")
-    done = subprocess.run([sys.executable, "-m", "mlcroissant.scripts.validate", "--jsonld", str(release / "croissant.json")],
-                          capture_output=True, text=True, timeout=300, env={"PATH": "/usr/bin:/bin", "NO_PROXY": "*",
-                                                                           "HOME": str(release.parent)})
+    done = subprocess.run(
+        [sys.executable, "-m", "mlcroissant.scripts.validate", "--jsonld", str(release / "croissant.json")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={"PATH": "/usr/bin:/bin", "NO_PROXY": "*", "HOME": str(release.parent)},
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     # mlcroissant checks the sha256 of the file it reads: the card records load offline.
     import warnings
@@ -79,8 +83,7 @@ def test_a_corrupted_croissant_is_caught(release: Path) -> None:
     (release / "croissant.json").write_bytes(text)
     # Even with SHA256SUMS updated to match, the file's own content is checked.
     sums = (release / "SHA256SUMS").read_text().splitlines()
-    sums = [f"{hashlib.sha256(text).hexdigest()}  croissant.json" if line.endswith("  croissant.json") else line
-            for line in sums]
+    sums = [f"{hashlib.sha256(text).hexdigest()}  croissant.json" if line.endswith("  croissant.json") else line for line in sums]
     (release / "SHA256SUMS").write_text("\n".join(sums) + "\n")
     report = _verify(release)
     first = document["distribution"][0]["contentUrl"]
@@ -102,8 +105,10 @@ def test_a_parquet_shard_with_another_schema_is_caught(release: Path) -> None:
     table = pq.read_table(shard).drop_columns(["depth_512"])
     pq.write_table(table, shard)
     digest = hashlib.sha256(shard.read_bytes()).hexdigest()
-    sums = [f"{digest}  data/train-00000-of-00001.parquet" if line.endswith(".parquet") else line
-            for line in (release / "SHA256SUMS").read_text().splitlines()]
+    sums = [
+        f"{digest}  data/train-00000-of-00001.parquet" if line.endswith(".parquet") else line
+        for line in (release / "SHA256SUMS").read_text().splitlines()
+    ]
     (release / "SHA256SUMS").write_text("\n".join(sums) + "\n")
     problems = _verify(release).problems
     assert {"path": "data/train-00000-of-00001.parquet", "problem": "Parquet schema differs from the release schema"} in problems
@@ -115,8 +120,14 @@ def test_the_streamed_croissant_equals_the_document_dumped_whole() -> None:
 
     from exports.croissant import croissant_document, write_croissant
 
-    options = dict(version="1.2.0", date="2026-03-01T10:00:00+00:00", card_count=2, grade_counts={"few": 1, "some": 1},
-                   crowd={"answers_per_card": 3.5}, notes="n")
+    options = dict(
+        version="1.2.0",
+        date="2026-03-01T10:00:00+00:00",
+        card_count=2,
+        grade_counts={"few": 1, "some": 1},
+        crowd={"answers_per_card": 3.5},
+        notes="n",
+    )
     for files in ({}, {"cards.jsonl": ("a" * 64, 10), "data/train-00000-of-00001.parquet": ("b" * 64, 2048)}):
         buffer = io.BytesIO()
         write_croissant(buffer, files, **options)

@@ -28,9 +28,9 @@ W, H = 741, 500
 def card() -> tuple[np.ndarray, np.ndarray]:
     left, right, disp = data.stereo_motorcycle()
     out = np.full((H + 2 * MARGIN + SHIFT, 2 * W + GUTTER + 2 * MARGIN, 3), 190, np.uint8)
-    out[MARGIN:MARGIN + H, MARGIN:MARGIN + W] = left
+    out[MARGIN : MARGIN + H, MARGIN : MARGIN + W] = left
     rx = MARGIN + W + GUTTER
-    out[MARGIN + SHIFT:MARGIN + SHIFT + H, rx:rx + W] = right
+    out[MARGIN + SHIFT : MARGIN + SHIFT + H, rx : rx + W] = right
     return out, disp
 
 

@@ -102,15 +102,29 @@ def test_scene_split_follows_the_tuning_list():
 
 def test_summary_by_split_and_ratio_to_dis_medium():
     def row(scene, split, backend, bad2, seconds):
-        return {"scene": scene, "split": split, "perturbation": "none", "backend": backend, "epe": bad2 / 10,
-                "bad1": bad2 * 2, "bad2": bad2, "coverage": 100.0, "seconds": seconds, "size": [741, 500]}
+        return {
+            "scene": scene,
+            "split": split,
+            "perturbation": "none",
+            "backend": backend,
+            "epe": bad2 / 10,
+            "bad1": bad2 * 2,
+            "bad2": bad2,
+            "coverage": 100.0,
+            "seconds": seconds,
+            "size": [741, 500],
+        }
 
-    rows = [row("motorcycle", "tuned", "dis-medium", 20.0, 0.1), row("motorcycle", "tuned", "keystone", 6.0, 0.3),
-            row("adirondack", "held-out", "dis-medium", 22.0, 0.1), row("adirondack", "held-out", "keystone", 4.0, 0.25),
-            row("cones", "held-out", "dis-medium", 10.0, 0.05), row("cones", "held-out", "keystone", 8.0, 0.1)]
+    rows = [
+        row("motorcycle", "tuned", "dis-medium", 20.0, 0.1),
+        row("motorcycle", "tuned", "keystone", 6.0, 0.3),
+        row("adirondack", "held-out", "dis-medium", 22.0, 0.1),
+        row("adirondack", "held-out", "keystone", 4.0, 0.25),
+        row("cones", "held-out", "dis-medium", 10.0, 0.05),
+        row("cones", "held-out", "keystone", 8.0, 0.1),
+    ]
     by_split = {(s["backend"], s["split"]): s for s in summarise_by_split(rows)}
-    assert set(by_split) == {("dis-medium", "tuned"), ("dis-medium", "held-out"), ("keystone", "tuned"),
-                             ("keystone", "held-out")}
+    assert set(by_split) == {("dis-medium", "tuned"), ("dis-medium", "held-out"), ("keystone", "tuned"), ("keystone", "held-out")}
     held = by_split[("keystone", "held-out")]
     assert held["bad2"] == pytest.approx(6.0) and held["rows"] == 2
     assert held["ratio_to_dis_medium"] == pytest.approx(2.25)  # median of 2.5 and 2.0, case by case

@@ -183,8 +183,16 @@ def test_bad_cards_are_refused():
 
 @pytest.mark.parametrize(
     "kwargs",
-    [{"ratio": 0.0}, {"ratio": 1.5}, {"cull_fraction": 0.02, "review_fraction": 0.01}, {"min_good_matches": -1},
-     {"max_side": 8}, {"max_keypoints": -5}, {"row_tolerance": 0.0}, {"min_consistent_share": 2.0}],
+    [
+        {"ratio": 0.0},
+        {"ratio": 1.5},
+        {"cull_fraction": 0.02, "review_fraction": 0.01},
+        {"min_good_matches": -1},
+        {"max_side": 8},
+        {"max_keypoints": -5},
+        {"row_tolerance": 0.0},
+        {"min_consistent_share": 2.0},
+    ],
 )
 def test_bad_params_fail_when_built(kwargs):
     with pytest.raises(InvalidInputError, match="Expected"):
@@ -195,9 +203,14 @@ def test_params_change_the_param_hash():
     base = param_hash(FilterParams())
     assert base == param_hash(FilterParams())
     changed = [
-        FilterParams(ratio=0.8), FilterParams(cull_fraction=0.004), FilterParams(review_fraction=0.02),
-        FilterParams(min_good_matches=11), FilterParams(max_side=800), FilterParams(max_keypoints=0),
-        FilterParams(check_geometry=False), FilterParams(split=SplitParams(search_band=(0.4, 0.6))),
+        FilterParams(ratio=0.8),
+        FilterParams(cull_fraction=0.004),
+        FilterParams(review_fraction=0.02),
+        FilterParams(min_good_matches=11),
+        FilterParams(max_side=800),
+        FilterParams(max_keypoints=0),
+        FilterParams(check_geometry=False),
+        FilterParams(split=SplitParams(search_band=(0.4, 0.6))),
     ]
     hashes = {param_hash(p) for p in changed}
     assert base not in hashes and len(hashes) == len(changed)

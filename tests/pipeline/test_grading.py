@@ -36,8 +36,14 @@ from pipeline.stages.grade import grade_task
 # Metrics of a clean card as the filter and rectify stages record them.
 CLEAN_STAGES = {
     "filter": {"good_match_fraction": 0.25},
-    "rectify": {"dy_p95": 0.4, "midline_angle": 89.9, "aspect_change": 1.01, "rotation": -0.3,
-                "kept_fraction": 0.97, "swapped": False},
+    "rectify": {
+        "dy_p95": 0.4,
+        "midline_angle": 89.9,
+        "aspect_change": 1.01,
+        "rotation": -0.3,
+        "kept_fraction": 0.97,
+        "swapped": False,
+    },
     "disparity": {"coverage": 1.0},
 }
 
@@ -113,8 +119,13 @@ def test_right_view_sheared_vertically_is_a_failure(pair):
     left, right = pair
     w = right.shape[1]
     slope = 8.0 / (w - 1)  # rows drift from 0 px at the left edge to 8 px at the right
-    sheared = cv2.warpAffine(right, np.float32([[1, 0, 0], [slope, 1, 0]]), right.shape[1::-1],
-                             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+    sheared = cv2.warpAffine(
+        right,
+        np.float32([[1, 0, 0], [slope, 1, 0]]),
+        right.shape[1::-1],
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_REFLECT,
+    )
     m = _measure(left, sheared)
     assert m.row_misalignment_px == pytest.approx(8.0, abs=1.0)
     result = grade(m)
@@ -199,8 +210,10 @@ def test_bad_inputs_raise_typed_errors(pair, good):
 def test_missing_measurements_are_skipped_with_notes():
     result = grade(GradeMeasurements(coverage=0.95))
     assert result.grade == "few"
-    assert result.reasons[0] == ("few: every measurement within thresholds (1 of 20 measured); nearest: coverage 95 % "
-                                 "is 15 points from its some threshold (< 80 %)")
+    assert result.reasons[0] == (
+        "few: every measurement within thresholds (1 of 20 measured); nearest: coverage 95 % "
+        "is 15 points from its some threshold (< 80 %)"
+    )
     assert "note: swapped not graded (not measured)" in result.reasons
     assert len(result.notes) == 19
     missing = [row for row in result.checks if row["value"] is None]
@@ -222,7 +235,8 @@ def test_uncertainty_is_one_on_a_threshold_and_falls_with_the_log_ratio():
     assert both.uncertainty == 0.0 and both.deciding == ["row_misalignment_px", "coverage"]
     # two some-level measurements: either one crossing into failure changes the grade (3 vs 4 px)
     assert grade(GradeMeasurements(row_misalignment_px=3.0, coverage=0.7)).uncertainty == pytest.approx(
-        1 - math.log(4 / 3) / math.log(4), abs=1e-4)
+        1 - math.log(4 / 3) / math.log(4), abs=1e-4
+    )
     # with the some level switched off, the failure threshold is the one that matters for a few card
     off = GradeThresholds.from_dict({"row_misalignment_px": {"direction": "above", "some": None, "failure": 4.0}})
     assert grade(GradeMeasurements(row_misalignment_px=2.0), off).uncertainty == pytest.approx(0.5)
@@ -230,8 +244,11 @@ def test_uncertainty_is_one_on_a_threshold_and_falls_with_the_log_ratio():
     assert grade(GradeMeasurements(row_misalignment_px=0.1, coverage=1.0)).uncertainty == 0.0
     rng = np.random.default_rng(1)
     for _ in range(200):
-        u = grade(GradeMeasurements(row_misalignment_px=float(rng.uniform(0, 10)), coverage=float(rng.uniform(0, 1)),
-                                    swapped=bool(rng.integers(2)))).uncertainty
+        u = grade(
+            GradeMeasurements(
+                row_misalignment_px=float(rng.uniform(0, 10)), coverage=float(rng.uniform(0, 1)), swapped=bool(rng.integers(2))
+            )
+        ).uncertainty
         assert 0.0 <= u <= 1.0
 
 
@@ -250,14 +267,17 @@ def test_thresholds_round_trip_through_json_and_hash_stably():
     assert len(param_hash(GradeParams())) == 16
 
 
-@pytest.mark.parametrize("document, message", [
-    ({"colour": {"direction": "above", "some": 1, "failure": 2}}, "unknown grade measurements: colour"),
-    ({"coverage": {"direction": "above", "some": 0.8, "failure": 0.5}}, "direction must be 'below'"),
-    ({"coverage": {"direction": "below", "some": 0.5, "failure": 0.8}}, "must be beyond"),
-    ({"coverage": {"direction": "below", "some": float("nan"), "failure": 0.5}}, "finite number"),
-    ({"coverage": {"direction": "below", "some": "high", "failure": 0.5}}, "finite number"),
-    ([1, 2], "mapping"),
-])
+@pytest.mark.parametrize(
+    "document, message",
+    [
+        ({"colour": {"direction": "above", "some": 1, "failure": 2}}, "unknown grade measurements: colour"),
+        ({"coverage": {"direction": "above", "some": 0.8, "failure": 0.5}}, "direction must be 'below'"),
+        ({"coverage": {"direction": "below", "some": 0.5, "failure": 0.8}}, "must be beyond"),
+        ({"coverage": {"direction": "below", "some": float("nan"), "failure": 0.5}}, "finite number"),
+        ({"coverage": {"direction": "below", "some": "high", "failure": 0.5}}, "finite number"),
+        ([1, 2], "mapping"),
+    ],
+)
 def test_bad_threshold_documents_are_refused(document, message):
     with pytest.raises(InvalidInputError, match=message):
         GradeThresholds.from_dict(document)
@@ -267,11 +287,13 @@ def test_bad_threshold_documents_are_refused(document, message):
 
 # The curators' hidden rule in the synthetic population: stricter than the defaults on rows and
 # photometric error, laxer on coverage.
-HIDDEN = GradeThresholds.from_dict({
-    "row_misalignment_px": {"direction": "above", "some": 1.0, "failure": 2.5},
-    "photometric_error_rel": {"direction": "above", "some": 0.3, "failure": 0.6},
-    "coverage": {"direction": "below", "some": 0.7, "failure": 0.4},
-})
+HIDDEN = GradeThresholds.from_dict(
+    {
+        "row_misalignment_px": {"direction": "above", "some": 1.0, "failure": 2.5},
+        "photometric_error_rel": {"direction": "above", "some": 0.3, "failure": 0.6},
+        "coverage": {"direction": "below", "some": 0.7, "failure": 0.4},
+    }
+)
 
 
 def _population(n: int, noise: float, seed: int) -> list[tuple[dict, str]]:
@@ -279,12 +301,19 @@ def _population(n: int, noise: float, seed: int) -> list[tuple[dict, str]]:
     rows = []
     for _ in range(n):
         m = GradeMeasurements(
-            good_match_fraction=float(rng.uniform(0.05, 0.35)), dy_p95_px=float(rng.uniform(0.1, 1.2)),
-            shear_deg=float(rng.uniform(0, 2)), aspect_change=float(rng.uniform(1.0, 1.1)),
-            rotation_deg=float(rng.uniform(0, 3)), kept_fraction=float(rng.uniform(0.9, 1.0)), swapped=False,
-            row_misalignment_px=float(rng.gamma(1.5, 1.0)), coverage=float(1 - rng.beta(1, 6)),
-            lr_consistency=float(rng.uniform(0.75, 0.95)), confident_fraction=float(rng.uniform(0.5, 0.8)),
-            disparity_range_rel=float(rng.uniform(0.01, 0.1)), textured_fraction=float(rng.uniform(0.3, 0.8)),
+            good_match_fraction=float(rng.uniform(0.05, 0.35)),
+            dy_p95_px=float(rng.uniform(0.1, 1.2)),
+            shear_deg=float(rng.uniform(0, 2)),
+            aspect_change=float(rng.uniform(1.0, 1.1)),
+            rotation_deg=float(rng.uniform(0, 3)),
+            kept_fraction=float(rng.uniform(0.9, 1.0)),
+            swapped=False,
+            row_misalignment_px=float(rng.gamma(1.5, 1.0)),
+            coverage=float(1 - rng.beta(1, 6)),
+            lr_consistency=float(rng.uniform(0.75, 0.95)),
+            confident_fraction=float(rng.uniform(0.5, 0.8)),
+            disparity_range_rel=float(rng.uniform(0.01, 0.1)),
+            textured_fraction=float(rng.uniform(0.3, 0.8)),
             photometric_error_rel=float(rng.uniform(0.05, 0.8)),
         )
         label = grade(m, HIDDEN).grade
@@ -354,8 +383,14 @@ def test_grade_task_grades_a_card_from_its_files(tmp_path, pair, good):
     left, right = pair
     _, d_left, d_right, conf = good
     inputs = _write_card(tmp_path, left, right, {"disparity_left": d_left, "disparity_right": d_right, "confidence": conf})
-    task = CardTask(card_id=7, content_hash="abc", image_path=str(tmp_path / "card.jpg"),
-                    work_dir=str(tmp_path / "cards" / "7"), data_dir=str(tmp_path), inputs=inputs)
+    task = CardTask(
+        card_id=7,
+        content_hash="abc",
+        image_path=str(tmp_path / "card.jpg"),
+        work_dir=str(tmp_path / "cards" / "7"),
+        data_dir=str(tmp_path),
+        inputs=inputs,
+    )
     params = GradeParams()
     record = grade_task(task, params)
     assert record.status == "done" and record.stage == "grade" and record.outcome == "few"
@@ -381,8 +416,7 @@ def test_grade_task_records_a_failure_for_a_missing_file(tmp_path, pair, good):
     _, d_left, d_right, conf = good
     inputs = _write_card(tmp_path, left, right, {"disparity_left": d_left, "disparity_right": d_right, "confidence": conf})
     (tmp_path / "cards" / "7" / "confidence.npy").unlink()
-    task = CardTask(card_id=7, content_hash="abc", image_path="", work_dir=str(tmp_path), data_dir=str(tmp_path),
-                    inputs=inputs)
+    task = CardTask(card_id=7, content_hash="abc", image_path="", work_dir=str(tmp_path), data_dir=str(tmp_path), inputs=inputs)
     record = grade_task(task, GradeParams())
     assert record.status == "failed" and record.outcome is None
     assert record.reason.startswith("pipeline_error: no such file: ") and record.reason.endswith("confidence.npy")
@@ -390,5 +424,5 @@ def test_grade_task_records_a_failure_for_a_missing_file(tmp_path, pair, good):
     assert grade_task(task, GradeParams()).reason.startswith("unreadable_image: no such file")
     no_inputs = CardTask(card_id=8, content_hash="x", image_path="", work_dir=str(tmp_path), data_dir=str(tmp_path))
     assert grade_task(no_inputs, GradeParams()).reason == (
-        "pipeline_error: missing inputs left, right, disparity_left, disparity_right, confidence: "
-        "run rectify and disparity first")
+        "pipeline_error: missing inputs left, right, disparity_left, disparity_right, confidence: run rectify and disparity first"
+    )

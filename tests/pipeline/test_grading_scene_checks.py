@@ -56,8 +56,7 @@ def test_depth_order_is_positive_on_a_real_scene_and_negative_upside_down_or_rev
 
 
 def test_an_upside_down_depth_map_gets_the_ordering_reason(motorcycle):
-    result = grade(GradeMeasurements(depth_order=scene_checks.depth_order(motorcycle[2][::-1].copy(),
-                                                                          _all(motorcycle[0].shape))))
+    result = grade(GradeMeasurements(depth_order=scene_checks.depth_order(motorcycle[2][::-1].copy(), _all(motorcycle[0].shape))))
     assert result.grade == "failure" and result.deciding == ["depth_order"]
     assert "top of the picture comes out nearer than the bottom" in result.reasons[0]
 
@@ -69,7 +68,7 @@ def test_a_streaky_disparity_gets_the_streak_reason(motorcycle):
     streaky = disp.copy()
     rng = np.random.default_rng(0)
     for y in range(0, disp.shape[0], 12):  # a 3-row run every 12 rows, off by up to 8 px
-        streaky[y:y + 3] += rng.choice([-1, 1]) * rng.uniform(3, 8)
+        streaky[y : y + 3] += rng.choice([-1, 1]) * rng.uniform(3, 8)
     fraction = scene_checks.streak_fraction(streaky, inside)
     assert 0.2 < fraction < 0.45  # 3 of 12 rows, and a row either side where the scene has vertical structure
     result = grade(GradeMeasurements(streak_fraction=fraction))
@@ -99,8 +98,8 @@ def test_a_mirrored_lower_half_reads_as_a_reflection(motorcycle):
     assert plain is not None and plain.symmetry < 0.5
     h = grey.shape[0]
     mirrored, mirrored_disp = grey.copy(), disp.copy()
-    mirrored[h // 2:] = grey[:h // 2][::-1][:h - h // 2]
-    mirrored_disp[h // 2:] = disp[:h // 2][::-1][:h - h // 2]
+    mirrored[h // 2 :] = grey[: h // 2][::-1][: h - h // 2]
+    mirrored_disp[h // 2 :] = disp[: h // 2][::-1][: h - h // 2]
     found = scene_checks.reflection_symmetry(mirrored, mirrored_disp, _all(left.shape))
     assert found.symmetry > 0.8 and abs(found.row_px - h // 2) <= 6
     result = grade(GradeMeasurements(reflection_symmetry=found.symmetry, reflection_row_px=found.row_px))
@@ -120,8 +119,12 @@ def test_mount_strip_and_caption_inside_the_crop(motorcycle):
     measured = GradeMeasurements(border_line=found.line, border_strokes=found.strokes, border_side=found.side)
     # Off by default (the bench's true error does not follow it); a curator's thresholds turn it on.
     assert grade(measured).grade == "few"
-    flagged = GradeThresholds.from_dict({"border_line": {"direction": "above", "some": 0.6, "failure": None},
-                                         "border_strokes": {"direction": "above", "some": 0.02, "failure": None}})
+    flagged = GradeThresholds.from_dict(
+        {
+            "border_line": {"direction": "above", "some": 0.6, "failure": None},
+            "border_strokes": {"direction": "above", "some": 0.02, "failure": None},
+        }
+    )
     result = grade(measured, flagged)
     assert result.grade == "some" and set(result.deciding) == {"border_line", "border_strokes"}
     assert any("top border" in reason for reason in result.reasons)

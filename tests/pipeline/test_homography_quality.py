@@ -36,16 +36,8 @@ def test_row_vector_projective_entries_are_transposed():
 def test_identity_is_good_with_right_angle_midlines():
     m = hq.pair_metrics(np.eye(3), np.eye(3), W, H)
     assert m["l_midline_angle_deg"] == 90.0 and m["r_midline_angle_deg"] == 90.0
-    assert (
-        m["max_corner_disp"] == 0.0
-        and m["max_aspect_dev"] == 0.0
-        and m["l_area_change"] == 1.0
-    )
-    assert (
-        m["bounded"] is True
-        and m["lr_row_spread"] == 0.0
-        and m["lr_vscale_ratio"] == 1.0
-    )
+    assert m["max_corner_disp"] == 0.0 and m["max_aspect_dev"] == 0.0 and m["l_area_change"] == 1.0
+    assert m["bounded"] is True and m["lr_row_spread"] == 0.0 and m["lr_vscale_ratio"] == 1.0
     assert hq.SHIPPED_MODEL.predict(m) == "good"
 
 
@@ -62,9 +54,7 @@ def test_strong_shear_is_bad():
     S = np.array([[1.0, 0.3, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     m = hq.pair_metrics(S, S, W, H)
     # midlines: x' = (W, 0), y' = (0.3 H, H): angle = atan2(H, 0.3 H) = 73.30 deg.
-    assert m["l_midline_angle_deg"] == pytest.approx(
-        math.degrees(math.atan2(1.0, 0.3)), abs=1e-9
-    )
+    assert m["l_midline_angle_deg"] == pytest.approx(math.degrees(math.atan2(1.0, 0.3)), abs=1e-9)
     assert m["l_shear"] == pytest.approx(0.3, rel=1e-9)
     assert m["max_corner_disp"] > 0.1
     assert hq.SHIPPED_MODEL.predict(m) == "bad"
@@ -75,14 +65,9 @@ def test_corner_sent_to_infinity_is_bad_and_has_no_nan():
     P = np.array([[1.0, 0, 0], [0, 1.0, 0], [-0.5 / W, -0.5 / H, 1.0]])
     m = hq.pair_metrics(P, np.eye(3), W, H)
     assert m["l_bounded"] is False and m["bounded"] is False and m["r_bounded"] is True
-    assert m["l_min_w_ratio"] == pytest.approx(
-        0.0, abs=1e-12
-    )  # w'(corner) / w'(centre)
+    assert m["l_min_w_ratio"] == pytest.approx(0.0, abs=1e-12)  # w'(corner) / w'(centre)
     assert m["l_projective_span"] == pytest.approx(1.0)
-    assert (
-        m["max_corner_disp"] is None
-        and "unbounded" in m["reasons"]["l_corner_disp_max"]
-    )
+    assert m["max_corner_disp"] is None and "unbounded" in m["reasons"]["l_corner_disp_max"]
     assert hq.SHIPPED_MODEL.predict(m) == "bad"
     result = hq.assess(hq.HomographyPair("00001", P, np.eye(3)), size=(W, H))
     assert result["verdict"] == "bad" and result["metrics"]["score"] is None
@@ -90,14 +75,10 @@ def test_corner_sent_to_infinity_is_bad_and_has_no_nan():
 
 
 def test_beyond_infinity_flip_is_bad():
-    P = np.array(
-        [[1.0, 0, 0], [0, 1.0, 0], [-2.0 / W, 0, 1.5]]
-    )  # w' < 0 on the right part
+    P = np.array([[1.0, 0, 0], [0, 1.0, 0], [-2.0 / W, 0, 1.5]])  # w' < 0 on the right part
     m = hq.pair_metrics(np.eye(3), P, W, H)
     assert m["r_bounded"] is False
-    assert (
-        hq.assess(hq.HomographyPair("x", np.eye(3), P), size=(W, H))["verdict"] == "bad"
-    )
+    assert hq.assess(hq.HomographyPair("x", np.eye(3), P), size=(W, H))["verdict"] == "bad"
 
 
 def test_left_right_row_consistency():
@@ -108,22 +89,14 @@ def test_left_right_row_consistency():
     tall = np.diag([1.0, 1.02, 1.0])
     m2 = hq.pair_metrics(np.eye(3), tall, W, H)
     assert m2["lr_vscale_ratio"] == pytest.approx(1 / 1.02)
-    assert m2["lr_row_spread"] == pytest.approx(
-        0.01, abs=1e-9
-    )  # 0.02 * H/2 / H at top and bottom rows
+    assert m2["lr_row_spread"] == pytest.approx(0.01, abs=1e-9)  # 0.02 * H/2 / H at top and bottom rows
 
 
 def test_indicator_values_match_keystonedepth_definition():
-    H_row = np.array(
-        [[1.0, 0.0305, 2.4e-5], [-0.0305, 1.0, -1.19e-6], [-216, -315, 0.994]]
-    )
+    H_row = np.array([[1.0, 0.0305, 2.4e-5], [-0.0305, 1.0, -1.19e-6], [-216, -315, 0.994]])
     m = hq.single_metrics(hq.row_to_column(H_row), W, H)
-    assert m["projective_log10"] == pytest.approx(
-        -math.log10(math.hypot(2.4e-5, 1.19e-6) / 0.994)
-    )
-    assert abs(m["rotation_deg"]) == pytest.approx(
-        math.degrees(math.atan2(0.0305, 1.0))
-    )
+    assert m["projective_log10"] == pytest.approx(-math.log10(math.hypot(2.4e-5, 1.19e-6) / 0.994))
+    assert abs(m["rotation_deg"]) == pytest.approx(math.degrees(math.atan2(0.0305, 1.0)))
 
 
 def test_fit_and_cross_validate_recover_a_clean_rule():
@@ -160,11 +133,7 @@ def test_project_json_reader(tmp_path: Path):
     (pair,) = hq.read_homographies(f)
     assert pair.id == "04733" and (pair.width, pair.height) == (640.0, 480.0)
     r = hq.assess(pair)
-    assert (
-        r["metrics"]["width"] == 640.0
-        and r["metrics"]["size_source"] == "file"
-        and r["verdict"] == "good"
-    )
+    assert r["metrics"]["width"] == 640.0 and r["metrics"]["size_source"] == "file" and r["verdict"] == "good"
 
 
 def test_bad_files_raise_typed_errors(tmp_path: Path):
@@ -197,10 +166,7 @@ def test_mat_and_json_agree_and_match_their_indicator(kd: Path):
     np.testing.assert_allclose(pair.H_r, by_id["04733"].H_r)
     # Their indicator for 04733 (indicators/test/*_r1_60.json): projective 4.6, rotation 1.7 deg.
     m = hq.single_metrics(pair.H_l, *hq.DEFAULT_SIZE)
-    assert (
-        round(m["projective_log10"], 1) == 4.6
-        and round(abs(m["rotation_deg"]), 1) == 1.7
-    )
+    assert round(m["projective_log10"], 1) == 4.6 and round(abs(m["rotation_deg"]), 1) == 1.7
     assert hq.assess(pair)["verdict"] == "good"  # human label: good
 
 
@@ -225,15 +191,11 @@ def test_shipped_model_cross_validated_beats_their_indicator(kd: Path):
     y = [labels[i] for i in ids]
     cv = hq.cross_validate(rows, y, k=5, repeats=50, seed=0)
     assert cv["mean"] >= 0.78
-    assert cv["mean"] == pytest.approx(0.8746, abs=1e-9) and cv["sd"] == pytest.approx(
-        0.0223, abs=1e-4
-    )
+    assert cv["mean"] == pytest.approx(0.8746, abs=1e-9) and cv["sd"] == pytest.approx(0.0223, abs=1e-4)
     refit = hq.fit_verdict(rows, y)
     assert refit.t_border == pytest.approx(hq.SHIPPED_MODEL.t_border)
     assert refit.t_bad == pytest.approx(hq.SHIPPED_MODEL.t_bad)
-    shipped = sum(
-        hq.SHIPPED_MODEL.predict(r) == lab for r, lab in zip(rows, y, strict=True)
-    )
+    shipped = sum(hq.SHIPPED_MODEL.predict(r) == lab for r, lab in zip(rows, y, strict=True))
     assert shipped == 92
 
 

@@ -215,7 +215,7 @@ def test_untrained_guided_network_returns_the_classical_fill():
     x, m = torch.rand(2, 3, 16, 16, generator=g), (torch.rand(2, 1, 16, 16, generator=g) > 0.3).float()
     for idx, channel in enumerate(("intensity", "depth")):
         net = build_network(InpaintConfig(depth=2, width=4), channel)
-        assert torch.equal(net(x, m, guide), guide[:, idx:idx + 1])
+        assert torch.equal(net(x, m, guide), guide[:, idx : idx + 1])
 
 
 def _sloped_scene(n: int, seed: int):
@@ -241,8 +241,11 @@ def _depth_l1(samples, nets):
         sel = (s.hole > 0) & (s.known > 0)
         fill = (s.hole > 0) | (s.known <= 0)
         _, od = run_networks(nets, s.intensity, s.dhat, s.hole, s.boundary, s.known)
-        preds = {"network": np.where(fill, od, s.dhat), "init": s.guide()[1],
-                 "none": baseline_inpaint(np.where(fill, 0, s.dhat), fill, "none", "depth")}
+        preds = {
+            "network": np.where(fill, od, s.dhat),
+            "init": s.guide()[1],
+            "none": baseline_inpaint(np.where(fill, 0, s.dhat), fill, "none", "depth"),
+        }
         for k, p in preds.items():
             err[k] += float(np.abs(p - s.dhat)[sel].sum())
         count += int(sel.sum())

@@ -17,7 +17,7 @@ def test_rgb_grey_and_16_bit(tmp_path: Path):
     Image.fromarray(rgb).save(tmp_path / "a.png")
     assert np.array_equal(read_image(tmp_path / "a.png"), rgb)
 
-    ramp16 = (np.arange(600, dtype=np.uint16).reshape(20, 30) * 100 + 1000)
+    ramp16 = np.arange(600, dtype=np.uint16).reshape(20, 30) * 100 + 1000
     Image.fromarray(ramp16).save(tmp_path / "b.tif")
     grey = read_image(tmp_path / "b.tif")
     assert grey.dtype == np.uint8 and grey.shape == (20, 30)

@@ -39,8 +39,8 @@ def mount(left: np.ndarray, right: np.ndarray, gutter: int = 40, border: int = 2
     card[:] = MOUNT
     lb = (border, border, border + w, border + h)
     rb = (border + w + gutter, border, border + 2 * w + gutter, border + h)
-    card[lb[1]:lb[3], lb[0]:lb[2]] = left if left.ndim == 3 else sepia(left)
-    card[rb[1]:rb[3], rb[0]:rb[2]] = right if right.ndim == 3 else sepia(right)
+    card[lb[1] : lb[3], lb[0] : lb[2]] = left if left.ndim == 3 else sepia(left)
+    card[rb[1] : rb[3], rb[0] : rb[2]] = right if right.ndim == 3 else sepia(right)
     return card, lb, rb
 
 
@@ -66,8 +66,9 @@ def rendered_scene(seed: int = 0, w: int = 420, h: int = 320) -> tuple[np.ndarra
     scene = np.where(ys < horizon, sky, 0.15 + 0.6 * world)  # (h, w + pad) in world columns
 
     def sample(tex: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        return cv2.remap(tex.astype(np.float32), cols.astype(np.float32),
-                         np.broadcast_to(ys, cols.shape).astype(np.float32), cv2.INTER_LINEAR)
+        return cv2.remap(
+            tex.astype(np.float32), cols.astype(np.float32), np.broadcast_to(ys, cols.shape).astype(np.float32), cv2.INTER_LINEAR
+        )
 
     xs = np.broadcast_to(np.arange(w, dtype=np.float32)[None, :], (h, w))
     left = sample(scene, xs)
@@ -124,8 +125,10 @@ def test_rendered_scene_no_variant_is_decided_wrong_and_one_answer_settles_it(sc
     # the occlusion side moves the right way when the photos are exchanged (its level also
     # depends on the scene's texture: the model weighs it accordingly)
     other, ol, orr = orient_variant(card, lb, rb, flags[0], flags[1], not flags[2])
-    occlusion = {e: next(c.value for c in est.cues if c.name == "occlusion_side")
-                 for e, est in ((flags[2], estimate), (not flags[2], estimate_orientation(other, ol, orr)))}
+    occlusion = {
+        e: next(c.value for c in est.cues if c.name == "occlusion_side")
+        for e, est in ((flags[2], estimate), (not flags[2], estimate_orientation(other, ol, orr)))
+    }
     assert occlusion[False] > occlusion[True] + 0.02
 
 
@@ -214,8 +217,7 @@ def test_plain_areas_are_light_in_a_positive(scene_card):
     assert cue(positive, "smooth_bright") > 0.5
     assert cue(negative, "smooth_bright") == pytest.approx(-cue(positive, "smooth_bright"), abs=0.02)
     grey = estimate_orientation(cv2.cvtColor(card, cv2.COLOR_RGB2GRAY), lb, rb)
-    assert cue(grey, "smooth_bright") > 0.5 and "positive" in next(
-        c.meaning for c in grey.cues if c.name == "smooth_bright")
+    assert cue(grey, "smooth_bright") > 0.5 and "positive" in next(c.meaning for c in grey.cues if c.name == "smooth_bright")
 
 
 def test_the_card_is_decided_on_the_most_probable_combination(scene_card):
@@ -259,8 +261,13 @@ def test_blank_photos_are_undecidable():
     card, lb, rb = mount(np.full((200, 240), 128, np.uint8), np.full((200, 240), 128, np.uint8))
     estimate = estimate_orientation(card, lb, rb)
     assert estimate.undecidable.startswith("blank photo")
-    assert estimate.orientation() == {"upside_down": None, "inverted": None, "swapped": None,
-                                      "decided_by": None, "confidence": 0.0}
+    assert estimate.orientation() == {
+        "upside_down": None,
+        "inverted": None,
+        "swapped": None,
+        "decided_by": None,
+        "confidence": 0.0,
+    }
     assert not estimate.decided
 
 
@@ -277,22 +284,25 @@ def test_a_third_photo_beside_the_boxes_is_undecidable():
     card, lb, rb = mount(left, right)
     third = np.empty((card.shape[0], card.shape[1] + left.shape[1] + 40, 3), np.uint8)
     third[:] = MOUNT
-    third[:, :card.shape[1]] = card
+    third[:, : card.shape[1]] = card
     x = rb[2] + 40
-    third[lb[1]:lb[3], x:x + left.shape[1]] = sepia(left)
+    third[lb[1] : lb[3], x : x + left.shape[1]] = sepia(left)
     estimate = estimate_orientation(third, lb, rb)
     assert estimate.undecidable is not None and "more than two photos" in estimate.undecidable
 
 
-@pytest.mark.parametrize("card, boxes, message", [
-    ("not an array", ((0, 0, 40, 40), (40, 0, 80, 40)), "numpy array"),
-    (np.zeros((40, 80, 3), np.float32), ((0, 0, 40, 40), (40, 0, 80, 40)), "dtype"),
-    (np.zeros((40, 80, 4), np.uint8), ((0, 0, 40, 40), (40, 0, 80, 40)), "shape"),
-    (np.zeros((40, 50), np.uint8), ((0, 0, 25, 40), (25, 0, 50, 40)), "at least 32x32"),
-    (np.zeros((40, 80), np.uint8), ((0, 0, 40, 40), (40, 0, 90, 40)), "inside"),
-    (np.zeros((40, 80), np.uint8), ((40, 0, 80, 40), (0, 0, 40, 40)), "left of"),
-    (np.zeros((40, 80), np.uint8), ((0, 0, 40), (40, 0, 80, 40)), "(x0, y0, x1, y1)"),
-])
+@pytest.mark.parametrize(
+    "card, boxes, message",
+    [
+        ("not an array", ((0, 0, 40, 40), (40, 0, 80, 40)), "numpy array"),
+        (np.zeros((40, 80, 3), np.float32), ((0, 0, 40, 40), (40, 0, 80, 40)), "dtype"),
+        (np.zeros((40, 80, 4), np.uint8), ((0, 0, 40, 40), (40, 0, 80, 40)), "shape"),
+        (np.zeros((40, 50), np.uint8), ((0, 0, 25, 40), (25, 0, 50, 40)), "at least 32x32"),
+        (np.zeros((40, 80), np.uint8), ((0, 0, 40, 40), (40, 0, 90, 40)), "inside"),
+        (np.zeros((40, 80), np.uint8), ((40, 0, 80, 40), (0, 0, 40, 40)), "left of"),
+        (np.zeros((40, 80), np.uint8), ((0, 0, 40), (40, 0, 80, 40)), "(x0, y0, x1, y1)"),
+    ],
+)
 def test_bad_input_raises_a_typed_error(card, boxes, message):
     with pytest.raises(OrientationInputError) as info:
         estimate_orientation(card, *boxes)
@@ -316,8 +326,9 @@ def test_sixteen_bit_and_greyscale_scans(scene_card):
     assert grey.swapped.value in (None, False) and grey.upside_down.value in (None, False)
 
 
-@pytest.mark.parametrize("changes", [{"auto_probability": 0.4}, {"working_width": 50}, {"w_ground_plane": -1.0},
-                                     {"arch_working_width": 50}])
+@pytest.mark.parametrize(
+    "changes", [{"auto_probability": 0.4}, {"working_width": 50}, {"w_ground_plane": -1.0}, {"arch_working_width": 50}]
+)
 def test_params_are_checked(changes):
     with pytest.raises(InvalidInputError):
         OrientationParams(**changes)
@@ -325,9 +336,12 @@ def test_params_are_checked(changes):
 
 # ------------------------------------------------------------------------------- real cards
 
-REAL = ["full_cards/nypl_f0bf5ba0_ostrich_farm_columbian_exposition_front.jpg",
-        "full_cards/nypl_stereogranimator_demo5.jpg", "keystone_mast_raw_scans/09995.jpg",
-        "cropped_pairs/jps/sports.jps"]
+REAL = [
+    "full_cards/nypl_f0bf5ba0_ostrich_farm_columbian_exposition_front.jpg",
+    "full_cards/nypl_stereogranimator_demo5.jpg",
+    "keystone_mast_raw_scans/09995.jpg",
+    "cropped_pairs/jps/sports.jps",
+]
 
 
 def test_real_cards_ground_plane_and_no_wrong_decision(load_card):

@@ -31,7 +31,7 @@ def _mounted(*photos: np.ndarray, margin: int = 30, gap: int = 24) -> np.ndarray
     card[:] = MOUNT
     x = margin
     for photo in photos:
-        card[margin:margin + photo.shape[0], x:x + photo.shape[1]] = photo if photo.ndim == 3 else photo[..., None]
+        card[margin : margin + photo.shape[0], x : x + photo.shape[1]] = photo if photo.ndim == 3 else photo[..., None]
         x += photo.shape[1] + gap
     return card
 
@@ -43,8 +43,14 @@ def _run(tmp_path: Path, image: Image.Image, boxes: tuple | None = None) -> obje
         array = np.asarray(Image.open(path).convert("RGB"))
         split = split_card(array)
         boxes = (list(split.left_box), list(split.right_box))
-    task = CardTask(card_id=1, content_hash="ab" * 32, image_path=str(path), work_dir=str(tmp_path / "work"),
-                    data_dir=str(tmp_path), inputs={"left_box": list(boxes[0]), "right_box": list(boxes[1])})
+    task = CardTask(
+        card_id=1,
+        content_hash="ab" * 32,
+        image_path=str(path),
+        work_dir=str(tmp_path / "work"),
+        data_dir=str(tmp_path),
+        inputs={"left_box": list(boxes[0]), "right_box": list(boxes[1])},
+    )
     return orientation_task(task, PARAMS)
 
 

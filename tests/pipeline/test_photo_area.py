@@ -54,8 +54,12 @@ def _print(card: np.ndarray, coverage: np.ndarray, y: int, x: int) -> None:
 
 
 def mounted_card(
-    views: tuple[np.ndarray, np.ndarray], margins: tuple[int, int, int, int] = (70, 40, 70, 60), gutter: int = 16,
-    arch: int = 40, titles: bool = True, seed: int = 0,
+    views: tuple[np.ndarray, np.ndarray],
+    margins: tuple[int, int, int, int] = (70, 40, 70, 60),
+    gutter: int = 16,
+    arch: int = 40,
+    titles: bool = True,
+    seed: int = 0,
 ) -> tuple[np.ndarray, list[Box]]:
     """Two views on a shaded, grainy buff mount with arched tops (``arch`` px high), printed side
     titles and a caption. Returns the card and each photo's true box below its arch (where the
@@ -80,7 +84,9 @@ def mounted_card(
         _print(card, _vertical_text("KEYSTONE VIEW COMPANY", h - 20, 26), mt + 10, max(0, ml // 2 - 13))
         _print(card, _vertical_text("MEADVILLE, PA.", h - 20, 26), mt + 10, width - mr // 2 - 13)
         caption = np.zeros((24, 2 * w), np.uint8)
-        cv2.putText(caption, "1234. A motorcycle in the studio.", (w // 2, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.6, 255, 1, cv2.LINE_AA)
+        cv2.putText(
+            caption, "1234. A motorcycle in the studio.", (w // 2, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.6, 255, 1, cv2.LINE_AA
+        )
         _print(card, caption, mt + h + 14, ml)
     return card, photos
 
@@ -189,8 +195,7 @@ def test_raw_scan_film_edges_are_cut_off(views):
     """A grey side-by-side scan: black film edges outside and a thin black line between the frames."""
     left, right = (cv2.cvtColor(v, cv2.COLOR_RGB2GRAY) for v in views)
     h, w = left.shape
-    card = np.hstack([np.full((h, 30), 12, np.uint8), left, np.full((h, 4), 15, np.uint8), right,
-                      np.full((h, 30), 12, np.uint8)])
+    card = np.hstack([np.full((h, 30), 12, np.uint8), left, np.full((h, 4), 15, np.uint8), right, np.full((h, 30), 12, np.uint8)])
     card = np.vstack([np.full((20, card.shape[1]), 12, np.uint8), card])
     areas = find_photo_areas(card)
     check_boxes(areas, card)

@@ -325,7 +325,10 @@ def test_textureless_blank_tiny_and_few_matches(moto) -> None:
     grey = np.full((200, 300), 128, np.uint8)
     assert isinstance(_outcome(grey, grey.copy()), TooFewMatchesError)
     assert isinstance(_outcome(left, np.zeros_like(right)), TooFewMatchesError)
-    tiny_l, tiny_r = cv2.resize(left, (32, 22), interpolation=cv2.INTER_AREA), cv2.resize(right, (32, 22), interpolation=cv2.INTER_AREA)
+    tiny_l, tiny_r = (
+        cv2.resize(left, (32, 22), interpolation=cv2.INTER_AREA),
+        cv2.resize(right, (32, 22), interpolation=cv2.INTER_AREA),
+    )
     assert isinstance(_outcome(tiny_l, tiny_r), TooFewMatchesError)
     few_l, few_r = np.ascontiguousarray(left[200:260, 300:360]), np.ascontiguousarray(right[200:260, 290:350])
     assert len(match_features(few_l, few_r)[0]) < 10

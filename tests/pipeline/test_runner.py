@@ -13,8 +13,7 @@ from pipeline.runner import RestartingProcessPool, run_tasks
 
 
 def _square_task(task: CardTask) -> StageRecord:
-    return StageRecord(card_id=task.card_id, stage="test", param_hash="p", status="done",
-                       metrics={"square": task.card_id ** 2})
+    return StageRecord(card_id=task.card_id, stage="test", param_hash="p", status="done", metrics={"square": task.card_id**2})
 
 
 def _crash_on_three(task: CardTask) -> StageRecord:
@@ -24,17 +23,23 @@ def _crash_on_three(task: CardTask) -> StageRecord:
 
 
 def _tasks(n: int) -> list[CardTask]:
-    return [CardTask(card_id=i, content_hash=f"{i:064x}", image_path="/nonexistent", work_dir="/tmp", data_dir="/tmp")
-            for i in range(n)]
+    return [
+        CardTask(card_id=i, content_hash=f"{i:064x}", image_path="/nonexistent", work_dir="/tmp", data_dir="/tmp")
+        for i in range(n)
+    ]
 
 
 def test_inline_and_pools_agree():
     inline = sorted((r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), stage="test", param_hash="p"))
     with ThreadPoolExecutor(3) as threads:
-        threaded = sorted((r.card_id, r.metrics["square"])
-                          for r in run_tasks(_square_task, _tasks(20), threads, stage="test", param_hash="p", window=4))
+        threaded = sorted(
+            (r.card_id, r.metrics["square"])
+            for r in run_tasks(_square_task, _tasks(20), threads, stage="test", param_hash="p", window=4)
+        )
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("forkserver")) as pool:
-        pooled = sorted((r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), pool, stage="test", param_hash="p"))
+        pooled = sorted(
+            (r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), pool, stage="test", param_hash="p")
+        )
     assert inline == threaded == pooled == [(i, i * i) for i in range(20)]
 
 
@@ -66,7 +71,6 @@ def test_param_hash_is_stable_and_sensitive():
     assert param_hash(_Params()) == param_hash(_Params())
     assert param_hash(_Params()) != param_hash(_Params(ratio=0.8))
     assert len(param_hash(_Params())) == 16
-
 
 
 def test_stage_tasks_survive_the_trip_to_a_worker_process():

@@ -174,12 +174,17 @@ def test_params_change_the_param_hash():
 # Gutter position (fraction of the width) and photo rectangles (x0, y0, x1, y1 as fractions),
 # read by eye off each scan at 2 % grid resolution.
 REAL_CARDS = {
-    "full_cards/nypl_000206_pima_indians_of_arizona.jpg":
-        (0.515, (0.115, 0.085, 0.513, 0.915), (0.517, 0.075, 0.910, 0.915)),
-    "full_cards/nypl_c7980740_birds-eye_view_columbian_exposition_front.jpg":
-        (0.494, (0.075, 0.07, 0.49, 0.86), (0.497, 0.07, 0.915, 0.86)),
-    "full_cards/nypl_f0bf5ba0_ostrich_farm_columbian_exposition_front.jpg":
-        (0.504, (0.09, 0.055, 0.50, 0.85), (0.507, 0.06, 0.92, 0.85)),
+    "full_cards/nypl_000206_pima_indians_of_arizona.jpg": (0.515, (0.115, 0.085, 0.513, 0.915), (0.517, 0.075, 0.910, 0.915)),
+    "full_cards/nypl_c7980740_birds-eye_view_columbian_exposition_front.jpg": (
+        0.494,
+        (0.075, 0.07, 0.49, 0.86),
+        (0.497, 0.07, 0.915, 0.86),
+    ),
+    "full_cards/nypl_f0bf5ba0_ostrich_farm_columbian_exposition_front.jpg": (
+        0.504,
+        (0.09, 0.055, 0.50, 0.85),
+        (0.507, 0.06, 0.92, 0.85),
+    ),
     "full_cards/nypl_stereogranimator_demo1.jpg": (0.498, (0.085, 0.06, 0.497, 0.945), (0.50, 0.06, 0.915, 0.945)),
     "full_cards/nypl_stereogranimator_demo2.jpg": (0.499, (0.10, 0.065, 0.495, 0.89), (0.505, 0.065, 0.90, 0.89)),
     "full_cards/nypl_stereogranimator_demo3.jpg": (0.490, (0.075, 0.05, 0.49, 0.905), (0.49, 0.05, 0.905, 0.915)),

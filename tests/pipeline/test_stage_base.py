@@ -30,8 +30,7 @@ def echo_task(task: CardTask, params: EchoParams) -> StageOutput:
     return StageOutput(status="skipped", reason="not needed: nothing to echo", metrics={"inputs": dict(task.inputs)})
 
 
-TASK = CardTask(card_id=7, content_hash="ab", image_path="/nowhere.png", work_dir="/tmp", data_dir="/tmp",
-                inputs={"x": 1})
+TASK = CardTask(card_id=7, content_hash="ab", image_path="/nowhere.png", work_dir="/tmp", data_dir="/tmp", inputs={"x": 1})
 
 
 def test_a_body_output_becomes_a_record_with_what_every_record_carries():
@@ -42,10 +41,13 @@ def test_a_body_output_becomes_a_record_with_what_every_record_carries():
     assert record.seconds >= 0 and record.started_at > 1.7e9
 
 
-@pytest.mark.parametrize(("fail_with", "reason"), [
-    ("typed", "invalid_input: the card is blank"),
-    ("bug", "internal_error: ZeroDivisionError: division by zero"),
-])
+@pytest.mark.parametrize(
+    ("fail_with", "reason"),
+    [
+        ("typed", "invalid_input: the card is blank"),
+        ("bug", "internal_error: ZeroDivisionError: division by zero"),
+    ],
+)
 def test_an_exception_becomes_a_failed_record_with_a_typed_reason(fail_with, reason):
     record = echo_task(TASK, EchoParams(fail_with=fail_with))
     assert record.status == "failed" and record.reason == reason

@@ -45,15 +45,21 @@ def test_anaglyph_matches_the_dubois_red_cyan_matrices_on_known_pixels() -> None
     # Published red-cyan least-squares matrices (Dubois 2009), typed here from the source again.
     left_matrix = [[0.437, 0.449, 0.164], [-0.062, -0.062, -0.024], [-0.048, -0.050, -0.017]]
     right_matrix = [[-0.011, -0.032, -0.007], [0.377, 0.761, 0.009], [-0.026, -0.093, 1.234]]
-    pixels = [((255, 255, 255), (0, 0, 0)), ((0, 0, 0), (255, 255, 255)), ((128, 128, 128), (128, 128, 128)),
-              ((200, 100, 50), (30, 180, 220)), ((12, 250, 90), (240, 10, 160))]
+    pixels = [
+        ((255, 255, 255), (0, 0, 0)),
+        ((0, 0, 0), (255, 255, 255)),
+        ((128, 128, 128), (128, 128, 128)),
+        ((200, 100, 50), (30, 180, 220)),
+        ((12, 250, 90), (240, 10, 160)),
+    ]
     left = np.array([[p[0] for p in pixels]], np.uint8)
     right = np.array([[p[1] for p in pixels]], np.uint8)
     got = dubois_anaglyph(left, right)[0]
     for index, (lp, rp) in enumerate(pixels):
         lin_l, lin_r = [_srgb_decode(v) for v in lp], [_srgb_decode(v) for v in rp]
-        expected = [_srgb_encode(sum(left_matrix[c][k] * lin_l[k] + right_matrix[c][k] * lin_r[k] for k in range(3)))
-                    for c in range(3)]
+        expected = [
+            _srgb_encode(sum(left_matrix[c][k] * lin_l[k] + right_matrix[c][k] * lin_r[k] for k in range(3))) for c in range(3)
+        ]
         assert np.abs(got[index].astype(int) - expected).max() <= 1, (index, got[index], expected)
     # The left eye's white shows only through the red filter, the right eye's through the cyan one.
     assert got[0].tolist() == [255, 0, 0]
@@ -123,8 +129,11 @@ def test_encoded_files_keep_eye_order_sizes_and_the_cards_facts(motorcycle) -> N
 
     left, right, disparity = motorcycle
     height, width = left.shape[:2]
-    caption = CardCaption.of({"title": "Palais des Beaux-Arts, Exposition é", "date": "1893",
-                              "creator": "B. W. Kilburn"}, "1996.0009.17827", "scan.jpg")
+    caption = CardCaption.of(
+        {"title": "Palais des Beaux-Arts, Exposition é", "date": "1893", "creator": "B. W. Kilburn"},
+        "1996.0009.17827",
+        "scan.jpg",
+    )
     costs = StereoCosts()
     files = encode_stereo(left, right, disparity, caption, costs=costs)
     assert set(files) == set(STEREO_FORMATS) and costs.cards == 1

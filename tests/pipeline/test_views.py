@@ -337,7 +337,7 @@ def test_a_depth_step_opens_a_hole_only_at_the_step():
         point = np.array([[(column - cx) * d / F, 0.0, -d]])
         edge.append(_project(cam, point)[0, 0])
     expected = np.zeros(size, bool)
-    expected[math.ceil(edge[0]):math.floor(edge[1]) + 1] = True
+    expected[math.ceil(edge[0]) : math.floor(edge[1]) + 1] = True
     inner = rp.hole[2:-2]  # the top and bottom rows also lose a sliver v0 never saw (perspective)
     assert (inner == expected[None, :]).all()  # every row, exactly those columns, nothing else
     assert crack_fraction(rp.hole) == 0.0  # a disocclusion 4 px wide, not a crack

@@ -45,8 +45,14 @@ def _task(tmp_path: Path, left: np.ndarray, maps: dict[str, np.ndarray], **input
         write_npy(data_dir / "rect" / f"{name}.npy", values.astype(np.float32))
         task_inputs[name] = f"rect/{name}.npy"
     work = data_dir / "derived" / "views"
-    return CardTask(card_id=7, content_hash="ab" * 32, image_path=str(data_dir / "rect" / "left.png"),
-                    work_dir=str(work), data_dir=str(data_dir), inputs=task_inputs)
+    return CardTask(
+        card_id=7,
+        content_hash="ab" * 32,
+        image_path=str(data_dir / "rect" / "left.png"),
+        work_dir=str(work),
+        data_dir=str(data_dir),
+        inputs=task_inputs,
+    )
 
 
 def _load_views(task: CardTask, record) -> tuple[list[np.ndarray], list[np.ndarray]]:

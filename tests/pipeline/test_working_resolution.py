@@ -128,7 +128,7 @@ def test_disparity_at_a_working_side_is_in_the_given_views_pixels():
     texture = cv2.GaussianBlur(rng.integers(0, 256, (600, 1300), dtype=np.uint8), (0, 0), 2.0)
     shift = 24  # px at full resolution: x_right = x_left - d
     left = np.ascontiguousarray(texture[:, :1200])
-    right = np.ascontiguousarray(texture[:, shift:shift + 1200])
+    right = np.ascontiguousarray(texture[:, shift : shift + 1200])
     result, scale = disparity_at_work_side(left, right, "sgbm", DisparityParams(disparity_range=(0.0, 40.0)), 600)
     assert scale == pytest.approx(0.5)
     assert result.disp_left.shape == left.shape
@@ -143,17 +143,21 @@ def _card_task(tmp_path: Path, factor: float) -> CardTask:
     h, w = left.shape[:2]
     m = max(2, round(20 * factor))
     card = np.full((h + 2 * m, 2 * w + 3 * m, 3), 200, np.uint8)
-    card[m:m + h, m:m + w], card[m:m + h, w + 2 * m:2 * w + 2 * m] = left, right
+    card[m : m + h, m : m + w], card[m : m + h, w + 2 * m : 2 * w + 2 * m] = left, right
     write_png(tmp_path / "card.png", card)
     (tmp_path / "work").mkdir()
-    return CardTask(card_id=1, content_hash="x", image_path=str(tmp_path / "card.png"), work_dir=str(tmp_path / "work"),
-                    data_dir=str(tmp_path), inputs={"left_box": [m, m, m + w, m + h],
-                                                    "right_box": [w + 2 * m, m, 2 * w + 2 * m, m + h]})
+    return CardTask(
+        card_id=1,
+        content_hash="x",
+        image_path=str(tmp_path / "card.png"),
+        work_dir=str(tmp_path / "work"),
+        data_dir=str(tmp_path),
+        inputs={"left_box": [m, m, m + w, m + h], "right_box": [w + 2 * m, m, 2 * w + 2 * m, m + h]},
+    )
 
 
 @pytest.mark.parametrize("factor, work_side", [(0.25, 1000), (2.5, 600)])
-def test_rectify_and_disparity_stages_store_views_at_most_the_working_side(tmp_path: Path, factor: float,
-                                                                          work_side: int):
+def test_rectify_and_disparity_stages_store_views_at_most_the_working_side(tmp_path: Path, factor: float, work_side: int):
     """A tiny card (185 px views) keeps its size; a huge one (1850 px views) is stored at 600 px,
     its homographies still taking the full-resolution crops, its disparity in stored px."""
     from pipeline.io import read_image
@@ -177,10 +181,15 @@ def test_rectify_and_disparity_stages_store_views_at_most_the_working_side(tmp_p
         assert document["width"] > 1800
         assert metrics["K"][0][0] == pytest.approx(document["working_resolution"]["K_full"][0][0] * scale, rel=2e-3)
 
-    inputs = {"left": record.artifacts["left"], "right": record.artifacts["right"],
-              "disparity_range": [metrics["disparity_min"], metrics["disparity_max"]], "focal_px": metrics["K"][0][0]}
-    disparity = disparity_task(CardTask(1, "x", task.image_path, task.work_dir, task.data_dir, inputs),
-                               DisparityStageParams(work_side=work_side))
+    inputs = {
+        "left": record.artifacts["left"],
+        "right": record.artifacts["right"],
+        "disparity_range": [metrics["disparity_min"], metrics["disparity_max"]],
+        "focal_px": metrics["K"][0][0],
+    }
+    disparity = disparity_task(
+        CardTask(1, "x", task.image_path, task.work_dir, task.data_dir, inputs), DisparityStageParams(work_side=work_side)
+    )
     assert disparity.status == "done", disparity.reason
     disp = np.load(tmp_path / disparity.artifacts["disparity_left"])
     assert disp.shape == view.shape[:2]
@@ -194,9 +203,13 @@ def test_rectify_and_disparity_stages_store_views_at_most_the_working_side(tmp_p
 def test_matches_in_boxes_takes_either_end_in_either_box():
     from pipeline.crop_align import matches_in_boxes
 
-    card_matches = np.array([[10.0, 20.0, 110.0, 21.0],   # left end in the left box
-                             [112.0, 30.0, 12.0, 31.0],   # ends given the other way round
-                             [10.0, 20.0, 300.0, 20.0]])  # right end outside both boxes
+    card_matches = np.array(
+        [
+            [10.0, 20.0, 110.0, 21.0],  # left end in the left box
+            [112.0, 30.0, 12.0, 31.0],  # ends given the other way round
+            [10.0, 20.0, 300.0, 20.0],
+        ]
+    )  # right end outside both boxes
     pts_l, pts_r = matches_in_boxes(card_matches, (0, 0, 50, 50), (100, 0, 150, 50))
     np.testing.assert_allclose(pts_l, [[10, 20], [12, 31]])
     np.testing.assert_allclose(pts_r, [[10, 21], [12, 30]])
@@ -215,16 +228,37 @@ def test_the_rectify_stage_reuses_the_filters_matches(tmp_path: Path):
     assert matches.shape == (filtered.metrics["good_matches"], 4) and matches.dtype == np.float32
     inputs = {**task.inputs, "left_box": filtered.metrics["left_box"], "right_box": filtered.metrics["right_box"]}
     own = rectify_task(CardTask(1, "x", task.image_path, task.work_dir, task.data_dir, inputs), RectifyParams())
-    reused = rectify_task(CardTask(1, "x", task.image_path, task.work_dir, task.data_dir,
-                                   {**inputs, "filter_matches": filtered.artifacts["matches"],
-                                    "filter_match_scale": filtered.metrics["match_scale"]}), RectifyParams())
+    reused = rectify_task(
+        CardTask(
+            1,
+            "x",
+            task.image_path,
+            task.work_dir,
+            task.data_dir,
+            {**inputs, "filter_matches": filtered.artifacts["matches"], "filter_match_scale": filtered.metrics["match_scale"]},
+        ),
+        RectifyParams(),
+    )
     assert own.status == reused.status == "done", (own.reason, reused.reason)
     assert own.metrics["crop_alignment"]["match_source"] == "rectify"
     assert reused.metrics["crop_alignment"]["match_source"] == "filter"
     assert reused.metrics["dy_p95"] < 1.5
     assert abs(reused.metrics["disparity_max"] - own.metrics["disparity_max"]) < 3
     # A card judged upside down turns the filter's matches with it: still found in the turned boxes.
-    flipped = rectify_task(CardTask(1, "x", task.image_path, task.work_dir, task.data_dir,
-                                    {**inputs, "upside_down": True, "filter_matches": filtered.artifacts["matches"],
-                                     "filter_match_scale": filtered.metrics["match_scale"]}), RectifyParams())
+    flipped = rectify_task(
+        CardTask(
+            1,
+            "x",
+            task.image_path,
+            task.work_dir,
+            task.data_dir,
+            {
+                **inputs,
+                "upside_down": True,
+                "filter_matches": filtered.artifacts["matches"],
+                "filter_match_scale": filtered.metrics["match_scale"],
+            },
+        ),
+        RectifyParams(),
+    )
     assert flipped.status == "done" and flipped.metrics["crop_alignment"]["match_source"] == "filter"

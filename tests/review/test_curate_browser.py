@@ -22,10 +22,19 @@ def graded_cards(app, make_card, add_stage_result, card_image) -> list[int]:  # 
     for index, uncertainty in enumerate((0.62, 0.3)):
         card_id = make_card(card_image()[:, index:], state="pass")
         reasons = ["few: every measurement within thresholds (4 of 14 measured)"]
-        add_stage_result(card_id, "grade", outcome="few", reason=reasons[0],
-                         metrics={**MEASUREMENTS, "uncertainty": uncertainty, "reasons": reasons,
-                                  "levels": {name: 0 for name in MEASUREMENTS},
-                                  "thresholds_hash": param_hash(GradeThresholds())})
+        add_stage_result(
+            card_id,
+            "grade",
+            outcome="few",
+            reason=reasons[0],
+            metrics={
+                **MEASUREMENTS,
+                "uncertainty": uncertainty,
+                "reasons": reasons,
+                "levels": {name: 0 for name in MEASUREMENTS},
+                "thresholds_hash": param_hash(GradeThresholds()),
+            },
+        )
         ids.append(card_id)
     with app.app_context():
         sync_reviews()
@@ -41,8 +50,9 @@ def decision_of(app, card_id: int) -> str:  # type: ignore[no-untyped-def]
 
 
 @pytest.mark.parametrize("screen", ["desktop", "phone"])
-def test_a_curator_reads_the_nearest_threshold_accepts_and_undoes(app, server, screen_page, make_person, graded_cards,
-                                                                    look, screen) -> None:  # type: ignore[no-untyped-def]
+def test_a_curator_reads_the_nearest_threshold_accepts_and_undoes(
+    app, server, screen_page, make_person, graded_cards, look, screen
+) -> None:  # type: ignore[no-untyped-def]
     first, _ = graded_cards
     page = screen_page(screen, make_person("curator"))
     page.goto(f"{server}/review/")
@@ -90,11 +100,23 @@ def crop_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped-
         item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
         for n, right_x1 in enumerate((600, 470)):
             worker = get_or_create_worker("invite", f"w{n}")
-            db.session.add(Answer(item_id=item.id, worker_id=worker.id, idempotency_key=f"key-{n}-abcdef",
-                                  payload={"left": [0, 0, 280, 200], "right": [310, 0, right_x1, 200]}))
-        aggregate = Aggregate(batch_id=batch.id, card_id=card_id, kind="crop", state="needs_curator", answers=2,
-                              label={"left": [0, 0, 280, 200], "right": [310, 0, 535, 200]},
-                              reasons="right box: mean IoU 0.58 < 0.7")
+            db.session.add(
+                Answer(
+                    item_id=item.id,
+                    worker_id=worker.id,
+                    idempotency_key=f"key-{n}-abcdef",
+                    payload={"left": [0, 0, 280, 200], "right": [310, 0, right_x1, 200]},
+                )
+            )
+        aggregate = Aggregate(
+            batch_id=batch.id,
+            card_id=card_id,
+            kind="crop",
+            state="needs_curator",
+            answers=2,
+            label={"left": [0, 0, 280, 200], "right": [310, 0, 535, 200]},
+            reasons="right box: mean IoU 0.58 < 0.7",
+        )
         db.session.add(aggregate)
         db.session.commit()
         return aggregate.id
@@ -120,11 +142,21 @@ def test_a_curator_draws_crop_boxes_on_a_phone(app, server, screen_page, make_pe
     drag(20, 10, 280, 190)  # the left box, drawn right to left would work too
     page.click(".box-editor-tools [data-half=right]")
     drag(590, 190, 330, 10)  # drawn from its bottom-right corner
-    values = page.eval_on_selector_all("input[name$='_x0'], input[name$='_y0'], input[name$='_x1'], input[name$='_y1']",
-                                       "inputs => Object.fromEntries(inputs.map(i => [i.name, Number(i.value)]))")
+    values = page.eval_on_selector_all(
+        "input[name$='_x0'], input[name$='_y0'], input[name$='_x1'], input[name$='_y1']",
+        "inputs => Object.fromEntries(inputs.map(i => [i.name, Number(i.value)]))",
+    )
     tolerance = 2 * scale  # a screen pixel or two, in card pixels
-    expected = {"left_x0": 20, "left_y0": 10, "left_x1": 280, "left_y1": 190,
-                "right_x0": 330, "right_y0": 10, "right_x1": 590, "right_y1": 190}
+    expected = {
+        "left_x0": 20,
+        "left_y0": 10,
+        "left_x1": 280,
+        "left_y1": 190,
+        "right_x0": 330,
+        "right_y0": 10,
+        "right_x1": 590,
+        "right_y1": 190,
+    }
     assert all(abs(values[name] - value) <= tolerance for name, value in expected.items()), values
     look(page, "dispute-crop-phone")
     page.click("#resolve-form button[type=submit]")

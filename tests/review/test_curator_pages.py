@@ -18,8 +18,13 @@ def two_graded(app, make_card, add_stage_result, card_image) -> list[int]:  # ty
     ids = []
     for index, grade in enumerate(("few", "some")):
         card_id = make_card(card_image()[:, index:], state="pass")
-        add_stage_result(card_id, "grade", outcome=grade, reason=f"reason {grade}",
-                         metrics={"uncertainty": 0.5 - index / 10, "reasons": [f"reason {grade}"]})
+        add_stage_result(
+            card_id,
+            "grade",
+            outcome=grade,
+            reason=f"reason {grade}",
+            metrics={"uncertainty": 0.5 - index / 10, "reasons": [f"reason {grade}"]},
+        )
         ids.append(card_id)
     with app.app_context():
         sync_reviews()
@@ -45,11 +50,17 @@ def test_each_decision_is_confirmed_and_undone(app, client, login, csrf_token, t
     card = two_graded[0]
     login("curator")
     token = csrf_token(f"/review/cards/{card}")
-    for choice, decision, grade in [("accept", "accepted", "few"), ("change:failure", "changed", "failure"),
-                                    ("reject", "rejected", None)]:
+    for choice, decision, grade in [
+        ("accept", "accepted", "few"),
+        ("change:failure", "changed", "failure"),
+        ("reject", "rejected", None),
+    ]:
         version = str(_review(app, card)[2])
-        done = client.post(f"/review/cards/{card}/decide", data={"choice": choice, "version": version,
-                                                                 "csrf_token": token}, follow_redirects=True)
+        done = client.post(
+            f"/review/cards/{card}/decide",
+            data={"choice": choice, "version": version, "csrf_token": token},
+            follow_redirects=True,
+        )
         html = done.get_data(as_text=True)
         assert f"Card {card}: " in html and 'id="undo-bar"' in html
         assert _review(app, card)[:2] == (decision, grade)
@@ -69,8 +80,11 @@ def test_a_send_back_names_its_batch_and_undo_removes_it(app, client, login, csr
     card = two_graded[0]
     login("curator")
     token = csrf_token(f"/review/cards/{card}")
-    done = client.post(f"/review/cards/{card}/decide", json={"action": "send_back", "kind": "judge", "version": 1},
-                       headers={"X-CSRFToken": token})
+    done = client.post(
+        f"/review/cards/{card}/decide",
+        json={"action": "send_back", "kind": "judge", "version": 1},
+        headers={"X-CSRFToken": token},
+    )
     batch_id = done.get_json()["batch"]
     html = client.get(done.get_json()["next_url"]).get_data(as_text=True)
     assert f"new crowd batch {batch_id}" in html and f'href="/crowd/batches#batch-{batch_id}"' in html
@@ -89,13 +103,21 @@ def test_undo_refuses_once_the_crowd_answered(app, client, login, csrf_token, tw
     card = two_graded[0]
     login("curator")
     token = csrf_token(f"/review/cards/{card}")
-    batch_id = client.post(f"/review/cards/{card}/decide", json={"action": "send_back", "kind": "judge", "version": 1},
-                           headers={"X-CSRFToken": token}).get_json()["batch"]
+    batch_id = client.post(
+        f"/review/cards/{card}/decide",
+        json={"action": "send_back", "kind": "judge", "version": 1},
+        headers={"X-CSRFToken": token},
+    ).get_json()["batch"]
     with app.app_context():
         item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch_id, BatchItem.card_id == card))
-        db.session.add(Answer(item_id=item.id, worker_id=get_or_create_worker("invite", "w").id,
-                              idempotency_key="key-undo-abcdef",
-                              payload={"is_stereo": True, "upside_down": False, "inverted": False}))
+        db.session.add(
+            Answer(
+                item_id=item.id,
+                worker_id=get_or_create_worker("invite", "w").id,
+                idempotency_key="key-undo-abcdef",
+                payload={"is_stereo": True, "upside_down": False, "inverted": False},
+            )
+        )
         db.session.commit()
     refused = client.post(f"/review/cards/{card}/undo", data={"version": str(_review(app, card)[2]), "csrf_token": token})
     assert refused.status_code == 409 and "already answered" in refused.get_data(as_text=True)
@@ -117,9 +139,14 @@ def test_the_threshold_table_from_levels_and_from_a_recorded_nearest(app) -> Non
     from pipeline.records import param_hash
     from review.threshold_table import threshold_table
 
-    metrics = {"good_match_fraction": 0.25, "dy_p95_px": 1.2, "coverage": 0.7, "swapped": False,
-               "levels": {"good_match_fraction": 0, "dy_p95_px": 0, "coverage": 1, "swapped": 0},
-               "thresholds_hash": param_hash(GradeThresholds())}
+    metrics = {
+        "good_match_fraction": 0.25,
+        "dy_p95_px": 1.2,
+        "coverage": 0.7,
+        "swapped": False,
+        "levels": {"good_match_fraction": 0, "dy_p95_px": 0, "coverage": 1, "swapped": 0},
+        "thresholds_hash": param_hash(GradeThresholds()),
+    }
     defaults = GradeThresholds()
     with app.app_context():
         table = threshold_table(metrics)
@@ -135,8 +162,9 @@ def test_the_threshold_table_from_levels_and_from_a_recorded_nearest(app) -> Non
         assert [row.distance for row in table.rows] == sorted(row.distance for row in table.rows)
         assert table.nearest is not None and table.nearest.measurement in rows
 
-        recorded = threshold_table({**metrics, "nearest": {"measurement": "coverage", "value": 0.7, "threshold": 0.8,
-                                                           "margin": -0.1, "level": "some"}})
+        recorded = threshold_table(
+            {**metrics, "nearest": {"measurement": "coverage", "value": 0.7, "threshold": 0.8, "margin": -0.1, "level": "some"}}
+        )
         assert recorded.from_record and recorded.nearest.measurement == "coverage"
         unknown = threshold_table({**metrics, "thresholds_hash": "not-a-hash"})
         assert not unknown.thresholds_known and unknown.nearest is not None
@@ -171,20 +199,30 @@ def judge_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped
             worker = get_or_create_worker("invite", f"friend{n}")
             if n == 0:
                 worker.person_id = person.id
-            db.session.add(Answer(item_id=item.id, worker_id=worker.id, idempotency_key=f"key-{n}-judge-abc",
-                                  payload={"is_stereo": True, "upside_down": n == 0, "inverted": False}))
-        aggregate = Aggregate(batch_id=batch.id, card_id=card_id, kind="judge", state="needs_curator", answers=4,
-                              label={"is_stereo": True, "upside_down": False, "inverted": False},
-                              posterior={"is_stereo": [0.02, 0.98], "upside_down": [0.75, 0.25],
-                                         "inverted": [0.97, 0.03]},
-                              reasons="upside_down: posterior 0.75 < 0.9")
+            db.session.add(
+                Answer(
+                    item_id=item.id,
+                    worker_id=worker.id,
+                    idempotency_key=f"key-{n}-judge-abc",
+                    payload={"is_stereo": True, "upside_down": n == 0, "inverted": False},
+                )
+            )
+        aggregate = Aggregate(
+            batch_id=batch.id,
+            card_id=card_id,
+            kind="judge",
+            state="needs_curator",
+            answers=4,
+            label={"is_stereo": True, "upside_down": False, "inverted": False},
+            posterior={"is_stereo": [0.02, 0.98], "upside_down": [0.75, 0.25], "inverted": [0.97, 0.03]},
+            reasons="upside_down: posterior 0.75 < 0.9",
+        )
         db.session.add(aggregate)
         db.session.commit()
         return aggregate.id
 
 
-def test_the_judge_dispute_shows_votes_and_preselects_only_confident_answers(client, login, csrf_token,
-                                                                              judge_dispute) -> None:  # type: ignore[no-untyped-def]
+def test_the_judge_dispute_shows_votes_and_preselects_only_confident_answers(client, login, csrf_token, judge_dispute) -> None:  # type: ignore[no-untyped-def]
     login("curator")
     url = f"/review/disputes/{judge_dispute}"
     html = client.get(url).get_data(as_text=True)
@@ -195,8 +233,9 @@ def test_the_judge_dispute_shows_votes_and_preselects_only_confident_answers(cli
     assert checked == {"is_stereo": "yes", "inverted": "no"}  # upside_down (75 % sure) is left to the curator
     token = csrf_token(url)
     unchosen = client.post(url, data={"csrf_token": token, "is_stereo": "yes", "inverted": "no"})
-    assert unchosen.status_code == 400 and "Choose yes or no for whether the card is upside down" in \
-        unchosen.get_data(as_text=True)
+    assert unchosen.status_code == 400 and "Choose yes or no for whether the card is upside down" in unchosen.get_data(
+        as_text=True
+    )
     bad = client.post(url, data={"csrf_token": token, "is_stereo": "yes", "inverted": "no", "upside_down": "maybe"})
     assert bad.status_code == 400
     done = client.post(url, data={"csrf_token": token, "is_stereo": "yes", "inverted": "no", "upside_down": "yes"})

@@ -11,14 +11,25 @@ import pytest
 
 def _measurements(rng: np.random.Generator) -> dict:
     return {
-        "good_match_fraction": float(rng.uniform(0.05, 0.4)), "dy_p95_px": float(rng.uniform(0.2, 1.2)),
-        "shear_deg": float(rng.uniform(0, 3)), "aspect_change": 1.01, "rotation_deg": float(rng.uniform(0, 2)),
-        "kept_fraction": 0.95, "swapped": False, "row_misalignment_px": float(rng.uniform(0.05, 6.0)),
-        "coverage": float(rng.uniform(0.85, 1.0)), "lr_consistency": float(rng.uniform(0.7, 0.98)),
-        "confident_fraction": float(rng.uniform(0.7, 0.98)), "disparity_range_px": 30.0,
-        "disparity_range_rel": 0.06, "texture_gradient": 12.0, "textured_fraction": 0.6,
-        "photometric_error": 10.0, "photometric_error_rel": 0.2,
-        "reasons": ["few: every measurement within thresholds"], "uncertainty": 0.3,
+        "good_match_fraction": float(rng.uniform(0.05, 0.4)),
+        "dy_p95_px": float(rng.uniform(0.2, 1.2)),
+        "shear_deg": float(rng.uniform(0, 3)),
+        "aspect_change": 1.01,
+        "rotation_deg": float(rng.uniform(0, 2)),
+        "kept_fraction": 0.95,
+        "swapped": False,
+        "row_misalignment_px": float(rng.uniform(0.05, 6.0)),
+        "coverage": float(rng.uniform(0.85, 1.0)),
+        "lr_consistency": float(rng.uniform(0.7, 0.98)),
+        "confident_fraction": float(rng.uniform(0.7, 0.98)),
+        "disparity_range_px": 30.0,
+        "disparity_range_rel": 0.06,
+        "texture_gradient": 12.0,
+        "textured_fraction": 0.6,
+        "photometric_error": 10.0,
+        "photometric_error_rel": 0.2,
+        "reasons": ["few: every measurement within thresholds"],
+        "uncertainty": 0.3,
     }
 
 
@@ -36,8 +47,9 @@ def labelled(app, make_card, add_stage_result, card_image):  # type: ignore[no-u
         card_id = make_card(card_image()[:, index:], state="pass")
         add_stage_result(card_id, "grade", outcome="few", metrics=metrics)
         with app.app_context():
-            db.session.add(CardReview(card_id=card_id, auto_grade="few", grade=label,
-                                      decision="accepted" if label == "few" else "changed"))
+            db.session.add(
+                CardReview(card_id=card_id, auto_grade="few", grade=label, decision="accepted" if label == "few" else "changed")
+            )
             db.session.commit()
 
 
@@ -104,10 +116,19 @@ def _bench_document(n: int = 60) -> dict:
         measurements = _measurements(rng)
         del measurements["reasons"], measurements["uncertainty"]
         measurements["confident_fraction"] = confident = float(rng.uniform(0.15, 0.75))
-        results.append({"scene": "s", "case": f"c{index}", "grade": "some", "uncertainty": 0.5,
-                        "true_bad2": round(80.0 - 100.0 * confident, 3), "measurements": measurements})
-    results.append({"scene": "s", "case": "culled", "grade": "culled", "uncertainty": None, "true_bad2": 100.0,
-                    "measurements": None})
+        results.append(
+            {
+                "scene": "s",
+                "case": f"c{index}",
+                "grade": "some",
+                "uncertainty": 0.5,
+                "true_bad2": round(80.0 - 100.0 * confident, 3),
+                "measurements": measurements,
+            }
+        )
+    results.append(
+        {"scene": "s", "case": "culled", "grade": "culled", "uncertainty": None, "true_bad2": 100.0, "measurements": None}
+    )
     return {"results": results, "summary": {}}
 
 
@@ -144,6 +165,7 @@ def test_fit_from_bench_rejects_what_is_not_a_bench_document(runner, tmp_path) -
     result = runner.invoke(args=["grade", "fit", "--from-bench", str(path), "--json"])
     assert result.exit_code == 1 and "not readable JSON" in json.loads(result.output)["error"]
     path.write_text(json.dumps(_bench_document()))
-    result = runner.invoke(args=["grade", "fit", "--from-bench", str(path), "--few-below", "60",
-                                 "--failure-above", "40", "--json"])
+    result = runner.invoke(
+        args=["grade", "fit", "--from-bench", str(path), "--few-below", "60", "--failure-above", "40", "--json"]
+    )
     assert result.exit_code == 1 and "few_below <= failure_above" in json.loads(result.output)["error"]

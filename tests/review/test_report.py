@@ -56,7 +56,11 @@ def test_report_json_counts_fractions_and_agreement(runner, graded) -> None:  # 
     assert block["accuracy"] == pytest.approx(4 / 6, abs=1e-4)
     # kappa = (po - pe) / (1 - pe) with po = 4/6, pe = (1*2 + 3*3 + 2*1) / 36 = 13/36.
     assert block["cohen_kappa"] == pytest.approx((4 / 6 - 13 / 36) / (1 - 13 / 36), abs=1e-4)
-    assert block["per_class"]["some"] == {"precision": pytest.approx(2 / 3, abs=1e-4), "recall": pytest.approx(2 / 3, abs=1e-4), "support": 3}
+    assert block["per_class"]["some"] == {
+        "precision": pytest.approx(2 / 3, abs=1e-4),
+        "recall": pytest.approx(2 / 3, abs=1e-4),
+        "support": 3,
+    }
     assert block["per_class"]["few"]["precision"] == 0.5 and block["per_class"]["failure"]["recall"] == 0.5
     assert report["grade_model"] is None and report["crowd"] == []
 

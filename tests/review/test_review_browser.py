@@ -21,8 +21,13 @@ def queue_cards(app, make_card, add_stage_result, card_image, decide_orientation
     ids = []
     for index, (grade, uncertainty) in enumerate([("some", 0.8), ("few", 0.5), ("failure", 0.2)]):
         card_id = make_card(card_image()[:, index:], state="pass")
-        add_stage_result(card_id, "grade", outcome=grade, reason=f"because {grade}",
-                         metrics={"uncertainty": uncertainty, "reasons": [f"because {grade}"]})
+        add_stage_result(
+            card_id,
+            "grade",
+            outcome=grade,
+            reason=f"because {grade}",
+            metrics={"uncertainty": uncertainty, "reasons": [f"because {grade}"]},
+        )
         ids.append(card_id)
     decide_orientation(ids)
     with app.app_context():

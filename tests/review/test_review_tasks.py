@@ -95,8 +95,13 @@ def test_sync_creates_one_review_per_graded_card_and_is_idempotent(app, graded, 
         assert second.as_json() == {"created": 0, "updated": 0, "reopened": 0, "decided_changed": 0, "unchanged": 5}
         assert review_of(ungraded) is None
         review = review_of(graded[1])
-        assert (review.auto_grade, review.uncertainty, review.decision, review.grade, review.version) == \
-            ("some", 0.9, "pending", None, 1)
+        assert (review.auto_grade, review.uncertainty, review.decision, review.grade, review.version) == (
+            "some",
+            0.9,
+            "pending",
+            None,
+            1,
+        )
         assert review_of(graded[2]).uncertainty is None
         created = events(entity="grade")
         assert [e.action for e in created] == ["graded"] * 5 and {e.actor for e in created} == {"pipeline"}
@@ -113,16 +118,32 @@ def test_a_new_automatic_grade_updates_pending_cards_but_never_a_decided_grade(a
         review = review_of(decided)
         decide(review.id, "change", expected_version=review.version, curator=curator, grade="failure")
     # New grader thresholds: a new parameter hash, new outcomes.
-    add_stage_result(pending, "grade", outcome="some", param_hash="feedfacefeedface",
-                     metrics={"uncertainty": 0.4, "reasons": ["more blur"]}, reason="more blur")
-    add_stage_result(decided, "grade", outcome="few", param_hash="feedfacefeedface",
-                     metrics={"uncertainty": 0.1, "reasons": ["fine"]}, reason="fine")
+    add_stage_result(
+        pending,
+        "grade",
+        outcome="some",
+        param_hash="feedfacefeedface",
+        metrics={"uncertainty": 0.4, "reasons": ["more blur"]},
+        reason="more blur",
+    )
+    add_stage_result(
+        decided,
+        "grade",
+        outcome="few",
+        param_hash="feedfacefeedface",
+        metrics={"uncertainty": 0.1, "reasons": ["fine"]},
+        reason="fine",
+    )
     with app.app_context():
         report = sync_reviews()
         assert (report.updated, report.decided_changed, report.unchanged) == (1, 1, 3)
         moved = review_of(pending)
-        assert (moved.auto_grade, moved.auto_param_hash, moved.uncertainty, moved.decision) == \
-            ("some", "feedfacefeedface", 0.4, "pending")
+        assert (moved.auto_grade, moved.auto_param_hash, moved.uncertainty, moved.decision) == (
+            "some",
+            "feedfacefeedface",
+            0.4,
+            "pending",
+        )
         kept = review_of(decided)
         assert (kept.decision, kept.grade, kept.auto_grade) == ("changed", "failure", "few")
         (changed,) = [e for e in events(decided, "grade") if e.action == "auto_grade_changed_after_decision"]
@@ -204,10 +225,22 @@ def test_accept_change_and_reject_set_the_grade_and_write_before_and_after(app, 
         assert stored.decided_at is not None
         trail = events(synced[1], "review")
         assert [e.action for e in trail] == ["change", "change"]
-        assert trail[0].before == {"decision": "pending", "grade": None, "auto_grade": "some", "note": "",
-                                   "reviewer_id": None, "version": 1}
-        assert trail[0].after == {"decision": "changed", "grade": "failure", "auto_grade": "some",
-                                  "note": "eyes swapped", "reviewer_id": curator.id, "version": 2}
+        assert trail[0].before == {
+            "decision": "pending",
+            "grade": None,
+            "auto_grade": "some",
+            "note": "",
+            "reviewer_id": None,
+            "version": 1,
+        }
+        assert trail[0].after == {
+            "decision": "changed",
+            "grade": "failure",
+            "auto_grade": "some",
+            "note": "eyes swapped",
+            "reviewer_id": curator.id,
+            "version": 2,
+        }
         assert (trail[0].actor, trail[0].actor_id, trail[0].why) == ("carol", curator.id, "eyes swapped")
         assert trail[1].before["grade"] == "failure" and trail[1].after["grade"] == "some"
         assert events(synced[2], "review")[0].after["grade"] is None
@@ -262,10 +295,16 @@ def test_send_back_puts_the_card_in_a_crowd_batch_with_curator_gold(app, synced,
     curator = person("carol")
     with app.app_context():
         # synced[4] is 600 px wide; synced[3]'s gold box no longer fits it and is left out.
-        db.session.add(GoldAnswer(card_id=synced[4], kind="crop", made_by=curator.id,
-                                  answer={"left": [0, 0, 290, 200], "right": [306, 0, 596, 200]}))
-        db.session.add(GoldAnswer(card_id=synced[3], kind="crop", made_by=curator.id,
-                                  answer={"left": [0, 0, 290, 200], "right": [306, 0, 900, 200]}))
+        db.session.add(
+            GoldAnswer(
+                card_id=synced[4], kind="crop", made_by=curator.id, answer={"left": [0, 0, 290, 200], "right": [306, 0, 596, 200]}
+            )
+        )
+        db.session.add(
+            GoldAnswer(
+                card_id=synced[3], kind="crop", made_by=curator.id, answer={"left": [0, 0, 290, 200], "right": [306, 0, 900, 200]}
+            )
+        )
         db.session.commit()
         review = review_of(synced[0])
         decided = decide(review.id, "send_back", expected_version=1, curator=curator, note="boxes cut the sky")
@@ -276,14 +315,24 @@ def test_send_back_puts_the_card_in_a_crowd_batch_with_curator_gold(app, synced,
         assert items == {(synced[0], False), (synced[4], True)}
         assert review_of(synced[0]).grade is None
         review_event, batch_event = [e for e in events(synced[0]) if e.entity in ("review", "batch")]
-        assert (review_event.action, review_event.after["sent_to"], review_event.why) == ("send_back", "crop", "boxes cut the sky")
+        assert (review_event.action, review_event.after["sent_to"], review_event.why) == (
+            "send_back",
+            "crop",
+            "boxes cut the sky",
+        )
         assert batch_event.after == {"batch": batch.id, "kind": "crop", "answers_per_item": 3, "gold_items": [synced[4]]}
         # A judge send-back without gold answers of that kind has no gold items.
         other = review_of(synced[1])
         judged = decide(other.id, "send_back", expected_version=1, curator=curator, kind="judge")
         assert db.session.get(Batch, judged.batch_id).kind == "judge"
-        assert db.session.scalar(select(func.count()).select_from(BatchItem).where(
-            BatchItem.batch_id == judged.batch_id, BatchItem.is_gold.is_(True))) == 0
+        assert (
+            db.session.scalar(
+                select(func.count())
+                .select_from(BatchItem)
+                .where(BatchItem.batch_id == judged.batch_id, BatchItem.is_gold.is_(True))
+            )
+            == 0
+        )
 
 
 def test_a_sent_back_card_graded_again_returns_to_the_queue(app, synced, add_stage_result, person) -> None:  # type: ignore[no-untyped-def]
@@ -318,13 +367,17 @@ def test_bulk_decisions_go_on_past_a_conflict(app, synced, person) -> None:  # t
     with app.app_context():
         reviews = [review_of(card) for card in synced[:3]]
         decide(reviews[1].id, "reject", expected_version=1, curator=alice)  # bob's page is now stale for this one
-        outcomes = bulk_decide([(r.id, 1) for r in reviews] + [(999, 1)], "change", curator=bob, grade="failure",
-                               note="bulk: all blurred")
+        outcomes = bulk_decide(
+            [(r.id, 1) for r in reviews] + [(999, 1)], "change", curator=bob, grade="failure", note="bulk: all blurred"
+        )
         assert [o.status for o in outcomes] == ["applied", "conflict", "applied", "error"]
         assert "was changed by alice" in outcomes[1].message and "no review 999" in outcomes[3].message
         assert outcomes[0].as_json()["grade"] == "failure"
-        assert [(review_of(c).decision, review_of(c).grade) for c in synced[:3]] == \
-            [("changed", "failure"), ("rejected", None), ("accepted", "failure")]  # the third was graded failure
+        assert [(review_of(c).decision, review_of(c).grade) for c in synced[:3]] == [
+            ("changed", "failure"),
+            ("rejected", None),
+            ("accepted", "failure"),
+        ]  # the third was graded failure
         assert [e.actor for e in events(entity="review")] == ["alice", "bob", "bob"]
 
 
@@ -378,17 +431,30 @@ def disputed(app, make_card, card_image, decide_orientation) -> dict[str, int]: 
     from annotation.models import Aggregate
     from app.db import db
 
-    cards = [make_card(card_image()[:, 20 + i:], state="review") for i in range(2)]
+    cards = [make_card(card_image()[:, 20 + i :], state="review") for i in range(2)]
     decide_orientation(cards)
     with app.app_context():
         judge, crop = create_batch([cards[0]], "judge", 3, 0.0), create_batch([cards[1]], "crop", 3, 0.0)
         rows = {
-            "judge": Aggregate(batch_id=judge.id, card_id=cards[0], kind="judge", state="needs_curator",
-                               label={"is_stereo": True, "upside_down": False, "inverted": False},
-                               posterior={"is_stereo": [0.45, 0.55]}, reasons="is_stereo: posterior 0.55 < 0.9", answers=3),
-            "crop": Aggregate(batch_id=crop.id, card_id=cards[1], kind="crop", state="needs_curator",
-                              label={"left": [2, 3, 280, 190], "right": [300, 3, 590, 190]},
-                              reasons="left box: mean IoU 0.41 < 0.7", answers=3),
+            "judge": Aggregate(
+                batch_id=judge.id,
+                card_id=cards[0],
+                kind="judge",
+                state="needs_curator",
+                label={"is_stereo": True, "upside_down": False, "inverted": False},
+                posterior={"is_stereo": [0.45, 0.55]},
+                reasons="is_stereo: posterior 0.55 < 0.9",
+                answers=3,
+            ),
+            "crop": Aggregate(
+                batch_id=crop.id,
+                card_id=cards[1],
+                kind="crop",
+                state="needs_curator",
+                label={"left": [2, 3, 280, 190], "right": [300, 3, 590, 190]},
+                reasons="left box: mean IoU 0.41 < 0.7",
+                answers=3,
+            ),
         }
         db.session.add_all(rows.values())
         db.session.commit()
@@ -414,7 +480,11 @@ def test_resolving_a_disputed_judgement_makes_it_truth_and_gold(app, disputed, p
         gold = db.session.get(GoldAnswer, resolved.gold_id)
         assert (gold.card_id, gold.kind, gold.answer, gold.made_by) == (disputed["judge_card"], "judge", label, carol.id)
         agg_event, gold_event = events(disputed["judge_card"])
-        assert (agg_event.entity, agg_event.before["state"], agg_event.after["state"]) == ("aggregate", "needs_curator", "approved")
+        assert (agg_event.entity, agg_event.before["state"], agg_event.after["state"]) == (
+            "aggregate",
+            "needs_curator",
+            "approved",
+        )
         assert agg_event.before["label"]["upside_down"] is False and agg_event.after["label"]["upside_down"] is True
         assert (gold_event.entity, gold_event.action, gold_event.after["answer"]) == ("gold", "made_gold", label)
         assert disputed_aggregates()[1] == 1
@@ -437,8 +507,7 @@ def test_resolving_a_crop_checks_the_boxes_and_can_skip_gold(app, disputed, pers
             with pytest.raises(ReviewError, match=message):
                 resolve_aggregate(disputed["crop"], label, curator=carol, make_gold=True)
         assert db.session.get(Aggregate, disputed["crop"]).state == "needs_curator"
-        resolved = resolve_aggregate(disputed["crop"], {"left": [1, 2, 281.5, 190], "right": [300, 2, 580, 190]},
-                                     curator=carol)
+        resolved = resolve_aggregate(disputed["crop"], {"left": [1, 2, 281.5, 190], "right": [300, 2, 580, 190]}, curator=carol)
         assert resolved.gold_id is None and resolved.label["left"] == [1.0, 2.0, 281.5, 190.0]
         assert db.session.scalar(select(func.count()).select_from(GoldAnswer)) == 0
         assert [e.entity for e in events(disputed["crop_card"])] == ["aggregate"]
@@ -455,14 +524,16 @@ def test_accept_is_refused_while_the_cards_judgement_or_crop_is_disputed(app, di
         sync_reviews([card])
         review = review_of(card)
         for action, grade in (("accept", None), ("change", "some")):
-            with pytest.raises(ReviewError, match=r"cannot be accepted while the crowd disagrees on its judgement "
-                                                  rf"\(batch \d+, dispute {disputed['judge']}\)") as refused:
+            with pytest.raises(
+                ReviewError,
+                match=r"cannot be accepted while the crowd disagrees on its judgement "
+                rf"\(batch \d+, dispute {disputed['judge']}\)",
+            ) as refused:
                 decide(review.id, action, expected_version=review.version, curator=carol, grade=grade)
             assert refused.value.status == 409
         assert review_of(card).decision == "pending" and events(card, "review") == []
         # rejecting or sending back stays possible: neither releases the card
-        resolve_aggregate(disputed["judge"], {"is_stereo": True, "upside_down": True, "inverted": False},
-                          curator=carol)
+        resolve_aggregate(disputed["judge"], {"is_stereo": True, "upside_down": True, "inverted": False}, curator=carol)
         review = review_of(card)
         decided = decide(review.id, "accept", expected_version=review.version, curator=carol)
         assert (decided.decision, decided.grade) == ("accepted", "few")

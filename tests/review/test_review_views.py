@@ -20,8 +20,13 @@ def graded(app, make_card, add_stage_result, card_image, decide_orientation) -> 
     ids = []
     for index, (grade, uncertainty) in enumerate([("few", 0.3), ("some", 0.8), ("failure", 0.1)]):
         card_id = make_card(card_image()[:, index:], state="pass", collection="keystone")
-        add_stage_result(card_id, "grade", outcome=grade, reason=f"reason {grade}",
-                         metrics={"uncertainty": uncertainty, "reasons": [f"reason {grade}"], "coverage": 0.91})
+        add_stage_result(
+            card_id,
+            "grade",
+            outcome=grade,
+            reason=f"reason {grade}",
+            metrics={"uncertainty": uncertainty, "reasons": [f"reason {grade}"], "coverage": 0.91},
+        )
         ids.append(card_id)
     decide_orientation(ids)
     with app.app_context():
@@ -39,8 +44,9 @@ def review_of(app, card_id: int) -> Any:  # type: ignore[no-untyped-def]
         return review
 
 
-@pytest.mark.parametrize(("role", "status"), [(None, 302), ("annotator", 403), ("exporter", 403),
-                                              ("curator", 200), ("admin", 200)])
+@pytest.mark.parametrize(
+    ("role", "status"), [(None, 302), ("annotator", 403), ("exporter", 403), ("curator", 200), ("admin", 200)]
+)
 def test_review_pages_are_for_curators(client, as_role, graded, role, status) -> None:  # type: ignore[no-untyped-def]
     as_role(role)
     for url in ("/review/", f"/review/cards/{graded[0]}", f"/review/cards/{graded[0]}/history"):
@@ -55,8 +61,9 @@ def test_review_pages_are_for_curators(client, as_role, graded, role, status) ->
 def test_an_annotator_cannot_post_a_decision(app, client, login, csrf_token, graded) -> None:  # type: ignore[no-untyped-def]
     login("annotator")
     token = csrf_token("/")  # the log-out form on the home page carries the session's token
-    response = client.post(f"/review/cards/{graded[0]}/decide", json={"action": "accept", "version": 1},
-                           headers={"X-CSRFToken": token})
+    response = client.post(
+        f"/review/cards/{graded[0]}/decide", json={"action": "accept", "version": 1}, headers={"X-CSRFToken": token}
+    )
     assert response.status_code == 403
     assert client.post("/review/sync", data={"csrf_token": token}).status_code == 403
     assert review_of(app, graded[0]).decision == "pending"
@@ -93,30 +100,47 @@ def test_a_decision_needs_the_csrf_token(app, client, login, graded) -> None:  #
 def test_a_form_decision_redirects_to_the_next_card(app, client, login, csrf_token, graded) -> None:  # type: ignore[no-untyped-def]
     login("curator")
     token = csrf_token(f"/review/cards/{graded[1]}")
-    response = client.post(f"/review/cards/{graded[1]}/decide",
-                           data={"choice": "change:failure", "version": "1", "note": "halves swapped", "csrf_token": token})
+    response = client.post(
+        f"/review/cards/{graded[1]}/decide",
+        data={"choice": "change:failure", "version": "1", "note": "halves swapped", "csrf_token": token},
+    )
     assert response.status_code == 303 and response.headers["Location"] == f"/review/cards/{graded[0]}"
     review = review_of(app, graded[1])
     assert (review.decision, review.grade, review.note, review.version) == ("changed", "failure", "halves swapped", 2)
     # The last card in the queue leads back to the queue.
-    response = client.post(f"/review/cards/{graded[2]}/decide?grade=failure",
-                           data={"choice": "accept", "version": "1", "csrf_token": token})
+    response = client.post(
+        f"/review/cards/{graded[2]}/decide?grade=failure", data={"choice": "accept", "version": "1", "csrf_token": token}
+    )
     assert response.headers["Location"] == "/review/?grade=failure"
 
 
 def test_a_json_decision_answers_with_the_next_card(app, client, login, csrf_token, graded) -> None:  # type: ignore[no-untyped-def]
     login("curator")
     token = csrf_token(f"/review/cards/{graded[1]}")
-    response = client.post(f"/review/cards/{graded[1]}/decide", json={"action": "accept", "version": 1},
-                           headers={"X-CSRFToken": token})
+    response = client.post(
+        f"/review/cards/{graded[1]}/decide", json={"action": "accept", "version": 1}, headers={"X-CSRFToken": token}
+    )
     assert response.status_code == 200
-    assert response.get_json() == {"card": graded[1], "decision": "accepted", "grade": "some", "version": 2,
-                                   "batch": None, "next_url": f"/review/cards/{graded[0]}"}
-    refused = client.post(f"/review/cards/{graded[0]}/decide", json={"action": "change", "grade": "great", "version": 1},
-                          headers={"X-CSRFToken": token})
+    assert response.get_json() == {
+        "card": graded[1],
+        "decision": "accepted",
+        "grade": "some",
+        "version": 2,
+        "batch": None,
+        "next_url": f"/review/cards/{graded[0]}",
+    }
+    refused = client.post(
+        f"/review/cards/{graded[0]}/decide",
+        json={"action": "change", "grade": "great", "version": 1},
+        headers={"X-CSRFToken": token},
+    )
     assert refused.status_code == 400 and "got 'great'" in refused.get_json()["error"]["message"]
-    assert client.post(f"/review/cards/{graded[0]}/decide", json={"action": "accept", "version": "one"},
-                       headers={"X-CSRFToken": token}).status_code == 400
+    assert (
+        client.post(
+            f"/review/cards/{graded[0]}/decide", json={"action": "accept", "version": "one"}, headers={"X-CSRFToken": token}
+        ).status_code
+        == 400
+    )
 
 
 def test_a_stale_version_gets_409_naming_who_changed_the_card(app, client, login, csrf_token, make_person, graded) -> None:  # type: ignore[no-untyped-def]
@@ -126,12 +150,18 @@ def test_a_stale_version_gets_409_naming_who_changed_the_card(app, client, login
 
     alice = make_person("curator", username="alice")
     with app.app_context():
-        decide(review_of(app, graded[0]).id, "reject", expected_version=1, curator=db.session.get(Person, alice.id),
-               note="a card back")
+        decide(
+            review_of(app, graded[0]).id,
+            "reject",
+            expected_version=1,
+            curator=db.session.get(Person, alice.id),
+            note="a card back",
+        )
     login("curator", username="bob")
     token = csrf_token(f"/review/cards/{graded[0]}")
-    response = client.post(f"/review/cards/{graded[0]}/decide", json={"action": "accept", "version": 1},
-                           headers={"X-CSRFToken": token})
+    response = client.post(
+        f"/review/cards/{graded[0]}/decide", json={"action": "accept", "version": 1}, headers={"X-CSRFToken": token}
+    )
     assert response.status_code == 409
     message = response.get_json()["error"]["message"]
     assert f"Card {graded[0]} was changed by alice at " in message and "it is now version 2: rejected" in message
@@ -145,14 +175,23 @@ def test_bulk_actions_apply_to_the_selection_and_report_conflicts(app, client, l
     token = csrf_token("/review/")
     reviews = [review_of(app, card) for card in graded]
     client.post(f"/review/cards/{graded[2]}/decide", data={"choice": "reject", "version": "1", "csrf_token": token})
-    response = client.post("/review/bulk", data={"item": [f"{r.id}:1" for r in reviews], "action": "change",
-                                                 "grade": "some", "csrf_token": token}, follow_redirects=True)
+    response = client.post(
+        "/review/bulk",
+        data={"item": [f"{r.id}:1" for r in reviews], "action": "change", "grade": "some", "csrf_token": token},
+        follow_redirects=True,
+    )
     page = response.get_data(as_text=True)
     assert "applied to 2 of 3 cards" in page and f"Card {graded[2]} was changed by curator-" in page
-    assert [(review_of(app, c).decision, review_of(app, c).grade) for c in graded] == \
-        [("changed", "some"), ("accepted", "some"), ("rejected", None)]
-    as_json = client.post("/review/bulk", json={"action": "reject", "items": [{"review": reviews[0].id, "version": 1}]},
-                          headers={"X-CSRFToken": token})
+    assert [(review_of(app, c).decision, review_of(app, c).grade) for c in graded] == [
+        ("changed", "some"),
+        ("accepted", "some"),
+        ("rejected", None),
+    ]
+    as_json = client.post(
+        "/review/bulk",
+        json={"action": "reject", "items": [{"review": reviews[0].id, "version": 1}]},
+        headers={"X-CSRFToken": token},
+    )
     assert as_json.get_json()["outcomes"][0]["status"] == "conflict"
     assert client.post("/review/bulk", data={"item": ["x:y"], "action": "reject", "csrf_token": token}).status_code == 400
 
@@ -167,8 +206,13 @@ def rectified(graded, add_stage_result, data_dir: Path) -> tuple[int, np.ndarray
     folder.mkdir(parents=True)
     for name, image in (("left_preview", left), ("right_preview", right)):
         Image.fromarray(image).save(folder / f"{name}.png")
-    add_stage_result(graded[0], "rectify", outcome=None, reason="rectified",
-                     artifacts={"left_preview": "derived/rect/left_preview.png", "right_preview": "derived/rect/right_preview.png"})
+    add_stage_result(
+        graded[0],
+        "rectify",
+        outcome=None,
+        reason="rectified",
+        artifacts={"left_preview": "derived/rect/left_preview.png", "right_preview": "derived/rect/right_preview.png"},
+    )
     return graded[0], left, right
 
 
@@ -197,8 +241,10 @@ def test_the_anaglyph_is_red_left_cyan_right_and_cached_by_etag(client, login, r
 def test_the_history_page_lists_every_change(app, client, login, csrf_token, graded) -> None:  # type: ignore[no-untyped-def]
     login("curator", username="carol")
     token = csrf_token(f"/review/cards/{graded[0]}")
-    client.post(f"/review/cards/{graded[0]}/decide", data={"choice": "change:some", "version": "1",
-                                                            "note": "fringes on the left", "csrf_token": token})
+    client.post(
+        f"/review/cards/{graded[0]}/decide",
+        data={"choice": "change:some", "version": "1", "note": "fringes on the left", "csrf_token": token},
+    )
     page = client.get(f"/review/cards/{graded[0]}/history").get_data(as_text=True)
     assert page.index("grade 1: graded") < page.index("review 1: change")
     assert "carol" in page and "pipeline" in page and "fringes on the left" in page
@@ -219,11 +265,23 @@ def crop_dispute(app, make_card, card_image) -> tuple[int, int]:  # type: ignore
         item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
         for n, right_x1 in enumerate((560, 470)):
             worker = get_or_create_worker("invite", f"w{n}")
-            db.session.add(Answer(item_id=item.id, worker_id=worker.id, idempotency_key=f"key-{n}-abcdef",
-                                  payload={"left": [0, 0, 280, 200], "right": [290, 0, right_x1, 200]}))
-        aggregate = Aggregate(batch_id=batch.id, card_id=card_id, kind="crop", state="needs_curator", answers=2,
-                              label={"left": [0, 0, 280, 200], "right": [290, 0, 515, 200]},
-                              reasons="right box: mean IoU 0.58 < 0.7")
+            db.session.add(
+                Answer(
+                    item_id=item.id,
+                    worker_id=worker.id,
+                    idempotency_key=f"key-{n}-abcdef",
+                    payload={"left": [0, 0, 280, 200], "right": [290, 0, right_x1, 200]},
+                )
+            )
+        aggregate = Aggregate(
+            batch_id=batch.id,
+            card_id=card_id,
+            kind="crop",
+            state="needs_curator",
+            answers=2,
+            label={"left": [0, 0, 280, 200], "right": [290, 0, 515, 200]},
+            reasons="right box: mean IoU 0.58 < 0.7",
+        )
         db.session.add(aggregate)
         db.session.commit()
         return card_id, aggregate.id
@@ -241,8 +299,18 @@ def test_disputes_are_listed_shown_with_boxes_and_resolved_as_gold(app, client, 
     assert page.count('class="box box-right crowd-answer') == 2 and page.count("crowd-aggregate") == 2
     assert 'width="270"' in page  # the 290..560 answer box
     token = csrf_token(f"/review/disputes/{aggregate_id}")
-    form = {"left_x0": "0", "left_y0": "0", "left_x1": "280", "left_y1": "200", "right_x0": "290", "right_y0": "0",
-            "right_x1": "9999", "right_y1": "200", "make_gold": "on", "csrf_token": token}
+    form = {
+        "left_x0": "0",
+        "left_y0": "0",
+        "left_x1": "280",
+        "left_y1": "200",
+        "right_x0": "290",
+        "right_y0": "0",
+        "right_x1": "9999",
+        "right_y1": "200",
+        "make_gold": "on",
+        "csrf_token": token,
+    }
     refused = client.post(f"/review/disputes/{aggregate_id}", data=form)
     assert refused.status_code == 400 and "The right box is refused" in refused.get_data(as_text=True)
     form["right_x1"] = "560"
@@ -259,8 +327,9 @@ def test_disputes_are_listed_shown_with_boxes_and_resolved_as_gold(app, client, 
     assert "not graded yet" in card_page and "crowd-aggregate" in card_page
 
 
-def test_card_page_shows_the_parallax_preview_when_views_exist(app, client, login, make_card, add_stage_result,
-                                                              card_image) -> None:  # type: ignore[no-untyped-def]
+def test_card_page_shows_the_parallax_preview_when_views_exist(
+    app, client, login, make_card, add_stage_result, card_image
+) -> None:  # type: ignore[no-untyped-def]
     from app.db import db
     from review.models import CardReview
 

@@ -164,8 +164,8 @@ def test_gutter_is_mount_not_photograph(cards):
         g = grey(card.image).astype(np.float32)
         left, right = card.truth["left_box"], card.truth["right_box"]
         y0, y1 = left[1] + 150, left[3] - 20  # below any arched corner
-        gutter = g[y0:y1, left[2] + 3:right[0] - 3]
-        prints = g[y0:y1, left[0]:left[2]]
+        gutter = g[y0:y1, left[2] + 3 : right[0] - 3]
+        prints = g[y0:y1, left[0] : left[2]]
         assert gutter.std() < 0.5 * prints.std(), card.name
 
 

@@ -13,8 +13,8 @@ import sqlalchemy as sa
 from alembic import op
 from sqlalchemy.dialects import postgresql
 
-revision = '0008'
-down_revision = '0007'
+revision = "0008"
+down_revision = "0007"
 branch_labels = None
 depends_on = None
 
@@ -22,9 +22,11 @@ depends_on = None
 def upgrade() -> None:
     # Plain ALTER TABLE, never batch mode's table copy: with foreign keys on, dropping the old
     # copy of cards would cascade-delete every row that references a card.
-    op.add_column('cards', sa.Column('stereo_source', sa.JSON().with_variant(postgresql.JSONB(astext_type=sa.Text()),
-                                                                             'postgresql'), nullable=True))
+    op.add_column(
+        "cards",
+        sa.Column("stereo_source", sa.JSON().with_variant(postgresql.JSONB(astext_type=sa.Text()), "postgresql"), nullable=True),
+    )
 
 
 def downgrade() -> None:
-    op.drop_column('cards', 'stereo_source')  # plain ALTER TABLE DROP COLUMN (SQLite >= 3.35)
+    op.drop_column("cards", "stereo_source")  # plain ALTER TABLE DROP COLUMN (SQLite >= 3.35)

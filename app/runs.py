@@ -12,7 +12,7 @@ import functools
 import hashlib
 import json
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Executor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -26,6 +26,7 @@ from sqlalchemy import exists, func, select
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import selectinload
 
+from pipeline.contracts import DisparityInputs, GradeInputs, RectifyInputs, ViewsInputs
 from pipeline.filter import FilterParams
 from pipeline.records import STAGES, CardTask, StageRecord, param_hash
 from pipeline.rectify import RectifyParams
@@ -58,7 +59,8 @@ class StageSpec:
     # The card states this stage applies to; other cards are not its business.
     eligible_states: tuple[str, ...]
     # What earlier stages (and approved crowd annotations) decided that this one needs.
-    inputs: Callable[[Card, dict[str, Any]], dict[str, Any]] | None = None
+    # The builders return the TypedDicts of pipeline.contracts (RectifyInputs, GradeInputs, ...).
+    inputs: Callable[[Card, dict[str, Any]], Mapping[str, Any]] | None = None
     # The stage whose latest result must be done or skipped before this one can run.
     requires: str | None = None
     # Given a card and its inputs, whether it can run now (e.g. a card the filter sent to
@@ -118,7 +120,7 @@ def photo_area_boxes(card: Card) -> dict[str, Any]:
     }
 
 
-def rectify_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+def rectify_inputs(card: Card, approved: dict[str, Any]) -> RectifyInputs:
     """What rectification consumes (boxes in the original card's pixels): the crowd's consensus
     boxes where approved, else the orientation step's photo areas, else the filter's split; and
     the decided orientation (:func:`card_orientation`; null flags while undecided)."""
@@ -155,7 +157,7 @@ def rectify_ready(card: Card, inputs: dict[str, Any]) -> bool:
     return inputs.get("is_stereo", True) is not False
 
 
-def rectified_pair(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+def rectified_pair(card: Card, approved: dict[str, Any]) -> DisparityInputs:
     """The rectified views, measured disparity range and focal length of the latest rectify result."""
     result = card.latest_results().get("rectify")
     if result is None or result.status not in ("done", "skipped"):
@@ -171,7 +173,7 @@ def rectified_pair(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def grade_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+def grade_inputs(card: Card, approved: dict[str, Any]) -> GradeInputs:
     """What the grader measures: the rectified views, both disparity maps and their confidence
     (paths under the data dir), and the metrics of the filter, rectify and disparity results."""
     latest = card.latest_results()
@@ -193,7 +195,7 @@ def grade_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def views_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
+def views_inputs(card: Card, approved: dict[str, Any]) -> ViewsInputs:
     """What view synthesis needs: the rectified left view, its disparity, the focal length, and
     the grade (a card graded failure gets no views)."""
     latest = card.latest_results()

@@ -124,7 +124,7 @@ def benchmark_variant(cards: list[Path], stages: tuple[str, ...], sbs_order: str
     return document
 
 
-def _decide_as_stored() -> None:
+def decide_as_stored() -> None:
     """The benchmark's cards are stored the right way up, positive, eyes in order: say so as a
     curator would (an override on every card still undecided), so the cost of the stages after
     the orientation step is measured on every card whatever the step decided."""
@@ -185,7 +185,7 @@ def benchmark_pipeline(
         specs = available_stages()
         for name in stages:
             if name == "rectify":
-                _decide_as_stored()  # with or without the orientation step in the run
+                decide_as_stored()  # with or without the orientation step in the run
             seconds: dict[int, float] = {}
             spec = specs[name]
             if params and name in params:

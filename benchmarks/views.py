@@ -42,7 +42,7 @@ from typing import Any
 import click
 import numpy as np
 
-from benchmarks.pipeline_cost import DEFAULT_STAGES, real_cards, synthetic_cards
+from benchmarks.pipeline_cost import DEFAULT_STAGES, decide_as_stored, real_cards, synthetic_cards
 
 TARGET_VIEWS_CPU_S = 0.5
 # At most 0.01 % of the pixels may differ by more than one 8-bit level or 1e-4 in relative depth, or
@@ -83,6 +83,8 @@ def _rectified_scenes(cards: list[Path], root: Path, sbs_order: str | None) -> l
         )
         specs = available_stages()
         for name in DEFAULT_STAGES:
+            if name == "rectify":
+                decide_as_stored()  # the flow rule: nothing is rectified while its orientation is undecided
             run_stage(replace(specs[name]), data_dir=data_dir, executor=None)
         for card in db.session.scalars(select(Card).order_by(Card.id)):
             inputs = views_inputs(card, {})

@@ -150,6 +150,15 @@ def index() -> Any:
     return render_template("exports/index.html", releases=_releases(), form=ReleaseForm(), preview=None)
 
 
+@bp.route("/preview", methods=["GET"], endpoint="preview_again")
+@bp.route("/publish", methods=["GET"], endpoint="publish_again")
+@role_required("exporter")
+def back_to_the_form() -> Any:
+    # A reload or a bookmark of the preview or publish address (both answer a form's POST) goes
+    # back to the form, rather than to the release page "preview/" that the address resembles.
+    return redirect(url_for("exports.index"))
+
+
 @bp.route("/preview", methods=["POST"])
 @role_required("exporter")
 def preview() -> Any:

@@ -75,7 +75,7 @@ class World:
 
 
 @pytest.fixture
-def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, card_image) -> World:  # type: ignore[no-untyped-def]
+def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, card_image, decide_orientation) -> World:  # type: ignore[no-untyped-def]
     """An admin logged in on ``client``, a reviewable card, a crop batch, a worker and a dispute."""
     import re
 
@@ -92,6 +92,7 @@ def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, c
     card_id = make_card(image, state="pass")
     add_stage_result(card_id, "filter")
     add_stage_result(card_id, "grade", outcome="some", metrics={"uncertainty": 0.4, "reasons": ["fringes"]})
+    decide_orientation([card_id])  # the flow rule: only a card with a decided orientation can be accepted
     crop_card_id = make_card(image[:, 8:], state="review")  # 596 x 200 px
     with app.app_context():
         sync_reviews()

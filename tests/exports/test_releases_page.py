@@ -85,3 +85,10 @@ def test_preview_then_publish_from_the_page(app, client, login, csrf_token, proc
 def test_exporters_get_a_releases_link(client, login) -> None:
     login("exporter")
     assert 'href="/releases/"' in client.get("/releases/").get_data(as_text=True)
+
+
+def test_reloading_the_preview_or_publish_address_goes_back_to_the_form(client, login) -> None:
+    login("exporter")
+    for address in ("/releases/preview", "/releases/publish"):
+        response = client.get(address)
+        assert response.status_code == 302 and response.headers["Location"].endswith("/releases/"), address

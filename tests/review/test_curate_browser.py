@@ -13,7 +13,7 @@ MEASUREMENTS = {"good_match_fraction": 0.25, "dy_p95_px": 1.2, "coverage": 1.0, 
 
 
 @pytest.fixture
-def graded_cards(app, make_card, add_stage_result, card_image) -> list[int]:  # type: ignore[no-untyped-def]
+def graded_cards(app, make_card, add_stage_result, card_image, decide_orientation) -> list[int]:  # type: ignore[no-untyped-def]
     from pipeline.grading import GradeThresholds
     from pipeline.records import param_hash
     from review.tasks import sync_reviews
@@ -38,6 +38,7 @@ def graded_cards(app, make_card, add_stage_result, card_image) -> list[int]:  # 
         ids.append(card_id)
     with app.app_context():
         sync_reviews()
+    decide_orientation(ids)  # the flow rule: only a card with a decided orientation can be accepted
     return ids
 
 

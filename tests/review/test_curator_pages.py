@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 
 
 @pytest.fixture
-def two_graded(app, make_card, add_stage_result, card_image) -> list[int]:  # type: ignore[no-untyped-def]
+def two_graded(app, make_card, add_stage_result, card_image, decide_orientation) -> list[int]:  # type: ignore[no-untyped-def]
     from review.tasks import sync_reviews
 
     ids = []
@@ -28,6 +28,7 @@ def two_graded(app, make_card, add_stage_result, card_image) -> list[int]:  # ty
         ids.append(card_id)
     with app.app_context():
         sync_reviews()
+    decide_orientation(ids)  # the flow rule: only a card with a decided orientation can be accepted
     return ids
 
 

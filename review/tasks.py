@@ -464,6 +464,20 @@ def _last_change(review: CardReview) -> tuple[str | None, datetime | None]:
     return (who.username if who else None), _aware(review.decided_at or review.updated_at)
 
 
+def _review_at_version(review_id: int, expected_version: int) -> CardReview:
+    """The review as stored now, if it is still at the version the curator saw; else roll back
+    and raise (404 for no such review, :class:`ReviewConflict` naming who changed it)."""
+    review = db.session.get(CardReview, review_id, populate_existing=True)
+    if review is None:
+        db.session.rollback()
+        raise ReviewError(f"There is no review {review_id}", 404)
+    if review.version != expected_version:
+        conflict = _conflict(review, expected_version)
+        db.session.rollback()
+        raise conflict
+    return review
+
+
 def _conflict(review: CardReview, expected_version: int) -> ReviewConflict:
     who, when = _last_change(review)
     state = review.decision.replace("_", " ")
@@ -542,14 +556,7 @@ def decide(
         raise ReviewError(f"Expected a grade from {', '.join(GRADES)} to change to, got {grade!r}")
     if action == "send_back" and kind not in SEND_BACK_KINDS:
         raise ReviewError(f"Expected the crowd task to send back to be crop or judge, got {kind!r}")
-    review = db.session.get(CardReview, review_id, populate_existing=True)
-    if review is None:
-        db.session.rollback()
-        raise ReviewError(f"There is no review {review_id}", 404)
-    if review.version != expected_version:
-        conflict = _conflict(review, expected_version)
-        db.session.rollback()
-        raise conflict
+    review = _review_at_version(review_id, expected_version)
     if action == "accept" and review.auto_grade is None:
         db.session.rollback()
         raise ReviewError(f"Card {review.card_id} has no automatic grade to accept; choose a grade instead")
@@ -654,14 +661,7 @@ def undo_decision(review_id: int, *, expected_version: int, curator: Person) -> 
 
     if isinstance(expected_version, bool) or not isinstance(expected_version, int):
         raise ReviewError(f"Expected the review version to undo as a whole number, got {expected_version!r}")
-    review = db.session.get(CardReview, review_id, populate_existing=True)
-    if review is None:
-        db.session.rollback()
-        raise ReviewError(f"There is no review {review_id}", 404)
-    if review.version != expected_version:
-        conflict = _conflict(review, expected_version)
-        db.session.rollback()
-        raise conflict
+    review = _review_at_version(review_id, expected_version)
     last = db.session.scalar(
         select(AuditEvent)
         .where(AuditEvent.entity == "review", AuditEvent.entity_id == review.id)

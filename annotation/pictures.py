@@ -122,27 +122,13 @@ def wiggle_frames(
 def signed_disparity(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """``(H, W)`` float32 disparity of ``first`` against ``second`` (``x_second = x_first - d``; with
     the photos in the right order nearer is larger), searched on both sides of zero (the offset
-    between a card's photos is arbitrary, and exchanged photos flip the sign), NaN where nothing
-    matched."""
-    import cv2
+    between a card's photos is arbitrary, and exchanged photos flip the sign) by the pipeline's
+    own estimator, NaN where it has no confidence (a blank photo: nothing matched)."""
+    from pipeline.disparity import DEFAULT_BACKEND, DisparityParams, estimate_disparity
 
-    grey = [cv2.cvtColor(view, cv2.COLOR_RGB2GRAY) if view.ndim == 3 else view for view in (first, second)]
-    reach = 16 * max(1, round(first.shape[1] * 0.15 / 16))  # +-15 % of the width, in SGBM's steps of 16
-    block = 5
-    matcher = cv2.StereoSGBM_create(
-        minDisparity=-reach,
-        numDisparities=2 * reach,
-        blockSize=block,
-        P1=8 * block * block,
-        P2=32 * block * block,
-        uniquenessRatio=10,
-        speckleWindowSize=50,
-        speckleRange=2,
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
-    )
-    disparity = matcher.compute(grey[0], grey[1]).astype(np.float32) / 16.0
-    disparity[disparity < -reach + 0.5] = np.nan  # SGBM marks "no match" with minDisparity - 1
-    return disparity
+    reach = 0.15 * first.shape[1]  # +-15 % of the width
+    result = estimate_disparity(first, second, DEFAULT_BACKEND, DisparityParams(disparity_range=(-reach, reach)))
+    return np.where(result.confidence > 0, result.disp_left, np.nan).astype(np.float32)
 
 
 def depth_colours(disparity: np.ndarray) -> np.ndarray:

@@ -49,6 +49,12 @@ geometry but turns the scene over); the occlusion side sees ``swapped`` alone (a
     Arched photo tops found by :func:`pipeline.photo_area.find_photo_areas` on the card (read as
     a positive: inverted first when the tone cues call it a negative) minus those found on the
     card turned 180 deg, over 2: mounts arch the tops of photos, never their feet.
+``text_upright`` (upside_down)
+    The card's horizontal print (titles, captions, stamps, signs in the photos) read as seen and
+    turned 180 deg by a text recogniser (:mod:`pipeline.text_orientation`): the reading with
+    confident characters is the right way up. On a card the tone cues call a negative, read on
+    its inverse. Read only when the other cues leave the card undecided (its cost, about 0.15-0.3
+    CPU-s, is most of the step's); ``details["text"]`` says what was read, or why not.
 
 Combination: a log-linear model over the eight hypotheses ``h = (upside_down, inverted,
 swapped)``; cue ``c`` with value ``x_c`` (positive = evidence that its parity is even) and

@@ -48,7 +48,7 @@ MODELS_ENV = "KEYSTONE_TEXT_MODELS"
 DETECTOR_FILE = "ch_PP-OCRv4_det_infer.onnx"
 RECOGNISER_FILE = "ch_PP-OCRv4_rec_infer.onnx"
 RECOGNISER_HEIGHT = 48  # px: a line's height as the recogniser takes it
-MAX_LINE_ASPECT = 16.0  # a longer line is read on its middle 16:1 (both ways: the middle stays the middle)
+MAX_LINE_ASPECT = 12.0  # a longer line is read on its middle 12:1 (both ways: the middle stays the middle)
 
 
 class TextModelMissingError(PipelineError):
@@ -73,7 +73,7 @@ class TextParams:
     """px (detector scale): lines lower than this are too small to read."""
     min_reading: float = 0.6
     """Mean character confidence that one of a line's two readings must reach for it to count."""
-    max_lines: int = 6
+    max_lines: int = 4
     """The longest lines read (a cost bound on a card covered in print)."""
 
     def __post_init__(self) -> None:

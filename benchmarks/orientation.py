@@ -284,6 +284,32 @@ def evaluate(rows: list[dict], weights: dict[str, float], auto_probability: floa
     return out
 
 
+SWEEP = (0.95, 0.9, 0.85, 0.8, 0.75, 0.7, 0.65, 0.6)
+THRESHOLD_MARGIN = 0.05
+
+
+def threshold_sweep(tune: list[dict], held: list[dict], weights: dict[str, float]) -> dict:
+    """Whole variants decided, and wrong, at each candidate ``auto_probability``, per split; and
+    the rule that chose the default: the lowest threshold at which no tune variant is decided
+    wrongly, plus ``THRESHOLD_MARGIN`` (rounded up to the sweep's grid). The held-out split only
+    checks it. (The text cue is read where the step would read it, at the configured threshold.)"""
+    table = {}
+    for threshold in SWEEP:
+        table[str(threshold)] = {
+            name: {
+                "decided": (e := evaluate(rows, weights, threshold))["decided_automatically"]["decided"],
+                "wrong": e["decided_automatically"]["wrong"],
+                "acceptance_decided_and_right": e["acceptance_variants"]["decided_and_right"],
+                "acceptance_wrong": e["acceptance_variants"]["wrong"],
+            }
+            for name, rows in (("tune", tune), ("held_out", held))
+        }
+    clean = [t for t in SWEEP if all(table[str(u)]["tune"]["wrong"] == 0 for u in SWEEP if u >= t)]
+    lowest = min(clean) if clean else max(SWEEP)
+    chosen = min((t for t in SWEEP if t >= lowest + THRESHOLD_MARGIN - 1e-9), default=max(SWEEP))
+    return {"table": table, "lowest_clean_on_tune": lowest, "chosen": chosen}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true")
@@ -323,6 +349,8 @@ def main(argv: list[str] | None = None) -> int:
         "held_out": evaluate(held, params.weights(), params.auto_probability),
         "tune": evaluate(tune, params.weights(), params.auto_probability),
         "held_out_with_refitted_weights": evaluate(held, fitted, params.auto_probability),
+        "auto_probability": params.auto_probability,
+        "threshold_sweep": threshold_sweep(tune, held, params.weights()),
         "split_seconds_mean": round(float(np.mean([r["split_seconds"] for r in rows])), 4),
     }
     if args.rows:

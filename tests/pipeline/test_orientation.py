@@ -230,7 +230,7 @@ def test_the_card_is_decided_on_the_most_probable_combination(scene_card):
     assert sum(joint.values()) == pytest.approx(1.0)
     assert estimate.combination_probability == pytest.approx(max(joint.values()))
     assert estimate.upside_down.probability == pytest.approx(sum(p for h, p in joint.items() if h[0]))
-    assert estimate.decided == (estimate.combination_probability >= 0.9)
+    assert estimate.decided == (estimate.combination_probability >= OrientationParams().auto_probability)
     assert estimate.as_dict()["combination_probability"] == pytest.approx(estimate.combination_probability, abs=1e-4)
     strict = estimate_orientation(card, lb, rb, OrientationParams(auto_probability=0.999999))
     assert not strict.decided and strict.orientation()["decided_by"] is None

@@ -71,7 +71,17 @@ def flow_cards(tmp_path: Path, runner) -> Path:  # type: ignore[no-untyped-def]
     return folder
 
 
-def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(app, runner, client, login, csrf_token, flow_cards):  # type: ignore[no-untyped-def]
+def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
+    app, runner, client, login, csrf_token, flow_cards, monkeypatch
+):  # type: ignore[no-untyped-def]
+    # The step reads these three Motorcycle cards at P 0.79-0.81, on the default threshold's
+    # edge: a strict threshold makes every one wait for people, which is the path under test.
+    from pipeline.orientation import OrientationParams
+    from pipeline.stages.orientation import OrientationStageParams
+
+    monkeypatch.setattr(
+        "app.runs.OrientationStageParams", lambda: OrientationStageParams(orientation=OrientationParams(auto_probability=0.95))
+    )
     first = _run(runner)
     stages = {s["stage"]: s for s in first["stages"]}
     assert [s["stage"] for s in first["stages"]] == ["filter", "orientation", "rectify", "disparity", "grade"]

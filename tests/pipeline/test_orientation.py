@@ -170,8 +170,8 @@ def test_probabilities_follow_the_parity_model():
     # a ground plane alone ties upside_down and swapped together but decides neither
     ground = flag_probabilities({"ground_plane": 0.9}, weights)
     assert ground["upside_down"] == pytest.approx(0.5) and ground["swapped"] == pytest.approx(0.5)
-    # with the occlusion side, both follow
-    both = flag_probabilities({"ground_plane": -0.9, "occlusion_side": 0.5}, weights)
+    # with the occlusion cues, both follow
+    both = flag_probabilities({"ground_plane": -0.9, "occlusion_side": 0.5, "occlusion_fill": 0.5}, weights)
     assert both["swapped"] < 0.1 and both["upside_down"] > 0.9
 
 
@@ -181,7 +181,7 @@ def test_evidence_is_in_words_and_serialisable(scene_card):
     document = estimate.as_dict()
     assert set(document["flags"]) == set(FLAGS)
     swapped_cues = [c["cue"] for c in document["flags"]["swapped"]["evidence"]]
-    assert swapped_cues == ["occlusion_side", "ground_plane"]
+    assert swapped_cues == ["occlusion_side", "occlusion_fill", "ground_plane"]
     assert "not swapped" in document["flags"]["swapped"]["evidence"][0]["meaning"]
     assert 0 < estimate.seconds < 5
 

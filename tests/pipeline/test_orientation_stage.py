@@ -119,5 +119,7 @@ def test_sixteen_bit_and_greyscale_scans_give_a_result_with_reasons(tmp_path, mo
     sixteen = (grey.astype(np.uint16) * 257).astype(np.uint16)
     deep = _run(tmp_path, Image.fromarray(sixteen))
     assert deep.status == "done" and deep.outcome == eight.outcome
+    # The 16-bit scan is stretched to its used range first, so its grey levels differ from the
+    # 8-bit scan's by up to one level: the occlusion bands move a little, the answer does not.
     for flag in ("upside_down", "inverted", "swapped"):
-        assert abs(deep.metrics["flags"][flag]["p"] - eight.metrics["flags"][flag]["p"]) < 0.05
+        assert abs(deep.metrics["flags"][flag]["p"] - eight.metrics["flags"][flag]["p"]) < 0.1

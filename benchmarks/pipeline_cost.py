@@ -118,7 +118,12 @@ def by_size(rows: list[dict[str, Any]], stages: tuple[str, ...]) -> list[dict[st
 
 
 def benchmark_variant(cards: list[Path], stages: tuple[str, ...], sbs_order: str | None, variant: str) -> dict[str, Any]:
-    """:func:`benchmark_pipeline` with ``variant``'s parameters (run in a fresh process by the command)."""
+    """:func:`benchmark_pipeline` with ``variant``'s parameters (run in a fresh process by the command),
+    with one OpenCV thread as every pool worker of ``keystone run`` has (:func:`pipeline.runner.init_worker`):
+    OpenCV's own threads would add their overhead to the process's CPU seconds."""
+    from pipeline.runner import init_worker
+
+    init_worker()
     document = benchmark_pipeline(cards, stages, sbs_order=sbs_order, params=variant_params(variant))
     document["variant"] = variant
     return document

@@ -80,7 +80,11 @@ class FilterParams:
     the product of the counts (0.56 s for 5,620 x 5,474 on one core, 0.08 s for 2,000 x 2,000);
     the cap bounds a card at about 0.3 s. It also bounds the denominator: fractions of capped
     true pairs read a few points higher (measured 24-32 % -> 33-38 %), unrelated pairs do not
-    change (0.2-0.6 %)."""
+    change (0.2-0.6 %). Measured 2026-11-24, 2,000 -> 1,500 (not taken): the NYPL cards and card
+    backs (at most 1,491 keypoints a half) give identical results and the 1400-3000 px scans
+    0.05-0.10 CPU-s less, but rectification from the fewer matches moves: a synthetic 3,850 px
+    card's measured disparity maximum 63.5 -> 52 px (the disparity search is set from it), the
+    sports JPS pair's change under a 16 px crop 0.41 -> 0.90 deg (``benchmarks.rectify_real``)."""
     reduced_decode: bool = True
     """The filter stage decodes a JPEG scan at 1/2, 1/4 or 1/8 of its size (libjpeg's scaled
     decode, :func:`pipeline.io.read_image_reduced`) when the card stays at least

@@ -21,7 +21,7 @@ from typing import IO, Any
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from .errors import ImageReadError, ImageTooLargeError
+from .errors import ImageReadError, ImageTooLargeError, InvalidInputError
 
 # A 1200 dpi scan of a 7 x 3.5 inch card is ~35 MP; 150 MP leaves room for any real scan
 # while refusing decompression bombs (a 100 KB PNG can claim 50,000 x 50,000 pixels).
@@ -215,13 +215,29 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[
         raise
 
 
-def write_png(path: str | os.PathLike[str], image: np.ndarray, compress_level: int = 3) -> None:
-    """Write ``image`` (grey or RGB uint8) as PNG atomically, at zlib ``compress_level`` (0-9).
+def write_png(path: str | os.PathLike[str], image: np.ndarray, fast: bool = False) -> None:
+    """Write ``image`` (grey or RGB uint8) as PNG atomically.
 
-    Measured on an 800 x 843 px rectified view (one core): level 1 encodes in 47 ms, 3 in 69 ms,
-    6 in 194 ms, for 1.20, 1.18 and 1.18 MB; decoding costs ~20 ms at any level."""
+    ``fast``: encode with OpenCV at zlib level 1 and the "average" row filter for every row
+    instead of Pillow's level 3 with a filter chosen per row; the pixels are the same. Measured
+    on an 800 x 843 px rectified view (one core): 29 ms and 1.18 MB instead of 69 ms and 1.18 MB
+    (Pillow at level 1: 47 ms, 1.20 MB); decoding costs ~20 ms either way. For files written on
+    every card's hot path (the rectified views)."""
+    if fast:
+        import cv2
+
+        pixels = np.ascontiguousarray(image)
+        if pixels.ndim == 3:
+            pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
+        options = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_AVG]
+        ok, payload = cv2.imencode(".png", pixels, options)
+        if not ok:
+            raise InvalidInputError(f"OpenCV could not encode a {pixels.shape} {pixels.dtype} array as PNG")
+        with atomic_write(path) as handle:
+            handle.write(payload.tobytes())
+        return
     with atomic_write(path) as handle:
-        Image.fromarray(np.ascontiguousarray(image)).save(handle, format="PNG", compress_level=compress_level)
+        Image.fromarray(np.ascontiguousarray(image)).save(handle, format="PNG", compress_level=3)
 
 
 def encode_jpeg(image: np.ndarray, max_side: int | None = None, quality: int = 90) -> bytes:

@@ -68,6 +68,12 @@ def test_writers_are_atomic_and_round_trip(tmp_path: Path):
     image = np.random.default_rng(2).integers(0, 256, (40, 60, 3), dtype=np.uint8)
     write_png(tmp_path / "deep" / "x.png", image)
     assert np.array_equal(read_image(tmp_path / "deep" / "x.png"), image)
+    # The fast encoder (OpenCV) writes the same pixels, in RGB order, for colour and grey.
+    for pixels in (image, image[..., 1]):
+        write_png(tmp_path / "fast.png", pixels, fast=True)
+        with Image.open(tmp_path / "fast.png") as written:
+            assert written.format == "PNG" and written.mode == ("RGB" if pixels.ndim == 3 else "L")
+        assert np.array_equal(read_image(tmp_path / "fast.png"), pixels)
     write_jpeg(tmp_path / "y.jpg", image, max_side=30)
     assert read_image(tmp_path / "y.jpg").shape == (20, 30, 3)
     assert list(tmp_path.rglob("*.tmp")) == []

@@ -1,8 +1,9 @@
 """``keystone bench pipeline``: CPU seconds per card for each stage, and peak memory, on real cards.
 
 The cards are ingested into a throwaway instance (SQLite, its own data dir) and run through
-the real stages (``app.runs.run_stage``, inline on one core, so each card's CPU time is this
-process's): filter, rectify, disparity, grade (the default pipeline) and views. Each stage's
+the real stages (``app.runs.run_stage``, inline on one core with one OpenCV thread as in a pool
+worker, so each card's CPU time is this process's): filter, orientation, rectify, disparity,
+grade (the default pipeline) and views. Each stage's
 task is wrapped to read ``time.process_time()`` around every card. A card the filter does not
 pass, or that a stage fails, has no figure for the stages it did not reach (the report says
 which stages each card ran).
@@ -14,6 +15,11 @@ runs in its own fresh process (spawned), one after the other, so its ``peak_rss_
 CPU seconds (``time.process_time``) move less with other load on the machine than wall time.
 Medians are given per scan size (``by_size``: the card's width, 760 px NYPL cards, ~1400 px
 Keystone-Mast raw scans, ~3000 px JPS pairs).
+
+Measured 2026-11-24 (docs/BENCHMARKS.md, "Decodes and writes on every card"): medians of each
+card's best of three runs, filter to grade, 0.41 / 1.16 / 1.63 CPU-s at 760 / 1400 / ~3000 px
+(main before the change: 0.44 / 1.21 / 1.79; without the orientation step's text cue 0.28 /
+1.00 / 1.49); peak ~565 MB (273 MB without the cue).
 
 Cards: the real scans in ``../shared/data/stereocards`` (NYPL cards ~760 px, Keystone-Mast raw
 scans ~1400 px, JPS pairs ~3000 px wide), or with ``--synthetic`` (and when that folder is not
@@ -118,7 +124,12 @@ def by_size(rows: list[dict[str, Any]], stages: tuple[str, ...]) -> list[dict[st
 
 
 def benchmark_variant(cards: list[Path], stages: tuple[str, ...], sbs_order: str | None, variant: str) -> dict[str, Any]:
-    """:func:`benchmark_pipeline` with ``variant``'s parameters (run in a fresh process by the command)."""
+    """:func:`benchmark_pipeline` with ``variant``'s parameters (run in a fresh process by the command),
+    with one OpenCV thread as every pool worker of ``keystone run`` has (:func:`pipeline.runner.init_worker`):
+    OpenCV's own threads would add their overhead to the process's CPU seconds."""
+    from pipeline.runner import init_worker
+
+    init_worker()
     document = benchmark_pipeline(cards, stages, sbs_order=sbs_order, params=variant_params(variant))
     document["variant"] = variant
     return document

@@ -45,12 +45,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from pipeline.crop_align import CropAlignParams, align_crops, matches_in_boxes
 from pipeline.errors import PipelineError
-from pipeline.filter import filter_card
-from pipeline.io import read_image
+from pipeline.filter import FilterParams, decode_width, filter_card
+from pipeline.io import jpeg_reduction, read_image
 from pipeline.rectify import (
     Rectification,
     RectifyParams,
@@ -61,6 +62,7 @@ from pipeline.rectify import (
     stored_view_scale,
     warp_pair,
 )
+from pipeline.split import scale_split
 
 ROW_GATE = 3.0  # px: fresh matches further from their row than this are mismatches (the headline figure)
 DY_GATE = 10.0  # px: the looser gate, reported beside it
@@ -117,12 +119,24 @@ def prepare(pair: RealPair, crop: tuple[int, int, int, int] = (0, 0, 0, 0), para
     card = _cut(pair.card, crop)
     # As the filter stage then the rectify stage: the filter splits the card and keeps its SIFT
     # matches; crop alignment and rectification reuse them (else they match at params' side).
-    split, filtered = filter_card(card)
+    # The stage decodes a large JPEG scan at 1/2..1/8 (FilterParams.reduced_decode); here the
+    # card is in memory, so that decode is stood in for by an area resize to the same size.
+    height, width = card.shape[:2]
+    factor = jpeg_reduction((width, height), (decode_width(), 1)) if FilterParams().reduced_decode else 1
+    small = card
+    if factor > 1:
+        small = cv2.resize(card, (-(-width // factor), -(-height // factor)), interpolation=cv2.INTER_AREA)
+    found, filtered = filter_card(small)
+    split = scale_split(found, factor, (width, height))
     boxes_before = split.left_box, split.right_box
-    card_matches = np.hstack([filtered.points[0] + split.left_box[:2], filtered.points[1] + split.right_box[:2]])
+
+    def to_card(points: np.ndarray, box: tuple[int, ...]) -> np.ndarray:
+        return (points + box[:2] + 0.5) * factor - 0.5
+
+    card_matches = np.hstack([to_card(filtered.points[0], found.left_box), to_card(filtered.points[1], found.right_box)])
     matches = None
     try:
-        alignment, scale = None, filtered.match_scale
+        alignment, scale = None, filtered.match_scale * factor
         box_matches = matches_in_boxes(card_matches, split.left_box, split.right_box)
         if len(box_matches[0]) >= params.min_matches:
             try:

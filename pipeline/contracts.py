@@ -66,6 +66,7 @@ class FilterMetrics(TypedDict, total=False):
     split_confidence: float
     card_size: list[int]  # (W, H)
     match_scale: float  # card px per px of the image the filter matched on (its saved matches are in card px)
+    decode_factor: int  # the card was decoded at 1 / this (1, 2, 4, 8; FilterParams.reduced_decode); boxes stay in card px
 
 
 class RectifyMetrics(TypedDict, total=False):

@@ -80,7 +80,20 @@ class FilterParams:
     the product of the counts (0.56 s for 5,620 x 5,474 on one core, 0.08 s for 2,000 x 2,000);
     the cap bounds a card at about 0.3 s. It also bounds the denominator: fractions of capped
     true pairs read a few points higher (measured 24-32 % -> 33-38 %), unrelated pairs do not
-    change (0.2-0.6 %)."""
+    change (0.2-0.6 %). Measured 2026-11-24, 2,000 -> 1,500 (not taken): the NYPL cards and card
+    backs (at most 1,491 keypoints a half) give identical results and the 1400-3000 px scans
+    0.05-0.10 CPU-s less, but rectification from the fewer matches moves: a synthetic 3,850 px
+    card's measured disparity maximum 63.5 -> 52 px (the disparity search is set from it), the
+    sports JPS pair's change under a 16 px crop 0.41 -> 0.90 deg (``benchmarks.rectify_real``)."""
+    reduced_decode: bool = True
+    """The filter stage decodes a JPEG scan at 1/2, 1/4 or 1/8 of its size (libjpeg's scaled
+    decode, :func:`pipeline.io.read_image_reduced`) when the card stays at least
+    :func:`decode_width` px wide: the split analyses an ``analysis_width`` copy and SIFT a
+    ``max_side`` one, so nothing it measures needs more. Boxes and matches are given in the full
+    card's pixels either way. Measured 2026-11-24 on the three ~3000 px JPS scans (decoded at
+    1/2), the filter stage's CPU-s a card, best of three: 0.42 -> 0.36, 0.48 -> 0.41, 0.42 -> 0.36
+    (a cheaper decode, and a 4x smaller card to split, cut and shrink); cards under 2,700 px wide
+    are decoded as before (the 1400 px raw scans: 0.37 and 0.31 either way)."""
     check_geometry: bool = True
     """Require good matches to agree with one stereo geometry (see the module docstring)."""
     row_tolerance: float = 0.03
@@ -296,6 +309,13 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
         right_size=(int(grey_right.shape[1]), int(grey_right.shape[0])),
         params=params,
     )
+
+
+def decode_width(params: FilterParams = FilterParams()) -> int:
+    """px: the narrowest copy of a card the filter analyses as it does the full card: the split's
+    ``analysis_width``, and halves at least 1.125 x ``max_side`` wide (photo boxes fill ~90 % of
+    a half), so SIFT still gets ``max_side`` px downscaled from a larger half."""
+    return max(params.split.analysis_width, math.ceil(2.25 * params.max_side))
 
 
 def filter_card(card: np.ndarray, params: FilterParams = FilterParams()) -> tuple[CardSplit, FilterResult]:

@@ -21,7 +21,7 @@ from typing import IO, Any
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from .errors import ImageReadError, ImageTooLargeError
+from .errors import ImageReadError, ImageTooLargeError, InvalidInputError
 
 # A 1200 dpi scan of a 7 x 3.5 inch card is ~35 MP; 150 MP leaves room for any real scan
 # while refusing decompression bombs (a 100 KB PNG can claim 50,000 x 50,000 pixels).
@@ -99,6 +99,9 @@ def probe_image(path: str | os.PathLike[str], max_pixels: int = DEFAULT_MAX_PIXE
 
 def _to_uint8(image: Image.Image) -> np.ndarray:
     mode = image.mode
+    if mode in ("RGB", "L"):
+        # Already the pipeline's layout: no conversion copy (0.015 s of a 3000 px scan's 0.055 s decode).
+        return np.asarray(image)
     if mode in ("I;16", "I;16B", "I;16L", "I;16N", "I", "F"):
         # 16/32-bit and float scans: stretch the used range to 0..255 rather than truncate.
         array = np.asarray(image, dtype=np.float64)
@@ -131,6 +134,62 @@ def read_image(path: str | os.PathLike[str], max_pixels: int = DEFAULT_MAX_PIXEL
         return np.ascontiguousarray(_to_uint8(image))
 
 
+# libjpeg decodes at 1/2, 1/4 or 1/8 of the size directly (scaled inverse DCT), for less than the
+# full decode costs; other formats are decoded at full size.
+JPEG_REDUCTIONS = (8, 4, 2)
+
+
+@dataclass(frozen=True)
+class ReducedImage:
+    """An original decoded at ``1 / factor`` of its size (:func:`read_image_reduced`)."""
+
+    pixels: np.ndarray  # uint8 (h, w) or (h, w, 3) RGB, h = ceil(H / factor), w = ceil(W / factor)
+    factor: int  # 1, 2, 4 or 8: original px per decoded px along each axis
+    full_size: tuple[int, int]  # (W, H) of the original
+
+    def to_full(self, points: np.ndarray) -> np.ndarray:
+        """``(N, 2)`` points in decoded px to original px (origin at the top-left pixel centre:
+        a decoded pixel covers ``factor x factor`` original pixels)."""
+        return (np.asarray(points, np.float64) + 0.5) * self.factor - 0.5
+
+
+def jpeg_reduction(size: tuple[int, int], min_size: tuple[int, int]) -> int:
+    """The largest of :data:`JPEG_REDUCTIONS` (else 1) that keeps an image of ``size`` = (W, H)
+    at least ``min_size`` px: decoded at 1/s it is ceil(W / s) x ceil(H / s)."""
+    width, height = size
+    return next(
+        (s for s in JPEG_REDUCTIONS if -(-width // s) >= min_size[0] and -(-height // s) >= min_size[1]),
+        1,
+    )
+
+
+def read_image_reduced(
+    path: str | os.PathLike[str], min_size: tuple[int, int], max_pixels: int = DEFAULT_MAX_PIXELS
+) -> ReducedImage:
+    """Decode an original at the largest JPEG reduction (1/8, 1/4, 1/2) that keeps it at least
+    ``min_size`` = (width, height) px, or at full size (other formats, CMYK JPEGs, small images).
+
+    For stages that only analyse a downscaled copy: measured on a 3000 x 1581 px JPEG scan,
+    0.055 s at full size, 0.043 s at 1/2 and 0.039 s at 1/4 (one core), and the copy to
+    downscale is 4x smaller. The pixel cap and the typed errors are those of :func:`read_image`.
+    """
+    image = _open_checked(Path(path), max_pixels)
+    with image:
+        width, height = image.size
+        factor = 1
+        if image.format == "JPEG" and image.mode in ("RGB", "L"):
+            factor = jpeg_reduction((width, height), min_size)
+            if factor > 1:
+                image.draft(image.mode, (width // factor, height // factor))
+        _decode(image)
+        expected = (-(-width // factor), -(-height // factor))
+        if image.size != expected:  # the decoder chose another scale: say what it did, not what was asked
+            factor = next((f for f in (1, *JPEG_REDUCTIONS) if image.size == (-(-width // f), -(-height // f))), 0)
+            if factor == 0:
+                raise ImageReadError(f"decoded {image.size} from a {width}x{height} image: not a JPEG reduction")
+        return ReducedImage(np.ascontiguousarray(_to_uint8(image)), factor, (width, height))
+
+
 def to_grey(image: np.ndarray) -> np.ndarray:
     """``(H, W)`` uint8 luminance of a grey or RGB array (ITU-R 601 weights, as OpenCV)."""
     if image.ndim == 2:
@@ -156,8 +215,27 @@ def atomic_write(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[
         raise
 
 
-def write_png(path: str | os.PathLike[str], image: np.ndarray) -> None:
-    """Write ``image`` (grey or RGB uint8) as PNG atomically."""
+def write_png(path: str | os.PathLike[str], image: np.ndarray, fast: bool = False) -> None:
+    """Write ``image`` (grey or RGB uint8) as PNG atomically.
+
+    ``fast``: encode with OpenCV at zlib level 1 and the "average" row filter for every row
+    instead of Pillow's level 3 with a filter chosen per row; the pixels are the same. Measured
+    on an 800 x 843 px rectified view (one core): 29 ms and 1.18 MB instead of 69 ms and 1.18 MB
+    (Pillow at level 1: 47 ms, 1.20 MB); decoding costs ~20 ms either way. For files written on
+    every card's hot path (the rectified views)."""
+    if fast:
+        import cv2
+
+        pixels = np.ascontiguousarray(image)
+        if pixels.ndim == 3:
+            pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
+        options = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_AVG]
+        ok, payload = cv2.imencode(".png", pixels, options)
+        if not ok:
+            raise InvalidInputError(f"OpenCV could not encode a {pixels.shape} {pixels.dtype} array as PNG")
+        with atomic_write(path) as handle:
+            handle.write(payload.tobytes())
+        return
     with atomic_write(path) as handle:
         Image.fromarray(np.ascontiguousarray(image)).save(handle, format="PNG", compress_level=3)
 

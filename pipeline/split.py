@@ -536,6 +536,27 @@ def split_card(card: np.ndarray, params: SplitParams = SplitParams()) -> CardSpl
     return CardSplit(left_box=left_box, right_box=right_box, gutter_x=gutter_x, method=method, confidence=confidence)
 
 
+def scale_split(split: CardSplit, factor: int, full_size: tuple[int, int]) -> CardSplit:
+    """``split`` found on a card decoded at ``1 / factor`` (:func:`pipeline.io.read_image_reduced`)
+    in the full card's pixels ``full_size`` = (W, H): every coordinate times ``factor``. A box that
+    would end past the card is moved back inside (not shrunk), so the two boxes keep one size."""
+    width, height = full_size
+    gutter_x = int(np.clip(split.gutter_x * factor, 1, width - 1))
+
+    def scaled(box: Box) -> Box:
+        x0, y0, x1, y1 = (v * factor for v in box)
+        shift_x, shift_y = max(0, x1 - width), max(0, y1 - height)
+        return (max(0, x0 - shift_x), max(0, y0 - shift_y), x1 - shift_x, y1 - shift_y)
+
+    return CardSplit(
+        left_box=scaled(split.left_box),
+        right_box=scaled(split.right_box),
+        gutter_x=gutter_x,
+        method=split.method,
+        confidence=split.confidence,
+    )
+
+
 def crop_halves(card: np.ndarray, split: CardSplit) -> tuple[np.ndarray, np.ndarray]:
     """The two photos as views into ``card`` (no copy): ``card[y0:y1, x0:x1]`` for each box."""
     height, width = card.shape[:2]

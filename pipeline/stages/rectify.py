@@ -176,7 +176,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     work_dir = Path(task.work_dir)
     artifacts = {}
     for name, view in (("left", left_rect), ("right", right_rect)):
-        write_png(work_dir / f"{name}.png", view)
+        write_png(work_dir / f"{name}.png", view, fast=True)  # once a card, on every card
         write_jpeg(work_dir / f"{name}_preview.jpg", view, max_side=PREVIEW_MAX_SIDE)
         artifacts[name] = str((work_dir / f"{name}.png").relative_to(task.data_dir))
         artifacts[f"{name}_preview"] = str((work_dir / f"{name}_preview.jpg").relative_to(task.data_dir))

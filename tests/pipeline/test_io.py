@@ -68,6 +68,12 @@ def test_writers_are_atomic_and_round_trip(tmp_path: Path):
     image = np.random.default_rng(2).integers(0, 256, (40, 60, 3), dtype=np.uint8)
     write_png(tmp_path / "deep" / "x.png", image)
     assert np.array_equal(read_image(tmp_path / "deep" / "x.png"), image)
+    # The fast encoder (OpenCV) writes the same pixels, in RGB order, for colour and grey.
+    for pixels in (image, image[..., 1]):
+        write_png(tmp_path / "fast.png", pixels, fast=True)
+        with Image.open(tmp_path / "fast.png") as written:
+            assert written.format == "PNG" and written.mode == ("RGB" if pixels.ndim == 3 else "L")
+        assert np.array_equal(read_image(tmp_path / "fast.png"), pixels)
     write_jpeg(tmp_path / "y.jpg", image, max_side=30)
     assert read_image(tmp_path / "y.jpg").shape == (20, 30, 3)
     assert list(tmp_path.rglob("*.tmp")) == []
@@ -102,3 +108,27 @@ def test_stale_temporary_files_are_removed_and_nothing_else(tmp_path: Path):
     assert not stale.exists() and fresh.exists() and visible.exists() and finished.exists()
     assert (elsewhere / ".outside.tmp").exists()  # links are not followed
     assert remove_stale_temp_files(tmp_path / "missing", older_than_s=600) == []
+
+
+def test_reduced_decode_picks_the_largest_jpeg_reduction_that_keeps_the_size(tmp_path: Path):
+    from pipeline.io import jpeg_reduction, read_image_reduced
+
+    ramp = np.tile(np.linspace(0, 255, 410), (203, 1)).astype(np.uint8)
+    picture = np.dstack([ramp, ramp[:, ::-1], np.full_like(ramp, 90)])
+    Image.fromarray(picture).save(tmp_path / "a.jpg", quality=95)
+    Image.fromarray(picture).save(tmp_path / "a.png")
+    assert jpeg_reduction((410, 203), (100, 1)) == 4  # ceil(410 / 4) = 103 >= 100, 52 is not
+    assert jpeg_reduction((410, 203), (100, 60)) == 2  # the height decides: ceil(203 / 4) = 51 < 60
+    assert jpeg_reduction((410, 203), (400, 1)) == 1
+
+    reduced = read_image_reduced(tmp_path / "a.jpg", (100, 1))
+    assert (reduced.factor, reduced.full_size, reduced.pixels.shape) == (4, (410, 203), (51, 103, 3))
+    # Each decoded pixel is the mean of its 4 x 4 block of the original (up to JPEG's rounding).
+    full = read_image(tmp_path / "a.jpg").astype(np.float64)
+    blocks = full[:200, :408].reshape(50, 4, 102, 4, 3).mean(axis=(1, 3))
+    assert np.abs(reduced.pixels[:50, :102] - blocks).mean() < 2.0
+    np.testing.assert_allclose(reduced.to_full(np.array([[0.0, 0.0], [10.0, 2.0]])), [[1.5, 1.5], [41.5, 9.5]])
+    # Not a JPEG, or asked for the full size: decoded as read_image does.
+    for path, size in ((tmp_path / "a.png", (100, 1)), (tmp_path / "a.jpg", (410, 203))):
+        same = read_image_reduced(path, size)
+        assert same.factor == 1 and np.array_equal(same.pixels, read_image(path))

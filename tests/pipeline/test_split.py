@@ -235,3 +235,16 @@ def test_split_takes_under_20_ms_for_a_1400_px_scan(load_card):
     finally:
         cv2.setNumThreads(previous)
     assert statistics.median(times) < 0.020
+
+
+def test_a_split_found_at_half_size_scales_to_the_full_card():
+    from pipeline.split import scale_split
+
+    found = CardSplit(left_box=(3, 2, 48, 40), right_box=(52, 2, 97, 40), gutter_x=50, method="gutter", confidence=0.8)
+    scaled = scale_split(found, 2, (199, 80))  # the decoded card was ceil(199 / 2) = 100 px wide
+    assert scaled.left_box == (6, 4, 96, 80) and scaled.gutter_x == 100
+    # 97 x 2 = 194 <= 199 stays; a box ending past the card moves back inside, keeping its size.
+    assert scaled.right_box == (104, 4, 194, 80)
+    # At the card's edge there is nothing to move back into: the box is cut to the card.
+    edge = scale_split(CardSplit((0, 0, 40, 30), (60, 0, 100, 30), 50, "gutter", 1.0), 2, (199, 59))
+    assert edge.right_box == (119, 0, 199, 59) and edge.left_box == (0, 0, 80, 59)

@@ -262,3 +262,62 @@ def test_the_rectify_stage_reuses_the_filters_matches(tmp_path: Path):
         RectifyParams(),
     )
     assert flipped.status == "done" and flipped.metrics["crop_alignment"]["match_source"] == "filter"
+
+
+def test_the_filter_decodes_a_large_jpeg_at_half_size_and_records_full_card_pixels(tmp_path: Path):
+    """A 3,800 px JPEG card: the filter decodes it at 1/2 (each half still over 1.125 x the SIFT
+    side), and its boxes, gutter and matches are in the full card's pixels, where the full decode
+    puts them; rectification from either set of matches agrees."""
+    from PIL import Image
+
+    from pipeline.filter import FilterParams, decode_width
+    from pipeline.stages.filter import filter_task
+
+    task = _card_task(tmp_path, 2.5)
+    card = np.asarray(Image.open(task.image_path).convert("RGB"))
+    Image.fromarray(card).save(tmp_path / "card.jpg", quality=92)
+    task = CardTask(1, "x", str(tmp_path / "card.jpg"), task.work_dir, task.data_dir, task.inputs)
+    height, width = card.shape[:2]
+    assert width // 2 >= decode_width() > width // 4
+
+    records = {}
+    for reduced in (True, False):
+        folder = tmp_path / f"work-{reduced}"
+        folder.mkdir()
+        one = CardTask(1, "x", task.image_path, str(folder), task.data_dir, task.inputs)
+        records[reduced] = filter_task(one, FilterParams(reduced_decode=reduced))
+    small, full = records[True], records[False]
+    assert small.outcome == full.outcome == "pass", (small.reason, full.reason)
+    assert (small.metrics["decode_factor"], full.metrics["decode_factor"]) == (2, 1)
+    assert small.metrics["card_size"] == full.metrics["card_size"] == [width, height]
+    assert small.metrics["left_size"] == full.metrics["left_size"]  # SIFT sees a copy of the same size
+    assert small.metrics["match_scale"] == pytest.approx(full.metrics["match_scale"], rel=0.01)
+    for name in ("left_box", "right_box"):
+        assert np.abs(np.subtract(small.metrics[name], full.metrics[name])).max() <= 8, name
+    assert abs(small.metrics["gutter_x"] - full.metrics["gutter_x"]) <= 8
+    matches = {key: np.load(tmp_path / record.artifacts["matches"]) for key, record in records.items()}
+    for key in matches:  # in card px: inside the card, the right end in the right half
+        assert matches[key][:, [0, 2]].max() < width and matches[key][:, 0].max() < records[key].metrics["gutter_x"]
+    # The two decodes give SIFT slightly different pictures, so different keypoints: the median
+    # offset between the photos agrees within one SIFT pixel (match_scale card px) vertically and
+    # two horizontally, where it also depends on which depths the keypoints sample.
+    offsets = {key: np.median(m[:, 2:] - m[:, :2], axis=0) for key, m in matches.items()}
+    sift_px = full.metrics["match_scale"]
+    assert abs(offsets[True][1] - offsets[False][1]) <= sift_px
+    assert abs(offsets[True][0] - offsets[False][0]) <= 2 * sift_px
+
+    rectified = {}
+    for key, record in records.items():
+        inputs = {
+            "left_box": record.metrics["left_box"],
+            "right_box": record.metrics["right_box"],
+            "filter_matches": record.artifacts["matches"],
+            "filter_match_scale": record.metrics["match_scale"],
+        }
+        folder = tmp_path / f"rectify-{key}"
+        folder.mkdir()
+        rectified[key] = rectify_task(CardTask(1, "x", task.image_path, str(folder), task.data_dir, inputs), RectifyParams())
+        assert rectified[key].status == "done", rectified[key].reason
+        assert rectified[key].metrics["crop_alignment"]["match_source"] == "filter"
+    assert rectified[True].metrics["dy_p95"] < 1.5
+    assert abs(rectified[True].metrics["disparity_max"] - rectified[False].metrics["disparity_max"]) < 3

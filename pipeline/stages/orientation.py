@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from ..errors import PipelineError
-from ..io import read_image
+from ..io import read_image_reduced
 from ..orientation import (
     FLAGS,
     OrientationEstimate,
@@ -54,6 +54,10 @@ class OrientationStageParams:
 
     orientation: OrientationParams = field(default_factory=OrientationParams)
     photo_area: PhotoAreaParams = field(default_factory=PhotoAreaParams)
+    decode_min_width: int = 1200
+    """px: a JPEG scan is decoded at the largest reduction (1/2, 1/4, 1/8) that keeps it at least
+    this wide (every cue works on a smaller copy: photos at 512 px, print at 1024, photo areas at
+    480), and the boxes are mapped both ways. 0 decodes at full size."""
 
 
 def _flag_words(estimate: OrientationEstimate, flag: str) -> list[str]:
@@ -85,6 +89,8 @@ def orientation_metrics(estimate: OrientationEstimate, areas: PhotoAreas | None)
         "tie_decided": bool(estimate.tie_decided and estimate.undecidable is None),
         "undecidable": estimate.undecidable,
         "seconds_orientation": round(estimate.seconds, 4),
+        # what the printed-text cue read (lines, both readings), or why it did not read
+        "text": estimate.details.get("text"),
     }
     if areas is not None:
         metrics.update(
@@ -125,6 +131,18 @@ def _scaled_areas(areas: PhotoAreas, scale: tuple[float, float], shape: tuple[in
     return replace(areas, left_box=scaled(areas.left_box), right_box=scaled(areas.right_box), gutter_x=round(areas.gutter_x * sx))
 
 
+def _to_decoded(box: Any, to_scan: tuple[float, float], shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """A box in the scan's px as a box in the decoded copy's px (grown outwards, kept inside)."""
+    x0, y0, x1, y1 = (float(v) for v in box)
+    height, width = shape
+    return (
+        max(0, math.floor(x0 / to_scan[0])),
+        max(0, math.floor(y0 / to_scan[1])),
+        min(width, math.ceil(x1 / to_scan[0])),
+        min(height, math.ceil(y1 / to_scan[1])),
+    )
+
+
 @stage_task("orientation")
 def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOutput:
     """Estimate the card's orientation on the filter's split boxes and find its photo areas.
@@ -134,8 +152,14 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
     boxes = task.inputs.get("left_box"), task.inputs.get("right_box")
     if boxes[0] is None or boxes[1] is None:
         raise PipelineError("no split boxes from the filter stage; run the filter first")
-    card = read_image(task.image_path)
-    estimate = estimate_orientation(card, tuple(boxes[0]), tuple(boxes[1]), params.orientation)
+    keep = params.decode_min_width if params.decode_min_width > 0 else 10**9  # 0: no reduction
+    decoded = read_image_reduced(task.image_path, (keep, 0))
+    card, (full_width, full_height) = decoded.pixels, decoded.full_size
+    # the scan's px per decoded px, along x and y (1.0 at full size)
+    to_scan = (full_width / card.shape[1], full_height / card.shape[0])
+    estimate = estimate_orientation(
+        card, _to_decoded(boxes[0], to_scan, card.shape[:2]), _to_decoded(boxes[1], to_scan, card.shape[:2]), params.orientation
+    )
     clock = time.perf_counter()
     found = estimate.photo_areas
     reused = (
@@ -146,11 +170,15 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
     if found is not None and reused:
         # The estimator's arched-top cue found them already, on a negative read as a positive
         # (measured: the photo-area finder misses more boxes on negatives as scanned).
-        areas = _scaled_areas(found, estimate.photo_areas_scale, card.shape[:2])
+        scale = (estimate.photo_areas_scale[0] * to_scan[0], estimate.photo_areas_scale[1] * to_scan[1])
+        areas = _scaled_areas(found, scale, (full_height, full_width))
     else:
         areas = find_photo_areas(255 - card if estimate.inverted.value else card, params.photo_area)
+        if decoded.factor > 1:
+            areas = _scaled_areas(areas, to_scan, (full_height, full_width))
     metrics = orientation_metrics(estimate, areas)
     metrics["photo_area_read_as_positive"] = bool(estimate.photo_areas_inverted if reused else estimate.inverted.value)
     metrics["seconds_photo_area"] = round(time.perf_counter() - clock, 4)
-    metrics["card_size"] = [int(card.shape[1]), int(card.shape[0])]
+    metrics["card_size"] = [int(full_width), int(full_height)]
+    metrics["decode_factor"] = decoded.factor
     return StageOutput(outcome=metrics["decision"], reason=_reason(metrics), metrics=metrics)

@@ -123,3 +123,34 @@ def test_sixteen_bit_and_greyscale_scans_give_a_result_with_reasons(tmp_path, mo
     # 8-bit scan's by up to one level: the occlusion bands move a little, the answer does not.
     for flag in ("upside_down", "inverted", "swapped"):
         assert abs(deep.metrics["flags"][flag]["p"] - eight.metrics["flags"][flag]["p"]) < 0.1
+
+
+def test_a_large_jpeg_is_read_at_a_reduced_size_and_answers_in_scan_pixels(tmp_path, moto):
+    """A ~3000 px JPEG card is decoded at 1/2 (every cue works on a smaller copy); the photo
+    areas come back in the scan's pixels, where a full decode puts them, and the flags agree."""
+    left, right = moto
+    card = np.asarray(Image.fromarray(_mounted(left, right)).resize((3000, 1140), Image.Resampling.LANCZOS))
+    path = tmp_path / "large.jpg"
+    Image.fromarray(card).save(path, quality=92)
+    split = split_card(np.asarray(Image.open(path)))
+    records = {}
+    for name, params in (("reduced", PARAMS), ("full", OrientationStageParams(decode_min_width=0))):
+        task = CardTask(
+            card_id=1,
+            content_hash="cd" * 32,
+            image_path=str(path),
+            work_dir=str(tmp_path / name),
+            data_dir=str(tmp_path),
+            inputs={"left_box": list(split.left_box), "right_box": list(split.right_box)},
+        )
+        records[name] = orientation_task(task, params)
+    reduced, full = records["reduced"].metrics, records["full"].metrics
+    assert reduced["decode_factor"] == 2 and full["decode_factor"] == 1
+    assert reduced["card_size"] == full["card_size"] == [3000, 1140]
+    for key in ("photo_left_box", "photo_right_box"):
+        x0, y0, x1, y1 = reduced[key]
+        assert 0 <= x0 < x1 <= 3000 and 0 <= y0 < y1 <= 1140
+        assert np.abs(np.subtract(reduced[key], full[key])).max() <= 16, (reduced[key], full[key])
+    for flag in ("upside_down", "inverted", "swapped"):
+        assert reduced["flags"][flag]["value"] == full["flags"][flag]["value"]
+        assert abs(reduced["flags"][flag]["p"] - full["flags"][flag]["p"]) < 0.15

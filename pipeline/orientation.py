@@ -211,8 +211,9 @@ class OrientationParams:
     text_detect_side: int = 1024
     """px: the card's longer side for the text detector (0 turns the text cue off)."""
     text_only_when_undecided: bool = True
-    """Read the print only when the other cues leave the card undecided (it is the step's
-    dearest cue, about 0.15-0.25 CPU-s a card); the record says when it was skipped."""
+    """Read the print only when the other cues leave the card undecided and print read as
+    clearly as it can be could decide it (it is the step's dearest cue, about 0.15-0.25 CPU-s a
+    card); the record says when and why it was skipped."""
     arch_working_width: int = 480
     """px: working width of :func:`pipeline.photo_area.find_photo_areas` for the arched-top cue
     (0 turns it off)."""
@@ -901,6 +902,13 @@ def estimate_orientation(
         details["text"] = "text cue off"
     elif params.text_only_when_undecided and max(hypothesis_probabilities(values, weights).values()) >= params.auto_probability:
         details["text"] = "not read: the card is decided without it"
+    elif params.text_only_when_undecided and all(
+        max(hypothesis_probabilities({**values, "text_upright": bound}, weights).values()) < params.auto_probability
+        for bound in (-1.0, 1.0)
+    ):
+        # Print read as clearly as it can be, either way up, would still leave the card to people
+        # (no colour, no ground plane: the doubt is about another flag).
+        details["text"] = "not read: print either way up could not decide the card"
     else:
         values["text_upright"], details["text"] = _text_upright(255 - scan if tone < 0 else scan, params.text_detect_side)
     cues = tuple(

@@ -139,3 +139,14 @@ def test_the_text_cue_is_skipped_when_the_card_is_decided_without_it(load_card) 
     assert estimate.details["text"] == "not read: the card is decided without it"
     off = estimate_orientation(card, split.left_box, split.right_box, OrientationParams(text_detect_side=0))
     assert off.details["text"] == "text cue off"
+
+
+def test_the_text_cue_is_skipped_when_no_reading_could_decide_the_card(load_card) -> None:
+    """A greyscale Keystone-Mast scan: its tones do not settle whether it is a negative, so print
+    read either way up could not decide it; the step says so instead of spending the reading."""
+    card = load_card("keystone_mast_raw_scans/09995.jpg")
+    split = split_card(card)
+    estimate = estimate_orientation(card, split.left_box, split.right_box)
+    assert not estimate.decided
+    assert estimate.details["text"] == "not read: print either way up could not decide the card"
+    assert next(c.value for c in estimate.cues if c.name == "text_upright") == 0.0

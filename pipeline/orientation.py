@@ -727,11 +727,11 @@ def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str], PhotoAr
 def _text_upright(card: np.ndarray, detect_side: int) -> tuple[float, Any]:
     """:func:`pipeline.text_orientation.read_text_orientation` on the card (a positive): its
     value and what it read; 0 with the reason when the text models are not installed."""
-    from .text_orientation import TextModelMissingError, TextParams, read_text_orientation
+    from .text_orientation import TextModelMissingError, TextParams, TextReadFailedError, read_text_orientation
 
     try:
         reading = read_text_orientation(card, TextParams(detect_side=detect_side))
-    except TextModelMissingError as exc:
+    except (TextModelMissingError, TextReadFailedError) as exc:
         return 0.0, f"not read: {exc}"
     except cv2.error as exc:  # a numerical corner case inside OpenCV: no text evidence, said
         return 0.0, f"not read (OpenCV: {str(exc).strip()[:80]})"

@@ -52,9 +52,23 @@ MAX_LINE_ASPECT = 12.0  # a longer line is read on its middle 12:1 (both ways: t
 
 
 class TextModelMissingError(PipelineError):
-    """The ONNX models (or onnxruntime) are not installed: the cue gives no evidence."""
+    """The ONNX models (or onnxruntime) are not installed or cannot be loaded: no evidence."""
 
     code = "text_model_missing"
+
+
+class TextReadFailedError(PipelineError):
+    """onnxruntime refused to run a model on this input: the cue gives no evidence for the card."""
+
+    code = "text_read_failed"
+
+
+def _run(session: Any, tensor: np.ndarray) -> np.ndarray:
+    """One model run; onnxruntime's own exceptions (they derive from Exception alone) as a typed error."""
+    try:
+        return np.asarray(session.run(None, {session.get_inputs()[0].name: tensor})[0])
+    except Exception as exc:  # onnxruntime's Fail, InvalidArgument, RuntimeException, ...
+        raise TextReadFailedError(f"onnxruntime: {type(exc).__name__}: {str(exc).strip()[:160]}") from exc
 
 
 @dataclass(frozen=True)
@@ -159,9 +173,12 @@ def _sessions(folder: str) -> tuple[Any, Any]:
     options.intra_op_num_threads = 1
     options.inter_op_num_threads = 1
     options.log_severity_level = 3
-    detector, recogniser = (
-        onnxruntime.InferenceSession(str(p), sess_options=options, providers=["CPUExecutionProvider"]) for p in paths
-    )
+    try:
+        detector, recogniser = (
+            onnxruntime.InferenceSession(str(p), sess_options=options, providers=["CPUExecutionProvider"]) for p in paths
+        )
+    except Exception as exc:  # a truncated or foreign file: onnxruntime's InvalidGraph, Fail, ...
+        raise TextModelMissingError(f"text models unreadable ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
     return detector, recogniser
 
 
@@ -183,7 +200,7 @@ def _detect_lines(detector: Any, rgb: np.ndarray, params: TextParams) -> tuple[l
     small = cv2.resize(rgb, (dw, dh), interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
     # PP-OCR's detector takes BGR in (v / 255 - 0.5) / 0.5, NCHW.
     tensor = (small[..., ::-1].astype(np.float32) / 127.5 - 1.0).transpose(2, 0, 1)[None]
-    probability = detector.run(None, {detector.get_inputs()[0].name: tensor})[0][0, 0]
+    probability = _run(detector, tensor)[0, 0]
     mask = cv2.dilate((probability > params.line_threshold).astype(np.uint8), np.ones((2, 2), np.uint8))
     contours, _ = cv2.findContours(mask, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
     sx, sy = w / dw, h / dh
@@ -247,7 +264,7 @@ def _recognise(recogniser: Any, crops: list[np.ndarray]) -> list[tuple[float, st
     for k, (crop, width) in enumerate(zip(crops, widths, strict=True)):
         resized = cv2.resize(crop, (width, RECOGNISER_HEIGHT), interpolation=cv2.INTER_LINEAR)
         batch[k, :, :, :width] = (resized[..., ::-1].astype(np.float32) / 127.5 - 1.0).transpose(2, 0, 1)
-    probabilities = recogniser.run(None, {recogniser.get_inputs()[0].name: batch})[0]  # (N, T, classes)
+    probabilities = _run(recogniser, batch)  # (N, T, classes)
     alphabet = _alphabet(recogniser)
     out = []
     for steps in probabilities:
@@ -271,8 +288,9 @@ def _alphabet(recogniser: Any) -> list[str]:
 def read_text_orientation(image: np.ndarray, params: TextParams = TextParams()) -> TextReading:
     """Read which way up the card's horizontal print is (module docstring).
 
-    Raises :class:`InvalidInputError` for a bad array and :class:`TextModelMissingError` when
-    the models cannot be loaded (the caller turns that into "no evidence", said).
+    Raises :class:`InvalidInputError` for a bad array, :class:`TextModelMissingError` when the
+    models cannot be loaded and :class:`TextReadFailedError` when a model refuses the input (the
+    caller turns the last two into "no evidence", said).
     """
     clock = time.perf_counter()
     rgb = _rgb(image)

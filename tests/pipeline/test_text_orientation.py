@@ -150,3 +150,15 @@ def test_the_text_cue_is_skipped_when_no_reading_could_decide_the_card(load_card
     assert not estimate.decided
     assert estimate.details["text"] == "not read: print either way up could not decide the card"
     assert next(c.value for c in estimate.cues if c.name == "text_upright") == 0.0
+
+
+def test_an_unreadable_model_file_is_no_evidence_said(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    (tmp_path / "ch_PP-OCRv4_det_infer.onnx").write_bytes(b"not a model")
+    (tmp_path / "ch_PP-OCRv4_rec_infer.onnx").write_bytes(b"\x08\x07")
+    monkeypatch.setenv(MODELS_ENV, str(tmp_path))
+    card = printed_card(["1894. The Grand Canyon, Arizona"])
+    with pytest.raises(TextModelMissingError, match="unreadable"):
+        read_text_orientation(card)
+    split = split_card(card)
+    estimate = estimate_orientation(card, split.left_box, split.right_box, OrientationParams(text_only_when_undecided=False))
+    assert "not read: text models unreadable" in str(estimate.details["text"])

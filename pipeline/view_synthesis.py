@@ -96,6 +96,7 @@ __all__ = [
     "render_preview_frames",
     "synthesise_views",
     "encode_webp",
+    "nearest_fill",
 ]
 
 VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")
@@ -159,17 +160,23 @@ class SceneViews:
     holes: list[np.ndarray]
     metrics: dict[str, Any]
 
+    @property
+    def centre(self) -> np.ndarray:
+        """:func:`pipeline.views.scene_centre` of v0 (3,), as computed once (a median over v0)."""
+        return np.array([0.0, 0.0, -float(self.metrics["scene_centre_depth"])])
+
 
 # --------------------------------------------------------------------------------- the pure part
-def fit_zoom(gd: GDImage, camera: Camera) -> float:
+def fit_zoom(gd: GDImage, camera: Camera, centre: np.ndarray | None = None) -> float:
     """Zoom factor (>= 1) for ``camera``'s focal length so that its whole image (pixel centres
     ``(0..W-1, 0..H-1)``) sees only points of the plane ``z = -D_c`` through the scene centre that v0
     sees: v0's pixel-centre rectangle on that plane, projected into ``camera`` at v0's focal length,
     is a convex quadrilateral Q around the principal point (the camera looks at the centre), and the
-    zoom is the smallest that shrinks the target rectangle into Q, plus half a pixel."""
+    zoom is the smallest that shrinks the target rectangle into Q, plus half a pixel. ``centre``:
+    :func:`scene_centre` of ``gd`` when the caller has it (a median over the image)."""
     h, w = gd.shape
     f0 = gd.focal_px
-    dc = -float(scene_centre(gd)[2])
+    dc = -float((scene_centre(gd) if centre is None else centre)[2])
     cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
     corners_px = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64)
     world = np.stack([(corners_px[:, 0] - cx) * dc / f0, -(corners_px[:, 1] - cy) * dc / f0, np.full(4, -dc)], 1)
@@ -291,17 +298,20 @@ def background_fill_with_colour(
                 slice(max(box[1].start - 1, 0), min(box[1].stop + 1, w)),
             )
             _ring_fill(key[crop], labels[crop] == index, held[crop], rings=None, release=True)
-    level, code = np.divmod(key, 2.0**_COLOUR_BITS)
-    filled = np.empty(planes.shape, np.float64)
+    # Unpacked at the hole pixels only (the rest keep their values).
+    at = np.flatnonzero(hole)
+    level, code = np.divmod(key.ravel()[at], 2.0**_COLOUR_BITS)
+    copied = np.zeros((hole.size, planes.shape[2]), np.float64)
     for k in range(planes.shape[2] - 1, -1, -1):
-        code, filled[..., k] = np.divmod(code, 256.0)
-    filled /= 255.0
-    inside = hole.astype(np.float64)
-    weight = np.maximum(cv2.blur(inside, (5, 5)), 1e-12)
-    smooth = cv2.blur(filled * inside[..., None], (5, 5)).reshape(filled.shape) / weight[..., None]
-    filled = np.where(hole[..., None], smooth, planes)
-    out_dhat = np.where(hole, level / _DHAT_LEVELS, dhat).astype(np.float32)
-    return out_dhat, filled.reshape(colour.shape).astype(np.float32)
+        code, copied[at, k] = np.divmod(code, 256.0)
+    copied /= 255.0
+    weight = np.maximum(cv2.blur(hole.astype(np.float64), (5, 5)), 1e-12).ravel()[at]
+    smooth = cv2.blur(copied.reshape(planes.shape), (5, 5)).reshape(hole.size, -1)[at] / weight[:, None]
+    filled = planes.reshape(hole.size, -1).astype(np.float32)
+    filled[at] = smooth
+    out_dhat = np.asarray(dhat, np.float32).copy()
+    out_dhat.ravel()[at] = level / _DHAT_LEVELS
+    return out_dhat, filled.reshape(colour.shape)
 
 
 _NETWORKS: dict[tuple[str, float], Any] = {}
@@ -447,7 +457,8 @@ def synthesise_views(
 
     shift = max(4.0, params.shift_px * min(h, w) / PAPER_SIDE)
     corners = corner_cameras(v0, shift_px=shift)
-    zoom = max(fit_zoom(v0, cam) for cam in corners)
+    centre = scene_centre(v0)
+    zoom = max(fit_zoom(v0, cam, centre) for cam in corners)
     corners = [replace(cam, focal_px=cam.focal_px * zoom) for cam in corners]
     ref = reference_camera(v0)
     renders: list[Reprojection] = [
@@ -506,7 +517,7 @@ def synthesise_views(
         "zoom": round(float(zoom), 6),
         "shift_px": round(shift, 3),
         "quad_radius": float(np.linalg.norm(corners[0].centre[:2]) / math.sqrt(2.0)),
-        "scene_centre_depth": float(-scene_centre(v0)[2]),
+        "scene_centre_depth": float(-centre[2]),
         "depth_range": [float(all_depths.min()), float(all_depths.max())],
         "reference_depth_filled_fraction": round(float(missing.mean()), 6),
         "reference_depth_fill": v0_method,
@@ -543,12 +554,12 @@ def render_preview_frames(scene: SceneViews, side: int, frames: int, max_stretch
     looking at the scene centre at the corner views' focal length: at the four corners (when
     ``frames`` is a multiple of 4) the filled corner views themselves, between them v0's mesh rendered
     there (one render a frame; its triangles dropped only at depth edges, ``max_stretch_px``) with the
-    few pixels it leaves uncovered (depth edges, past v0's border) filled by Telea. Longer side at
-    most ``side`` px."""
+    few pixels it leaves uncovered (depth edges, past v0's border) given their nearest covered
+    pixel's value (:func:`nearest_fill`). Longer side at most ``side`` px."""
     if frames < 2:
         raise InvalidInputError(f"a parallax preview needs at least 2 frames, got {frames}")
     v0_small, ref = _scaled(scene.views[0], scene.cameras[0], side)
-    centre = scene_centre(scene.views[0])
+    centre = scene.centre
     radius = float(np.linalg.norm(scene.cameras[1].centre[:2]))
     h, w = v0_small.shape
     focal = scene.cameras[1].focal_px * w / scene.views[0].shape[1]
@@ -565,9 +576,22 @@ def render_preview_frames(scene: SceneViews, side: int, frames: int, max_stretch
         r = reproject(v0_small, ref, cam, with_boundary=False, max_stretch_px=max_stretch_px)
         picture = np.clip(np.round(r.intensity * 255.0), 0, 255).astype(np.uint8)
         if r.hole.any() and not r.hole.all():
-            picture = np.asarray(cv2.inpaint(picture, r.hole.astype(np.uint8), 3, cv2.INPAINT_TELEA), np.uint8)
+            picture = nearest_fill(picture, r.hole)
         out.append(picture)
     return out
+
+
+def nearest_fill(picture: np.ndarray, hole: np.ndarray) -> np.ndarray:
+    """``picture`` (H, W) or (H, W, 3) with each ``hole`` (H, W) bool pixel given the value of its
+    nearest non-hole pixel (OpenCV's Euclidean distance transform, 5 x 5 mask, with each pixel's
+    nearest zero labelled; zeros are labelled 1, 2, .. in raster order). For the preview's few
+    uncovered pixels: 0.3 ms a 200 px frame, against 5 ms for Telea (which it replaced)."""
+    _, nearest = cv2.distanceTransformWithLabels(hole.astype(np.uint8), cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+    known = np.flatnonzero(~hole.ravel())
+    flat = picture.reshape(hole.size, -1).copy()
+    at = np.flatnonzero(hole.ravel())
+    flat[at] = flat[known[nearest.ravel()[at] - 1]]
+    return flat.reshape(picture.shape)
 
 
 def encode_webp(frames: list[np.ndarray], frame_ms: int) -> bytes:

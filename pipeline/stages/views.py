@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InvalidInputError
-from ..io import atomic_write, encode_jpeg, read_image, to_grey, write_json, write_npy, write_png
+from ..io import atomic_write, encode_jpeg, read_image, to_grey, write_json, write_npy
 from ..records import CardTask
 from ..view_synthesis import (
     DEFAULT_VERTICAL_FOV_FOCAL,
@@ -28,11 +28,12 @@ from ..view_synthesis import (
     render_preview_frames,
     synthesise_views,
 )
-from ..views import MAX_RELATIVE_DEPTH_STEP, scene_centre
+from ..views import MAX_RELATIVE_DEPTH_STEP
 from .base import StageOutput, stage_task
 
 __all__ = [
     "MESH_MAX_VERTICES",
+    "encode_view_png",
     "WEB_JPEG_QUALITY",
     "is_colour",
     "mesh_grid",
@@ -60,8 +61,16 @@ def is_colour(image: np.ndarray, inside: np.ndarray) -> bool:
     sample, kept = image[::stride, ::stride], inside[::stride, ::stride]
     if not kept.any():
         return False
-    spread = sample.max(axis=2).astype(np.int16) - sample.min(axis=2)
-    return float(np.percentile(spread[kept], 99)) > COLOUR_SPREAD
+    # max - min over the channels from their planes (a reduction over a last axis of 3 costs ten
+    # times more), and the percentile from the counts of the 256 possible spreads: numpy's linear
+    # rule, order statistics k and k + 1 at k + frac = 0.99 (n - 1)
+    r, g, b = (sample[..., k] for k in range(3))
+    spread = np.maximum(np.maximum(r, g), b) - np.minimum(np.minimum(r, g), b)
+    counts = np.cumsum(np.bincount(spread[kept], minlength=256))
+    rank = 0.99 * (int(counts[-1]) - 1)
+    low = int(np.searchsorted(counts, math.floor(rank), side="right"))
+    high = int(np.searchsorted(counts, min(math.floor(rank) + 1, int(counts[-1]) - 1), side="right"))
+    return low + (high - low) * (rank - math.floor(rank)) > COLOUR_SPREAD
 
 
 def mesh_grid(width: int, height: int) -> tuple[int, np.ndarray, np.ndarray]:
@@ -75,6 +84,25 @@ def mesh_grid(width: int, height: int) -> tuple[int, np.ndarray, np.ndarray]:
         xs = np.unique(np.append(np.arange(0, width - 1, step), width - 1))
         ys = np.unique(np.append(np.arange(0, height - 1, step), height - 1))
     return step, xs, ys
+
+
+def encode_view_png(pixels: np.ndarray) -> bytes:
+    """A view's PNG (grey (H, W) or RGB (H, W, 3) uint8, lossless): every row Paeth-filtered and
+    Huffman-coded without string matching. Measured on five 512 px colour views of a JPS card: 9 %
+    larger than Pillow's adaptive filters at zlib level 3, and a third of the CPU time (0.05 s
+    against 0.13 s a card)."""
+    import cv2
+
+    picture = pixels[..., ::-1] if pixels.ndim == 3 else pixels  # OpenCV writes BGR
+    flags = [
+        cv2.IMWRITE_PNG_COMPRESSION, 1,
+        cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+        cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_PAETH,
+    ]  # fmt: skip
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(picture), flags)
+    if not ok:
+        raise InvalidInputError(f"OpenCV could not encode a {pixels.dtype} {pixels.shape} view as PNG")
+    return encoded.tobytes()
 
 
 def viewer_mesh_png(depth: np.ndarray, xs: np.ndarray, ys: np.ndarray, inverse_range: tuple[float, float]) -> bytes:
@@ -133,7 +161,7 @@ def scene_document(scene: SceneViews, mesh: dict[str, Any] | None = None) -> dic
         "width": w,
         "height": h,
         "views": views,
-        "scene_centre": scene_centre(scene.views[0]).tolist(),
+        "scene_centre": scene.centre.tolist(),
         "quad_radius": scene.metrics["quad_radius"],
         "depth_range": scene.metrics["depth_range"],
         "max_relative_step": MAX_RELATIVE_DEPTH_STEP,
@@ -160,7 +188,10 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
     left = read_image(data_dir / inputs["left"])
     grey = to_grey(left)
     # The rectifying warp fills outside the view with black: no depth there (as the disparity stage).
-    inside: np.ndarray = np.asarray((left.reshape(*left.shape[:2], -1) > 0).any(axis=2))
+    channels = left.reshape(*left.shape[:2], -1)
+    inside: np.ndarray = channels[..., 0] > 0
+    for k in range(1, channels.shape[2]):  # plane by plane: any() over a last axis of 3 is slow
+        inside |= channels[..., k] > 0
     colour = is_colour(left, inside)
     picture = left if colour else grey
     if inputs.get("depth"):
@@ -195,7 +226,8 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
     viewer_bytes = 0
     for name, view in zip(VIEW_NAMES, scene.views):
         pixels = np.clip(np.round(view.intensity * 255.0), 0, 255).astype(np.uint8)
-        write_png(work_dir / f"{name}.png", pixels)
+        with atomic_write(work_dir / f"{name}.png") as handle:
+            handle.write(encode_view_png(pixels))
         write_npy(work_dir / f"{name}_depth.npy", view.depth.astype(np.float32))
         web = {
             "web": (f"{name}.jpg", encode_jpeg(pixels, quality=WEB_JPEG_QUALITY)),

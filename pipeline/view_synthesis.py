@@ -73,6 +73,7 @@ from .views import (
     GDImage,
     Reprojection,
     ViewImageTooSmallError,
+    continuous_triangles,
     corner_cameras,
     crack_fraction,
     look_at,
@@ -220,7 +221,10 @@ def _classical(
     lo, hi = _known_inverse_range(depth, known)
     inv = np.where(known, 1.0 / np.where(known, depth, 1.0), lo)
     dhat = ((inv - lo) / (hi - lo)).astype(np.float32)
-    dhat_filled, colour_filled = background_fill_with_colour(dhat, intensity, hole, boundary)
+    # The colour only rides along (and breaks ties between equal depths): a depth-only fill (v0's)
+    # carries none, so the filled depth is the same at a third of the packing.
+    carried = intensity if fill_intensity else np.zeros(hole.shape, np.float32)
+    dhat_filled, colour_filled = background_fill_with_colour(dhat, carried, hole, boundary)
     inv_filled = np.maximum(lo + dhat_filled.astype(np.float64) * (hi - lo), 0.5 * lo)
     out_depth = np.where(hole, 1.0 / inv_filled, depth).astype(np.float32)
     out_int = colour_filled if fill_intensity else intensity
@@ -461,8 +465,12 @@ def synthesise_views(
     zoom = max(fit_zoom(v0, cam, centre) for cam in corners)
     corners = [replace(cam, focal_px=cam.focal_px * zoom) for cam in corners]
     ref = reference_camera(v0)
+    # the four corners lie at one distance from v0: one depth-edge test serves them all
+    rule = continuous_triangles(
+        v0, params.max_relative_step, params.max_stretch_px, float(np.linalg.norm(corners[0].centre - ref.centre))
+    )
     renders: list[Reprojection] = [
-        reproject(v0, ref, cam, params.max_relative_step, max_stretch_px=params.max_stretch_px) for cam in corners
+        reproject(v0, ref, cam, params.max_relative_step, max_stretch_px=params.max_stretch_px, rule=rule) for cam in corners
     ]
     seconds_reproject = time.perf_counter() - clock - seconds_v0
     holes = [r.hole for r in renders]
@@ -564,6 +572,7 @@ def render_preview_frames(scene: SceneViews, side: int, frames: int, max_stretch
     h, w = v0_small.shape
     focal = scene.cameras[1].focal_px * w / scene.views[0].shape[1]
     up = np.array([0.0, 1.0, 0.0])
+    rule = continuous_triangles(v0_small, MAX_RELATIVE_DEPTH_STEP, max_stretch_px, radius)  # every frame on one circle
     out = []
     for k in range(frames):
         angle = math.pi / 4 + 2 * math.pi * k / frames  # v1 sits at 45 deg: (+r, +r)
@@ -573,7 +582,7 @@ def render_preview_frames(scene: SceneViews, side: int, frames: int, max_stretch
             out.append(np.clip(np.round(_area_resize(corner, (w, h)) * 255.0), 0, 255).astype(np.uint8))
             continue
         cam = look_at(eye, centre, up, focal, w, h)
-        r = reproject(v0_small, ref, cam, with_boundary=False, max_stretch_px=max_stretch_px)
+        r = reproject(v0_small, ref, cam, with_boundary=False, max_stretch_px=max_stretch_px, rule=rule)
         picture = np.clip(np.round(r.intensity * 255.0), 0, 255).astype(np.uint8)
         if r.hole.any() and not r.hole.all():
             picture = nearest_fill(picture, r.hole)

@@ -82,11 +82,13 @@ __all__ = [
     "MIN_SIDE",
     "SHIFT_PX",
     "Camera",
+    "ContinuousTriangles",
     "GDImage",
     "NoValidDepthError",
     "Reprojection",
     "ViewImageTooSmallError",
     "boundary_mask",
+    "continuous_triangles",
     "corner_cameras",
     "corner_views",
     "double_reprojection",
@@ -108,6 +110,8 @@ MIN_SIDE = 2  # a mesh needs at least one 2 x 2 pixel quad
 MOSTLY_HOLES = 0.5  # a view with more holes than this is reported as mostly holes
 _DEPTH_RANGE = 1e6  # depths below median/1e6 or above median*1e6 count as zero / infinite
 _CHUNK = 2_000_000  # candidate pixels rasterised at once (memory bound)
+_SMALL_BOX = 3  # triangles whose box holds at most this many centres a side: one pass per offset
+_SMALL_BOX_OFFSETS = [(i, j) for j in range(_SMALL_BOX) for i in range(_SMALL_BOX) if i or j]
 
 
 class NoValidDepthError(InvalidInputError):
@@ -231,7 +235,7 @@ def make_gd_image(intensity: np.ndarray, depth: np.ndarray, focal_px: float, val
             raise InvalidInputError(f"valid {v.shape} and depth {d.shape} differ in size")
         ok &= v.astype(bool)
     if ok.any():
-        med = float(np.median(d[ok]))
+        med = float(np.median(d[ok], overwrite_input=True))  # a copy already
         ok &= (d >= med / _DEPTH_RANGE) & (d <= med * _DEPTH_RANGE)
     if not ok.any():
         raise NoValidDepthError("no valid depth in the GD image")
@@ -308,6 +312,59 @@ def corner_cameras(gd: GDImage, baseline: float = 1.0, shift_px: float = SHIFT_P
 
 
 # --------------------------------------------------------------------------------- reprojection
+def _quad(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The (H-1, W-1) slices of a vertex grid at each pixel quad's corners p00, p01, p10, p11: the
+    quad gives the upper triangle (p00, p01, p10) and the lower (p01, p11, p10), edge p01-p10 shared."""
+    return a[:-1, :-1], a[:-1, 1:], a[1:, :-1], a[1:, 1:]
+
+
+@dataclass(frozen=True)
+class ContinuousTriangles:
+    """The depth-edge half of :func:`reproject`'s triangle rule for one GD image, which depends on
+    the target camera only through its distance from the source (``stretch_scale`` = source focal
+    length x that distance): ``continuous`` holds the upper and the lower triangles' (H-1, W-1)
+    bool masks, True where the triangle is no depth edge. Made by :func:`continuous_triangles`."""
+
+    depth: np.ndarray  # the GD image's depth it was made from (compared by identity)
+    max_relative_step: float
+    max_stretch_px: float | None
+    stretch_scale: float | None
+    continuous: tuple[np.ndarray, np.ndarray]
+
+    def matches(self, gd: GDImage, max_relative_step: float, max_stretch_px: float | None, distance: float) -> bool:
+        """Whether this rule is the one for ``gd`` and these settings. The distance may differ by
+        1e-9 of itself (cameras on one circle, whose distances differ in the last bits)."""
+        if self.depth is not gd.depth or self.max_relative_step != max_relative_step or self.max_stretch_px != max_stretch_px:
+            return False
+        if self.stretch_scale is None:
+            return True
+        return math.isclose(self.stretch_scale, gd.focal_px * distance, rel_tol=1e-9, abs_tol=0.0)
+
+
+def continuous_triangles(
+    gd: GDImage, max_relative_step: float = MAX_RELATIVE_DEPTH_STEP, max_stretch_px: float | None = None, distance: float = 0.0
+) -> ContinuousTriangles:
+    """The triangles of ``gd``'s mesh that are no depth edge (:func:`reproject`'s docstring) for a
+    target at ``distance`` (depth units) from the source camera."""
+    h, w = gd.shape
+    d = gd.depth.astype(np.float64)
+    # The edge test reads the depth through a 3 x 3 median when the stretch rule is on: a lone noisy
+    # pixel is no edge, a real step (a line of pixels) survives the median where it was.
+    d_rule = d if max_stretch_px is None or min(h, w) < 3 else cv2.medianBlur(gd.depth.astype(np.float32), 3).astype(np.float64)
+    d_rule = np.where(d_rule > 0, d_rule, d)
+    d00, d01, d10, d11 = _quad(d_rule)
+    shared_lo, shared_hi = np.minimum(d01, d10), np.maximum(d01, d10)
+    stretch_scale = None if max_stretch_px is None else gd.focal_px * distance
+    masks = []
+    for first in (d00, d11):
+        lo, hi = np.minimum(shared_lo, first), np.maximum(shared_hi, first)
+        continuous = (hi - lo) <= max_relative_step * np.maximum(lo, 1e-300)
+        if stretch_scale is not None and max_stretch_px is not None:  # a relative step with little parallax is no edge
+            continuous |= stretch_scale * (1.0 / np.maximum(lo, 1e-300) - 1.0 / np.maximum(hi, 1e-300)) <= max_stretch_px
+        masks.append(continuous)
+    return ContinuousTriangles(gd.depth, max_relative_step, max_stretch_px, stretch_scale, (masks[0], masks[1]))
+
+
 def _min3(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     return np.minimum(np.minimum(a, b), c)
 
@@ -323,6 +380,7 @@ def reproject(
     max_relative_step: float = MAX_RELATIVE_DEPTH_STEP,
     with_boundary: bool = True,
     max_stretch_px: float | None = None,
+    rule: ContinuousTriangles | None = None,
 ) -> Reprojection:
     """Render the GD image seen from ``source`` into ``target`` as a textured triangle mesh
     (module docstring): triangles with a vertex invalid or behind the target are dropped, and so
@@ -331,7 +389,9 @@ def reproject(
     than ``max_stretch_px`` target pixels as well (:func:`triangle_stretch_px`). The rest are
     rasterised exactly with a z-buffer. Output arrays are (target.height, target.width) (plus the
     channel axis of a colour intensity); never NaN. ``with_boundary=False`` leaves the boundary mask
-    empty (a render that is only looked at, never inpainted, does not need it)."""
+    empty (a render that is only looked at, never inpainted, does not need it). ``rule``: the
+    depth-edge test already made for this GD image by :func:`continuous_triangles` (renders into
+    several cameras at one distance from ``source`` share it); used when its settings match."""
     h, w = gd.shape
     if (source.width, source.height) != (w, h):
         raise InvalidInputError(f"source camera {source.width}x{source.height} does not match GD image {w}x{h}")
@@ -363,35 +423,21 @@ def reproject(
 
     # Per triangle, on grid slices (no gathers): the quad (p00, p01, p10, p11) gives the upper
     # triangle (p00, p01, p10) and the lower (p01, p11, p10); the shared edge p01-p10.
-    def quad(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        return a[:-1, :-1], a[:-1, 1:], a[1:, :-1], a[1:, 1:]
-
-    # The edge test reads the depth through a 3 x 3 median when the stretch rule is on: a lone noisy
-    # pixel is no edge, a real step (a line of pixels) survives the median where it was.
-    d_rule = d if max_stretch_px is None or min(h, w) < 3 else cv2.medianBlur(gd.depth.astype(np.float32), 3).astype(np.float64)
-    d_rule = np.where(d_rule > 0, d_rule, d)
-    d00, d01, d10, d11 = quad(d_rule)
-    o00, o01, o10, o11 = quad(ok)
+    distance = float(np.linalg.norm(target.centre - source.centre))
+    if rule is None or not rule.matches(gd, max_relative_step, max_stretch_px, distance):
+        rule = continuous_triangles(gd, max_relative_step, max_stretch_px, distance)
+    o00, o01, o10, o11 = _quad(ok)
     edge_ok = o01 & o10
-    shared_lo, shared_hi = np.minimum(d01, d10), np.maximum(d01, d10)
     total = 2 * (h - 1) * (w - 1)
-    stretch_scale = None
-    if max_stretch_px is not None:
-        stretch_scale = gd.focal_px * float(np.linalg.norm(target.centre - source.centre))
     # float32 from here on (half the memory traffic): positions to 3e-5 px at 512 px, inverse depth
     # to 6e-8 relative; the z-buffer compares float32 depths, ties go to either fragment. A vertex
-    # that is not ok sits at 0 (no kept triangle uses it; finite, so the grid arithmetic is quiet).
-    pxf = np.where(ok, px, 0.0).astype(np.float32)
-    pyf = np.where(ok, py, 0.0).astype(np.float32)
+    # that is not ok may sit anywhere (no kept triangle uses it: the grid arithmetic masks it).
+    pxf, pyf = px.astype(np.float32), py.astype(np.float32)
     izf = inverse_z.astype(np.float32)
-    corners = {"x": quad(pxf), "y": quad(pyf)}
+    corners = {"x": _quad(pxf), "y": _quad(pyf)}
     kept = 0
     kinds = []
-    for kind, (first, o_first) in enumerate(((d00, o00), (d11, o11))):
-        lo, hi = np.minimum(shared_lo, first), np.maximum(shared_hi, first)
-        continuous = (hi - lo) <= max_relative_step * np.maximum(lo, 1e-300)
-        if stretch_scale is not None:  # a relative step with little parallax is no edge
-            continuous |= stretch_scale * (1.0 / np.maximum(lo, 1e-300) - 1.0 / np.maximum(hi, 1e-300)) <= max_stretch_px
+    for kind, (o_first, continuous) in enumerate(zip((o00, o11), rule.continuous)):
         keep = edge_ok & o_first & continuous
         kept += int(np.count_nonzero(keep))
         kinds.append(_grid_triangles(keep, corners, kind, w, tw, th))
@@ -406,16 +452,25 @@ def reproject(
     # centre, the box's corner: tested on the grid of triangles as it is, with no gather.
     for tri in kinds:
         fragments.append(_corner_fragments(tri, izf, tw, zbuf))
-    # The other candidates of bigger boxes: those triangles' columns, through a repeat, in chunks.
+    # The other candidates of bigger boxes, on those triangles' columns: a box of 3 x 3 centres or
+    # less (98 % of them) by one pass per offset, the rest through a repeat, in chunks.
     mesh, x0, y0, nx, ny = _big_triangles(kinds)
-    count = nx * ny - 1
+    small = (nx <= _SMALL_BOX) & (ny <= _SMALL_BOX)
+    sels = [np.flatnonzero(small & (nx > i) & (ny > j)) for i, j in _SMALL_BOX_OFFSETS]
+    sel = np.concatenate(sels)
+    steps = np.repeat(np.array(_SMALL_BOX_OFFSETS, np.float32), [len(s) for s in sels], axis=0)
+    qx, qy = np.take(x0, sel) + steps[:, 0], np.take(y0, sel) + steps[:, 1]
+    tri, pid, l0, l1, l2, dep = _fragments(mesh, sel, qx, qy, tw, izf, zbuf)
+    fragments.append((mesh.a[tri], mesh.b[tri], mesh.c[tri], pid, l0, l1, l2, dep))
+    more = np.flatnonzero(~small)
+    count = nx[more] * ny[more] - 1
     csum = np.cumsum(count)
     start = 0
-    while start < len(count):
+    while start < len(more):
         base = csum[start - 1] if start else 0
         stop = max(int(np.searchsorted(csum, base + _CHUNK, side="right")), start + 1)
         cnt = count[start:stop]
-        rep = np.repeat(np.arange(start, stop), cnt)
+        rep = np.repeat(more[start:stop], cnt)
         offs = np.arange(len(rep)) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
         nxr = nx[rep]
         qx, qy = (x0[rep] + offs % nxr).astype(np.float32), (y0[rep] + offs // nxr).astype(np.float32)
@@ -534,13 +589,14 @@ def _grid_triangles(
     order = (0, 1, 2) if kind == 0 else (1, 3, 2)
     xa, xb, xc = (corners["x"][k] for k in order)
     ya, yb, yc = (corners["y"][k] for k in order)
-    x0 = np.maximum(np.ceil(_min3(xa, xb, xc) - 1e-4), 0)
-    x1 = np.minimum(np.floor(_max3(xa, xb, xc) + 1e-4), tw - 1)
-    y0 = np.maximum(np.ceil(_min3(ya, yb, yc) - 1e-4), 0)
-    y1 = np.minimum(np.floor(_max3(ya, yb, yc) + 1e-4), th - 1)
-    nx, ny = x1 - x0 + 1, y1 - y0 + 1
-    denom = (yb - yc) * (xa - xc) + (xc - xb) * (ya - yc)
-    live = keep & (nx > 0) & (ny > 0) & (np.abs(denom) > 1e-6)
+    with np.errstate(invalid="ignore", over="ignore"):  # vertices that are not ok: masked by keep
+        x0 = np.maximum(np.ceil(_min3(xa, xb, xc) - 1e-4), 0)
+        x1 = np.minimum(np.floor(_max3(xa, xb, xc) + 1e-4), tw - 1)
+        y0 = np.maximum(np.ceil(_min3(ya, yb, yc) - 1e-4), 0)
+        y1 = np.minimum(np.floor(_max3(ya, yb, yc) + 1e-4), th - 1)
+        nx, ny = x1 - x0 + 1, y1 - y0 + 1
+        denom = (yb - yc) * (xa - xc) + (xc - xb) * (ya - yc)
+        live = keep & (nx > 0) & (ny > 0) & (np.abs(denom) > 1e-6)
     return _GridTriangles(kind, width, xa, xb, xc, ya, yb, yc, denom, x0, y0, nx, ny, live)
 
 

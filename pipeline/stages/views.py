@@ -6,7 +6,6 @@ does, step by step, and the artifacts' conventions).
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import time
@@ -109,16 +108,13 @@ def viewer_mesh_png(depth: np.ndarray, xs: np.ndarray, ys: np.ndarray, inverse_r
     """A view's depth (H, W) > 0 sampled on the mesh grid as quantised inverse depth
     ``q = round(65535 (1/D - lo) / (hi - lo))``, ``(lo, hi) = inverse_range``, packed into an
     8-bit RGB PNG: R = q // 256, G = q % 256, B = 0. Decoded, 1/D is exact to (hi - lo) / 131070."""
-    from PIL import Image
-
     lo, hi = inverse_range
     inverse = 1.0 / depth[np.ix_(ys, xs)].astype(np.float64)
     q = np.clip(np.round((inverse - lo) / (hi - lo) * 65535.0), 0, 65535).astype(np.uint16)
     rgb = np.zeros((*q.shape, 3), np.uint8)
     rgb[..., 0], rgb[..., 1] = q >> 8, q & 255
-    buffer = io.BytesIO()
-    Image.fromarray(rgb).save(buffer, format="PNG", compress_level=1)  # 9 % larger, 4x faster than 6
-    return buffer.getvalue()
+    # 6 % smaller than Pillow's at zlib level 1, and 2.3 times faster (five 257 x 252 meshes)
+    return encode_view_png(rgb)
 
 
 def read_map(data_dir: Path, relative: Any, name: str) -> np.ndarray:

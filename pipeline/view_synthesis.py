@@ -283,11 +283,17 @@ def background_fill_with_colour(
     if hole.all():
         return np.zeros(hole.shape, np.float32), np.zeros(colour.shape, np.float32)
     planes = colour.reshape(*hole.shape, -1)
-    code = np.zeros(hole.shape, np.float64)
-    for k in range(planes.shape[2]):
-        code = code * 256.0 + np.clip(np.round(planes[..., k] * 255.0), 0, 255)
+    levels = np.rint(planes * 255.0)  # all channels at once (np.round is rint: halves to even)
+    np.clip(levels, 0, 255, out=levels)
+    code = levels[..., 0].copy()
+    for k in range(1, planes.shape[2]):
+        code *= 256.0
+        code += levels[..., k]
     depth_level = np.clip(np.round(np.nan_to_num(np.asarray(dhat, np.float64)) * _DHAT_LEVELS), 0, _DHAT_LEVELS)
-    key = np.where(hole, np.inf, depth_level * 2.0**_COLOUR_BITS + code)
+    depth_level *= 2.0**_COLOUR_BITS
+    key = code
+    key += depth_level
+    key[hole] = np.inf
     held = np.zeros(hole.shape, bool) if foreground is None else np.asarray(foreground, bool) & ~hole
     # Cost: one erosion per ring. A few rings over the whole image close the small holes; each hole
     # still open is then finished inside its own bounding box (the wide bands along the border take

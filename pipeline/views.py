@@ -215,12 +215,12 @@ def make_gd_image(intensity: np.ndarray, depth: np.ndarray, focal_px: float, val
     if img.dtype == np.uint8:
         img = img.astype(np.float32) / 255.0
     elif img.dtype.kind in "fiu":
-        img = img.astype(np.float32)
-        if np.isnan(img).any() or not np.isfinite(img).all():
+        img = img.astype(np.float32)  # a copy: clipped in place below
+        if not np.isfinite(img).all():
             raise InvalidInputError("intensity contains NaN or infinite values")
         if img.size and (img.min() < -1e-6 or img.max() > 1 + 1e-6):
             raise InvalidInputError(f"float intensity must lie in [0, 1], got {img.min()}..{img.max()}")
-        img = np.clip(img, 0.0, 1.0)
+        np.clip(img, 0.0, 1.0, out=img)
     else:
         raise InvalidInputError(f"unsupported intensity dtype {img.dtype}")
     if dep.dtype.kind not in "fiu":

@@ -460,7 +460,7 @@ def reproject(
     # that is not ok may sit anywhere (no kept triangle uses it: the grid arithmetic masks it).
     pxf, pyf = px.astype(np.float32), py.astype(np.float32)
     izf = inverse_z.astype(np.float32)
-    corners = {"x": _quad(pxf), "y": _quad(pyf)}
+    corners: dict[str, tuple[np.ndarray, ...]] = {"x": _quad(pxf), "y": _quad(pyf)}
     kept = 0
     kinds = []
     for kind, (o_first, continuous) in enumerate(zip((o00, o11), rule.continuous)):
@@ -476,8 +476,8 @@ def reproject(
     fragments = []
     # Every triangle's first candidate pixel centre, the box's corner (the only one for 72 % of the
     # triangles of a 512 px corner view): tested on the grid of triangles as it is, with no gather.
-    for tri in kinds:
-        fragments.append(_corner_fragments(tri, izf, tw, zbuf))
+    for grid in kinds:
+        fragments.append(_corner_fragments(grid, izf, tw, zbuf))
     # The other candidates of bigger boxes, on those triangles' columns: boxes of up to 3 x 3
     # centres (98 % of them) in one pass over all their offsets, the rest through a repeat, in chunks.
     mesh, x0, y0, nx, ny = _big_triangles(kinds)

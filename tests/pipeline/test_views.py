@@ -17,6 +17,7 @@ from pipeline.views import (
     NoValidDepthError,
     ViewImageTooSmallError,
     boundary_mask,
+    continuous_triangles,
     corner_cameras,
     crack_fraction,
     double_reprojection,
@@ -361,3 +362,88 @@ def test_colour_is_rendered_channel_by_channel():
     assert (colour.intensity[colour.hole] == 0).all()
     with pytest.raises(InvalidInputError):
         make_gd_image(np.zeros((8, 8, 2)), np.ones((8, 8)), 8.0)
+
+
+def _brute_force_render(gd: GDImage, source: Camera, target: Camera, keep_all: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """A per-triangle, per-pixel rasteriser in float64 (plain loops): the (depth, covered) the
+    vectorised one must match, for a scene whose triangles are all kept (no depth edges)."""
+    h, w = gd.shape
+    cx, cy = source.principal_point
+    vs, us = np.mgrid[0:h, 0:w]
+    d = gd.depth.astype(np.float64)
+    world = np.stack([(us - cx) * d / gd.focal_px, -(vs - cy) * d / gd.focal_px, -d], -1)
+    world = (world - source.translation) @ source.rotation  # into the world frame (R^T (x - t))
+    pc = world @ target.rotation.T + target.translation
+    tx, ty = target.principal_point
+    px = tx + target.focal_px * pc[..., 0] / -pc[..., 2]
+    py = ty - target.focal_px * pc[..., 1] / -pc[..., 2]
+    inv = 1.0 / -pc[..., 2]
+    zbuf = np.full((target.height, target.width), np.inf)
+    for v in range(h - 1):
+        for u in range(w - 1):
+            for tri in (((v, u), (v, u + 1), (v + 1, u)), ((v, u + 1), (v + 1, u + 1), (v + 1, u))):
+                xs = np.array([px[p] for p in tri])
+                ys = np.array([py[p] for p in tri])
+                iz = np.array([inv[p] for p in tri])
+                den = (ys[1] - ys[2]) * (xs[0] - xs[2]) + (xs[2] - xs[1]) * (ys[0] - ys[2])
+                if abs(den) < 1e-9:
+                    continue
+                for qy in range(max(0, math.ceil(ys.min())), min(target.height - 1, math.floor(ys.max())) + 1):
+                    for qx in range(max(0, math.ceil(xs.min())), min(target.width - 1, math.floor(xs.max())) + 1):
+                        l0 = ((ys[1] - ys[2]) * (qx - xs[2]) + (xs[2] - xs[1]) * (qy - ys[2])) / den
+                        l1 = ((ys[2] - ys[0]) * (qx - xs[2]) + (xs[0] - xs[2]) * (qy - ys[2])) / den
+                        l2 = 1.0 - l0 - l1
+                        if min(l0, l1, l2) >= 0:
+                            zbuf[qy, qx] = min(zbuf[qy, qx], 1.0 / (l0 * iz[0] + l1 * iz[1] + l2 * iz[2]))
+    covered = np.isfinite(zbuf)
+    return np.where(covered, zbuf, 0.0), covered
+
+
+@pytest.mark.parametrize("zoom", [1.0, 2.7])  # 2.7: most triangles' boxes hold several pixel centres
+def test_the_grid_rasteriser_matches_a_per_triangle_per_pixel_one(zoom):
+    size = 18
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:size, 0:size]
+    depth = (2.0 + 0.04 * xx + 0.02 * yy + 0.01 * rng.random((size, size))).astype(np.float32)  # slanted, no edges
+    gd = make_gd_image(_texture(size, size), depth, 20.0)
+    ref = reference_camera(gd)
+    for cam in corner_cameras(gd, shift_px=3):
+        cam = Camera(cam.rotation, cam.translation, cam.focal_px * zoom, size, size)
+        fast = reproject(gd, ref, cam, max_relative_step=10.0)
+        assert fast.dropped_triangles == 0
+        depth_ref, covered_ref = _brute_force_render(gd, ref, cam)
+        # float32 positions: a centre within ~1e-5 px of the mesh's outer edge may go either way
+        assert (fast.hole == ~covered_ref).mean() >= 1 - 2 / size**2
+        both = ~fast.hole & covered_ref
+        assert both.sum() > 0.3 * size * size
+        assert np.allclose(fast.depth[both], depth_ref[both], rtol=1e-5)
+
+
+def test_one_depth_edge_rule_serves_every_camera_at_its_distance():
+    gd = _two_planes()
+    ref = reference_camera(gd)
+    corners = corner_cameras(gd, shift_px=24)
+    distance = float(np.linalg.norm(corners[0].centre - ref.centre))
+    rule = continuous_triangles(gd, 0.1, 2.0, distance)
+    for cam in corners:  # the four corners lie at one distance from v0
+        shared = reproject(gd, ref, cam, max_stretch_px=2.0, rule=rule)
+        own = reproject(gd, ref, cam, max_stretch_px=2.0)
+        assert np.array_equal(shared.hole, own.hole) and np.array_equal(shared.intensity, own.intensity)
+        assert np.array_equal(shared.depth, own.depth) and shared.kept_triangles == own.kept_triangles
+    # a rule made for another distance, or other settings, or another image, is not used
+    far = continuous_triangles(gd, 0.1, 2.0, 100 * distance)
+    assert not far.matches(gd, 0.1, 2.0, distance) and rule.matches(gd, 0.1, 2.0, distance * (1 + 1e-12))
+    assert not rule.matches(gd, 0.1, None, distance) and not rule.matches(_two_planes(), 0.1, 2.0, distance)
+    wrong = reproject(gd, ref, corners[0], max_stretch_px=2.0, rule=far)
+    right = reproject(gd, ref, corners[0], max_stretch_px=2.0)
+    assert np.array_equal(wrong.hole, right.hole) and wrong.kept_triangles == right.kept_triangles
+
+
+def test_make_gd_image_masks_depths_a_million_times_off_the_median_only_when_they_exist():
+    depth = np.full((8, 8), 2.0)
+    depth[0, 0] = 2.0e-7  # 1e7 times nearer than the rest: masked as near-zero
+    depth[0, 1] = 3.0e6  # 1.5e6 times farther: masked as infinite
+    gd = make_gd_image(np.zeros((8, 8), np.float32), depth, 8.0)
+    assert not gd.valid[0, 0] and not gd.valid[0, 1] and gd.valid.sum() == 62
+    depth[0, 0], depth[0, 1] = 2.0e-5, 2.0e5  # within 1e6 of the median (2): all kept
+    assert make_gd_image(np.zeros((8, 8), np.float32), depth, 8.0).valid.all()

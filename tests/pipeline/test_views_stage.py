@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -14,8 +15,8 @@ from PIL import Image
 
 from pipeline.io import write_npy, write_png
 from pipeline.records import CardTask
-from pipeline.stages.views import views_task
-from pipeline.view_synthesis import VIEW_NAMES, ViewsStageParams, fit_zoom
+from pipeline.stages.views import encode_view_png, is_colour, views_task
+from pipeline.view_synthesis import VIEW_NAMES, ViewsStageParams, fit_zoom, nearest_fill
 from pipeline.views import corner_cameras, make_gd_image, reference_camera, reproject
 
 WIDTH = 240
@@ -284,3 +285,39 @@ def test_the_fill_takes_the_background_not_the_foreground():
     ring &= ~island
     island_dhat, island_fill = background_fill_with_colour(dhat, colour, island, ring)
     assert np.allclose(island_fill[island], 1.0, atol=1 / 255) and np.allclose(island_dhat[island], 1.0)
+
+
+@pytest.mark.parametrize("shape", [(37, 53), (37, 53, 3)])
+def test_view_pngs_are_lossless(shape):
+    rng = np.random.default_rng(5)
+    pixels = rng.integers(0, 256, shape, dtype=np.uint8)
+    pixels[:10] = 200  # a flat band as well as noise
+    decoded = np.asarray(Image.open(io.BytesIO(encode_view_png(pixels))))
+    assert decoded.shape == shape and np.array_equal(decoded, pixels)  # RGB stays RGB (not BGR)
+
+
+def test_the_preview_fills_uncovered_pixels_from_the_nearest_covered_one():
+    picture = np.zeros((20, 30, 3), np.uint8)
+    picture[:, :15] = (10, 20, 30)
+    picture[:, 15:] = (200, 150, 100)
+    hole = np.zeros((20, 30), bool)
+    hole[:, 12:19] = True  # a band across the colour edge: columns 12-14 are nearer the left side
+    hole[0, 0] = True
+    filled = nearest_fill(picture, hole)
+    assert (filled[:, 12:15] == (10, 20, 30)).all() and (filled[:, 16:19] == (200, 150, 100)).all()
+    assert (filled[0, 0] == (10, 20, 30)).all() and np.array_equal(filled[~hole], picture[~hole])
+    grey = nearest_fill(picture[..., 0], hole)
+    assert grey.shape == (20, 30) and (grey[:, 12:15] == 10).all() and (grey[:, 16:19] == 200).all()
+
+
+def test_is_colour_decides_as_the_99th_percentile_of_the_channel_spread():
+    rng = np.random.default_rng(9)
+    for _ in range(300):
+        h, w = rng.integers(1, 30, 2)
+        base = rng.integers(0, 256, (h, w, 1))
+        spread = int(rng.integers(0, 14))
+        image = np.clip(base + rng.integers(-spread, spread + 1, (h, w, 3)), 0, 255).astype(np.uint8)
+        inside = rng.random((h, w)) < rng.random()
+        kept = image[inside].astype(np.int16)
+        expected = bool(kept.size) and float(np.percentile(kept.max(axis=1) - kept.min(axis=1), 99)) > 8
+        assert is_colour(image, inside) == expected

@@ -617,7 +617,20 @@ def encode_webp(frames: list[np.ndarray], frame_ms: int) -> bytes:
 
     pictures = [Image.fromarray(f) for f in frames]
     buffer = io.BytesIO()
+    # method 4: 2 % smaller, twice the time. No key frame after the first (kmin, kmax past the last
+    # frame): libwebp otherwise encodes the frames in its key-frame window twice, as a key frame
+    # and as a change, to keep the smaller; measured on a 12-frame preview: the same bytes (+0.2 %)
+    # and PSNR (35.0-35.5 dB a frame), 24 % less time.
     pictures[0].save(
-        buffer, format="WEBP", save_all=True, append_images=pictures[1:], duration=frame_ms, loop=0, quality=80, method=2
-    )  # method 4: 2 % smaller, twice the time
+        buffer,
+        format="WEBP",
+        save_all=True,
+        append_images=pictures[1:],
+        duration=frame_ms,
+        loop=0,
+        quality=80,
+        method=2,
+        kmin=len(frames),
+        kmax=len(frames) + 1,
+    )
     return buffer.getvalue()

@@ -480,7 +480,7 @@ def reproject(
         fragments.append(_corner_fragments(grid, izf, tw, zbuf))
     # The other candidates of bigger boxes, on those triangles' columns: boxes of up to 3 x 3
     # centres (98 % of them) in one pass over all their offsets, the rest through a repeat, in chunks.
-    mesh, x0, y0, nx, ny = _big_triangles(kinds)
+    mesh, x0, y0, nx, ny = _big_triangles(kinds, pxf.ravel(), pyf.ravel())
     small = (nx <= _SMALL_BOX) & (ny <= _SMALL_BOX)
     sels = [np.flatnonzero(small & (nx > i) & (ny > j)) for i, j in _SMALL_BOX_OFFSETS]
     sel = np.concatenate(sels)
@@ -650,15 +650,19 @@ def _corner_fragments(tri: _GridTriangles, inverse_z: np.ndarray, tw: int, zbuf:
     return a, b, c, pid, l0, l1, l2, dep
 
 
-def _big_triangles(kinds: list[_GridTriangles]) -> tuple[_ScreenMesh, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _big_triangles(
+    kinds: list[_GridTriangles], px: np.ndarray, py: np.ndarray
+) -> tuple[_ScreenMesh, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The live triangles whose box holds more than one pixel centre, as columns (both kinds, in
-    grid order): ``(mesh, x0, y0, nx, ny)``, the box's first centre (float32) and size (int64)."""
+    grid order): ``(mesh, x0, y0, nx, ny)``, the box's first centre (float32) and size (int64).
+    ``px``, ``py``: the vertices' target positions, flat (the corners are read there by vertex
+    index: the grid slices are strided, and flattening one copies the whole grid)."""
     parts: list[list[np.ndarray]] = [[] for _ in range(14)]
     for tri in kinds:
         cells = np.flatnonzero(tri.live & ((tri.nx > 1) | (tri.ny > 1)))
         a, b, c = tri.vertices(cells)
-        columns = [a, b, c] + [v.ravel()[cells] for v in (tri.xa, tri.xb, tri.xc, tri.ya, tri.yb, tri.yc, tri.denom)]
-        columns += [tri.x0.ravel()[cells], tri.y0.ravel()[cells]]
+        columns = [a, b, c] + [np.take(px, v) for v in (a, b, c)] + [np.take(py, v) for v in (a, b, c)]
+        columns += [tri.denom.ravel()[cells], tri.x0.ravel()[cells], tri.y0.ravel()[cells]]
         columns += [tri.nx.ravel()[cells].astype(np.int64), tri.ny.ravel()[cells].astype(np.int64)]
         for part, column in zip(parts, columns):
             part.append(column)

@@ -468,8 +468,8 @@ def synthesise_views(
     seconds_v0 = time.perf_counter() - clock
 
     shift = max(4.0, params.shift_px * min(h, w) / PAPER_SIDE)
-    corners = corner_cameras(v0, shift_px=shift)
     centre = scene_centre(v0)
+    corners = corner_cameras(v0, shift_px=shift, centre=centre)
     zoom = max(fit_zoom(v0, cam, centre) for cam in corners)
     corners = [replace(cam, focal_px=cam.focal_px * zoom) for cam in corners]
     ref = reference_camera(v0)
@@ -523,7 +523,6 @@ def synthesise_views(
         if not (view.valid.all() and np.isfinite(view.depth).all() and np.isfinite(view.intensity).all()):
             raise NonFiniteOutputError(f"view v{i} has pixels without a finite positive depth after filling")
     cameras = [ref, *corners]
-    all_depths = np.concatenate([v.depth.ravel() for v in views])
     metrics = {
         "size": [w, h],
         "max_stretch_px": params.max_stretch_px,
@@ -534,7 +533,7 @@ def synthesise_views(
         "shift_px": round(shift, 3),
         "quad_radius": float(np.linalg.norm(corners[0].centre[:2]) / math.sqrt(2.0)),
         "scene_centre_depth": float(-centre[2]),
-        "depth_range": [float(all_depths.min()), float(all_depths.max())],
+        "depth_range": [min(float(v.depth.min()) for v in views), max(float(v.depth.max()) for v in views)],
         "reference_depth_filled_fraction": round(float(missing.mean()), 6),
         "reference_depth_fill": v0_method,
         "reference_depth_note": v0_note,

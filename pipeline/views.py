@@ -276,7 +276,7 @@ def max_disparity(gd: GDImage, baseline: float = 1.0) -> float:
     ``D = f b / d``); ``baseline`` in the depth's units (1 for depth from ``depth_from_disparity``
     with its default baseline)."""
     _check_positive(baseline, "baseline")
-    return float(gd.focal_px * baseline / float(gd.depth[gd.valid].min()))
+    return float(gd.focal_px * baseline / float(np.min(gd.depth, where=gd.valid, initial=np.inf)))
 
 
 def quad_radius(baseline: float, d_max: float, shift_px: float = SHIFT_PX) -> float:
@@ -311,12 +311,15 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray, focal_px: float
     return Camera(rot, -rot @ eye, float(focal_px), int(width), int(height))
 
 
-def corner_cameras(gd: GDImage, baseline: float = 1.0, shift_px: float = SHIFT_PX) -> list[Camera]:
+def corner_cameras(
+    gd: GDImage, baseline: float = 1.0, shift_px: float = SHIFT_PX, centre: np.ndarray | None = None
+) -> list[Camera]:
     """v1..v4 at ``(+r, +r, 0)``, ``(-r, +r, 0)``, ``(-r, -r, 0)``, ``(+r, -r, 0)`` (in that
     order; ``r`` from :func:`quad_radius` with ``d_max`` from :func:`max_disparity`), each looking at
-    :func:`scene_centre` with v0's up vector (0, 1, 0)."""
+    :func:`scene_centre` with v0's up vector (0, 1, 0); ``centre``: that centre when the caller
+    has it (a median over the image)."""
     r = quad_radius(baseline, max_disparity(gd, baseline), shift_px)
-    c = scene_centre(gd)
+    c = scene_centre(gd) if centre is None else centre
     h, w = gd.shape
     up = np.array([0.0, 1.0, 0.0])
     return [look_at(np.array([sx * r, sy * r, 0.0]), c, up, gd.focal_px, w, h) for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]

@@ -221,10 +221,12 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
     inverse_range = (1.0 / hi_depth, 1.0 / lo_depth if hi_depth > lo_depth else 2.0 / lo_depth)
     viewer_bytes = 0
     for name, view in zip(VIEW_NAMES, scene.views):
-        pixels = np.clip(np.round(view.intensity * 255.0), 0, 255).astype(np.uint8)
+        levels = view.intensity * 255.0  # rounded and clipped in place: the same levels, fewer copies
+        np.rint(levels, out=levels)
+        pixels = np.clip(levels, 0, 255, out=levels).astype(np.uint8)
         with atomic_write(work_dir / f"{name}.png") as handle:
             handle.write(encode_view_png(pixels))
-        write_npy(work_dir / f"{name}_depth.npy", view.depth.astype(np.float32))
+        write_npy(work_dir / f"{name}_depth.npy", np.asarray(view.depth, np.float32))
         web = {
             "web": (f"{name}.jpg", encode_jpeg(pixels, quality=WEB_JPEG_QUALITY)),
             "mesh": (f"{name}_mesh.png", viewer_mesh_png(view.depth, xs, ys, inverse_range)),

@@ -23,24 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from .photo_area import inside, iou
+
 Box = tuple[float, float, float, float]
-
-
-def iou(a: Box, b: Box) -> float:
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = ix * iy
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0
-
-
-def inside(box: Box, outer: Box, tolerance: float = 1.0) -> bool:
-    return (
-        box[0] >= outer[0] - tolerance
-        and box[1] >= outer[1] - tolerance
-        and box[2] <= outer[2] + tolerance
-        and box[3] <= outer[3] + tolerance
-    )
 
 
 def measure(cards: int, seed: int) -> dict[str, Any]:
@@ -79,7 +64,7 @@ def measure(cards: int, seed: int) -> dict[str, Any]:
                     "iou_proposal_consensus": round(iou(proposal_f, consensus), 4),
                     "iou_proposal_truth": round(iou(proposal_f, tuple(truth[half])), 4),
                     "iou_consensus_truth": round(iou(consensus, tuple(truth[half])), 4),
-                    "proposal_inside_print": inside(proposal_f, print_box),
+                    "proposal_inside_print": inside(proposal_f, print_box, tolerance=1),
                     "fallback": areas.fallback_reason,
                     "seconds": round(seconds, 4),
                 }

@@ -915,9 +915,14 @@ def estimate_orientation(
         details["text"] = "not read: print either way up could not decide the card"
     else:
         values["text_upright"], details["text"] = _text_upright(255 - scan if tone < 0 else scan, params.text_detect_side)
+    meanings = {c: _meaning(c, float(values[c])) for c in CUE_FLAGS}
+    if values["text_upright"] != 0.0 and isinstance(details.get("text"), dict):
+        # what was read, so a person can check it at a glance
+        read = [line["text"] for line in details["text"]["lines"] if line["text"]][:2]
+        if read:
+            meanings["text_upright"] += ": " + "; ".join(f'"{text[:40]}"' for text in read)
     cues = tuple(
-        Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c], meaning=_meaning(c, float(values[c])))
-        for c in CUE_FLAGS
+        Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c], meaning=meanings[c]) for c in CUE_FLAGS
     )
     probabilities = flag_probabilities(values, weights)
     estimates = []

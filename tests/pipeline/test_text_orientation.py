@@ -127,7 +127,7 @@ def test_real_caption_decides_the_turned_card(load_card) -> None:
     split = split_card(turned)
     estimate = estimate_orientation(turned, split.left_box, split.right_box)
     cue = next(c for c in estimate.cues if c.name == "text_upright")
-    assert cue.value < -0.2 and "upside down" in cue.meaning
+    assert cue.value < -0.2 and "upside down" in cue.meaning and "Pima" in cue.meaning  # what was read, in words
     assert estimate.upside_down.decided and estimate.upside_down.value is True
 
 

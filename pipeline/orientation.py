@@ -920,7 +920,7 @@ def estimate_orientation(
         # what was read, so a person can check it at a glance
         read = [line["text"] for line in details["text"]["lines"] if line["text"]][:2]
         if read:
-            meanings["text_upright"] += ": " + "; ".join(f'"{text[:40]}"' for text in read)
+            meanings["text_upright"] += " (read: " + "; ".join(f'"{text[:40]}"' for text in read) + ")"
     cues = tuple(
         Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c], meaning=meanings[c]) for c in CUE_FLAGS
     )

@@ -478,31 +478,20 @@ def _ingest_side_by_side(
         "eye_order_check": _eye_check(left, right, order),
     }
     if order == "parallel":  # the file is already what the pipeline reads: no derived copy
-        stored = {**original, "width": info.width, "height": info.height, "format": info.format}
-        _add_card(
-            collection_id,
-            image=None,
-            stored=stored,
-            data_dir=data_dir,
-            source_name=path.name,
-            source_path=str(path.resolve()),
-            stereo=stereo,
-            report=report,
-            report_path=str(path),
-        )
+        image, stored = None, {**original, "width": info.width, "height": info.height, "format": info.format}
     else:
-        swapped = np.ascontiguousarray(np.concatenate([left, right], axis=1))
-        _add_card(
-            collection_id,
-            image=swapped,
-            stored=None,
-            data_dir=data_dir,
-            source_name=path.name,
-            source_path=str(path.resolve()),
-            stereo=stereo,
-            report=report,
-            report_path=str(path),
-        )
+        image, stored = np.ascontiguousarray(np.concatenate([left, right], axis=1)), None
+    _add_card(
+        collection_id,
+        image=image,
+        stored=stored,
+        data_dir=data_dir,
+        source_name=path.name,
+        source_path=str(path.resolve()),
+        stereo=stereo,
+        report=report,
+        report_path=str(path),
+    )
 
 
 def ingest_stereo_inputs(

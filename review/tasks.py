@@ -464,6 +464,20 @@ def _last_change(review: CardReview) -> tuple[str | None, datetime | None]:
     return (who.username if who else None), _aware(review.decided_at or review.updated_at)
 
 
+def _flush_or_conflict(review_id: int, expected_version: int) -> None:
+    """Flush the review's change; the flush bumps its version, and a concurrent writer's flush
+    makes this one stale: then roll back and raise the conflict with the review as it now is."""
+    try:
+        db.session.flush()
+    except StaleDataError:
+        db.session.rollback()
+        fresh = db.session.get(CardReview, review_id, populate_existing=True)
+        assert fresh is not None
+        conflict = _conflict(fresh, expected_version)
+        db.session.rollback()
+        raise conflict from None
+
+
 def _review_at_version(review_id: int, expected_version: int) -> CardReview:
     """The review as stored now, if it is still at the version the curator saw; else roll back
     and raise (404 for no such review, :class:`ReviewConflict` naming who changed it)."""
@@ -592,15 +606,7 @@ def decide(
     }[action]
     review.decision, review.grade, review.note = decision, final, note
     review.reviewer_id, review.decided_at = curator.id, utcnow()
-    try:
-        db.session.flush()  # bumps the version; a concurrent writer's flush makes this one stale
-    except StaleDataError:
-        db.session.rollback()
-        fresh = db.session.get(CardReview, review_id, populate_existing=True)
-        assert fresh is not None
-        conflict = _conflict(fresh, expected_version)
-        db.session.rollback()
-        raise conflict from None
+    _flush_or_conflict(review_id, expected_version)
     after = review_snapshot(review)
     if action == "send_back":
         after["sent_to"] = kind
@@ -703,15 +709,7 @@ def undo_decision(review_id: int, *, expected_version: int, curator: Person) -> 
     review.reviewer_id = previous.get("reviewer_id")
     if review.decision == "pending":
         review.decided_at = None
-    try:
-        db.session.flush()
-    except StaleDataError:
-        db.session.rollback()
-        fresh = db.session.get(CardReview, review_id, populate_existing=True)
-        assert fresh is not None
-        conflict = _conflict(fresh, expected_version)
-        db.session.rollback()
-        raise conflict from None
+    _flush_or_conflict(review_id, expected_version)
     after = review_snapshot(review)
     if batch is not None:
         after["removed_batch"] = batch.id

@@ -440,59 +440,57 @@ def _third_photo(grey: np.ndarray, lb: Box, rb: Box, threshold: float) -> float:
 # ------------------------------------------------------------------------------------- cues
 
 
-def _occlusion_counts(view: np.ndarray, disp: np.ndarray, consistent: np.ndarray) -> tuple[int, int]:
-    """``(n_end, n_start)`` over the rows' bands of left-right failures with a disparity rise
-    across them of at least 1 px and a width of at most ``3 rise + 2`` px (a half-occlusion is
-    about as wide as the disparity jump): ``n_end`` bands whose horizontal image edge is 1.2x
-    stronger at their right end than at their left, ``n_start`` the reverse. (Measured: a
-    tighter band rule, width within ``1 + rise / 2`` of the rise and 1.5x edges, separated the
-    Motorcycle better but the tune cards worse.)
-
-    For a left view of a correct pair (``x_right = x_left - d``) the occluded background ends at
-    the near object's edge: ``n_end`` dominates; swapped, ``n_start`` does."""
+def _occlusion_bands(disp: np.ndarray, consistent: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rows, starts, ends)`` of the rows' bands ``[start, end)`` of left-right failures with a
+    disparity rise across them of at least 1 px and a width of at most ``3 rise + 2`` px (a
+    half-occlusion is about as wide as the disparity jump); bands touching the border are left
+    out (no neighbour to compare). (Measured: a tighter rule, width within ``1 + rise / 2`` of
+    the rise, separated the Motorcycle better but the tune cards worse.)"""
     h, w = disp.shape
-    grad = np.abs(cv2.Sobel(view.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3))
-    grad = cv2.dilate(grad, np.ones((3, 3), np.uint8))  # strongest edge within 1 px
     bad = np.zeros((h, w + 2), bool)  # a consistent column on each side ends every row's runs
     bad[:, 1:-1] = ~consistent
-    bad[:, [1, 2, -3, -2]] = False  # bands touching the border have no neighbour to compare
+    bad[:, [1, 2, -3, -2]] = False
     flat = np.diff(bad.astype(np.int8), axis=1)  # (h, w + 1): +1 where a band starts, -1 after it
     ys, starts = np.nonzero(flat == 1)
     _, ends = np.nonzero(flat == -1)  # same rows, same order: runs never cross a row
+    d = np.nan_to_num(disp, nan=0.0)
+    rise = d[ys, np.minimum(ends, w - 1)] - d[ys, starts - 1]
+    keep = (rise >= 1.0) & (ends - starts <= 3 * rise + 2)
+    return ys[keep], starts[keep], ends[keep]
+
+
+def _occlusion_counts(view: np.ndarray, disp: np.ndarray, consistent: np.ndarray) -> tuple[int, int]:
+    """``(n_end, n_start)`` over :func:`_occlusion_bands`: ``n_end`` bands whose horizontal
+    image edge is 1.2x stronger at their right end than at their left, ``n_start`` the reverse.
+    (Measured: 1.5x edges separated the Motorcycle better but the tune cards worse.)
+
+    For a left view of a correct pair (``x_right = x_left - d``) the occluded background ends at
+    the near object's edge: ``n_end`` dominates; swapped, ``n_start`` does."""
+    w = disp.shape[1]
+    ys, starts, ends = _occlusion_bands(disp, consistent)
     if ys.size == 0:
         return 0, 0
-    d = np.nan_to_num(disp, nan=0.0)
-    rise = d[ys, ends] - d[ys, starts - 1]  # band [starts, ends) in view columns
-    keep = (rise >= 1.0) & (ends - starts <= 3 * rise + 2)
-    ys, starts, ends = ys[keep], starts[keep], ends[keep]
+    grad = np.abs(cv2.Sobel(view.astype(np.float32), cv2.CV_32F, 1, 0, ksize=3))
+    grad = cv2.dilate(grad, np.ones((3, 3), np.uint8))  # strongest edge within 1 px
     at_start = grad[ys, starts - 1]
     at_end = grad[ys, np.minimum(ends, w - 1)]
     return int((at_end > 1.2 * at_start).sum()), int((at_start > 1.2 * at_end).sum())
 
 
 def _fill_votes(view: np.ndarray, disp: np.ndarray, consistent: np.ndarray, side_px: int = 3) -> tuple[int, int]:
-    """``(n_far_side, n_near_side)`` over the same bands as :func:`_occlusion_counts`: whether
-    each band's mean grey is closer to the ``side_px`` px just left of it or just right of it
-    (bands whose two sides differ by more than 6 grey levels only). A half-occluded band is
-    background that one eye sees past the near object's edge, so it continues the surface it is
-    part of: in a left view of a correct pair that is the surface on its left (the far one, with
-    the smaller disparity); swapped, the surface on its right."""
-    h, w = disp.shape
-    smooth = cv2.GaussianBlur(view.astype(np.float32), (0, 0), 0.7)
-    bad = np.zeros((h, w + 2), bool)
-    bad[:, 1:-1] = ~consistent
-    bad[:, [1, 2, -3, -2]] = False
-    flat = np.diff(bad.astype(np.int8), axis=1)
-    ys, starts = np.nonzero(flat == 1)
-    _, ends = np.nonzero(flat == -1)
+    """``(n_far_side, n_near_side)`` over :func:`_occlusion_bands` with ``side_px`` px on both
+    sides: whether each band's mean grey is closer to the ``side_px`` px just left of it or just
+    right of it (bands whose two sides differ by more than 6 grey levels only). A half-occluded
+    band is background that one eye sees past the near object's edge, so it continues the surface
+    it is part of: in a left view of a correct pair that is the surface on its left (the far one,
+    with the smaller disparity); swapped, the surface on its right."""
+    w = disp.shape[1]
+    ys, starts, ends = _occlusion_bands(disp, consistent)
     inside = (starts - side_px >= 0) & (ends + side_px <= w)
     ys, starts, ends = ys[inside], starts[inside], ends[inside]
     if ys.size == 0:
         return 0, 0
-    d = np.nan_to_num(disp, nan=0.0)
-    rise = d[ys, np.minimum(ends, w - 1)] - d[ys, starts - 1]
-    keep = (rise >= 1.0) & (ends - starts <= 3 * rise + 2)
-    ys, starts, ends = ys[keep], starts[keep], ends[keep]
+    smooth = cv2.GaussianBlur(view.astype(np.float32), (0, 0), 0.7)
     running = np.cumsum(np.pad(smooth, ((0, 0), (1, 0))), axis=1)  # running[y, x] = sum of smooth[y, :x]
 
     def mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -40,7 +40,11 @@ Method, on a copy downscaled (area filter) to ``working_width`` ("working px"):
    symmetric: cell grid, tie-breaks, the arch rule) and keeps what both agree is photo. Under
    an arch (the photo narrows above the box, or only the box's very corners are mount) the box
    starts ``arch_inset`` of its height lower: the arch meets the photo's sides lower than the
-   box's corners show. No non-photo pixel may lie on a side's outer line near a corner
+   box's corners show. The evidence names it: ``arched top`` when the photo narrows across its
+   outer sixths and the mount beside the narrowing is bare card on at least one side (80 % of
+   its pixels plain; the orientation step reads only these as arches), ``uneven top edge`` when
+   it narrows but beside it is texture (dark foliage or a pale sky taken for mount), ``rounded
+   top corners`` when only the very corners are mount. No non-photo pixel may lie on a side's outer line near a corner
    (``corner``). Printed text beside or across a side (ink words on plain or non-photo ground,
    such as a collection stamp running onto the photo's margin) pushes that side past it.
 5. **Consistency.** Both boxes get the rows the two share (the intersection lies inside both
@@ -682,8 +686,13 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
         corners = np.concatenate((band[:, :corner], band[:, -corner:]), axis=1).mean()
         # Either the photo narrows above the box across its outer sixths, or only its very
         # corners are mount (a tall arch that meets the sides close to the box's corners).
-        if (middle > 0.5 and sides < middle - 0.25) or (middle > 0.9 and corners < middle - 0.1):
-            notes.append("arched or rounded top")
+        if middle > 0.5 and sides < middle - 0.25:
+            rows_above = slice(max(0, y0 - max(2, height // 12)), y0)
+            notes.append(
+                "arched top" if _plain_corners(band, mask.plain[rows_above, x0 + bx0 : x0 + bx1], third) else "uneven top edge"
+            )
+        elif middle > 0.9 and corners < middle - 0.1:
+            notes.append("rounded top corners")
     for name, strip in (("above", above), ("below", below)):
         if strip.shape[0] == 0:
             continue
@@ -794,6 +803,24 @@ def _turned(mask: _Mask) -> _Mask:
     )
 
 
+def _plain_corners(band: np.ndarray, plain: np.ndarray, side: int) -> bool:
+    """Whether what is not photo in the outer ``side`` columns of ``band`` (bool, True = photo:
+    the rows just above a box) is plain, as a mount is: under a real arch the corners are bare
+    card. Dark foliage or a pale sky taken for mount also make the photo narrow above a box, but
+    are textured (measured: the rounded-rectangle window of a black mount with dark trees at its
+    foot read as an arched bottom on two of three scales of one card)."""
+    shares = []
+    for columns in (slice(0, side), slice(band.shape[1] - side, band.shape[1])):
+        outer = ~band[:, columns]
+        if outer.any():
+            shares.append(float(plain[:, columns][outer].mean()))
+    return bool(shares) and max(shares) >= 0.8
+
+
+def _curved_top(note: str) -> bool:
+    return note in ("arched top", "rounded top corners", "uneven top edge")
+
+
 def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfArea | None:
     """The photo area of working columns ``[x0, x1)``, found on the card as it is and turned by
     180 degrees, intersected. The search is not symmetric (the cell grid starts at the top left,
@@ -812,9 +839,9 @@ def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: P
     # is nearly vertical: the arch meets the sides lower. An extra inset covers that (before the
     # corners are checked: the drop usually clears them, which keeps the sides).
     arch_drop = round(params.arch_inset * (box[3] - box[1]))
-    if any("arched" in note for note in upright.notes):
+    if any(_curved_top(note) for note in upright.notes):
         box = (box[0], box[1] + arch_drop, box[2], box[3])
-    if any("arched" in note for note in flipped.notes):
+    if any(_curved_top(note) for note in flipped.notes):
         box = (box[0], box[1], box[2], box[3] - arch_drop)
     box = _clear_corners(mask.non_photo, box, params.corner)
     box = _clear_of_text(mask, box, x0, x1, params)
@@ -824,8 +851,12 @@ def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: P
     notes = list(upright.notes)
     for note in flipped.notes:
         words = [turned_notes.get(word, word) for word in note.split(" ")]
-        if "arched" in note:
-            words = [*words[:-1], "bottom"]
+        if note == "arched top":
+            words = ["arched", "bottom"]
+        elif note == "rounded top corners":
+            words = ["rounded", "bottom", "corners"]
+        elif note == "uneven top edge":
+            words = ["uneven", "bottom", "edge"]
         if " ".join(words) not in notes:
             notes.append(" ".join(words))
     return _HalfArea(

@@ -152,7 +152,29 @@ def test_evidence_names_what_was_found(views):
     evidence = find_photo_areas(card).evidence
     assert any(e.startswith("mount of colour RGB(2") for e in evidence)  # the buff mount, ~(213, 195, 149)
     assert "printed text on the mount" in evidence
-    assert "left: arched or rounded top" in evidence
+    assert "left: arched top" in evidence and "right: arched top" in evidence
+    assert not any("arched bottom" in e for e in evidence)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dark_foliage_at_the_foot_of_a_square_window_is_no_arch(views, seed):
+    """Dark textured foliage filling the lower corners of both photos on a black mount makes the
+    photo narrow below its box much as an arch would (demo2's rounded window read as an arched
+    bottom when rescaled). Its corners are not plain card, so it is no arch: the orientation
+    step must not read the card as turned."""
+    card, photos = mounted_card(views, arch=0, titles=False, seed=seed)
+    card[np.all(np.abs(card.astype(int) - MOUNT) < 30, axis=2)] = (22, 20, 18)
+    rng = np.random.default_rng(seed)
+    for x0, _y0, x1, y1 in photos:
+        band = 80
+        ys, xs = np.mgrid[0:band, 0 : x1 - x0]
+        # a valley: foliage rises from the middle of the foot to the corners
+        corner = np.abs(xs - (x1 - x0 - 1) / 2) / ((x1 - x0) / 2) > 1.0 - ys / band
+        leaves = np.clip(rng.normal(25.0, 25.0, (band, x1 - x0, 1)), 0, 255).astype(np.uint8)
+        foot = card[y1 - band : y1, x0:x1]
+        foot[corner] = np.repeat(leaves, 3, axis=2)[corner]
+    evidence = find_photo_areas(card).evidence
+    assert not any("arched" in e for e in evidence), evidence
 
 
 def test_photo_area_is_tighter_than_the_split_box(views):

@@ -15,6 +15,7 @@ negative, halves swapped) with the originals sent to people; seconds per card. T
 ``held_out`` evaluates them, ``held_out_with_refitted_weights`` a fresh fit (should match).
 
     python -m benchmarks.orientation [--json] [--data DIR] [--rows]
+    python -m benchmarks.orientation --scales 0.6,0.8,1,1.3,1.7
     python -m benchmarks.orientation --flow [--json] [--scans DIR [--truth CSV]] [--keep DIR]
 
 Truth. Every card is taken as correct as stored. The NYPL cards are mounted prints; the JPS
@@ -310,6 +311,58 @@ def threshold_sweep(tune: list[dict], held: list[dict], weights: dict[str, float
     return {"table": table, "lowest_clean_on_tune": lowest, "chosen": chosen}
 
 
+def scale_check(cards: list[tuple[str, np.ndarray]], scales: tuple[float, ...], params: OrientationParams) -> dict:
+    """The acceptance test's four variants of every card with the card rescaled first (area
+    filter down, cubic up): whole variants decided, and wrong, at each candidate threshold per
+    split, and the most probable wrong answers seen. A scan's resolution is the collection's
+    choice, so a threshold that holds only at the stored size would not hold on cards unseen."""
+    acceptance = [(False, False, False), (True, False, False), (False, True, False), (False, False, True)]
+    weights = params.weights()
+    outcomes = []
+    for scale in scales:
+        for name, card in cards:
+            method = cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC
+            scaled = card if scale == 1 else cv2.resize(card, None, fx=scale, fy=scale, interpolation=method)
+            split = split_card(scaled)
+            for flags in acceptance:
+                variant, _, _ = orient_variant(scaled, split.left_box, split.right_box, *flags)
+                vsplit = split_card(variant)
+                estimate = estimate_orientation(variant, vsplit.left_box, vsplit.right_box, params)
+                if estimate.undecidable is not None:
+                    continue
+                joint = hypothesis_probabilities({c.name: c.value for c in estimate.cues}, weights)
+                best = max(joint, key=joint.__getitem__)
+                outcomes.append(
+                    {
+                        "scale": scale,
+                        "card": name,
+                        "split": "tune" if name in TUNE else "held_out",
+                        "truth": flags,
+                        "probability": joint[best],
+                        "right": best == flags,
+                    }
+                )
+    table = {
+        str(t): {
+            split: {
+                "decided": sum(o["probability"] >= t for o in outcomes if o["split"] == split),
+                "wrong": sum(o["probability"] >= t and not o["right"] for o in outcomes if o["split"] == split),
+            }
+            for split in ("tune", "held_out")
+        }
+        for t in SWEEP
+    }
+    wrong = sorted((o for o in outcomes if not o["right"]), key=lambda o: -o["probability"])[:5]
+    return {
+        "scales": list(scales),
+        "variants": len(outcomes),
+        "table": table,
+        "most_probable_wrong": [
+            {**o, "probability": round(o["probability"], 3), "truth": dict(zip(FLAGS, o["truth"]))} for o in wrong
+        ],
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--json", action="store_true")
@@ -324,6 +377,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scans", type=Path, help="with --flow: measure the images in this folder instead")
     parser.add_argument("--truth", type=Path, help="with --scans: hand-drawn photo boxes (photo_area_truth.csv format)")
     parser.add_argument("--keep", type=Path, help="with --flow: keep the instance in this folder")
+    parser.add_argument(
+        "--scales",
+        help="instead: the acceptance variants with every card rescaled by each of these factors "
+        "(comma-separated, e.g. 0.6,0.8,1,1.3,1.7), decided and wrong at each threshold",
+    )
     args = parser.parse_args(argv)
     if args.flow:
         from .orientation_flow import main_flow
@@ -333,6 +391,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no shared data at {args.data}", file=sys.stderr)
         return 2
     params = OrientationParams()
+    if args.scales:
+        scales = tuple(float(v) for v in args.scales.split(","))
+        if not scales or any(not 0.1 <= v <= 4.0 for v in scales):
+            parser.error(f"--scales: expected factors between 0.1 and 4, got {args.scales!r}")
+        print(json.dumps(scale_check(load_cards(args.data), scales, params), indent=1, default=float))
+        return 0
     rows = measure(load_cards(args.data), params)
     tune = [r for r in rows if r["split"] == "tune"]
     held = [r for r in rows if r["split"] == "held_out"]

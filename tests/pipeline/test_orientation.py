@@ -186,6 +186,22 @@ def test_evidence_is_in_words_and_serialisable(scene_card):
     assert 0 < estimate.seconds < 5
 
 
+def test_stereo_cues_read_the_photo_areas_not_the_mount_window(scene_card):
+    """The stereo cues read the two photo areas (the split's boxes hold the mount's window, whose
+    edges make occluded bands of their own); without photo areas they fall back to the split's
+    boxes and say so. The photo areas hold no mount: the pair read is smaller than the split's."""
+    card, lb, rb = scene_card
+    big = (lb[0] - 20, lb[1] - 20, lb[2] + 18, lb[3] + 20)  # a split that keeps mount round each photo
+    rbig = (rb[0] - 18, rb[1] - 20, rb[2] + 20, rb[3] + 20)
+    read = estimate_orientation(card, big, rbig)
+    assert read.details["stereo_on"] == "photo areas"
+    assert read.details["working_size"][0] > lb[2] - lb[0]  # the split's pair, mount included
+    off = estimate_orientation(card, big, rbig, OrientationParams(arch_working_width=0))
+    assert off.details["stereo_on"] == "split boxes (no photo areas)"
+    # both read the same scene the same way
+    assert (cue(read, "ground_plane") > 0) == (cue(off, "ground_plane") > 0)
+
+
 def cue(estimate: OrientationEstimate, name: str) -> float:
     return next(c.value for c in estimate.cues if c.name == name)
 

@@ -390,7 +390,9 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.data / "stereocards").is_dir():
         print(f"no shared data at {args.data}", file=sys.stderr)
         return 2
-    params = OrientationParams()
+    # Every cue measured on every variant (the step leaves out the second stereo pass where it
+    # could not change the outcome at its own threshold; the fit and the sweep need its value).
+    params = OrientationParams(fill_only_when_it_could_matter=False)
     if args.scales:
         scales = tuple(float(v) for v in args.scales.split(","))
         if not scales or any(not 0.1 <= v <= 4.0 for v in scales):

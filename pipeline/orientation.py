@@ -236,6 +236,10 @@ class OrientationParams:
     w_text_upright: float = 4.5
     text_detect_side: int = 1024
     """px: the card's longer side for the text detector (0 turns the text cue off)."""
+    fill_only_when_it_could_matter: bool = True
+    """Measure ``occlusion_fill`` (a second stereo pass, about 0.1 CPU-s) only where some value of
+    it and of the print could change the outcome (decided on which flags, or sent to people);
+    elsewhere the card's outcome is provably the same without it, and the record says so."""
     text_only_when_undecided: bool = True
     """Read the print only when the other cues leave the card undecided and print read as
     clearly as it can be could decide it (it is the step's dearest cue, about 0.15-0.25 CPU-s a
@@ -626,22 +630,12 @@ def _both_views(
     return a_l + a_r, b_l + b_r
 
 
-def _stereo_cues(left: np.ndarray, right: np.ndarray) -> tuple[float, float, float, dict[str, Any]]:
-    """(occlusion_side, occlusion_fill, ground_plane, details) from SGBM disparity of both views.
-
-    ``occlusion_fill`` is measured on the pair as given and on the pair exchanged, and half their
-    difference taken: the exchange negates what the occluded bands say about the eye order, and
-    cancels whatever the matcher does the same way both times (measured: the plain count leaned
-    towards "correct" on 15 of 15 shared originals and only 9 of 15 exchanged pairs; half the
-    difference was right on 46 of 60 variants, against 38 for ``occlusion_side``)."""
+def _stereo_cues(left: np.ndarray, right: np.ndarray) -> tuple[float, float, dict[str, Any], _StereoPass]:
+    """(occlusion_side, ground_plane, details, the pass) from SGBM disparity of both views."""
     forward = _stereo_pass(left, right)
     n_end, n_start = _both_views(_occlusion_counts, left, forward)
     # A handful of bands is noise: shrink towards 0 (10 pseudo-bands split evenly).
     occlusion = (n_end - n_start) / (n_end + n_start + 10.0)
-    far_f, near_f = _both_views(_fill_votes, left, forward)
-    backward = _stereo_pass(right, left)
-    far_b, near_b = _both_views(_fill_votes, right, backward)
-    fill = ((far_f - near_f) / (far_f + near_f + 10.0) - (far_b - near_b) / (far_b + near_b + 10.0)) / 2.0
     ground = 0.0
     ys, xs_ = np.nonzero(forward.consistent)
     if ys.size >= 100:
@@ -662,11 +656,50 @@ def _stereo_cues(left: np.ndarray, right: np.ndarray) -> tuple[float, float, flo
         "search_px": round(forward.reach, 1),
         "occlusion_bands_end": n_end,
         "occlusion_bands_start": n_start,
-        "occlusion_fill_votes": {"as_given": [far_f, near_f], "exchanged": [far_b, near_b]},
         "consistent_fraction": round(forward.confident_fraction, 4),
         "disparity_flags": list(forward.flags),
     }
-    return occlusion, fill, ground, details
+    return occlusion, ground, details, forward
+
+
+def _occlusion_fill(left: np.ndarray, right: np.ndarray, forward: _StereoPass) -> tuple[float, dict[str, list[int]]]:
+    """``occlusion_fill`` and its votes: measured on the pair as given (``forward``) and on the
+    pair exchanged (a second stereo pass), and half their difference taken. The exchange negates
+    what the occluded bands say about the eye order, and cancels whatever the matcher does the
+    same way both times (measured: the plain count leaned towards "correct" on 15 of 15 shared
+    originals and only 9 of 15 exchanged pairs; half the difference was right on 46 of 60
+    variants, against 38 for ``occlusion_side``)."""
+    far_f, near_f = _both_views(_fill_votes, left, forward)
+    backward = _stereo_pass(right, left)
+    far_b, near_b = _both_views(_fill_votes, right, backward)
+    fill = ((far_f - near_f) / (far_f + near_f + 10.0) - (far_b - near_b) / (far_b + near_b + 10.0)) / 2.0
+    return fill, {"as_given": [far_f, near_f], "exchanged": [far_b, near_b]}
+
+
+def _outcome(values: dict[str, float], weights: dict[str, float], threshold: float) -> tuple[bool, bool, bool] | None:
+    """The combination the card would be decided on, or None when it would go to people."""
+    joint = hypothesis_probabilities(values, weights)
+    best = max(joint, key=joint.__getitem__)
+    return best if joint[best] >= threshold else None
+
+
+def _fill_not_needed(values: dict[str, float], weights: dict[str, float], params: OrientationParams) -> str | None:
+    """Why ``occlusion_fill`` cannot change the step's outcome on this card, or None when it could.
+
+    Each hypothesis's probability is monotone in every cue's value (a cue moves the logits of one
+    parity class up and of the other down), so the ends of [-1, 1] bound what any value does.
+    The card is decided on the same flags at both ends of the fill cue (print is then never read,
+    whatever the fill), or it goes to people at every corner of the fill cue and the print."""
+    ends = {_outcome({**values, "occlusion_fill": end}, weights, params.auto_probability) for end in (-1.0, 1.0)}
+    if len(ends) == 1 and None not in ends:
+        return "not measured: the card is decided on the same flags whatever it reads"
+    text = (-1.0, 1.0) if params.text_detect_side else (0.0,)
+    corners = itertools.product((-1.0, 1.0), text)
+    if all(
+        _outcome({**values, "occlusion_fill": f, "text_upright": t}, weights, params.auto_probability) is None for f, t in corners
+    ):
+        return "not measured: whatever it and the print read, the card goes to people"
+    return None
 
 
 def _sky_top(left: np.ndarray, right: np.ndarray) -> float:
@@ -749,10 +782,18 @@ def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str], PhotoAr
         return 0.0, [f"photo areas not found ({exc.code})"], None
     except cv2.error as exc:  # a numerical corner case inside photo_area: no arch evidence, said
         return 0.0, [f"photo areas failed (OpenCV: {str(exc).strip()[:80]})"], None
-    tops = sum("arched" in e and e.rstrip().endswith("top") for e in areas.evidence)
-    bottoms = sum("arched" in e and e.rstrip().endswith("bottom") for e in areas.evidence)
-    notes = [f"{count} arched {side}(s) as scanned" for count, side in ((tops, "top"), (bottoms, "bottom")) if count]
-    return float(np.clip(tops - bottoms, -2, 2)) / 2.0, notes, areas
+    counts = {end: _arched_ends(areas.evidence, end) for end in ("top", "bottom")}
+    notes = [f"{count} arched {end}(s) as scanned" for end, count in counts.items() if count]
+    return float(np.clip(counts["top"] - counts["bottom"], -2, 2)) / 2.0, notes, areas
+
+
+def _arched_ends(evidence: Iterable[str], end: str) -> int:
+    """How many photos photo_area's evidence shows arched at ``end`` ("top" or "bottom"): the
+    photo narrows across its outer sixths beside bare card. Rounded corners do not count: a
+    rounded-rectangle window has them at both ends, but at some scales they are found on both
+    photos at one end only (measured: demo2 rescaled 0.8x and 1.3x was then decided turned,
+    wrongly, at 0.90-0.97)."""
+    return sum(f"{half}: arched {end}" in evidence for half in ("left", "right"))
 
 
 def _text_upright(card: np.ndarray, detect_side: int) -> tuple[float, Any]:
@@ -931,7 +972,7 @@ def estimate_orientation(
     values["arched_top"], details["arches"], areas = _arched_top(255 - card if tone < 0 else card, params.arch_working_width)
     stereo_left, stereo_right, details["stereo_on"] = _stereo_photos(grey, lb, rb, areas)
     try:
-        occlusion, fill, ground, stereo_details = _stereo_cues(stereo_left, stereo_right)
+        occlusion, ground, stereo_details, forward = _stereo_cues(stereo_left, stereo_right)
     except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
     details.update(stereo_details)
@@ -946,8 +987,18 @@ def estimate_orientation(
             clock,
             details,
         )
-    values.update(occlusion_side=occlusion, occlusion_fill=fill, ground_plane=ground)
-    values["text_upright"] = 0.0
+    values.update(occlusion_side=occlusion, occlusion_fill=0.0, ground_plane=ground, text_upright=0.0)
+    # The fill cue needs a second stereo pass (about a third of the step). It is measured only
+    # where its value could change the outcome: elsewhere the card is decided, or sent to
+    # people, the same either way.
+    skipped = _fill_not_needed(values, weights, params) if params.fill_only_when_it_could_matter else None
+    if skipped is not None:
+        details["occlusion_fill_votes"] = skipped
+    else:
+        try:
+            values["occlusion_fill"], details["occlusion_fill_votes"] = _occlusion_fill(stereo_left, stereo_right, forward)
+        except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+            raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
     if params.text_detect_side == 0:
         details["text"] = "text cue off"
     elif params.text_only_when_undecided and max(hypothesis_probabilities(values, weights).values()) >= params.auto_probability:

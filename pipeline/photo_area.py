@@ -679,7 +679,8 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
     # An arched top: above the box the photo region narrows (photo cells in the middle columns,
     # mount at the sides).
     if y0 >= 2:
-        band = ~bad[max(0, y0 - max(2, height // 12)) : y0, bx0:bx1]
+        rows_above = slice(max(0, y0 - max(2, height // 12)), y0)
+        band = ~bad[rows_above, bx0:bx1]
         third = max(1, (bx1 - bx0) // 6)
         corner = max(1, round(params.corner * (bx1 - bx0)))
         middle, sides = band[:, third:-third].mean(), np.concatenate((band[:, :third], band[:, -third:]), axis=1).mean()
@@ -687,7 +688,6 @@ def _half_area(mask: _Mask, x0: int, x1: int, params: PhotoAreaParams) -> _HalfA
         # Either the photo narrows above the box across its outer sixths, or only its very
         # corners are mount (a tall arch that meets the sides close to the box's corners).
         if middle > 0.5 and sides < middle - 0.25:
-            rows_above = slice(max(0, y0 - max(2, height // 12)), y0)
             notes.append(
                 "arched top" if _plain_corners(band, mask.plain[rows_above, x0 + bx0 : x0 + bx1], third) else "uneven top edge"
             )

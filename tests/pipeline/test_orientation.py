@@ -202,6 +202,39 @@ def test_stereo_cues_read_the_photo_areas_not_the_mount_window(scene_card):
     assert (cue(read, "ground_plane") > 0) == (cue(off, "ground_plane") > 0)
 
 
+@pytest.mark.parametrize("flags", ALL_FLAGS, ids=lambda f: "".join("UIS"[k] if v else "-" for k, v in enumerate(f)))
+def test_the_second_stereo_pass_is_left_out_only_where_it_cannot_change_the_outcome(scene_card, flags):
+    """occlusion_fill (a second stereo pass) is measured only where some value of it could change
+    what happens to the card; the outcome with it left out is the outcome with it measured."""
+    card, lb, rb = scene_card
+    variant, vl, vr = orient_variant(card, lb, rb, *flags)
+    gated = estimate_orientation(variant, vl, vr)
+    full = estimate_orientation(variant, vl, vr, OrientationParams(fill_only_when_it_could_matter=False))
+    assert gated.orientation()["decided_by"] == full.orientation()["decided_by"]
+    if full.orientation()["decided_by"] == "auto":
+        assert [f.value for f in gated.flags] == [f.value for f in full.flags]
+    votes = gated.details["occlusion_fill_votes"]
+    assert isinstance(full.details["occlusion_fill_votes"], dict)
+    if isinstance(votes, str):
+        assert votes.startswith("not measured: ") and cue(gated, "occlusion_fill") == 0.0
+    else:
+        assert cue(gated, "occlusion_fill") == cue(full, "occlusion_fill")
+
+
+def test_a_card_no_fill_could_decide_skips_the_second_pass(scene_card):
+    """A greyscale card with no colour and weak tone cues cannot be decided on its inverted flag
+    by any eye-order evidence: the second stereo pass is left out, and the record says why."""
+    card, lb, rb = scene_card
+    grey = cv2.cvtColor(card, cv2.COLOR_RGB2GRAY)
+    flat = np.full_like(grey, 128)
+    flat[lb[1] : lb[3], lb[0] : lb[2]] = grey[lb[1] : lb[3], lb[0] : lb[2]]
+    flat[rb[1] : rb[3], rb[0] : rb[2]] = grey[rb[1] : rb[3], rb[0] : rb[2]]
+    estimate = estimate_orientation(flat, lb, rb, OrientationParams(arch_working_width=0, text_detect_side=0))
+    if estimate.inverted.decided:
+        pytest.skip("the tone cues decide this synthetic card's inverted flag")
+    assert estimate.details["occlusion_fill_votes"] == "not measured: whatever it and the print read, the card goes to people"
+
+
 def cue(estimate: OrientationEstimate, name: str) -> float:
     return next(c.value for c in estimate.cues if c.name == name)
 

@@ -28,9 +28,9 @@ agree; card backs and mirrors 0-31 %. Fewer than ``min_good_matches`` agreeing m
 the card; fewer than ``min_consistent_share`` of them sends a passing card to review. The
 fraction itself stays the paper's (all good matches / left keypoints).
 
-Determinism: SIFT has no random state, and matching is brute force (``cv2.BFMatcher`` with
-``NORM_L2``, exact k=2 nearest neighbours), not FLANN's randomised trees, so a card always gets
-the same numbers.
+Determinism: SIFT has no random state, and matching is exhaustive (the exact two nearest
+neighbours by L2 distance, what ``cv2.BFMatcher`` with ``NORM_L2`` gives; see
+:func:`ratio_test_matches`), not FLANN's randomised trees, so a card always gets the same numbers.
 """
 
 from __future__ import annotations
@@ -243,6 +243,68 @@ def _prepare(half: np.ndarray, max_side: int) -> np.ndarray:
     return np.ascontiguousarray(grey)
 
 
+# Relative closeness below which a float32 distance of OpenCV's and a float64 one of ours might
+# rank or test differently (a 128-term float32 sum errs by < 1e-5 of its value): such queries
+# are matched by cv2.BFMatcher itself.
+_UNSURE = 1e-4
+
+
+def ratio_test_matches(descriptors_l: np.ndarray, descriptors_r: np.ndarray, ratio: float) -> list[tuple[int, int]]:
+    """``(query, train)`` indices of the left descriptors whose nearest right descriptor passes
+    Lowe's ratio test (L2 distance < ``ratio`` x the second nearest's), in query order.
+
+    ``descriptors_l`` ``(N, D)``, ``descriptors_r`` ``(M, D)``: float32 (SIFT's). The same pairs
+    as ``cv2.BFMatcher(cv2.NORM_L2).knnMatch(k=2)`` and the test, for a quarter of its CPU time
+    (measured on the shared cards, 2,000 x 2,000 SIFT descriptors, one core: 75-80 ms -> 18-23 ms,
+    the same good matches on all 14): squared distances from one matrix product
+    (``|a|^2 + |b|^2 - 2 a.b``, float32) pick each query's three nearest candidates, whose exact
+    distances (float64) decide. A query is handed to ``BFMatcher`` whenever float error could
+    matter: a fourth candidate within the product's error bound of the second, or a ratio within
+    1e-4 of ``ratio``.
+    """
+    n_left, n_right = len(descriptors_l), len(descriptors_r)
+    if n_left == 0 or n_right < 2:
+        return []
+    a = np.ascontiguousarray(descriptors_l, np.float32)
+    b = np.ascontiguousarray(descriptors_r, np.float32)
+    if n_right <= 3:
+        return _bf_ratio_matches(a, b, ratio, np.arange(n_left))
+    norms_l, norms_r = np.einsum("ij,ij->i", a, a), np.einsum("ij,ij->i", b, b)
+    # (N, M) float32: -2 a.b; the binding takes None for the unused third operand, its stubs do not
+    squared = np.asarray(cv2.gemm(a, b, -2.0, None, 0.0, flags=cv2.GEMM_2_T), np.float32)  # type: ignore[call-overload]
+    squared += norms_l[:, None]
+    squared += norms_r[None, :]
+    rows = np.arange(n_left)
+    candidates = np.empty((n_left, 3), np.intp)
+    for k in range(3):
+        candidates[:, k] = nearest = squared.argmin(axis=1)
+        squared[rows, nearest] = np.inf
+    fourth = squared.min(axis=1).astype(np.float64)
+    exact = ((a[:, None, :].astype(np.float64) - b[candidates].astype(np.float64)) ** 2).sum(axis=2)
+    order = np.argsort(exact, axis=1, kind="stable")
+    best = candidates[rows, order[:, 0]]
+    first, second = exact[rows, order[:, 0]], exact[rows, order[:, 1]]
+    # float32 product error: under 2 x 2^-24 x D x the operands' squared norms (a loose bound)
+    bound = 2.0 * 2.0**-24 * a.shape[1] * (norms_l.astype(np.float64) + float(norms_r.max())) + 1e-3
+    d1, d2 = np.sqrt(first), np.sqrt(second)
+    unsure = (fourth - bound <= second) | (np.abs(d1 - ratio * d2) <= _UNSURE * d2)
+    good = ~unsure & (d1 < ratio * d2)
+    pairs = {int(q): int(best[q]) for q in np.flatnonzero(good)}
+    if unsure.any():
+        pairs.update(_bf_ratio_matches(a, b, ratio, np.flatnonzero(unsure)))
+    return sorted(pairs.items())
+
+
+def _bf_ratio_matches(a: np.ndarray, b: np.ndarray, ratio: float, queries: np.ndarray) -> list[tuple[int, int]]:
+    """The ratio test's pairs for the left descriptors ``queries`` by ``cv2.BFMatcher`` (exact k=2)."""
+    matcher = cv2.BFMatcher(cv2.NORM_L2, crossCheck=False)
+    out = []
+    for pair in matcher.knnMatch(np.ascontiguousarray(a[queries]), b, k=2):
+        if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance:
+            out.append((int(queries[pair[0].queryIdx]), pair[0].trainIdx))
+    return out
+
+
 def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParams = FilterParams()) -> FilterResult:
     """SIFT good-match fraction between two halves, and the routing it implies.
 
@@ -267,14 +329,12 @@ def good_match_fraction(left: np.ndarray, right: np.ndarray, params: FilterParam
     pts_l: list[tuple[float, float]] = []
     pts_r: list[tuple[float, float]] = []
     if descriptors_l is not None and descriptors_r is not None and n_left > 0 and n_right >= 2:
-        matcher = cv2.BFMatcher(cv2.NORM_L2, crossCheck=False)
         (hl, wl), (hr, wr) = grey_left.shape, grey_right.shape
-        for pair in matcher.knnMatch(descriptors_l, descriptors_r, k=2):
-            if len(pair) == 2 and pair[0].distance < params.ratio * pair[1].distance:
-                (xl, yl), (xr, yr) = keypoints_l[pair[0].queryIdx].pt, keypoints_r[pair[0].trainIdx].pt
-                offsets.append((xr / wr - xl / wl, yr / hr - yl / hl))
-                pts_l.append((xl, yl))
-                pts_r.append((xr, yr))
+        for query, train in ratio_test_matches(descriptors_l, descriptors_r, params.ratio):
+            (xl, yl), (xr, yr) = keypoints_l[query].pt, keypoints_r[train].pt
+            offsets.append((xr / wr - xl / wl, yr / hr - yl / hl))
+            pts_l.append((xl, yl))
+            pts_r.append((xr, yr))
     good = len(offsets)
     consistent = consistent_matches(np.array(offsets).reshape(-1, 2), params) if params.check_geometry else None
     match_seconds = time.perf_counter() - clock

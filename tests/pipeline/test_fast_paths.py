@@ -1,6 +1,7 @@
 """The per-card hot paths rewritten for CPU time (issue 18) give exactly the values of their plain
 definitions, on real images: Motorcycle (scikit-image) warped with a black fill, its SGBM
-disparity with holes, and grey-level differences between its two views."""
+disparity with holes, grey-level differences between its two views, and its SIFT descriptors
+matched as cv2.BFMatcher matches them."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pytest
 from skimage import data
 
 from pipeline.disparity import _fill_background, _sgbm_pair
+from pipeline.filter import ratio_test_matches
 from pipeline.grading.measurements import _grey_difference_median
 from pipeline.rectify import photograph_mask
 from pipeline.stages.disparity import colour_disparity
@@ -97,3 +99,43 @@ def test_colour_disparity_keeps_its_picture(pair: tuple[np.ndarray, np.ndarray])
     assert picture.dtype == np.uint8 and picture.shape == (*disp.shape, 3)
     np.testing.assert_array_equal(picture, plain)
     assert (picture[~valid] == 0).all() and picture[valid].any()
+
+
+def _bf_pairs(a: np.ndarray, b: np.ndarray, ratio: float) -> list[tuple[int, int]]:
+    """cv2.BFMatcher's exact two nearest neighbours and Lowe's test, as the filter first did."""
+    pairs = cv2.BFMatcher(cv2.NORM_L2, crossCheck=False).knnMatch(a, b, k=2)
+    return [(p[0].queryIdx, p[0].trainIdx) for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+
+
+def test_ratio_test_matches_are_bfmatchers_on_real_sift() -> None:
+    sift = cv2.SIFT_create(nfeatures=2000)
+    views = data.stereo_motorcycle()[:2]  # 741 x 500 px, as the filter's halves
+    _, left = sift.detectAndCompute(cv2.cvtColor(views[0], cv2.COLOR_RGB2GRAY), None)
+    _, right = sift.detectAndCompute(cv2.cvtColor(views[1], cv2.COLOR_RGB2GRAY), None)
+    assert len(left) > 1000 and len(right) > 1000
+    for ratio in (0.6, 0.7, 0.8):
+        expected = _bf_pairs(left, right, ratio)
+        assert ratio_test_matches(left, right, ratio) == expected
+        assert len(expected) > 50
+
+
+def test_ratio_test_matches_on_ties_and_the_threshold() -> None:
+    rng = np.random.default_rng(3)
+    right = rng.uniform(0, 255, (40, 128)).astype(np.float32)
+    right[1] = right[0]  # a tie for the nearest: never a good match
+    query = right[[0, 5]].copy()
+    query[1, 0] += 7.0  # 7 from right[5]; right[6] placed 10 away: a ratio of exactly 0.7
+    right[6] = right[5]
+    right[6, 1] += 10.0
+    expected = _bf_pairs(query, right, 0.7)
+    assert ratio_test_matches(query, right, 0.7) == expected
+    assert [q for q, _ in expected] == [1]  # BFMatcher's own float verdict at the threshold
+
+
+def test_ratio_test_matches_with_few_descriptors() -> None:
+    rng = np.random.default_rng(4)
+    left, right = rng.uniform(0, 255, (6, 128)).astype(np.float32), rng.uniform(0, 255, (3, 128)).astype(np.float32)
+    right[2] = left[0] + 1.0
+    assert ratio_test_matches(left, right, 0.7) == _bf_pairs(left, right, 0.7) == [(0, 2)]
+    assert ratio_test_matches(left, right[:1], 0.7) == []
+    assert ratio_test_matches(left[:0], right, 0.7) == []

@@ -77,8 +77,9 @@ class FilterParams:
     max_keypoints: int = 2000
     """SIFT keeps at most this many keypoints per half, the strongest (0: all, as the paper).
     Grainy raw scans give 5,000+ keypoints per 600 px half and brute-force matching grows with
-    the product of the counts (0.56 s for 5,620 x 5,474 on one core, 0.08 s for 2,000 x 2,000);
-    the cap bounds a card at about 0.3 s. It also bounds the denominator: fractions of capped
+    the product of the counts (``cv2.BFMatcher``: 0.56 s for 5,620 x 5,474 on one core, 0.08 s for
+    2,000 x 2,000; :func:`ratio_test_matches`, the same pairs, 0.02 s for 2,000 x 2,000); the cap
+    bounds a card at about 0.3 s. It also bounds the denominator: fractions of capped
     true pairs read a few points higher (measured 24-32 % -> 33-38 %), unrelated pairs do not
     change (0.2-0.6 %). Measured 2026-11-24, 2,000 -> 1,500 (not taken): the NYPL cards and card
     backs (at most 1,491 keypoints a half) give identical results and the 1400-3000 px scans
@@ -247,6 +248,7 @@ def _prepare(half: np.ndarray, max_side: int) -> np.ndarray:
 # rank or test differently (a 128-term float32 sum errs by < 1e-5 of its value): such queries
 # are matched by cv2.BFMatcher itself.
 _UNSURE = 1e-4
+_DISTANCE_BLOCK = 8_000_000  # float32 distances computed at once (32 MB)
 
 
 def ratio_test_matches(descriptors_l: np.ndarray, descriptors_r: np.ndarray, ratio: float) -> list[tuple[int, int]]:
@@ -269,13 +271,35 @@ def ratio_test_matches(descriptors_l: np.ndarray, descriptors_r: np.ndarray, rat
     b = np.ascontiguousarray(descriptors_r, np.float32)
     if n_right <= 3:
         return _bf_ratio_matches(a, b, ratio, np.arange(n_left))
-    norms_l, norms_r = np.einsum("ij,ij->i", a, a), np.einsum("ij,ij->i", b, b)
-    # (N, M) float32: -2 a.b; the binding takes None for the unused third operand, its stubs do not
+    norms_r = np.einsum("ij,ij->i", b, b)
+    pairs: dict[int, int] = {}
+    unsure: list[np.ndarray] = []
+    # Queries in blocks: the (block, M) distance matrix stays under 32 MB whatever the keypoint
+    # cap (max_keypoints 0 keeps every keypoint).
+    block = max(1, _DISTANCE_BLOCK // n_right)
+    for start in range(0, n_left, block):
+        good, doubtful, best = _nearest_two_block(a[start : start + block], b, norms_r, ratio)
+        pairs.update((start + int(q), int(best[q])) for q in np.flatnonzero(good))
+        unsure.append(start + np.flatnonzero(doubtful))
+    doubtful_queries = np.concatenate(unsure)
+    if doubtful_queries.size:
+        pairs.update(_bf_ratio_matches(a, b, ratio, doubtful_queries))
+    return sorted(pairs.items())
+
+
+def _nearest_two_block(
+    a: np.ndarray, b: np.ndarray, norms_r: np.ndarray, ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For queries ``a`` ``(n, D)`` against ``b`` ``(M, D)`` (M > 3, ``norms_r`` = |b|^2): which
+    pass the ratio test for sure, which are in doubt (for ``BFMatcher``), and each one's nearest."""
+    n = len(a)
+    norms_l = np.einsum("ij,ij->i", a, a)
+    # (n, M) float32: -2 a.b; the binding takes None for the unused third operand, its stubs do not
     squared = np.asarray(cv2.gemm(a, b, -2.0, None, 0.0, flags=cv2.GEMM_2_T), np.float32)  # type: ignore[call-overload]
     squared += norms_l[:, None]
     squared += norms_r[None, :]
-    rows = np.arange(n_left)
-    candidates = np.empty((n_left, 3), np.intp)
+    rows = np.arange(n)
+    candidates = np.empty((n, 3), np.intp)
     for k in range(3):
         candidates[:, k] = nearest = squared.argmin(axis=1)
         squared[rows, nearest] = np.inf
@@ -284,15 +308,11 @@ def ratio_test_matches(descriptors_l: np.ndarray, descriptors_r: np.ndarray, rat
     order = np.argsort(exact, axis=1, kind="stable")
     best = candidates[rows, order[:, 0]]
     first, second = exact[rows, order[:, 0]], exact[rows, order[:, 1]]
-    # float32 product error: under 2 x 2^-24 x D x the operands' squared norms (a loose bound)
+    # float32 error of |a|^2 + |b|^2 - 2 a.b: under 2 x 2^-24 x D x the squared norms (loose)
     bound = 2.0 * 2.0**-24 * a.shape[1] * (norms_l.astype(np.float64) + float(norms_r.max())) + 1e-3
     d1, d2 = np.sqrt(first), np.sqrt(second)
-    unsure = (fourth - bound <= second) | (np.abs(d1 - ratio * d2) <= _UNSURE * d2)
-    good = ~unsure & (d1 < ratio * d2)
-    pairs = {int(q): int(best[q]) for q in np.flatnonzero(good)}
-    if unsure.any():
-        pairs.update(_bf_ratio_matches(a, b, ratio, np.flatnonzero(unsure)))
-    return sorted(pairs.items())
+    doubtful = (fourth - bound <= second) | (np.abs(d1 - ratio * d2) <= _UNSURE * d2)
+    return ~doubtful & (d1 < ratio * d2), doubtful, best
 
 
 def _bf_ratio_matches(a: np.ndarray, b: np.ndarray, ratio: float, queries: np.ndarray) -> list[tuple[int, int]]:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from skimage import data
 
+import pipeline.filter
 from pipeline.disparity import _fill_background, _sgbm_pair
 from pipeline.filter import ratio_test_matches
 from pipeline.grading.measurements import _grey_difference_median
@@ -107,7 +108,9 @@ def _bf_pairs(a: np.ndarray, b: np.ndarray, ratio: float) -> list[tuple[int, int
     return [(p[0].queryIdx, p[0].trainIdx) for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
 
 
-def test_ratio_test_matches_are_bfmatchers_on_real_sift() -> None:
+@pytest.mark.parametrize("block", [8_000_000, 100_000])  # one block; queries in blocks of ~50
+def test_ratio_test_matches_are_bfmatchers_on_real_sift(block: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(pipeline.filter, "_DISTANCE_BLOCK", block)
     sift = cv2.SIFT_create(nfeatures=2000)
     views = data.stereo_motorcycle()[:2]  # 741 x 500 px, as the filter's halves
     _, left = sift.detectAndCompute(cv2.cvtColor(views[0], cv2.COLOR_RGB2GRAY), None)

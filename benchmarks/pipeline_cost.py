@@ -19,7 +19,9 @@ Keystone-Mast raw scans, ~3000 px JPS pairs).
 Measured 2026-11-24 (docs/BENCHMARKS.md, "Decodes and writes on every card"): medians of each
 card's best of three runs, filter to grade, 0.41 / 1.16 / 1.63 CPU-s at 760 / 1400 / ~3000 px
 (main before the change: 0.44 / 1.21 / 1.79; without the orientation step's text cue 0.28 /
-1.00 / 1.49); peak ~565 MB (273 MB without the cue).
+1.00 / 1.49); peak ~565 MB (273 MB without the cue). Measured 2026-11-25 (docs/BENCHMARKS.md,
+"Where a card's CPU goes"), each stage's best of eight summed: 0.36 / 0.96 / 1.32 (main 7924c7b:
+0.38 / 1.07 / 1.42).
 
 Cards: the real scans in ``../shared/data/stereocards`` (NYPL cards ~760 px, Keystone-Mast raw
 scans ~1400 px, JPS pairs ~3000 px wide), or with ``--synthetic`` (and when that folder is not

@@ -103,6 +103,7 @@ __all__ = [
     "estimate_fundamental",
     "loop_zhang",
     "match_features",
+    "photograph_mask",
     "rectify_matches",
     "rectify_pair",
     "scale_rectification",
@@ -1275,6 +1276,20 @@ def warp_pair(left: np.ndarray, right: np.ndarray, rect: Rectification) -> tuple
         )
         out.append(warped)
     return out[0], out[1]
+
+
+def photograph_mask(view: np.ndarray) -> np.ndarray:
+    """``(H, W)`` bool: the pixels of a rectified view ``(H, W)`` or ``(H, W, C)`` that are not the
+    warp's black fill (:func:`warp_pair` fills outside with 0): any channel above 0.
+
+    One OR over the channels' strided planes: a ``max`` along the last, 3-long axis of an 800 px
+    RGB view took 15 ms (numpy reduces a short inner axis slowly), this takes ~1 ms."""
+    if view.ndim == 2:
+        return view > 0
+    merged = view[..., 0].copy()
+    for channel in range(1, view.shape[2]):
+        merged |= view[..., channel]
+    return merged > 0
 
 
 # ------------------------------------------------------------------------- working resolution

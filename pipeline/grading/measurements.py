@@ -21,6 +21,7 @@ import numpy as np
 from ..disparity import ImageTooSmallError
 from ..errors import InvalidInputError
 from ..io import to_grey
+from ..rectify import photograph_mask
 from . import scene_checks
 
 __all__ = ["MEASUREMENT_NAMES", "TEXT_FIELDS", "GradeMeasurements", "finite_or_none", "measure_card"]
@@ -200,9 +201,16 @@ def _check_map(values: Any, name: str, shape: tuple[int, int], disparity: bool =
     return resized * np.float32(w / mw) if disparity else resized
 
 
-def _photograph(view: np.ndarray) -> np.ndarray:
-    """``(H, W)`` bool: pixels of the photograph (not the warp's black fill)."""
-    return view.reshape(*view.shape[:2], -1).max(axis=2) > 0
+def _grey_difference_median(difference: np.ndarray) -> float:
+    """``np.median`` of differences of two uint8 grey levels (whole numbers in -255..255, float64),
+    counted in a 511-bin histogram instead of partitioned (the same value: the middle element, or
+    the mean of the two middle ones; a third of the time on 500,000 pixels)."""
+    counts = np.bincount((difference + 255.0).astype(np.intp), minlength=511)
+    ends = np.cumsum(counts)
+    size = int(ends[-1])
+    lower = float(np.searchsorted(ends, (size - 1) // 2 + 1)) - 255.0  # the ((size - 1) // 2)-th smallest
+    upper = float(np.searchsorted(ends, size // 2 + 1)) - 255.0  # the (size // 2)-th smallest
+    return (lower + upper) / 2.0
 
 
 def _rectify_values(rectify: Mapping[str, Any], notes: dict[str, str]) -> dict[str, Any]:
@@ -318,7 +326,7 @@ def measure_card(
     values.update(_rectify_values(stages.get("rectify") or {}, notes))
 
     grey_l, grey_r = to_grey(np.ascontiguousarray(left)), to_grey(np.ascontiguousarray(right))
-    inside_l, inside_r = _photograph(left), _photograph(right)
+    inside_l, inside_r = photograph_mask(left), photograph_mask(right)
     if not inside_l.any():  # an all-black view: no fill to tell apart, measure everything
         inside_l = np.ones(shape, bool)
         inside_r = np.ones(shape, bool)
@@ -339,9 +347,10 @@ def measure_card(
     xs = np.arange(w, dtype=np.float32)[None, :] - np.where(finite, d_left, 0.0)
     target = np.rint(xs).astype(np.int64)
     on_right = covered & (target >= 0) & (target < w)
-    rows = np.broadcast_to(np.arange(h)[:, None], shape)
-    target_c = np.clip(target, 0, w - 1)
-    on_right &= inside_r[rows, target_c]
+    # Each pixel's match on the right view as a flat index (a gather with 2-D fancy indices
+    # costs twice as much on an 800 px view).
+    target_flat = np.clip(target, 0, w - 1) + np.arange(0, h * w, w)[:, None]
+    on_right &= inside_r.ravel().take(target_flat)
 
     if d_right is None:
         values["lr_consistency"] = None
@@ -350,7 +359,7 @@ def measure_card(
         values["lr_consistency"] = None
         notes["lr_consistency"] = "no covered pixel matches inside the right view"
     else:
-        other = d_right[rows, target_c]
+        other = np.ascontiguousarray(d_right).ravel().take(target_flat)
         agree = on_right & np.isfinite(other) & (np.abs(d_left - np.where(np.isfinite(other), other, 0)) <= CONSISTENCY_PX)
         values["lr_consistency"] = float(agree.sum() / on_right.sum())
 
@@ -373,13 +382,13 @@ def measure_card(
     if on_right.sum() < 16:
         notes["photometric_error"] = notes["photometric_error_rel"] = "too few covered pixels match inside the right view"
     else:
-        grid_y, grid_x = np.mgrid[0:h, 0:w].astype(np.float32)
-        map_x = np.where(finite, grid_x - d_left, -1.0).astype(np.float32)
+        grid_y = np.repeat(np.arange(h, dtype=np.float32)[:, None], w, axis=1)
+        map_x = np.where(finite, np.arange(w, dtype=np.float32)[None, :] - d_left, -1.0).astype(np.float32)
         warped = cv2.remap(grey_r, map_x, grid_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         a = grey_l[on_right].astype(np.float64)
         b = warped[on_right].astype(np.float64)
         difference = a - b
-        values["photometric_error"] = float(np.mean(np.abs(difference - np.median(difference))))
+        values["photometric_error"] = float(np.mean(np.abs(difference - _grey_difference_median(difference))))
         spread_a, spread_b = np.mean(np.abs(a - a.mean())), np.mean(np.abs(b - b.mean()))
         if min(spread_a, spread_b) < 0.5:  # a flat view: a normalised difference means nothing
             notes["photometric_error_rel"] = "a view has no contrast where the disparity matches"

@@ -18,7 +18,7 @@ from ..disparity import (
 from ..errors import InvalidInputError
 from ..io import read_image, write_jpeg, write_npy
 from ..records import CardTask
-from ..rectify import stored_view_scale
+from ..rectify import photograph_mask, stored_view_scale
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
 
 __all__ = ["DisparityStageParams", "colour_disparity", "disparity_at_work_side", "disparity_task", "upsample_map"]
@@ -108,14 +108,14 @@ def colour_disparity(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """``(H, W, 3)`` uint8 RGB preview: turbo colours from the 1st to 99th percentile, black invalid."""
     import cv2
 
-    picture = np.zeros((*disp.shape, 3), np.uint8)
     if not valid.any():
-        return picture
+        return np.zeros((*disp.shape, 3), np.uint8)
     lo, hi = np.percentile(disp[valid], [1, 99])
     scaled = np.clip((disp - lo) / max(hi - lo, 1e-6), 0, 1)
-    coloured = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO)[..., ::-1]
-    picture[valid] = coloured[valid]
-    return picture
+    coloured = cv2.cvtColor(cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
+    # Masking the contiguous RGB copy: a boolean gather from the reversed-channel view took 28 ms
+    # of an 800 px map's 30.
+    return np.where(valid[..., None], coloured, np.uint8(0))
 
 
 @stage_task("disparity")
@@ -144,7 +144,7 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
         DisparityParams(disparity_range=search, block_size=params.block_size, consistency_px=params.consistency_px),
         params.work_side,
     )
-    inside = (left.reshape(*left.shape[:2], -1) > 0).any(axis=2)  # the warp fills outside with black
+    inside = photograph_mask(left)  # the warp fills outside with black
     disp = result.disp_left
     covered = np.isfinite(disp) & inside
     focal = float(task.inputs.get("focal_px") or 1.2071 * left.shape[0])

@@ -193,8 +193,8 @@ class OrientationParams:
     decided wrongly down to 0.6, and the old rule (lowest clean threshold plus 0.05) would give
     0.65; but with every card rescaled by 0.6-1.7 (``--scales 0.6,0.8,1,1.3,1.7``, 300 acceptance
     variants) the most probable wrong answer reached 0.798 (demo2, a held-out card, as stored)
-    and the next 0.738. So the bar is that plus 0.05: 0.85 decides 111 of the 300 and none
-    wrongly; 0.8 decided 125, also none wrongly, but by a margin of 0.002. (Before the stereo cues
+    and the next 0.738. So the bar is that plus 0.05: 0.85 decides 114 of the 300 and none
+    wrongly; 0.8 decided 122, also none wrongly, but by a margin of 0.002. (Before the stereo cues
     read the photo areas and the arch corners had to be bare card, 0.8 decided rescaled demo2
     wrongly at 0.6x and 1.7x.)"""
     min_texture: float = 2.0

@@ -117,8 +117,8 @@ counts only where the mount beside it is bare card (``pipeline.photo_area``: dar
 pale sky taken for mount narrows a photo much as an arch does; rescaled, demo2's rounded window
 with trees at its foot read as an arched bottom and was decided turned and swapped). Same
 command, threshold 0.85 (see ``auto_probability``): held out 25 of 64 variants decided, tune
-26 of 56, none wrongly; at 0.8 it would be 34 and 28, also none wrongly. With every card
-rescaled 0.6-1.7x (``--scales``), 111 of 300 acceptance variants decided at 0.85, none wrongly.
+26 of 56, none wrongly; at 0.8 it would be 33 and 28, also none wrongly. With every card
+rescaled 0.6-1.7x (``--scales``), 114 of 300 acceptance variants decided at 0.85, none wrongly.
 
 Degenerate inputs never get a silent guess: bad arrays, boxes and tiny photos raise
 :class:`OrientationInputError` (a numerical failure inside OpenCV raises

@@ -50,7 +50,9 @@ from pipeline.orientation import (
     FLAGS,
     HYPOTHESES,
     OrientationParams,
+    decided_combination,
     estimate_orientation,
+    eye_order_support,
     flag_probabilities,
     hypothesis_probabilities,
     orient_variant,
@@ -251,9 +253,8 @@ def evaluate(rows: list[dict], weights: dict[str, float], auto_probability: floa
         if r["undecidable"] is not None:
             acceptance["originals_to_people"] += not any(truth)
             continue
-        joint = hypothesis_probabilities(r["values"], weights)
-        best = max(joint, key=joint.get)
-        if joint[best] >= auto_probability:
+        best, _ = decided_combination(r["values"], weights, auto_probability)
+        if best is not None:
             right = best == truth
             auto["decided"] += 1
             auto["right" if right else "wrong"] += 1
@@ -330,15 +331,18 @@ def scale_check(cards: list[tuple[str, np.ndarray]], scales: tuple[float, ...], 
                 estimate = estimate_orientation(variant, vsplit.left_box, vsplit.right_box, params)
                 if estimate.undecidable is not None:
                     continue
-                joint = hypothesis_probabilities({c.name: c.value for c in estimate.cues}, weights)
+                values = {c.name: c.value for c in estimate.cues}
+                joint = hypothesis_probabilities(values, weights)
                 best = max(joint, key=joint.__getitem__)
+                # below 0 the step asks people whatever the probability
+                support = eye_order_support(values, weights, best[2])
                 outcomes.append(
                     {
                         "scale": scale,
                         "card": name,
                         "split": "tune" if name in TUNE else "held_out",
                         "truth": flags,
-                        "probability": joint[best],
+                        "probability": joint[best] if support >= 0 else 0.0,
                         "right": best == flags,
                     }
                 )

@@ -238,22 +238,25 @@ def test_a_card_no_fill_could_decide_skips_the_second_pass(scene_card):
     assert estimate.details["occlusion_fill_votes"] == "not measured: whatever it and the print read, the card goes to people"
 
 
-def test_the_eye_order_needs_the_occlusion_cues_not_to_lean_against_it():
+def test_a_swapped_scan_needs_the_occlusion_cues_not_to_lean_against_it():
     """Print says upright and the ground plane says the near parts are at the top: the model's
     best guess is 'swapped' at P > 0.9, but with the occlusion cues leaning the other way (a
     close-up whose near parts are at the top, like the demo's Motorcycle crops) the card goes to
-    people, and says why; with them agreeing it is decided."""
+    people, and says why; with them agreeing, or for 'not swapped', it is decided."""
     weights = OrientationParams().weights()
     values = {c: 0.0 for c in CUE_FLAGS} | {"ground_plane": -0.67, "text_upright": 0.54, "warm_tone": 0.98}
     leaning = values | {"occlusion_side": 0.06, "occlusion_fill": 0.04}
     joint = hypothesis_probabilities(leaning, weights)
     assert max(joint, key=joint.get) == (False, False, True) and max(joint.values()) > 0.9
     chosen, why = decided_combination(leaning, weights, 0.85)
-    assert chosen is None and "occlusion cues lean against swapped = True" in why
+    assert chosen is None and "eyes swapped, but the occlusion cues lean the other way" in why
     assert eye_order_support(leaning, weights, True) < 0 < eye_order_support(leaning, weights, False)
     agreeing = values | {"occlusion_side": -0.06, "occlusion_fill": -0.04}
     assert decided_combination(agreeing, weights, 0.85) == ((False, False, True), "")
     assert decided_combination(values | {"occlusion_side": 0.0}, weights, 0.85)[0] == (False, False, True)
+    # "not swapped" needs no such support: the exception is the swapped scan
+    upright = values | {"ground_plane": 0.67, "occlusion_side": -0.02}
+    assert decided_combination(upright, weights, 0.85)[0] == (False, False, False)
 
 
 def cue(estimate: OrientationEstimate, name: str) -> float:

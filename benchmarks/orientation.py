@@ -52,7 +52,6 @@ from pipeline.orientation import (
     OrientationParams,
     decided_combination,
     estimate_orientation,
-    eye_order_support,
     flag_probabilities,
     hypothesis_probabilities,
     orient_variant,
@@ -334,15 +333,15 @@ def scale_check(cards: list[tuple[str, np.ndarray]], scales: tuple[float, ...], 
                 values = {c.name: c.value for c in estimate.cues}
                 joint = hypothesis_probabilities(values, weights)
                 best = max(joint, key=joint.__getitem__)
-                # below 0 the step asks people whatever the probability
-                support = eye_order_support(values, weights, best[2])
+                # a swapped call the occlusion cues lean against goes to people whatever its P
+                vetoed = decided_combination(values, weights, 0.0)[0] is None
                 outcomes.append(
                     {
                         "scale": scale,
                         "card": name,
                         "split": "tune" if name in TUNE else "held_out",
                         "truth": flags,
-                        "probability": joint[best] if support >= 0 else 0.0,
+                        "probability": 0.0 if vetoed else joint[best],
                         "right": best == flags,
                     }
                 )

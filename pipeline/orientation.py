@@ -120,8 +120,8 @@ with trees at its foot read as an arched bottom and was decided turned and swapp
 command, threshold 0.85 (see ``auto_probability``): held out 25 of 64 variants decided, tune
 26 of 56, none wrongly; at 0.8 it would be 33 and 28, also none wrongly. With every card
 rescaled 0.6-1.7x (``--scales``), 114 of 300 acceptance variants decided at 0.85, none wrongly.
-With the eye-order rule of :func:`decided_combination` on top: held out 23, tune 24, rescaled
-103 of 300, none wrongly; the demo's six Motorcycle crops decided swapped wrongly go to people.
+With the eye-order rule of :func:`decided_combination` on top: held out 25, tune 25, rescaled
+112 of 300, none wrongly; the demo's six Motorcycle crops decided swapped wrongly go to people.
 
 Degenerate inputs never get a silent guess: bad arrays, boxes and tiny photos raise
 :class:`OrientationInputError` (a numerical failure inside OpenCV raises
@@ -197,7 +197,7 @@ class OrientationParams:
     0.65; but with every card rescaled by 0.6-1.7 (``--scales 0.6,0.8,1,1.3,1.7``, 300
     acceptance variants) the most probable wrong answer reached 0.798 (demo2, a held-out card,
     as stored) and the next 0.738. So the bar is that plus 0.05: 0.85 decides 114 of the 300 and
-    none wrongly (103 once the eye order must not rest on the ground plane alone); 0.8 decided
+    none wrongly (112 once a swapped call must not rest on the ground plane alone); 0.8 decided
     122, also none wrongly, but by a margin of 0.002. (Before the stereo cues read the photo
     areas and the arch corners had to be bare card, 0.8 decided rescaled demo2 wrongly at 0.6x
     and 1.7x.)"""

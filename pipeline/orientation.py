@@ -139,7 +139,8 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any, cast
 
@@ -655,6 +656,7 @@ def _stereo_cues(left: np.ndarray, right: np.ndarray) -> tuple[float, float, dic
     smooth_left, smooth_right = (cv2.GaussianBlur(v.astype(np.float32), (0, 0), 1.0) for v in (left, forward.right))
     aligned_difference = float(np.abs(smooth_left[inner] - smooth_right[inner]).mean())
     details = {
+        "stereo_size": [int(w), int(h)],
         "aligned_difference": round(aligned_difference, 3),
         "alignment": forward.alignment,
         "search_px": round(forward.reach, 1),
@@ -807,7 +809,7 @@ def _smooth_bright(left: np.ndarray, right: np.ndarray) -> float:
 
 
 def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str], PhotoAreas | None]:
-    """Arched (rounded) photo tops minus arched photo bottoms that
+    """Arched photo tops minus arched photo bottoms that
     :func:`pipeline.photo_area.find_photo_areas` reports on the card as scanned, over 2 (so in
     -1..1): mounts arch the photos' tops, never their feet. photo_area searches every card both
     ways up and says on which side an arch is, so one pass tells both. 0 when it shows none or
@@ -941,6 +943,15 @@ def _undecidable(reason: str, clock: float, details: dict[str, Any]) -> Orientat
     )
 
 
+@contextmanager
+def _stereo_failures() -> Iterator[None]:
+    """A numerical failure inside OpenCV or numpy during a stereo pass, as a typed error."""
+    try:
+        yield
+    except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
+
+
 def _stereo_photos(grey: np.ndarray, lb: Box, rb: Box, areas: PhotoAreas | None) -> tuple[np.ndarray, np.ndarray, str]:
     """The pair the stereo cues read: both photo areas (``areas``, working px) cut to a common
     size when they were found and are at least ``MIN_PHOTO_SIDE`` px a side, else the split's
@@ -1010,10 +1021,8 @@ def estimate_orientation(
     tone = sum(weights[c] * values[c] for c in values if CUE_FLAGS[c] == ("inverted",))
     values["arched_top"], details["arches"], areas = _arched_top(255 - card if tone < 0 else card, params.arch_working_width)
     stereo_left, stereo_right, details["stereo_on"] = _stereo_photos(grey, lb, rb, areas)
-    try:
+    with _stereo_failures():
         occlusion, ground, stereo_details, forward = _stereo_cues(stereo_left, stereo_right)
-    except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
-        raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
     details.update(stereo_details)
     if stereo_details["aligned_difference"] < params.aligned_identical_tolerance or (
         stereo_details["occlusion_bands_end"] + stereo_details["occlusion_bands_start"] == 0
@@ -1034,10 +1043,8 @@ def estimate_orientation(
     if skipped is not None:
         details["occlusion_fill_votes"] = skipped
     else:
-        try:
+        with _stereo_failures():
             values["occlusion_fill"], details["occlusion_fill_votes"] = _occlusion_fill(stereo_left, stereo_right, forward)
-        except (cv2.error, np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
-            raise OrientationFailedError(f"stereo cues failed ({type(exc).__name__}): {str(exc).strip()[:160]}") from exc
     if params.text_detect_side == 0:
         details["text"] = "text cue off"
     elif params.text_only_when_undecided and _outcome(values, weights, params.auto_probability) is not None:

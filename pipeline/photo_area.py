@@ -851,12 +851,6 @@ def _half_area_both_ways(mask: _Mask, turned: _Mask, x0: int, x1: int, params: P
     notes = list(upright.notes)
     for note in flipped.notes:
         words = [turned_notes.get(word, word) for word in note.split(" ")]
-        if note == "arched top":
-            words = ["arched", "bottom"]
-        elif note == "rounded top corners":
-            words = ["rounded", "bottom", "corners"]
-        elif note == "uneven top edge":
-            words = ["uneven", "bottom", "edge"]
         if " ".join(words) not in notes:
             notes.append(" ".join(words))
     return _HalfArea(

@@ -199,8 +199,10 @@ def test_stereo_cues_read_the_photo_areas_not_the_mount_window(scene_card):
     read = estimate_orientation(card, big, rbig)
     assert read.details["stereo_on"] == "photo areas"
     assert read.details["working_size"][0] > lb[2] - lb[0]  # the split's pair, mount included
+    assert read.details["stereo_size"][0] <= lb[2] - lb[0]  # the photo areas hold none of it
     off = estimate_orientation(card, big, rbig, OrientationParams(arch_working_width=0))
     assert off.details["stereo_on"] == "split boxes (no photo areas)"
+    assert off.details["stereo_size"] == off.details["working_size"]
     # both read the same scene the same way
     assert (cue(read, "ground_plane") > 0) == (cue(off, "ground_plane") > 0)
 

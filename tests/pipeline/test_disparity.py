@@ -18,6 +18,7 @@ from benchmarks.disparity import (
     read_pfm,
     write_pfm,
 )
+from pipeline import disparity as disparity_module
 from pipeline.disparity import (
     DEFAULT_BACKEND,
     DisparityParams,
@@ -26,6 +27,7 @@ from pipeline.disparity import (
     depth_from_disparity,
     estimate_disparity,
     normalised_inverse_depth,
+    refine_reduction,
     resample_512,
 )
 from pipeline.errors import InvalidInputError
@@ -269,3 +271,31 @@ def test_repeated_pattern_is_an_alias_of_the_truth_and_flagged():
     alias_error = abs((median - truth + period / 2) % period - period / 2)
     assert alias_error < 1.0
     assert "low_confidence" in result.flags and result.confident_fraction < 0.2
+
+
+# ------------------------------------------------------------------------- refinement's cost
+@pytest.mark.parametrize(("shape", "filtered", "radius"), [((500, 741), (125, 185), 2), ((288, 384), (144, 192), 4)])
+def test_weighted_median_runs_at_a_quarter_on_large_maps(monkeypatch, shape, filtered, radius):
+    """The weighted median costs the same per pixel whatever the disparities, so maps of 400 px
+    and more are refined at a quarter of their size (radius 2), smaller ones at half (radius 4);
+    only the untrusted pixels take its value."""
+    calls = []
+    original = cv2.ximgproc.weightedMedianFilter
+
+    def recording(guide, values, r, **kwargs):
+        calls.append((values.shape, r))
+        return original(guide, values, r, **kwargs)
+
+    monkeypatch.setattr(cv2.ximgproc, "weightedMedianFilter", recording)
+    h, w = shape
+    guide = textured(h, w)
+    rng = np.random.default_rng(1)
+    d = (20 + rng.normal(0, 3, shape)).astype(np.float32)
+    trusted = rng.random(shape) < 0.5
+    out = disparity_module._refine(guide, d, trusted)
+    assert refine_reduction(shape) == (shape[0] // filtered[0], radius)
+    assert calls == [(filtered, radius)]
+    assert out.shape == shape and out.dtype == np.float32
+    np.testing.assert_array_equal(out[trusted], d[trusted])
+    # the filtered pixels are smoother than the noise they replace
+    assert np.std(out[~trusted]) < 0.6 * np.std(d[~trusted])

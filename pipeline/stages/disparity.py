@@ -104,13 +104,16 @@ def disparity_at_work_side(
     ), sx
 
 
-def colour_disparity(disp: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """``(H, W, 3)`` uint8 RGB preview: turbo colours from the 1st to 99th percentile, black invalid."""
+def colour_disparity(disp: np.ndarray, valid: np.ndarray, limits: tuple[float, float] | None = None) -> np.ndarray:
+    """``(H, W, 3)`` uint8 RGB preview: turbo colours from the 1st to 99th percentile, black invalid.
+
+    ``limits``: those two percentiles of ``disp[valid]`` (numpy float64, as ``np.percentile``
+    gives them) when the caller has them already."""
     import cv2
 
     if not valid.any():
         return np.zeros((*disp.shape, 3), np.uint8)
-    lo, hi = np.percentile(disp[valid], [1, 99])
+    lo, hi = limits if limits is not None else np.percentile(disp[valid], [1, 99])
     scaled = np.clip((disp - lo) / max(hi - lo, 1e-6), 0, 1)
     coloured = cv2.cvtColor(cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
     # Masking the contiguous RGB copy: a boolean gather from the reversed-channel view took 28 ms
@@ -165,14 +168,22 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
     for name, values in maps.items():
         write_npy(work_dir / f"{name}.npy", np.asarray(values, np.float32))
         artifacts[name] = str((work_dir / f"{name}.npy").relative_to(data_dir))
-    write_jpeg(work_dir / "disparity_preview.jpg", colour_disparity(disp, covered), max_side=PREVIEW_MAX_SIDE)
+    # One partition for the preview's colour limits and the metrics' percentiles (each the value
+    # np.percentile gives alone): 12 instead of 20 ms on an 800 px map.
+    values = disp[covered]
+    limits: tuple[float, float] | None = None
+    percentiles: list[float | None] = [None, None, None]
+    if values.size:
+        p1, p5, p50, p95, p99 = np.percentile(values, [1, 5, 50, 95, 99])
+        # numpy scalars, as np.percentile returns them: a Python float would make the preview's
+        # arithmetic float32 (NEP 50) and change its bytes
+        limits, percentiles = (p1, p99), [float(p5), float(p50), float(p95)]
+    write_jpeg(work_dir / "disparity_preview.jpg", colour_disparity(disp, covered, limits), max_side=PREVIEW_MAX_SIDE)
     confidence_grey = (np.clip(result.confidence, 0, 1) * 255).astype(np.uint8)
     write_jpeg(work_dir / "confidence_preview.jpg", confidence_grey, max_side=PREVIEW_MAX_SIDE)
     artifacts["disparity_preview"] = str((work_dir / "disparity_preview.jpg").relative_to(data_dir))
     artifacts["confidence_preview"] = str((work_dir / "confidence_preview.jpg").relative_to(data_dir))
 
-    values = disp[covered]
-    percentiles = np.percentile(values, [5, 50, 95]).tolist() if values.size else [None, None, None]
     metrics = {
         "backend": result.backend,
         "seconds_estimate": round(result.seconds, 4),

@@ -29,6 +29,7 @@ from pipeline.disparity import (
     normalised_inverse_depth,
     refine_reduction,
     resample_512,
+    uint8_percentiles,
 )
 from pipeline.errors import InvalidInputError
 
@@ -299,3 +300,20 @@ def test_weighted_median_runs_at_a_quarter_on_large_maps(monkeypatch, shape, fil
     np.testing.assert_array_equal(out[trusted], d[trusted])
     # the filtered pixels are smoother than the noise they replace
     assert np.std(out[~trusted]) < 0.6 * np.std(d[~trusted])
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_uint8_percentiles_are_numpys_to_the_bit(seed):
+    """The contrast stretch's percentiles from a histogram: the same float64 values as
+    np.percentile of the concatenated views, on wide, narrow and two-level pixel sets."""
+    rng = np.random.default_rng(seed)
+    low, high = [(0, 256), (100, 104), (0, 2)][seed % 3]
+    left = rng.integers(low, high, (int(rng.integers(1, 90)), int(rng.integers(1, 90)))).astype(np.uint8)
+    right = np.clip(rng.normal(60, 5, (37, 23)), 0, 255).astype(np.uint8)
+    percents = (0.0, 0.5, 1.0, 33.3, 50.0, 70.0, 99.5, 100.0)
+    expected = np.percentile(np.concatenate([left.ravel(), right.ravel()]), percents)
+    got = uint8_percentiles((left, right), percents)
+    assert got.dtype == np.float64
+    np.testing.assert_array_equal(got, expected)
+    with pytest.raises(InvalidInputError):
+        uint8_percentiles((np.zeros((0, 4), np.uint8),), (50.0,))

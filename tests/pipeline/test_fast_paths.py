@@ -100,6 +100,9 @@ def test_colour_disparity_keeps_its_picture(pair: tuple[np.ndarray, np.ndarray])
     assert picture.dtype == np.uint8 and picture.shape == (*disp.shape, 3)
     np.testing.assert_array_equal(picture, plain)
     assert (picture[~valid] == 0).all() and picture[valid].any()
+    # the stage passes the limits it took with its other percentiles, in one partition
+    p1, _p5, _p50, _p95, p99 = np.percentile(disp[valid], [1, 5, 50, 95, 99])
+    np.testing.assert_array_equal(colour_disparity(disp, valid, (p1, p99)), plain)
 
 
 def _bf_pairs(a: np.ndarray, b: np.ndarray, ratio: float) -> list[tuple[int, int]]:

@@ -535,6 +535,24 @@ def _shear(H: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.array([[sa, sb, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 
 
+def _costs_at(thetas: np.ndarray, views: tuple[tuple[np.ndarray, np.ndarray], ...]) -> np.ndarray:
+    """:func:`_projective_z`'s distortion cost at every angle of ``thetas`` (rad) at once: per
+    view ``z^T A z / (v . z)^2`` with ``z = (cos, sin)``, inf where ``(v . z)^2`` vanishes against
+    ``trace(A) + v . v``. One array pass over the 722 starting angles instead of a Python call
+    each (0.1 instead of 12 ms a rectification). The values agree with the scalar form to ~1e-10
+    relative, not to the bit (numpy's dot fuses multiply-adds), and pick the same starting angle
+    (3,000 random geometries, and the 15 real pairs); the refinement evaluates the scalar form."""
+    c, s = np.cos(thetas), np.sin(thetas)
+    total = np.zeros(thetas.shape)
+    for a, v in views:
+        den = (v[0] * c + v[1] * s) ** 2
+        num = (c * a[0, 0] + s * a[1, 0]) * c + (c * a[0, 1] + s * a[1, 1]) * s  # z^T A z, as z @ A @ z
+        scale = float(np.trace(a)) + float(v @ v)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            total = total + np.where(den <= 1e-18 * max(scale, 1e-300), np.inf, num / den)
+    return total
+
+
 def _projective_z(F: np.ndarray, e_l: np.ndarray, size_l: tuple[int, int], size_r: tuple[int, int], s: float) -> np.ndarray:
     """The paper's ``z = (lambda, mu, 0)`` minimising the combined projective distortion (normalised
     coordinates, image centre at the origin so ``p_c = (0, 0, 1)``)."""
@@ -564,7 +582,7 @@ def _projective_z(F: np.ndarray, e_l: np.ndarray, size_l: tuple[int, int], size_
         if np.linalg.cond(a) < 1e10:
             z = np.linalg.solve(a, v)
             candidates.append(math.atan2(z[1], z[0]) % math.pi)
-    costs = np.array([cost(t) for t in candidates])
+    costs = _costs_at(np.asarray(candidates), ((a_l, v_l), (a_r, v_r)))
     if not np.any(np.isfinite(costs)):
         raise EpipoleInImageError("no line can be sent to infinity without infinite distortion (epipole at the centre)")
     best = float(candidates[int(np.argmin(costs))])

@@ -22,6 +22,9 @@ card's best of three runs, filter to grade, 0.41 / 1.16 / 1.63 CPU-s at 760 / 14
 1.00 / 1.49); peak ~565 MB (273 MB without the cue). Measured 2026-11-25 (docs/BENCHMARKS.md,
 "Where a card's CPU goes"), each stage's best of eight summed: 0.36 / 0.96 / 1.32 (main 7924c7b:
 0.38 / 1.07 / 1.42).
+Measured 2026-11-25 (docs/BENCHMARKS.md, "The cost of a card"), main (a1fe5eb) and the weighted
+median at a quarter on 800 px maps alternately six times, median of each card's runs: 0.98 -> 0.87
+at 1400 px, 1.38 -> 1.22 at ~3000 px (each card 0.88-0.91 of main).
 
 Cards: the real scans in ``../shared/data/stereocards`` (NYPL cards ~760 px, Keystone-Mast raw
 scans ~1400 px, JPS pairs ~3000 px wide), or with ``--synthetic`` (and when that folder is not

@@ -364,9 +364,9 @@ def _refine(guide: np.ndarray, d: np.ndarray, trusted: np.ndarray) -> np.ndarray
     by the image, at reduced resolution (:func:`refine_reduction`). Measured at half resolution:
     most of the full-resolution filter's gain, -0.5 points of mean bad-2, at a third of its 0.16 s.
     Its time is per pixel filtered (not per distinct disparity), so on maps of 400 px and more it
-    runs at a quarter (radius 2): `keystone bench disparity`, 2026-11-25, mean bad-2 tuned 5.26 ->
-    5.42 %, held out 4.32 -> 4.49 %, 0.23 -> 0.16 s per 741 x 500 pair; on an 800 px rectified
-    card view 0.06 -> 0.01 s per view."""
+    runs at a quarter (radius 2): `keystone bench disparity --backend keystone`, 2026-11-25, mean
+    bad-2 tuned 5.26 -> 5.38 % (Tsukuba, 288 px, stays at half), held out 4.32 -> 4.49 %, 0.23 ->
+    0.17 s per 741 x 500 pair; on an 800 px rectified card view 0.06 -> 0.01 s per view."""
     h, w = d.shape
     if min(h, w) < 32 or not hasattr(cv2, "ximgproc"):
         return d

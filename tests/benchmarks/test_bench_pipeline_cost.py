@@ -24,6 +24,20 @@ def test_bench_pipeline_reports_cpu_seconds_for_every_stage_a_card_reached(runne
     assert summary["cards"] == 1 and summary["reached_grade"] == 1
     assert summary["median_pipeline_cpu_seconds"] == row["pipeline_cpu_seconds"]
     assert document["peak_rss_mb"] > 50
+    # timed on a second pass; the first (one-time costs charged to the card) is reported beside it
+    assert document["warmed_up"] is True
+    (first,) = document["first_pass_by_size"]
+    assert first["size"] == "<1000 px" and first["median_pipeline_cpu_seconds"] > 0
+
+
+def test_bench_pipeline_cold_times_the_first_pass(runner):
+    result = runner.invoke(
+        cli, ["bench", "pipeline", "--synthetic", "--limit", "1", "--variant", "work", "--stages", "filter", "--cold", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.stdout)
+    assert document["warmed_up"] is False and document["first_pass_by_size"] is None
+    assert document["results"][0]["cpu_seconds"]["filter"] > 0
 
 
 def test_bench_pipeline_refuses_an_unknown_stage(runner):

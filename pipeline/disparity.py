@@ -134,14 +134,13 @@ def _to_gray8(image: np.ndarray, name: str) -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
-def uint8_percentiles(images: tuple[np.ndarray, ...], percents: tuple[float, ...]) -> np.ndarray:
-    """``np.percentile`` of the uint8 ``images``' pixels taken together (its default linear
-    interpolation, float64, the same values to the bit) from one 256-level histogram: the k-th
-    smallest pixel is the first level whose cumulative count exceeds k. Measured on two 800 x 750
-    px views: 1.4 ms instead of 13.6 ms to concatenate and partition them."""
-    counts = sum(np.bincount(np.asarray(image, np.uint8).ravel(), minlength=256) for image in images)
+def percentiles_from_counts(counts: np.ndarray, percents: tuple[float, ...]) -> np.ndarray:
+    """``np.percentile`` (its default linear interpolation, float64, the same values to the bit) of
+    the values ``0 .. len(counts) - 1`` held ``counts[v]`` times each: the k-th smallest value is
+    the first whose cumulative count exceeds k. For whole-number data in a small range (grey
+    levels, their differences), a histogram replaces a partition of every pixel."""
     cumulative = np.cumsum(counts)
-    n = int(cumulative[-1])
+    n = int(cumulative[-1]) if cumulative.size else 0
     if n == 0:
         raise InvalidInputError("no pixels to take percentiles of")
     index = (n - 1) * (np.asarray(percents, np.float64) / 100)
@@ -151,6 +150,14 @@ def uint8_percentiles(images: tuple[np.ndarray, ...], percents: tuple[float, ...
     t = index - below
     # numpy's own interpolation, both branches: the same rounding as np.percentile
     return np.where(t >= 0.5, b - (b - a) * (1 - t), a + (b - a) * t)
+
+
+def uint8_percentiles(images: tuple[np.ndarray, ...], percents: tuple[float, ...]) -> np.ndarray:
+    """``np.percentile`` of the uint8 ``images``' pixels taken together, to the bit, from one
+    256-level histogram (:func:`percentiles_from_counts`). Measured on two 800 x 750 px views:
+    1.4 ms instead of 13.6 ms to concatenate and partition them."""
+    counts = sum(np.bincount(np.asarray(image, np.uint8).ravel(), minlength=256) for image in images)
+    return percentiles_from_counts(np.asarray(counts), percents)
 
 
 def _prepare(left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:

@@ -961,15 +961,14 @@ def _stereo_photos(grey: np.ndarray, lb: Box, rb: Box, areas: PhotoAreas | None)
     occlusion_fill right on 91 with the split's boxes, 100 inside the photo areas;
     occlusion_side 74 and 82)."""
     if areas is None or areas.is_fallback:
-        reason = "no photo areas" if areas is None else "photo areas not found"
-        left, right = _photo_pair(grey, lb, rb)
-        return left, right, f"split boxes ({reason})"
-    al, ar = areas.left_box, areas.right_box
-    if min(al[2] - al[0], ar[2] - ar[0], al[3] - al[1], ar[3] - ar[1]) < MIN_PHOTO_SIDE:
-        left, right = _photo_pair(grey, lb, rb)
-        return left, right, f"split boxes (photo areas under {MIN_PHOTO_SIDE} px)"
-    left, right = _photo_pair(grey, al, ar)
-    return left, right, "photo areas"
+        why_not = "no photo areas" if areas is None else "photo areas not found"
+    elif min(min(b[2] - b[0], b[3] - b[1]) for b in (areas.left_box, areas.right_box)) < MIN_PHOTO_SIDE:
+        why_not = f"photo areas under {MIN_PHOTO_SIDE} px"
+    else:
+        left, right = _photo_pair(grey, areas.left_box, areas.right_box)
+        return left, right, "photo areas"
+    left, right = _photo_pair(grey, lb, rb)
+    return left, right, f"split boxes ({why_not})"
 
 
 def estimate_orientation(

@@ -44,9 +44,10 @@ Method, on a copy downscaled (area filter) to ``working_width`` ("working px"):
    outer sixths and the mount beside the narrowing is bare card on at least one side (80 % of
    its pixels plain; the orientation step reads only these as arches), ``uneven top edge`` when
    it narrows but beside it is texture (dark foliage or a pale sky taken for mount), ``rounded
-   top corners`` when only the very corners are mount. No non-photo pixel may lie on a side's outer line near a corner
-   (``corner``). Printed text beside or across a side (ink words on plain or non-photo ground,
-   such as a collection stamp running onto the photo's margin) pushes that side past it.
+   top corners`` when only the very corners are mount. No non-photo pixel may lie on a side's
+   outer line near a corner (``corner``). Printed text beside or across a side (ink words on
+   plain or non-photo ground, such as a collection stamp running onto the photo's margin) pushes
+   that side past it.
 5. **Consistency.** Both boxes get the rows the two share (the intersection lies inside both
    photo areas; a pair's photos are mounted level), keep their own widths (the crop stage
    aligns by SIFT and cuts both to their intersection anyway), are inset by ``inset`` (fraction

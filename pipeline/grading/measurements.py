@@ -18,7 +18,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..disparity import ImageTooSmallError
+from ..disparity import ImageTooSmallError, percentiles_from_counts
 from ..errors import InvalidInputError
 from ..io import to_grey
 from ..rectify import photograph_mask
@@ -206,11 +206,7 @@ def _grey_difference_median(difference: np.ndarray) -> float:
     counted in a 511-bin histogram instead of partitioned (the same value: the middle element, or
     the mean of the two middle ones; a third of the time on 500,000 pixels)."""
     counts = np.bincount((difference + 255.0).astype(np.intp), minlength=511)
-    ends = np.cumsum(counts)
-    size = int(ends[-1])
-    lower = float(np.searchsorted(ends, (size - 1) // 2 + 1)) - 255.0  # the ((size - 1) // 2)-th smallest
-    upper = float(np.searchsorted(ends, size // 2 + 1)) - 255.0  # the (size // 2)-th smallest
-    return (lower + upper) / 2.0
+    return float(percentiles_from_counts(counts, (50.0,))[0]) - 255.0
 
 
 def _rectify_values(rectify: Mapping[str, Any], notes: dict[str, str]) -> dict[str, Any]:

@@ -344,8 +344,12 @@ def make_executor(kind: str, workers: int, scheduler: str | None) -> Iterator[Ex
             from distributed import Client
         except ImportError as exc:
             raise RuntimeError("the dask executor needs dask.distributed: pip install 'dask[distributed]'") from exc
+        from pipeline.dask_worker import OneThreadWorkerPlugin
+
         client = Client(scheduler) if scheduler else Client(n_workers=workers, threads_per_worker=1, processes=True)
         try:
+            # Every worker, those that join later too, gets what a local pool worker gets.
+            client.register_plugin(OneThreadWorkerPlugin())
             yield client.get_executor()
         finally:
             client.close()

@@ -132,7 +132,8 @@ def benchmark_variant(
     cards: list[Path], stages: tuple[str, ...], sbs_order: str | None, variant: str, warm_up: bool = True
 ) -> dict[str, Any]:
     """:func:`benchmark_pipeline` with ``variant``'s parameters (run in a fresh process by the command),
-    with one OpenCV thread as every pool worker of ``keystone run`` has (:func:`pipeline.runner.init_worker`):
+    with one OpenCV and one BLAS thread as every pool worker of ``keystone run`` has
+    (:func:`pipeline.runner.init_worker`):
     OpenCV's own threads would add their overhead to the process's CPU seconds.
 
     ``warm_up``: the cards first go through the stages once in a throwaway instance of the same

@@ -224,3 +224,29 @@ def test_a_worker_killed_mid_run_costs_only_its_cards_in_flight(tmp_path, scans,
     assert all(stage["failed"] == 0 for stage in report["stages"]), report
     statuses = _outcomes(instance)
     assert all(row[stage][0] == "done" for row in statuses.values() for stage in STAGES.split(","))
+
+
+def _blas_threads(info: list[dict]) -> set[int]:
+    return {library["num_threads"] for library in info if library["user_api"] == "blas"}
+
+
+def test_every_worker_runs_one_opencv_and_one_blas_thread_those_joining_later_too(cluster):
+    """The driver's executor registers the worker set-up a local pool worker gets; a worker
+    that joins afterwards gets it as well (a dask worker left alone would use every core)."""
+    import cv2
+    import threadpoolctl
+    from distributed import Client
+
+    from app.runs import make_executor
+
+    with Client(cluster.address, timeout=30) as client:
+        before = client.run(cv2.getNumThreads)
+    with make_executor("dask", 0, cluster.address):
+        pass
+    cluster.add_worker()
+    cluster.wait_for_workers(3)
+    with Client(cluster.address, timeout=30) as client:
+        opencv = client.run(cv2.getNumThreads)
+        blas = client.run(threadpoolctl.threadpool_info)
+    assert len(opencv) == 3 and set(opencv.values()) == {1}, (before, opencv)
+    assert all(_blas_threads(info) == {1} for info in blas.values()), blas

@@ -43,6 +43,20 @@ def test_inline_and_pools_agree():
     assert inline == threaded == pooled == [(i, i * i) for i in range(20)]
 
 
+def test_a_pool_worker_runs_one_opencv_and_one_blas_thread():
+    """Cards are the unit of parallelism: threads inside a worker only add their overhead."""
+    import cv2
+    import threadpoolctl
+
+    with RestartingProcessPool(1) as pool:
+        opencv = pool.submit(cv2.getNumThreads).result()
+        blas = pool.submit(threadpoolctl.threadpool_info).result()
+        environment = pool.submit(os.getenv, "OPENBLAS_NUM_THREADS").result()
+    assert opencv == 1
+    assert {library["num_threads"] for library in blas if library["user_api"] == "blas"} == {1}
+    assert environment == "1"  # for BLAS libraries loaded later (scipy's own)
+
+
 def test_a_dead_worker_fails_only_cards_in_flight_and_the_batch_goes_on():
     with RestartingProcessPool(1) as pool:
         records = list(run_tasks(_crash_on_three, _tasks(6), pool, stage="test", param_hash="p", window=1))

@@ -8,6 +8,8 @@ import os
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 
+import pytest
+
 from pipeline.records import CardTask, StageRecord, param_hash
 from pipeline.runner import RestartingProcessPool, run_tasks
 
@@ -55,6 +57,46 @@ def test_a_pool_worker_runs_one_opencv_and_one_blas_thread():
     assert opencv == 1
     assert {library["num_threads"] for library in blas if library["user_api"] == "blas"} == {1}
     assert environment == "1"  # for BLAS libraries loaded later (scipy's own)
+
+
+_CARD_LIKE_ALLOCATIONS = """
+import resource, sys
+import numpy as np
+if sys.argv[1] == "keep":
+    from pipeline.runner import keep_freed_memory
+    assert keep_freed_memory()
+def card(side):
+    scan = np.ones((side, 2 * side, 3), np.uint8)
+    working = scan[:, :side].astype(np.float32)
+    reduced = np.ascontiguousarray(scan[::2, ::2])
+    return int(working[0, 0, 0]) + int(reduced[0, 0, 0])
+card(1200)
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for i in range(20):
+    card((1000, 1200, 1400)[i % 3])
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+def test_a_worker_keeps_freed_memory_for_the_next_card():
+    """Page faults (the kernel zeroing pages glibc handed back) over twenty card-sized rounds of
+    allocations: a worker's setting keeps most of them away (measured 4,331 -> 1,454)."""
+    import subprocess
+    import sys
+
+    from pipeline.runner import keep_freed_memory
+
+    if sys.platform != "linux" or not keep_freed_memory():
+        pytest.skip("mallopt is glibc's (Linux)")
+    faults = {
+        mode: int(
+            subprocess.run(
+                [sys.executable, "-c", _CARD_LIKE_ALLOCATIONS, mode], capture_output=True, text=True, check=True
+            ).stdout
+        )
+        for mode in ("plain", "keep")
+    }
+    assert faults["keep"] < faults["plain"] / 2, faults
 
 
 def test_a_dead_worker_fails_only_cards_in_flight_and_the_batch_goes_on():

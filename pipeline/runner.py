@@ -28,18 +28,20 @@ ONE_THREAD_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "
 
 
 def init_worker() -> None:
-    """Worker initializer: one thread per worker for OpenCV and the BLAS libraries, since we
-    parallelise by card.
+    """Worker initializer: one thread per worker for OpenCV and the BLAS libraries (we
+    parallelise by card), and freed memory kept for the next card (:func:`keep_freed_memory`).
 
-    A worker beside one per core gains nothing from inner threads, and OpenBLAS's spin on its
-    idle threads after every call (the small ``lstsq`` and matrix products of a card) is charged
-    to the process: measured with ``keystone bench pipeline --variant work`` run alternately,
-    the ~3000 px cards' median 1.30-1.55 -> 1.17-1.36 CPU-s and the 1400 px scans' 0.97-0.98 ->
-    0.88-0.95 with one BLAS thread. Libraries already loaded are limited through threadpoolctl;
-    the environment covers those loaded later. It also lets glibc keep freed memory for the
-    next card (:func:`keep_freed_memory`; same bench, medians of 3 alternate runs: 1400 px
-    0.787 -> 0.712, ~3000 px 1.149 -> 1.040 CPU-s, peak memory unchanged). Dask workers get
-    this through :class:`pipeline.dask_worker.OneThreadWorkerPlugin`."""
+    A worker beside one per core gains nothing from inner threads, and OpenBLAS's idle threads
+    spin after every call: CPU charged to the card. OpenCV's wheel bundles its own OpenBLAS for
+    ``cv2.gemm`` (the filter's 2,000 x 2,000 descriptor product), which ``cv2.setNumThreads``
+    does not reach; numpy's serves the small ``lstsq`` of every stage. Libraries already loaded
+    are limited through threadpoolctl; the environment covers those loaded later (scipy's own
+    OpenBLAS). Measured
+    with ``keystone bench pipeline --variant work`` run alternately with the code before, CPU-s
+    a card at 760 / 1400 / ~3000 px: one BLAS thread 0.425 / 0.917 / 1.285 -> 0.372 / 0.849 /
+    1.212; both settings 0.429 / 0.892 / 1.245 -> 0.347 / 0.711 / 1.027 (docs/BENCHMARKS.md, "A
+    worker's threads and memory"). Dask workers get this through
+    :class:`pipeline.dask_worker.OneThreadWorkerPlugin`."""
     import os
 
     os.environ.update(ONE_THREAD_ENVIRONMENT)

@@ -139,6 +139,29 @@ def test_process_pool_gives_the_same_results_as_inline(app, runner, catalogue, t
     assert pooled == inline
 
 
+def test_an_inline_run_is_one_worker_with_a_pool_workers_set_up():
+    """`--workers 1` runs the stages in the command's own process: one OpenCV and one BLAS
+    thread there too (run in a fresh interpreter, without the thread variables a pool worker sets)."""
+    import subprocess
+    import sys
+
+    from pipeline.runner import ONE_THREAD_ENVIRONMENT
+
+    code = (
+        "import cv2, json, threadpoolctl\n"
+        "from app.runs import make_executor\n"
+        "before = cv2.getNumThreads()\n"
+        "with make_executor('local', 1, None) as executor:\n"
+        "    blas = {i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas'}\n"
+        "    print(json.dumps([executor is None, before, cv2.getNumThreads(), sorted(blas)]))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ONE_THREAD_ENVIRONMENT}
+    result = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    inline, before, opencv, blas = json.loads(result.stdout.strip().splitlines()[-1])
+    assert inline and opencv == 1 and blas == [1], (before, opencv, blas)
+
+
 def test_a_broken_original_fails_with_a_typed_reason_and_the_rest_goes_on(app, runner, catalogue):
     with app.app_context():
         card = db.session.scalar(select(Card).where(Card.source_name == "stereo.jpg"))

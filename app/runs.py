@@ -358,7 +358,7 @@ def make_executor(kind: str, workers: int, scheduler: str | None) -> Iterator[Ex
             # Inline: this process is the one worker, and gets a pool worker's set-up (one
             # OpenCV and BLAS thread, freed memory kept): `--workers 1` uses one core, and the
             # kernel does not zero the same pages for every card (measured on 42 cards: system
-            # CPU 5.05 s without it).
+            # CPU 5.05 -> ~1.1 s, docs/SCALE.md).
             init_worker()
             yield None
             return

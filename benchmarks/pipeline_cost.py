@@ -24,7 +24,9 @@ card's best of three runs, filter to grade, 0.41 / 1.16 / 1.63 CPU-s at 760 / 14
 0.38 / 1.07 / 1.42).
 Measured 2026-11-25 (docs/BENCHMARKS.md, "The cost of a card"), main (a1fe5eb) and the weighted
 median at a quarter on 800 px maps alternately six times, median of each card's runs: 0.98 -> 0.87
-at 1400 px, 1.38 -> 1.22 at ~3000 px (each card 0.88-0.91 of main).
+at 1400 px, 1.38 -> 1.22 at ~3000 px (each card 0.88-0.91 of main). Measured 2026-11-25
+(docs/BENCHMARKS.md, "A worker's threads and memory"), with the worker's one BLAS thread and
+freed memory kept, alternately with ab4eb5f three times: 0.43 / 0.89 / 1.25 -> 0.35 / 0.71 / 1.03.
 
 Cards: the real scans in ``../shared/data/stereocards`` (NYPL cards ~760 px, Keystone-Mast raw
 scans ~1400 px, JPS pairs ~3000 px wide), or with ``--synthetic`` (and when that folder is not
@@ -132,9 +134,9 @@ def benchmark_variant(
     cards: list[Path], stages: tuple[str, ...], sbs_order: str | None, variant: str, warm_up: bool = True
 ) -> dict[str, Any]:
     """:func:`benchmark_pipeline` with ``variant``'s parameters (run in a fresh process by the command),
-    with one OpenCV and one BLAS thread as every pool worker of ``keystone run`` has
-    (:func:`pipeline.runner.init_worker`):
-    OpenCV's own threads would add their overhead to the process's CPU seconds.
+    set up as every pool worker of ``keystone run`` is (:func:`pipeline.runner.init_worker`: one
+    OpenCV and one BLAS thread, freed memory kept): inner threads would add their overhead to
+    the process's CPU seconds.
 
     ``warm_up``: the cards first go through the stages once in a throwaway instance of the same
     process, and the figures are the second pass's. A pool worker pays its one-time costs (lazy

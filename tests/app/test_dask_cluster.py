@@ -86,8 +86,12 @@ class Cluster:
 
     def add_worker(self) -> subprocess.Popen[str]:
         # Workers import the project's pipeline by name, as they would on a cluster node
-        # where the project is installed.
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(Path.cwd()), os.environ.get("PYTHONPATH")]))}
+        # where the project is installed; without the thread variables an inline run in this
+        # process may have set (a node's worker would not have them).
+        from pipeline.runner import ONE_THREAD_ENVIRONMENT
+
+        env = {k: v for k, v in os.environ.items() if k not in ONE_THREAD_ENVIRONMENT}
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(Path.cwd()), os.environ.get("PYTHONPATH")]))
         worker = _spawn(
             "worker",
             self.address,

@@ -151,14 +151,12 @@ def benchmark_variant(
     document = benchmark_pipeline(cards, stages, sbs_order=sbs_order, params=variant_params(variant))
     document["variant"] = variant
     document["warmed_up"] = warm_up
-    document["first_pass_by_size"] = (
-        [
+    document["first_pass_by_size"] = None
+    if first is not None:
+        document["first_pass_by_size"] = [
             {"size": g["size"], "median_pipeline_cpu_seconds": g["median_pipeline_cpu_seconds"]}
             for g in first["summary"]["by_size"]
         ]
-        if first is not None
-        else None
-    )
     return document
 
 

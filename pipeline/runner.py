@@ -36,11 +36,10 @@ def init_worker() -> None:
     ``cv2.gemm`` (the filter's 2,000 x 2,000 descriptor product), which ``cv2.setNumThreads``
     does not reach; numpy's serves the small ``lstsq`` of every stage. Libraries already loaded
     are limited through threadpoolctl; the environment covers those loaded later (scipy's own
-    OpenBLAS). Measured
-    with ``keystone bench pipeline --variant work`` run alternately with the code before, CPU-s
-    a card at 760 / 1400 / ~3000 px: one BLAS thread 0.425 / 0.917 / 1.285 -> 0.372 / 0.849 /
-    1.212; both settings 0.429 / 0.892 / 1.245 -> 0.347 / 0.711 / 1.027 (docs/BENCHMARKS.md, "A
-    worker's threads and memory"). Dask workers get this through
+    OpenBLAS). Measured with ``keystone bench pipeline --variant work`` run alternately with the
+    code before, CPU-s a card at 760 / 1400 / ~3000 px: one BLAS thread 0.425 / 0.917 / 1.285 ->
+    0.372 / 0.849 / 1.212; both settings 0.429 / 0.892 / 1.245 -> 0.347 / 0.711 / 1.027
+    (docs/BENCHMARKS.md, "A worker's threads and memory"). Dask workers get this through
     :class:`pipeline.dask_worker.OneThreadWorkerPlugin`."""
     import os
 

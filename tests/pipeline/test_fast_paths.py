@@ -16,7 +16,7 @@ import pipeline.filter
 from pipeline.disparity import _fill_background, _sgbm_pair
 from pipeline.filter import ratio_test_matches
 from pipeline.grading.measurements import _grey_difference_median
-from pipeline.rectify import _costs_at, photograph_mask
+from pipeline.rectify import _cost_at, _costs_at, photograph_mask
 from pipeline.stages.disparity import colour_disparity
 
 
@@ -149,18 +149,6 @@ def test_ratio_test_matches_with_few_descriptors() -> None:
     assert ratio_test_matches(left[:0], right, 0.7) == []
 
 
-def _scalar_cost(theta: float, views: tuple[tuple[np.ndarray, np.ndarray], ...]) -> float:
-    """Loop-Zhang's projective distortion at one angle, as rectification's refinement computes it."""
-    z = np.array([math.cos(theta), math.sin(theta)])
-    total = 0.0
-    for a, v in views:
-        den = float(v @ z) ** 2
-        if den <= 1e-18 * max(float(np.trace(a)) + float(v @ v), 1e-300):
-            return math.inf
-        total += float(z @ a @ z) / den
-    return total
-
-
 @pytest.mark.parametrize("seed", range(4))
 def test_projective_costs_at_every_starting_angle_are_the_scalar_ones(seed: int) -> None:
     rng = np.random.default_rng(seed)
@@ -172,7 +160,7 @@ def test_projective_costs_at_every_starting_angle_are_the_scalar_ones(seed: int)
             views.append((m @ m.T * rng.uniform(0.1, 1e4), rng.normal(size=2) * rng.uniform(1e-3, 10)))
         # one view's v along an axis: its cost is infinite where z is orthogonal to it
         views[1] = (views[1][0], np.array([0.0, 1.0]))
-        expected = np.array([_scalar_cost(t, tuple(views)) for t in thetas])
+        expected = np.array([_cost_at(t, tuple(views)) for t in thetas])
         got = _costs_at(thetas, tuple(views))
         finite = np.isfinite(expected)
         assert (np.isfinite(got) == finite).all() and not finite[0]

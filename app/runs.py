@@ -12,7 +12,7 @@ import functools
 import hashlib
 import json
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import Executor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -36,6 +36,7 @@ from pipeline.stages.filter import filter_task
 from pipeline.stages.orientation import OrientationStageParams, orientation_task
 from pipeline.stages.rectify import rectify_task
 
+from .chains import ChainOutcome, ChainStep, ChainTask, ResultView, run_chain
 from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
 from .db import db, one_writer, utcnow
 from .models import CARD_STATES, Card, StageResult
@@ -66,6 +67,9 @@ class StageSpec:
     # Given a card and its inputs, whether it can run now (e.g. a card the filter sent to
     # review waits until the crowd has judged it a stereo pair).
     ready: Callable[[Card, dict[str, Any]], bool] | None = None
+    # Its inputs come from the card's own stage results alone (no people's decisions), so a
+    # worker may run it on a card right after the stage before it in the run (app.chains).
+    chains: bool = False
 
 
 def filter_boxes(card: Card) -> dict[str, Any]:
@@ -250,6 +254,7 @@ def available_stages() -> dict[str, StageSpec]:
             inputs=orientation_inputs,
             requires="filter",
             ready=_has_inputs,
+            chains=True,
         ),
         # Cards the filter passed whose orientation is decided; cards in review wait for the
         # crowd's judgement too, and a culled card gets nothing.
@@ -269,6 +274,7 @@ def available_stages() -> dict[str, StageSpec]:
             eligible_states=("pass", "review"),
             inputs=rectified_pair,
             requires="rectify",
+            chains=True,
         ),
         # Cards with a disparity: few / some artifacts / failure, with reasons in words.
         "grade": StageSpec(
@@ -279,6 +285,7 @@ def available_stages() -> dict[str, StageSpec]:
             inputs=grade_inputs,
             requires="disparity",
             ready=_has_inputs,
+            chains=True,
         ),
         # Optional per scene: the five GD images and a parallax preview; a failure gets none.
         "views": StageSpec(
@@ -289,6 +296,7 @@ def available_stages() -> dict[str, StageSpec]:
             inputs=views_inputs,
             requires="grade",
             ready=_has_inputs,
+            chains=True,
         ),
     }
 
@@ -312,6 +320,25 @@ class StageReport:
     still_held: int = 0
     taken_over: int = 0
     held_by: set[str] = field(default_factory=set)
+    # Of ``processed``, the cards a worker ran through this stage straight after the stage
+    # before it (app.chains); and the reports of the stages chained after this one.
+    chained: int = 0
+    chained_cards: list[int] = field(default_factory=list)
+    followers: dict[str, StageReport] = field(default_factory=dict)
+
+    def absorb(self, chained: StageReport) -> None:
+        """Count what a chain led by an earlier stage computed for this stage: those cards were
+        planned as already done when this stage ran after it."""
+        self.processed += chained.processed
+        self.done += chained.done
+        self.failed += chained.failed
+        self.chained += chained.chained
+        self.chained_cards.extend(chained.chained_cards)
+        self.failures.extend(chained.failures)
+        for outcome, count in chained.outcomes.items():
+            self.outcomes[outcome] = self.outcomes.get(outcome, 0) + count
+        self.skipped_existing = max(0, self.skipped_existing - chained.done)
+        self.seconds += chained.seconds
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -327,6 +354,7 @@ class StageReport:
             "done_by_other_run": self.done_by_other_run,
             "still_held": self.still_held,
             "taken_over": self.taken_over,
+            "chained": self.chained,
             "seconds": round(self.seconds, 3),
             "cards_per_second": round(self.processed / self.seconds, 3) if self.seconds > 0 else None,
         }
@@ -483,6 +511,8 @@ def run_stage(
     wait_for_held: bool = True,
     claim_batch: int = DEFAULT_CLAIM_BATCH,
     on_wait: Callable[[int, set[str]], None] | None = None,
+    followers: Sequence[StageSpec] = (),
+    leave_out: Mapping[str, set[int]] | None = None,
 ) -> StageReport:
     """Run one stage over the cards that still need it, claiming each card before computing it.
 
@@ -491,6 +521,12 @@ def run_stage(
     counted as ``done_by_other_run``) or its claims lapse (this run takes them over). Without
     it they are left and counted as ``still_held``. ``driver`` is this run's claim identity;
     without one the stage runs under a fresh one of its own.
+
+    ``followers``: stages (each with ``chains``) that a worker runs on each card straight after
+    this one where the card qualifies (:mod:`app.chains`); their records are written here and
+    counted in ``report.followers``. Run each follower afterwards as usual, with
+    ``leave_out={stage: cards this run computed for it}``: it picks up what the chains did not
+    reach, and a card a chain failed is not retried in the same run.
     """
     if driver is None:
         with Driver(db.engine).running() as own:
@@ -504,10 +540,16 @@ def run_stage(
                 wait_for_held=wait_for_held,
                 claim_batch=claim_batch,
                 on_wait=on_wait,
+                followers=followers,
+                leave_out=leave_out,
             )
+    if any(not follower.chains for follower in followers):
+        raise ValueError(f"only stages whose inputs are stage results can be chained: {[f.name for f in followers]}")
     phash = param_hash(spec.params)
     report = StageReport(stage=spec.name, param_hash=phash)
     cards, report.skipped_existing = pending_cards(spec, phash)
+    skip = (leave_out or {}).get(spec.name, set())
+    cards = [card for card in cards if card.card_id not in skip]
     seen = {card.card_id: card.fingerprint for card in cards}
     tasks = {
         card.card_id: CardTask(
@@ -529,8 +571,12 @@ def run_stage(
     clock = time.perf_counter()
     computed: list[int] = []
     held: dict[int, str] = {}
+    chain = _Chain(spec, followers, driver) if followers else None
+    if chain is not None:
+        report.followers = chain.reports
+    function: Callable[[Any], Any] = spec.task if chain is None else chain.function
 
-    def claimed_tasks(card_ids: list[int]) -> Iterator[CardTask]:
+    def claimed_tasks(card_ids: list[int]) -> Iterator[CardTask | ChainTask]:
         # Claimed a batch at a time, just before the executor wants them, so a second run
         # finds the cards this one has not reached yet.
         for start in range(0, len(card_ids), claim_batch):
@@ -541,13 +587,17 @@ def run_stage(
             for card_id in batch_ids:
                 held.pop(card_id, None)
             held.update(claim.held)
-            for card_id in claim.claimed:
-                yield tasks[card_id]
+            if chain is None:
+                for card_id in claim.claimed:
+                    yield tasks[card_id]
+            else:
+                yield from chain.tasks([tasks[card_id] for card_id in claim.claimed])
 
     def compute(card_ids: list[int]) -> None:
         batch: list[StageRecord] = []
         last_write = time.monotonic()
-        for record in run_tasks(spec.task, claimed_tasks(card_ids), executor, stage=spec.name, param_hash=phash):
+        for item in run_tasks(function, claimed_tasks(card_ids), executor, stage=spec.name, param_hash=phash):
+            record = item if chain is None else chain.take(item)
             batch.append(record)
             computed.append(record.card_id)
             _count(report, record)
@@ -555,9 +605,13 @@ def run_stage(
                 on_record(record)
             if len(batch) >= WRITE_BATCH or time.monotonic() - last_write > WRITE_INTERVAL_S:
                 write_records(batch, digests, driver)
+                if chain is not None:
+                    chain.write()
                 batch, last_write = [], time.monotonic()
         if batch:
             write_records(batch, digests, driver)
+        if chain is not None:
+            chain.write()
 
     compute(list(tasks))
     report.held_by_other_run = len(held)
@@ -572,8 +626,152 @@ def run_stage(
     if computed:
         # What must follow a write (review: new automatic grades reach the curators' queue).
         after_write(spec.name, computed)
+    if chain is not None:
+        for follower in followers:
+            if chain.reports[follower.name].chained_cards:
+                after_write(follower.name, chain.reports[follower.name].chained_cards)
     report.seconds = time.perf_counter() - clock
     return report
+
+
+class _Chain:
+    """The driver's side of chained stages (:mod:`app.chains`) for one lead stage: claims the
+    followers with the lead, sends each card's snapshot along, writes what the chains made
+    after the lead's records of the same batch, and frees the claims a chain did not use."""
+
+    def __init__(self, lead: StageSpec, followers: Sequence[StageSpec], driver: Driver) -> None:
+        self.lead, self.followers, self.driver = lead, tuple(followers), driver
+        self.hashes = {follower.name: param_hash(follower.params) for follower in self.followers}
+        self.reports = {name: StageReport(stage=name, param_hash=h) for name, h in self.hashes.items()}
+        self.pending: dict[str, list[tuple[StageRecord, str | None]]] = {follower.name: [] for follower in self.followers}
+        self.unused: dict[str, set[int]] = {follower.name: set() for follower in self.followers}
+        self.claimed: dict[int, tuple[str, ...]] = {}
+        self.function = functools.partial(
+            run_chain,
+            lead=lead.task,
+            steps=tuple(
+                ChainStep(
+                    stage=f.name,
+                    param_hash=self.hashes[f.name],
+                    task=f.task,
+                    eligible_states=f.eligible_states,
+                    inputs=f.inputs or _no_inputs,
+                    requires=f.requires,
+                    ready=f.ready,
+                )
+                for f in self.followers
+            ),
+            digest=inputs_digest,
+            work_dir=card_work_dir,
+        )
+
+    def tasks(self, leads: list[CardTask]) -> Iterator[ChainTask]:
+        """The chains of a claimed batch: each card's state and latest results now, and the
+        followers this driver could claim it for (a card another run holds for a follower
+        stops before it)."""
+        ids = [task.card_id for task in leads]
+        if not ids:
+            return
+        states = dict(db.session.execute(select(Card.id, Card.state).where(Card.id.in_(ids))).all())
+        latest: dict[int, dict[str, ResultView]] = {card_id: {} for card_id in ids}
+        own: dict[str, dict[int, StageResult]] = {name: {} for name in self.hashes}
+        for result in db.session.scalars(select(StageResult).where(StageResult.card_id.in_(ids)).order_by(StageResult.id)):
+            latest[result.card_id][result.stage] = ResultView(
+                stage=result.stage,
+                param_hash=result.param_hash,
+                status=result.status,
+                outcome=result.outcome,
+                metrics={k: v for k, v in (result.metrics or {}).items() if k != "inputs_digest"},
+                artifacts=dict(result.artifacts or {}),
+            )
+            if self.hashes.get(result.stage) == result.param_hash:
+                own[result.stage][result.card_id] = result
+        finished = {
+            card_id: {
+                name: str(result.metrics.get("inputs_digest"))
+                for name, results in own.items()
+                if (result := results.get(card_id)) is not None and result.status in ("done", "skipped")
+            }
+            for card_id in ids
+        }
+        seen = {
+            name: {card_id: result_fingerprint(r.status, r.started_at) for card_id, r in results.items()}
+            for name, results in own.items()
+        }
+        db.session.commit()  # no read transaction open while the cards compute
+        claimed_by: dict[str, set[int]] = {}
+        for name, h in self.hashes.items():
+            round_ = self.driver.claim(name, h, ids, {card_id: seen[name].get(card_id) for card_id in ids})
+            claimed_by[name] = set(round_.claimed)
+        for task in leads:
+            stages = tuple(name for name in self.hashes if task.card_id in claimed_by[name])
+            self.claimed[task.card_id] = stages
+            yield ChainTask(
+                lead=task,
+                state=str(states.get(task.card_id, "ingested")),
+                results=tuple(latest[task.card_id].values()),
+                claimed=stages,
+                finished=finished[task.card_id],
+            )
+
+    def take(self, item: ChainOutcome | StageRecord) -> StageRecord:
+        """The lead's record of a finished chain; the followers' records are kept for
+        :meth:`write`. A bare record is a chain that never ran (a worker died, the executor
+        failed): its followers made nothing."""
+        made = item.records if isinstance(item, ChainOutcome) else ((item, None),)
+        lead = made[0][0]
+        ran = set()
+        for record, digest in made[1:]:
+            ran.add(record.stage)
+            self.pending[record.stage].append((record, digest))
+            report = self.reports[record.stage]
+            _count(report, record)
+            report.chained += 1
+            report.chained_cards.append(record.card_id)
+            report.seconds += record.seconds
+        for stage in self.claimed.pop(lead.card_id, ()):
+            if stage not in ran:
+                self.unused[stage].add(lead.card_id)
+        return lead
+
+    def write(self) -> None:
+        """Write the followers' records in flow order (the lead's are written first) and free
+        the follower claims the chains did not use."""
+        for made in self.pending.values():
+            if made:
+                write_records([record for record, _ in made], {r.card_id: d for r, d in made if d is not None}, self.driver)
+                made.clear()
+        unused = {name: ids for name, ids in self.unused.items() if ids}
+        if unused:
+            session = db.session()
+            with one_writer(session):
+                connection = session.connection()
+                for name, ids in unused.items():
+                    connection.execute(self.driver.release_statement(name, ids))
+                session.commit()
+            for ids in self.unused.values():
+                ids.clear()
+
+
+def _chained_ids(reports: Mapping[str, StageReport]) -> dict[str, list[int]]:
+    return {stage: report.chained_cards for stage, report in reports.items()}
+
+
+def _no_inputs(card: Any, approved: dict[str, Any]) -> dict[str, Any]:
+    return {}
+
+
+def chain_groups(names: Sequence[str], specs: Mapping[str, StageSpec]) -> list[list[StageSpec]]:
+    """The run's stages in flow order, each with the stages chained after it: a stage with
+    ``chains`` joins the stage before it in the run."""
+    groups: list[list[StageSpec]] = []
+    for name in names:
+        spec = specs[name]
+        if groups and spec.chains:
+            groups[-1].append(spec)
+        else:
+            groups.append([spec])
+    return groups
 
 
 def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:
@@ -850,6 +1048,16 @@ def card_stage_statuses(
     show_default=True,
     help="Cards claimed per database transaction.",
 )
+@click.option(
+    "--chain/--stage-by-stage",
+    "chain",
+    default=True,
+    show_default=True,
+    help="Let a worker take a card on through the stages after one whose inputs are that card's "
+    "own results (orientation after the filter; disparity, grade and views after rectify), "
+    "decoding each file once, or run every stage over all cards before the next. The results "
+    "are the same.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the run report as one JSON document.")
 @with_appcontext
 def run_command(
@@ -860,6 +1068,7 @@ def run_command(
     wait_for_held: bool,
     claim_ttl_s: float,
     claim_batch: int,
+    chain: bool,
     as_json: bool,
 ) -> None:
     """Run pipeline stages over the catalogue, skipping cards already done with the same parameters.
@@ -904,6 +1113,9 @@ def run_command(
 
     try:
         with make_executor(executor_kind, workers, scheduler) as executor, driver.running():
+            groups = chain_groups(names, specs) if chain else [[specs[name]] for name in names]
+            followers_of = {group[0].name: group[1:] for group in groups}
+            chained: dict[str, StageReport] = {}
             for name in names:
                 with progress_bar(name, enabled=not as_json) as progress:
                     spec = specs[name]
@@ -917,7 +1129,12 @@ def run_command(
                         wait_for_held=wait_for_held,
                         claim_batch=claim_batch,
                         on_wait=say_waiting(name),
+                        followers=followers_of.get(name, ()),
+                        leave_out={stage: set(ids) for stage, ids in _chained_ids(chained).items()},
                     )
+                chained.update(report.followers)
+                if name in chained:
+                    report.absorb(chained[name])
                 reports.append(report)
                 if not as_json:
                     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(report.outcomes.items())) or "-"

@@ -8,9 +8,12 @@ task is wrapped to read ``time.process_time()`` around every card. A card the fi
 pass, or that a stage fails, has no figure for the stages it did not reach (the report says
 which stages each card ran).
 
-Variants, side by side in one run (``--variant``, default both): ``full`` runs rectification and
-disparity at full resolution (``work_side=None``, the behaviour before the working resolution) and
-``work`` with the defaults (views stored and matched at ``RectifyParams.work_side``). Each variant
+Variants, side by side in one run (``--variant``, default ``full`` and ``work``): ``full`` runs
+rectification and disparity at full resolution (``work_side=None``, the behaviour before the
+working resolution), ``work`` with the defaults (views stored and matched at
+``RectifyParams.work_side``), both with the stages chained as ``keystone run`` chains them
+(:mod:`app.chains`), and ``stage-by-stage`` the defaults with every stage over all cards before
+the next (``keystone run --stage-by-stage``). Each variant
 runs in its own fresh process (spawned), one after the other, so its ``peak_rss_mb`` is its own;
 CPU seconds (``time.process_time``) move less with other load on the machine than wall time.
 Medians are given per scan size (``by_size``: the card's width, 760 px NYPL cards, ~1400 px
@@ -53,7 +56,8 @@ DEFAULT_STAGES = ("filter", "orientation", "rectify", "disparity", "grade")
 ALL_STAGES = (*DEFAULT_STAGES, "views")
 CARD_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".jps"}
 SYNTHETIC_WIDTHS = (760, 1400, 3000)
-VARIANTS = ("full", "work")
+VARIANTS = ("full", "work", "stage-by-stage")
+DEFAULT_VARIANTS = ("full", "work")
 SIZE_CLASSES = ((0, 1000, "<1000 px"), (1000, 2000, "1000-2000 px"), (2000, 10**9, ">=2000 px"))
 TARGET_PIPELINE_CPU_S = 1.0
 TARGET_VIEWS_CPU_S = 0.5
@@ -99,7 +103,7 @@ def variant_params(variant: str) -> dict[str, Any]:
     from pipeline.rectify import RectifyParams
     from pipeline.stages.disparity import DisparityStageParams
 
-    if variant == "work":
+    if variant in ("work", "stage-by-stage"):
         return {}
     if variant == "full":
         return {"rectify": RectifyParams(work_side=None), "disparity": DisparityStageParams(work_side=None)}
@@ -147,8 +151,11 @@ def benchmark_variant(
     from pipeline.runner import init_worker
 
     init_worker()
-    first = benchmark_pipeline(cards, stages, sbs_order=sbs_order, params=variant_params(variant)) if warm_up else None
-    document = benchmark_pipeline(cards, stages, sbs_order=sbs_order, params=variant_params(variant))
+    chain = variant != "stage-by-stage"
+    first = (
+        benchmark_pipeline(cards, stages, sbs_order=sbs_order, params=variant_params(variant), chain=chain) if warm_up else None
+    )
+    document = benchmark_pipeline(cards, stages, sbs_order=sbs_order, params=variant_params(variant), chain=chain)
     document["variant"] = variant
     document["warmed_up"] = warm_up
     document["first_pass_by_size"] = None
@@ -185,10 +192,12 @@ def benchmark_pipeline(
     echo: Callable[[str], None] = lambda _m: None,
     sbs_order: str | None = None,
     params: dict[str, Any] | None = None,
+    chain: bool = True,
 ) -> dict[str, Any]:
     """Ingest ``cards`` into a throwaway instance and run ``stages`` inline; per-card CPU seconds.
     ``sbs_order`` is ``keystone ingest --sbs-order`` (None: JPS files are read cross-eyed);
-    ``params``: stage name -> parameters replacing that stage's defaults."""
+    ``params``: stage name -> parameters replacing that stage's defaults; ``chain``: stages
+    chained as ``keystone run`` does by default (:mod:`app.chains`), else stage by stage."""
     from dataclasses import replace
 
     from sqlalchemy import select
@@ -197,7 +206,7 @@ def benchmark_pipeline(
     from app.db import db
     from app.ingest import ingest
     from app.models import Card
-    from app.runs import available_stages, run_stage
+    from app.runs import StageReport, available_stages, chain_groups, run_stage
     from app.schema import upgrade
     from app.stereo_ingest import StereoOptions
 
@@ -220,16 +229,26 @@ def benchmark_pipeline(
         rejected = [item for item in report.rejected]
         specs = available_stages()
         for name in stages:
-            if name == "rectify":
-                decide_as_stored()  # with or without the orientation step in the run
-            seconds: dict[int, float] = {}
+            per_stage[name] = {}
             spec = specs[name]
             if params and name in params:
                 spec = replace(spec, params=params[name], task=functools.partial(spec.task.func, params=params[name]))
-            spec = replace(spec, task=functools.partial(_timed, spec.task, seconds))
+            specs[name] = replace(spec, task=functools.partial(_timed, spec.task, per_stage[name]))
+        groups = chain_groups(stages, specs) if chain else [[specs[name]] for name in stages]
+        followers_of = {group[0].name: group[1:] for group in groups}
+        chained: dict[str, StageReport] = {}
+        for name in stages:
+            if name == "rectify":
+                decide_as_stored()  # with or without the orientation step in the run
             echo(f"{name}: running")
-            run_stage(spec, data_dir=data_dir, executor=None)
-            per_stage[name] = seconds
+            report = run_stage(
+                specs[name],
+                data_dir=data_dir,
+                executor=None,
+                followers=followers_of.get(name, ()),
+                leave_out={stage: set(r.chained_cards) for stage, r in chained.items()},
+            )
+            chained.update(report.followers)
         rows = []
         for card in db.session.scalars(select(Card).order_by(Card.id)):
             latest = card.latest_results()
@@ -297,8 +316,9 @@ def benchmark_pipeline(
     "variants",
     multiple=True,
     type=click.Choice(VARIANTS),
-    help="full (work_side None: full resolution, as before) and/or work (the defaults); repeatable. "
-    "Default: both, side by side, each in its own process.",
+    help="full (work_side None: full resolution, as before), work (the defaults) and/or stage-by-stage "
+    "(the defaults, every stage over all cards before the next instead of chained as keystone run "
+    "does); repeatable. Default: full and work, side by side, each in its own process.",
 )
 @click.option(
     "--cold",
@@ -333,7 +353,7 @@ def bench_pipeline_command(
     from concurrent.futures import ProcessPoolExecutor
 
     runs: dict[str, dict[str, Any]] = {}
-    for variant in variants or VARIANTS:
+    for variant in variants or DEFAULT_VARIANTS:
         click.echo(f"{variant}: running", err=True)
         # A fresh process per variant: its peak memory is its own, and nothing is cached across.
         with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -376,6 +396,8 @@ def comparison(runs: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
             row[variant] = group["median_pipeline_cpu_seconds"] if group else None
         if row.get("full") and row.get("work"):
             row["work_over_full"] = round(row["work"] / row["full"], 3)
+        if row.get("stage-by-stage") and row.get("work"):
+            row["chained_over_stage_by_stage"] = round(row["work"] / row["stage-by-stage"], 3)
         if any(row.get(v) is not None for v in runs):
             out.append(row)
     return out

@@ -40,6 +40,26 @@ def test_bench_pipeline_cold_times_the_first_pass(runner):
     assert document["results"][0]["cpu_seconds"]["filter"] > 0
 
 
+def test_bench_pipeline_sets_chained_stages_beside_stage_by_stage(runner):
+    """The default (chained, as ``keystone run``) and ``--stage-by-stage`` side by side: the same
+    outcomes, every stage timed in both, and their ratio per scan size."""
+    result = runner.invoke(
+        cli,
+        ["bench", "pipeline", "--synthetic", "--limit", "1", "--variant", "stage-by-stage", "--variant", "work"]
+        + ["--stages", "filter,orientation,rectify,disparity,grade", "--cold", "--json"],
+    )
+    assert result.exit_code == 0, result.output
+    document = json.loads(result.stdout)
+    chained, staged = document["variants"]["work"]["results"][0], document["variants"]["stage-by-stage"]["results"][0]
+    assert (
+        (chained["filter_outcome"], chained["grade"]) == (staged["filter_outcome"], staged["grade"]) == ("pass", chained["grade"])
+    )
+    assert chained["grade"] in ("few", "some", "failure")
+    assert set(chained["cpu_seconds"]) == set(staged["cpu_seconds"]) == {"filter", "orientation", "rectify", "disparity", "grade"}
+    (row,) = document["comparison"]
+    assert row["chained_over_stage_by_stage"] == round(row["work"] / row["stage-by-stage"], 3)
+
+
 def test_bench_pipeline_refuses_an_unknown_stage(runner):
     result = runner.invoke(cli, ["bench", "pipeline", "--synthetic", "--stages", "filter,sharpen"])
     assert result.exit_code == 2 and "sharpen" in result.output

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline.errors import ImageReadError, ImageTooLargeError
-from pipeline.io import probe_image, read_image, to_grey, write_jpeg, write_png
+from pipeline.errors import ImageReadError, ImageTooLargeError, InvalidInputError
+from pipeline.io import probe_image, read_image, read_image_reduced, shared_decodes, to_grey, write_jpeg, write_png
 
 
 def test_rgb_grey_and_16_bit(tmp_path: Path):
@@ -132,3 +132,74 @@ def test_reduced_decode_picks_the_largest_jpeg_reduction_that_keeps_the_size(tmp
     for path, size in ((tmp_path / "a.png", (100, 1)), (tmp_path / "a.jpg", (410, 203))):
         same = read_image_reduced(path, size)
         assert same.factor == 1 and np.array_equal(same.pixels, read_image(path))
+
+
+def _count_decodes(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    import pipeline.io
+
+    calls: list[str] = []
+    real = pipeline.io._decode
+
+    def counted(image: Image.Image) -> None:
+        calls.append(str(image.size))
+        real(image)
+
+    monkeypatch.setattr(pipeline.io, "_decode", counted)
+    return calls
+
+
+def test_shared_decodes_decode_a_file_once_and_give_each_reader_its_own_copy(tmp_path: Path, monkeypatch):
+    rng = np.random.default_rng(3)
+    scan = rng.integers(0, 256, (600, 1000, 3), np.uint8)
+    Image.fromarray(scan).save(tmp_path / "scan.jpg", quality=95)
+    alone = read_image_reduced(tmp_path / "scan.jpg", (400, 1))
+    calls = _count_decodes(monkeypatch)
+    with shared_decodes():
+        first = read_image_reduced(tmp_path / "scan.jpg", (400, 1))  # 1/2: 500 px wide
+        second = read_image_reduced(tmp_path / "scan.jpg", (450, 0))  # also 1/2
+        # Read-only, as a decode is: no reader can change what another reads.
+        assert not first.pixels.flags.writeable and not second.pixels.flags.writeable
+        with pytest.raises(ValueError, match="read-only"):
+            second.pixels[:] = 0
+        full = read_image(tmp_path / "scan.jpg")  # another reduction: decoded
+        view = rng.integers(0, 256, (300, 200, 3), np.uint8)
+        write_png(tmp_path / "view.png", view, fast=True)
+        back = read_image(tmp_path / "view.png")  # what was written, not decoded
+        view[:] = 0  # the writer changing its array afterwards changes nothing kept
+        assert not back.flags.writeable and back.any()
+    assert calls == ["(500, 300)", "(1000, 600)"]
+    assert second.factor == 2 and second.full_size == (1000, 600)
+    assert np.array_equal(second.pixels, alone.pixels)
+    assert full.shape == (600, 1000, 3) and np.array_equal(back, read_image(tmp_path / "view.png"))
+    # Outside the block nothing is kept.
+    read_image_reduced(tmp_path / "scan.jpg", (400, 1))
+    assert len(calls) == 4
+
+
+def test_a_shared_decode_is_not_served_for_a_changed_file_or_past_a_tighter_cap(tmp_path: Path, monkeypatch):
+    path = tmp_path / "view.png"
+    with shared_decodes(max_entries=1):
+        write_png(path, np.zeros((40, 50), np.uint8))
+        write_png(path, np.full((40, 50), 7, np.uint8))  # rewritten: a new file under the name
+        assert int(read_image(path).max()) == 7
+        with pytest.raises(ImageTooLargeError):
+            read_image(path, max_pixels=1000)
+        Image.fromarray(np.full((40, 60), 9, np.uint8)).save(path)  # changed in place, behind its back
+        assert int(read_image(path).max()) == 9
+        calls = _count_decodes(monkeypatch)
+        write_png(tmp_path / "other.png", np.zeros((8, 8), np.uint8))  # the one entry is now this
+        read_image(path)
+        assert calls == ["(60, 40)"]
+    with pytest.raises(InvalidInputError, match="max_entries"):
+        with shared_decodes(max_entries=0):
+            pass
+
+
+def test_a_writable_decode_is_shared_as_a_copy_for_each_reader(tmp_path: Path):
+    Image.fromarray(np.arange(1200, dtype=np.uint16).reshape(30, 40) * 50).save(tmp_path / "scan16.png")
+    with shared_decodes():
+        first = read_image(tmp_path / "scan16.png")  # 16-bit: stretched, a new writable array
+        second = read_image(tmp_path / "scan16.png")
+        second[:] = 0
+        third = read_image(tmp_path / "scan16.png")
+    assert first.flags.writeable and np.array_equal(first, third) and first.max() == 255

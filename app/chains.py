@@ -1,0 +1,168 @@
+"""Chained stages: a worker takes one card through consecutive stages in one go.
+
+``keystone run`` goes stage by stage: every card through the filter, then every card through
+the orientation step, and so on, with the driver writing each stage's results before the next
+stage is planned from them. Each stage then decodes what it reads from disk afresh: a ~3000 px
+JPEG scan costs ~34 ms to decode even at half size, and a rectified view ~12 ms, so a card's
+filter and orientation step decode its scan twice, and the disparity, grade and views stages
+read back the views the rectify stage has just written.
+
+A stage whose inputs come from the card's own stage results alone (no people's decisions:
+:attr:`app.runs.StageSpec.chains`) can run in the same worker right after the stage before it,
+on the same card, inside :func:`pipeline.io.shared_decodes`: the second read of a file is a
+copy of the first decode. The worker computes the follower's inputs with the same builder the
+driver uses (:mod:`app.runs`), from a snapshot of the card's results the driver sends along and
+the records the chain has just made, so the records are those a stage-by-stage run writes.
+The driver still writes every record, claims every card for every stage it computes, and runs
+each follower stage by stage afterwards for whatever a chain did not reach (a card another run
+holds, a follower already done with the same inputs, a chain cut short by a failure).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.io import shared_decodes
+from pipeline.records import CardTask, StageRecord
+from pipeline.runner import clear_stale_temp_files
+
+__all__ = ["ChainCard", "ChainOutcome", "ChainStep", "ChainTask", "ResultView", "run_chain"]
+
+# The statuses a stage's ``requires`` must have reached (as app.runs.pending_cards).
+FINISHED = ("done", "skipped")
+
+
+@dataclass(frozen=True)
+class ResultView:
+    """A stage result as the input builders read it (the fields of ``app.models.StageResult``
+    and :class:`pipeline.records.StageRecord` they use), as plain values a worker can receive."""
+
+    stage: str
+    param_hash: str
+    status: str
+    outcome: str | None
+    metrics: dict[str, Any]
+    artifacts: dict[str, str]
+
+
+@dataclass
+class ChainCard:
+    """The card as the input builders of :mod:`app.runs` see it: its state and its latest result
+    per stage. Starts from the driver's snapshot; each record the chain makes becomes that
+    stage's latest, and a filter record sets the state as the driver will when it writes it."""
+
+    id: int
+    state: str
+    results: dict[str, ResultView | StageRecord] = field(default_factory=dict)
+
+    def latest_results(self) -> dict[str, ResultView | StageRecord]:
+        return dict(self.results)
+
+    def record(self, record: StageRecord) -> None:
+        self.results[record.stage] = record
+        if record.stage == "filter":  # app.runs.write_records
+            self.state = record.outcome if record.status == "done" and record.outcome else "failed"
+
+
+@dataclass(frozen=True)
+class ChainStep:
+    """A follower stage as a worker runs it: the fields of ``app.runs.StageSpec`` it needs."""
+
+    stage: str
+    param_hash: str
+    task: Callable[[CardTask], StageRecord]
+    eligible_states: tuple[str, ...]
+    inputs: Callable[[Any, dict[str, Any]], Mapping[str, Any]]
+    requires: str | None = None
+    ready: Callable[[Any, dict[str, Any]], bool] | None = None
+
+
+@dataclass(frozen=True)
+class ChainTask:
+    """One card's chain: the lead stage's task, the card's state and latest results when the
+    driver claimed it, and the follower stages (in order) this driver holds the card for."""
+
+    lead: CardTask
+    state: str
+    results: tuple[ResultView, ...]
+    claimed: tuple[str, ...]
+    # follower stage -> inputs digest of its finished result with these parameters (when there
+    # is one): the chain stops there, as the stage would find it already done
+    finished: Mapping[str, str] = field(default_factory=dict)
+
+    @property
+    def card_id(self) -> int:  # what pipeline.runner.run_tasks reads of a task
+        return self.lead.card_id
+
+    @property
+    def work_dir(self) -> str:
+        return self.lead.work_dir
+
+
+@dataclass(frozen=True)
+class ChainOutcome:
+    """The records one chain made, lead first, each with the digest of the inputs it ran on
+    (None for the lead: the driver knows its inputs); and why the chain stopped, in words."""
+
+    records: tuple[tuple[StageRecord, str | None], ...]
+    stopped: str
+
+
+def run_chain(
+    chain: ChainTask,
+    lead: Callable[[CardTask], StageRecord],
+    steps: Sequence[ChainStep],
+    digest: Callable[[dict[str, Any]], str],
+    work_dir: Callable[[Path, str, str, str], Path],
+) -> ChainOutcome:
+    """Run ``lead`` on the card, then each of ``steps`` while the card qualifies for it, all
+    inside one :func:`pipeline.io.shared_decodes` block. Runs in a worker; returns plain records.
+
+    ``digest`` and ``work_dir`` are ``app.runs.inputs_digest`` and ``app.runs.card_work_dir``
+    (passed in: this module is imported by app.runs)."""
+    with shared_decodes():
+        first = lead(chain.lead)
+        made: list[tuple[StageRecord, str | None]] = [(first, None)]
+        card = ChainCard(chain.card_id, chain.state, {result.stage: result for result in chain.results})
+        card.record(first)
+        stopped = "every stage ran"
+        for step in steps:
+            previous = made[-1][0]
+            if previous.status not in FINISHED:
+                stopped = f"{previous.stage} {previous.status}"
+                break
+            if step.stage not in chain.claimed:
+                stopped = f"{step.stage}: held by another run"
+                break
+            if card.state not in step.eligible_states:
+                stopped = f"{step.stage}: not for a card in state {card.state}"
+                break
+            required = card.results.get(step.requires) if step.requires else None
+            if step.requires and (required is None or required.status not in FINISHED):
+                stopped = f"{step.stage}: needs {step.requires}"
+                break
+            inputs = dict(step.inputs(card, {}))
+            if step.ready is not None and not step.ready(card, inputs):
+                stopped = f"{step.stage}: not ready"
+                break
+            inputs_digest = digest(inputs)
+            if chain.finished.get(step.stage) == inputs_digest:
+                stopped = f"{step.stage}: already done with these inputs"
+                break
+            data_dir = Path(chain.lead.data_dir)
+            task = CardTask(
+                card_id=chain.card_id,
+                content_hash=chain.lead.content_hash,
+                image_path=chain.lead.image_path,
+                work_dir=str(work_dir(data_dir, chain.lead.content_hash, step.stage, step.param_hash)),
+                data_dir=chain.lead.data_dir,
+                inputs=inputs,
+            )
+            clear_stale_temp_files(task)
+            record = step.task(task)
+            made.append((record, inputs_digest))
+            card.record(record)
+    return ChainOutcome(records=tuple(made), stopped=stopped)

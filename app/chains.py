@@ -9,8 +9,8 @@ read back the views the rectify stage has just written.
 
 A stage whose inputs come from the card's own stage results alone (no people's decisions:
 :attr:`app.runs.StageSpec.chains`) can run in the same worker right after the stage before it,
-on the same card, inside :func:`pipeline.io.shared_decodes`: the second read of a file is a
-copy of the first decode. The worker computes the follower's inputs with the same builder the
+on the same card, inside :func:`pipeline.io.shared_decodes`: a second read of a file gets the
+first one's decode. The worker computes the follower's inputs with the same builder the
 driver uses (:mod:`app.runs`), from a snapshot of the card's results the driver sends along and
 the records the chain has just made, so the records are those a stage-by-stage run writes.
 The driver still writes every record, claims every card for every stage it computes, and runs
@@ -23,13 +23,16 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pipeline.io import shared_decodes
-from pipeline.records import CardTask, StageRecord
+from pipeline.records import CardTask, StageRecord, param_hash
 from pipeline.runner import clear_stale_temp_files
 
-__all__ = ["ChainCard", "ChainOutcome", "ChainStep", "ChainTask", "ResultView", "run_chain"]
+if TYPE_CHECKING:  # app.runs imports this module
+    from .runs import StageSpec
+
+__all__ = ["ChainCard", "ChainOutcome", "ChainTask", "ResultView", "run_chain"]
 
 # The statuses a stage's ``requires`` must have reached (as app.runs.pending_cards).
 FINISHED = ("done", "skipped")
@@ -68,19 +71,6 @@ class ChainCard:
 
 
 @dataclass(frozen=True)
-class ChainStep:
-    """A follower stage as a worker runs it: the fields of ``app.runs.StageSpec`` it needs."""
-
-    stage: str
-    param_hash: str
-    task: Callable[[CardTask], StageRecord]
-    eligible_states: tuple[str, ...]
-    inputs: Callable[[Any, dict[str, Any]], Mapping[str, Any]]
-    requires: str | None = None
-    ready: Callable[[Any, dict[str, Any]], bool] | None = None
-
-
-@dataclass(frozen=True)
 class ChainTask:
     """One card's chain: the lead stage's task, the card's state and latest results when the
     driver claimed it, and the follower stages (in order) this driver holds the card for."""
@@ -105,21 +95,21 @@ class ChainTask:
 @dataclass(frozen=True)
 class ChainOutcome:
     """The records one chain made, lead first, each with the digest of the inputs it ran on
-    (None for the lead: the driver knows its inputs); and why the chain stopped, in words."""
+    (None for the lead: the driver knows its inputs)."""
 
     records: tuple[tuple[StageRecord, str | None], ...]
-    stopped: str
 
 
 def run_chain(
     chain: ChainTask,
     lead: Callable[[CardTask], StageRecord],
-    steps: Sequence[ChainStep],
+    steps: Sequence[StageSpec],
     digest: Callable[[dict[str, Any]], str],
     work_dir: Callable[[Path, str, str, str], Path],
 ) -> ChainOutcome:
-    """Run ``lead`` on the card, then each of ``steps`` while the card qualifies for it, all
-    inside one :func:`pipeline.io.shared_decodes` block. Runs in a worker; returns plain records.
+    """Run ``lead`` on the card, then each stage of ``steps`` while the card qualifies for it (as
+    ``app.runs.pending_cards`` would plan it), all inside one
+    :func:`pipeline.io.shared_decodes` block. Runs in a worker; returns plain records.
 
     ``digest`` and ``work_dir`` are ``app.runs.inputs_digest`` and ``app.runs.card_work_dir``
     (passed in: this module is imported by app.runs)."""
@@ -128,36 +118,25 @@ def run_chain(
         made: list[tuple[StageRecord, str | None]] = [(first, None)]
         card = ChainCard(chain.card_id, chain.state, {result.stage: result for result in chain.results})
         card.record(first)
-        stopped = "every stage ran"
         for step in steps:
-            previous = made[-1][0]
-            if previous.status not in FINISHED:
-                stopped = f"{previous.stage} {previous.status}"
-                break
-            if step.stage not in chain.claimed:
-                stopped = f"{step.stage}: held by another run"
-                break
+            if made[-1][0].status not in FINISHED or step.name not in chain.claimed:
+                break  # the stage before failed, or another run holds the card for this one
             if card.state not in step.eligible_states:
-                stopped = f"{step.stage}: not for a card in state {card.state}"
                 break
             required = card.results.get(step.requires) if step.requires else None
             if step.requires and (required is None or required.status not in FINISHED):
-                stopped = f"{step.stage}: needs {step.requires}"
                 break
-            inputs = dict(step.inputs(card, {}))
+            inputs = dict(step.inputs(card, {})) if step.inputs is not None else {}
             if step.ready is not None and not step.ready(card, inputs):
-                stopped = f"{step.stage}: not ready"
                 break
             inputs_digest = digest(inputs)
-            if chain.finished.get(step.stage) == inputs_digest:
-                stopped = f"{step.stage}: already done with these inputs"
-                break
-            data_dir = Path(chain.lead.data_dir)
+            if chain.finished.get(step.name) == inputs_digest:
+                break  # already done with these inputs: the stage's own pass counts it
             task = CardTask(
                 card_id=chain.card_id,
                 content_hash=chain.lead.content_hash,
                 image_path=chain.lead.image_path,
-                work_dir=str(work_dir(data_dir, chain.lead.content_hash, step.stage, step.param_hash)),
+                work_dir=str(work_dir(Path(chain.lead.data_dir), chain.lead.content_hash, step.name, param_hash(step.params))),
                 data_dir=chain.lead.data_dir,
                 inputs=inputs,
             )
@@ -165,4 +144,4 @@ def run_chain(
             record = step.task(task)
             made.append((record, inputs_digest))
             card.record(record)
-    return ChainOutcome(records=tuple(made), stopped=stopped)
+    return ChainOutcome(records=tuple(made))

@@ -36,7 +36,7 @@ from pipeline.stages.filter import filter_task
 from pipeline.stages.orientation import OrientationStageParams, orientation_task
 from pipeline.stages.rectify import rectify_task
 
-from .chains import ChainOutcome, ChainStep, ChainTask, ResultView, run_chain
+from .chains import ChainOutcome, ChainTask, ResultView, run_chain
 from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
 from .db import db, one_writer, utcnow
 from .models import CARD_STATES, Card, StageResult
@@ -640,29 +640,14 @@ class _Chain:
     after the lead's records of the same batch, and frees the claims a chain did not use."""
 
     def __init__(self, lead: StageSpec, followers: Sequence[StageSpec], driver: Driver) -> None:
-        self.lead, self.followers, self.driver = lead, tuple(followers), driver
+        self.followers, self.driver = tuple(followers), driver
         self.hashes = {follower.name: param_hash(follower.params) for follower in self.followers}
         self.reports = {name: StageReport(stage=name, param_hash=h) for name, h in self.hashes.items()}
         self.pending: dict[str, list[tuple[StageRecord, str | None]]] = {follower.name: [] for follower in self.followers}
         self.unused: dict[str, set[int]] = {follower.name: set() for follower in self.followers}
         self.claimed: dict[int, tuple[str, ...]] = {}
         self.function = functools.partial(
-            run_chain,
-            lead=lead.task,
-            steps=tuple(
-                ChainStep(
-                    stage=f.name,
-                    param_hash=self.hashes[f.name],
-                    task=f.task,
-                    eligible_states=f.eligible_states,
-                    inputs=f.inputs or _no_inputs,
-                    requires=f.requires,
-                    ready=f.ready,
-                )
-                for f in self.followers
-            ),
-            digest=inputs_digest,
-            work_dir=card_work_dir,
+            run_chain, lead=lead.task, steps=self.followers, digest=inputs_digest, work_dir=card_work_dir
         )
 
     def tasks(self, leads: list[CardTask]) -> Iterator[ChainTask]:
@@ -753,25 +738,33 @@ class _Chain:
                 ids.clear()
 
 
-def _chained_ids(reports: Mapping[str, StageReport]) -> dict[str, list[int]]:
-    return {stage: report.chained_cards for stage, report in reports.items()}
+def run_stages(
+    specs: Sequence[StageSpec],
+    run: Callable[[StageSpec, Sequence[StageSpec], Mapping[str, set[int]]], StageReport],
+    chain: bool = True,
+) -> Iterator[StageReport]:
+    """Run ``specs`` in order, each through ``run(spec, followers, leave_out)`` (which calls
+    :func:`run_stage` with those two), and yield each stage's report as it finishes.
 
-
-def _no_inputs(card: Any, approved: dict[str, Any]) -> dict[str, Any]:
-    return {}
-
-
-def chain_groups(names: Sequence[str], specs: Mapping[str, StageSpec]) -> list[list[StageSpec]]:
-    """The run's stages in flow order, each with the stages chained after it: a stage with
-    ``chains`` joins the stage before it in the run."""
-    groups: list[list[StageSpec]] = []
-    for name in names:
-        spec = specs[name]
-        if groups and spec.chains:
-            groups[-1].append(spec)
+    With ``chain``, a stage with ``chains`` runs as a follower of the stage before it in the run
+    (:mod:`app.chains`), then on its own turn over what the chains did not reach; its report
+    counts both."""
+    followers_of: dict[str, list[StageSpec]] = {}
+    lead: StageSpec | None = None
+    for spec in specs:
+        if chain and lead is not None and spec.chains:
+            followers_of[lead.name].append(spec)
         else:
-            groups.append([spec])
-    return groups
+            lead = spec
+            followers_of[spec.name] = []
+    chained: dict[str, StageReport] = {}
+    for spec in specs:
+        leave_out = {stage: set(report.chained_cards) for stage, report in chained.items()}
+        report = run(spec, followers_of.get(spec.name, ()), leave_out)
+        chained.update(report.followers)
+        if spec.name in chained:
+            report.absorb(chained[spec.name])
+        yield report
 
 
 def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:
@@ -1113,13 +1106,10 @@ def run_command(
 
     try:
         with make_executor(executor_kind, workers, scheduler) as executor, driver.running():
-            groups = chain_groups(names, specs) if chain else [[specs[name]] for name in names]
-            followers_of = {group[0].name: group[1:] for group in groups}
-            chained: dict[str, StageReport] = {}
-            for name in names:
-                with progress_bar(name, enabled=not as_json) as progress:
-                    spec = specs[name]
-                    report = run_stage(
+
+            def run_one(spec: StageSpec, followers: Sequence[StageSpec], leave_out: Mapping[str, set[int]]) -> StageReport:
+                with progress_bar(spec.name, enabled=not as_json) as progress:
+                    return run_stage(
                         spec,
                         data_dir=data_dir(),
                         executor=executor,
@@ -1128,13 +1118,13 @@ def run_command(
                         driver=driver,
                         wait_for_held=wait_for_held,
                         claim_batch=claim_batch,
-                        on_wait=say_waiting(name),
-                        followers=followers_of.get(name, ()),
-                        leave_out={stage: set(ids) for stage, ids in _chained_ids(chained).items()},
+                        on_wait=say_waiting(spec.name),
+                        followers=followers,
+                        leave_out=leave_out,
                     )
-                chained.update(report.followers)
-                if name in chained:
-                    report.absorb(chained[name])
+
+            for report in run_stages([specs[name] for name in names], run_one, chain):
+                name = report.stage
                 reports.append(report)
                 if not as_json:
                     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(report.outcomes.items())) or "-"

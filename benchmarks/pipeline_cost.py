@@ -43,7 +43,7 @@ import json
 import statistics
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -206,7 +206,7 @@ def benchmark_pipeline(
     from app.db import db
     from app.ingest import ingest
     from app.models import Card
-    from app.runs import StageReport, available_stages, chain_groups, run_stage
+    from app.runs import StageReport, StageSpec, available_stages, run_stage, run_stages
     from app.schema import upgrade
     from app.stereo_ingest import StereoOptions
 
@@ -234,21 +234,14 @@ def benchmark_pipeline(
             if params and name in params:
                 spec = replace(spec, params=params[name], task=functools.partial(spec.task.func, params=params[name]))
             specs[name] = replace(spec, task=functools.partial(_timed, spec.task, per_stage[name]))
-        groups = chain_groups(stages, specs) if chain else [[specs[name]] for name in stages]
-        followers_of = {group[0].name: group[1:] for group in groups}
-        chained: dict[str, StageReport] = {}
-        for name in stages:
-            if name == "rectify":
+
+        def run_one(spec: StageSpec, followers: Sequence[StageSpec], leave_out: Mapping[str, set[int]]) -> StageReport:
+            if spec.name == "rectify":
                 decide_as_stored()  # with or without the orientation step in the run
-            echo(f"{name}: running")
-            report = run_stage(
-                specs[name],
-                data_dir=data_dir,
-                executor=None,
-                followers=followers_of.get(name, ()),
-                leave_out={stage: set(r.chained_cards) for stage, r in chained.items()},
-            )
-            chained.update(report.followers)
+            echo(f"{spec.name}: running")
+            return run_stage(spec, data_dir=data_dir, executor=None, followers=followers, leave_out=leave_out)
+
+        list(run_stages([specs[name] for name in stages], run_one, chain))
         rows = []
         for card in db.session.scalars(select(Card).order_by(Card.id)):
             latest = card.latest_results()

@@ -130,7 +130,7 @@ def read_image(path: str | os.PathLike[str], max_pixels: int = DEFAULT_MAX_PIXEL
     16-bit and float images are stretched to their used range. EXIF orientation is not
     applied: originals are analysed as scanned, and orientation fixes are the judge stage's.
     Inside :func:`shared_decodes` a file decoded (or written by :func:`write_png`) earlier in the
-    block comes back as a copy of that decode.
+    block comes back as that decode, without decoding it again.
     """
     path = Path(path)
     identity = _file_identity(path)
@@ -210,9 +210,9 @@ def read_image_reduced(
 
 # ----------------------------------------------------------------------------- shared decodes
 
-# A file as it is on disk now: (device, inode, size in bytes, modification time in ns). A file
-# replaced or rewritten (atomic_write renames a new inode into place) gets another identity.
-FileIdentity = tuple[str, int, int, int, int]  # (resolved path, device, inode, size, mtime ns)
+# A file as it is on disk now: (resolved path, device, inode, size in bytes, modification time in
+# ns). A file replaced or rewritten (atomic_write renames a new inode into place) gets another.
+FileIdentity = tuple[str, int, int, int, int]
 
 
 class _Kept(OrderedDict[tuple[FileIdentity, int], tuple[ReducedImage, bool]]):

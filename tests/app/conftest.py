@@ -1,5 +1,6 @@
-"""Fixtures of the app's tests (tests/ is not a package): a card with real views for the 3D
-viewer's tests, and a world with something behind every door for the hostile-input tests."""
+"""Fixtures of the app's tests (tests/ is not a package): two photos mounted as a card, a card
+with real views for the 3D viewer's tests, and a world with something behind every door for the
+hostile-input tests."""
 
 from __future__ import annotations
 
@@ -9,6 +10,18 @@ from typing import Any
 
 import numpy as np
 import pytest
+
+
+def _mounted(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    gap = np.full((left.shape[0], 24, 3), (214, 200, 170), np.uint8)
+    return np.concatenate([left, gap, right], axis=1)
+
+
+@pytest.fixture(scope="session")
+def mount_pair() -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """``mount_pair(left, right)``: two RGB photos of one height side by side on a buff card
+    with a 24 px gutter, as the test cards of ``keystone run`` are made."""
+    return _mounted
 
 
 @pytest.fixture

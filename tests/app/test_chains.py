@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 from PIL import Image
-from sqlalchemy import delete, select
+from sqlalchemy import delete, select, update
 
 from app.claims import Driver, StageClaim
 from app.cli import cli
@@ -24,13 +24,8 @@ pytestmark = pytest.mark.both_databases
 DEFAULT_STAGES = ("filter", "orientation", "rectify", "disparity", "grade")
 
 
-def _mounted(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    gap = np.full((left.shape[0], 24, 3), (214, 200, 170), np.uint8)
-    return np.concatenate([left, gap, right], axis=1)
-
-
 @pytest.fixture
-def catalogue(tmp_path: Path, runner) -> Path:  # type: ignore[no-untyped-def]
+def catalogue(tmp_path: Path, runner, mount_pair) -> Path:  # type: ignore[no-untyped-def]
     """Two stereo cards (a JPEG, whose filter and orientation decodes are reduced, and a PNG) and
     a card of two unrelated photos the filter culls."""
     from skimage import data
@@ -38,11 +33,11 @@ def catalogue(tmp_path: Path, runner) -> Path:  # type: ignore[no-untyped-def]
     left, right, _ = data.stereo_motorcycle()
     folder = tmp_path / "scans"
     folder.mkdir()
-    Image.fromarray(_mounted(left, right)).resize((2 * 1520, 2 * 500)).save(folder / "stereo_large.jpg", quality=92)
-    Image.fromarray(_mounted(right[:, ::-1], left[:, ::-1])).save(folder / "stereo_mirrored_scene.png")
+    Image.fromarray(mount_pair(left, right)).resize((2 * 1520, 2 * 500)).save(folder / "stereo_large.jpg", quality=92)
+    Image.fromarray(mount_pair(right[:, ::-1], left[:, ::-1])).save(folder / "stereo_mirrored_scene.png")
     astronaut = data.astronaut()[:400, :500]
     coffee = np.ascontiguousarray(data.coffee()[:, :500])
-    Image.fromarray(_mounted(astronaut, coffee)).save(folder / "two_unrelated_photos.png")
+    Image.fromarray(mount_pair(astronaut, coffee)).save(folder / "two_unrelated_photos.png")
     result = runner.invoke(cli, ["ingest", str(folder), "--json"])
     assert result.exit_code == 0, result.output
     return folder
@@ -88,8 +83,9 @@ def test_a_chained_run_writes_what_a_stage_by_stage_run_writes(app, runner, cata
     expected = _results(app)
     assert {stage for _, stage in expected} == set(DEFAULT_STAGES)
     assert by_stage["grade"]["processed"] == 2 and all(r["chained"] == 0 for r in by_stage.values())
-    with app.app_context():
+    with app.app_context():  # back to freshly ingested cards
         db.session.execute(delete(StageResult))
+        db.session.execute(update(Card).values(state="ingested"))
         db.session.commit()
 
     chained = _run(runner, "--workers", "2")  # a process pool: the chains travel to workers

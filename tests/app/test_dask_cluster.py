@@ -18,7 +18,6 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import pytest
 from PIL import Image
 
@@ -28,13 +27,8 @@ STAGES = "filter,orientation,rectify,disparity,grade"
 SCHEDULER_AT = re.compile(r"Scheduler at:\s+(tcp://127\.0\.0\.1:\d+)")
 
 
-def _mounted(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    gap = np.full((left.shape[0], 24, 3), (214, 200, 170), np.uint8)
-    return np.concatenate([left, gap, right], axis=1)
-
-
 @pytest.fixture(scope="module")
-def scans(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def scans(tmp_path_factory: pytest.TempPathFactory, mount_pair) -> Path:  # type: ignore[no-untyped-def]
     """Six stereo cards cut from the Motorcycle pair at different places (six content hashes)."""
     from skimage import data
 
@@ -43,7 +37,7 @@ def scans(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for index in range(6):
         x0, y0 = 40 * index, 12 * index
         crop = (slice(y0, y0 + 360), slice(x0, x0 + 480))
-        Image.fromarray(_mounted(left[crop], right[crop])).save(folder / f"card{index}.png")
+        Image.fromarray(mount_pair(left[crop], right[crop])).save(folder / f"card{index}.png")
     return folder
 
 

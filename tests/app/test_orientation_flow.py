@@ -18,11 +18,6 @@ from app.db import db
 pytestmark = pytest.mark.both_databases
 
 
-def _mounted(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    gap = np.full((left.shape[0], 24, 3), (214, 200, 170), np.uint8)
-    return np.concatenate([left, gap, right], axis=1)
-
-
 def _cards(runner) -> dict[str, dict]:  # type: ignore[no-untyped-def]
     result = runner.invoke(cli, ["cards", "--json"])
     assert result.exit_code == 0, result.output
@@ -57,13 +52,13 @@ def _approve_judge(app, card_id: int, batch_id: int, label: dict, state: str = "
 
 
 @pytest.fixture
-def flow_cards(tmp_path: Path, runner) -> Path:  # type: ignore[no-untyped-def]
+def flow_cards(tmp_path: Path, runner, mount_pair) -> Path:  # type: ignore[no-untyped-def]
     from skimage import data
 
     left, right, _ = data.stereo_motorcycle()
     folder = tmp_path / "scans"
     folder.mkdir()
-    card = _mounted(left, right)
+    card = mount_pair(left, right)
     Image.fromarray(card).save(folder / "upright.png")
     Image.fromarray(np.ascontiguousarray(card[::-1, ::-1])).save(folder / "turned.png")
     Image.fromarray(255 - card).save(folder / "negative.png")

@@ -18,23 +18,18 @@ from app.models import Card, StageResult
 pytestmark = pytest.mark.both_databases
 
 
-def _mounted(left: np.ndarray, right: np.ndarray) -> np.ndarray:
-    gap = np.full((left.shape[0], 24, 3), (214, 200, 170), np.uint8)
-    return np.concatenate([left, gap, right], axis=1)
-
-
 @pytest.fixture
-def catalogue(tmp_path: Path, runner) -> Path:  # type: ignore[no-untyped-def]
+def catalogue(tmp_path: Path, runner, mount_pair) -> Path:  # type: ignore[no-untyped-def]
     from skimage import data
 
     left, right, _ = data.stereo_motorcycle()
     folder = tmp_path / "scans"
     folder.mkdir()
-    Image.fromarray(_mounted(left, right)).save(folder / "stereo.jpg", quality=92)
-    Image.fromarray(_mounted(right[:, ::-1], left[:, ::-1])).save(folder / "stereo_mirrored_scene.png")
+    Image.fromarray(mount_pair(left, right)).save(folder / "stereo.jpg", quality=92)
+    Image.fromarray(mount_pair(right[:, ::-1], left[:, ::-1])).save(folder / "stereo_mirrored_scene.png")
     astronaut = data.astronaut()[:400, :500]
     coffee = np.ascontiguousarray(data.coffee()[:, :500])
-    Image.fromarray(_mounted(astronaut, coffee)).save(folder / "two_unrelated_photos.png")
+    Image.fromarray(mount_pair(astronaut, coffee)).save(folder / "two_unrelated_photos.png")
     result = runner.invoke(cli, ["ingest", str(folder), "--json"])
     assert result.exit_code == 0, result.output
     return folder
@@ -194,7 +189,7 @@ def test_dask_executor_without_dask_says_how_to_get_it(runner):
         pytest.skip("dask.distributed is installed")
 
 
-def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, runner, tmp_path, decide_orientation):
+def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, runner, tmp_path, decide_orientation, mount_pair):
     import cv2
     from skimage import data
 
@@ -205,8 +200,8 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
     tilted = cv2.warpAffine(right, tilt, (width, height), borderMode=cv2.BORDER_REFLECT)
     folder = tmp_path / "pairs"
     folder.mkdir()
-    Image.fromarray(_mounted(left, tilted)).save(folder / "tilted.png")
-    Image.fromarray(_mounted(left, right)).save(folder / "aligned.png")
+    Image.fromarray(mount_pair(left, tilted)).save(folder / "tilted.png")
+    Image.fromarray(mount_pair(left, right)).save(folder / "aligned.png")
     assert runner.invoke(cli, ["ingest", str(folder)]).exit_code == 0
     decide_orientation()  # a curator knows both are upright positives in eye order
     result = runner.invoke(cli, ["run", "--stages", "filter,rectify,disparity", "--json"])
@@ -295,14 +290,14 @@ def _approve(app, card_id: int, kind: str, label: dict) -> None:  # type: ignore
         db.session.commit()
 
 
-def test_rectify_consumes_approved_crowd_judgements_and_boxes(app, runner, tmp_path):
+def test_rectify_consumes_approved_crowd_judgements_and_boxes(app, runner, tmp_path, mount_pair):
     from skimage import data
 
     left, right, _ = data.stereo_motorcycle()
     folder = tmp_path / "crowd"
     folder.mkdir()
-    Image.fromarray(_mounted(left, right)).save(folder / "in_review.png")
-    Image.fromarray(np.ascontiguousarray(_mounted(left, right)[::-1, ::-1])).save(folder / "upside_down.png")
+    Image.fromarray(mount_pair(left, right)).save(folder / "in_review.png")
+    Image.fromarray(np.ascontiguousarray(mount_pair(left, right)[::-1, ::-1])).save(folder / "upside_down.png")
     assert runner.invoke(cli, ["ingest", str(folder)]).exit_code == 0
     assert runner.invoke(cli, ["run", "--stages", "filter"]).exit_code == 0
     with app.app_context():

@@ -82,6 +82,9 @@ class ChainTask:
     # follower stage -> inputs digest of its finished result with these parameters (when there
     # is one): the chain stops there, as the stage would find it already done
     finished: Mapping[str, str] = field(default_factory=dict)
+    # the plain-JSON decisions about the card's collection that follower inputs read (the
+    # learned head in force, an operator's word), looked up by the driver: a worker has no database
+    approved: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def card_id(self) -> int:  # what pipeline.runner.run_tasks reads of a task
@@ -126,7 +129,7 @@ def run_chain(
             required = card.results.get(step.requires) if step.requires else None
             if step.requires and (required is None or required.status not in FINISHED):
                 break
-            inputs = dict(step.inputs(card, {})) if step.inputs is not None else {}
+            inputs = dict(step.inputs(card, dict(chain.approved))) if step.inputs is not None else {}
             if step.ready is not None and not step.ready(card, inputs):
                 break
             inputs_digest = digest(inputs)

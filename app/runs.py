@@ -102,10 +102,21 @@ def card_orientation(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     )
 
 
+# Decisions about a card's whole collection, plain JSON, that a chained worker is given with the
+# card (app.chains.ChainTask.approved): the learned head in force (review.upright_fit).
+COLLECTION_DECISIONS: tuple[str, ...] = ("upright_head",)
+
+
 def orientation_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
-    """What the orientation step reads: the filter's split boxes (card pixels)."""
+    """What the orientation step reads: the filter's split boxes (card pixels), and the learned
+    head refitted for the card's collection where there is one (``keystone orientation fit``)."""
     boxes = filter_boxes(card)
-    return {"left_box": boxes["left_box"], "right_box": boxes["right_box"]} if boxes else {}
+    if not boxes:
+        return {}
+    inputs = {"left_box": boxes["left_box"], "right_box": boxes["right_box"]}
+    if approved.get("upright_head"):
+        inputs["upright_head"] = dict(approved["upright_head"])
+    return inputs
 
 
 def photo_area_boxes(card: Card) -> dict[str, Any]:
@@ -683,6 +694,11 @@ class _Chain:
             name: {card_id: result_fingerprint(r.status, r.started_at) for card_id, r in results.items()}
             for name, results in own.items()
         }
+        decided = approved_annotations(ids)
+        collection_wide = {
+            card_id: {kind: value for kind, value in kinds.items() if kind in COLLECTION_DECISIONS}
+            for card_id, kinds in decided.items()
+        }
         db.session.commit()  # no read transaction open while the cards compute
         claimed_by: dict[str, set[int]] = {}
         for name, h in self.hashes.items():
@@ -697,6 +713,7 @@ class _Chain:
                 results=tuple(latest[task.card_id].values()),
                 claimed=stages,
                 finished=finished[task.card_id],
+                approved=collection_wide.get(task.card_id, {}),
             )
 
     def take(self, item: ChainOutcome | StageRecord) -> StageRecord:

@@ -9,6 +9,8 @@ filter,orientation,rectify,disparity,grade``; ``keystone cards --json`` is read 
 * ``wrong_graded``: cards graded with an orientation other than the truth (must be 0);
 * ``auto_right`` / ``auto_wrong``: decided automatically (``decided_by == "auto"``) and right /
   wrong, over all variants (target: auto_right >= 85 %);
+* ``decision``: the step's own outcome per variant (``auto``, ``confirm``: a proposal people
+  confirm in a grid, ``ask``: a one-card judge task), with ``proposal_right`` for the confirms;
 * ``sent_to_people``: variants waiting for people; ``originals_sent_to_people`` of the originals
   (sent needlessly: target at most one in seven);
 * per flag, the share right among the flags the step decided (``flag_accuracy``), with the
@@ -34,6 +36,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from PIL import Image
 
@@ -51,6 +54,9 @@ VARIANT_FLAGS: dict[str, tuple[bool, bool, bool]] = {
     "rotated_180": (True, False, False),
     "negative": (False, True, False),
     "swapped": (False, False, True),
+    # the original at another size (0.6x when wider than 1200 px, else 1.5x): the cues and the
+    # network must not depend on the scan's resolution
+    "rescaled": (False, False, False),
 }
 STAGES = "filter,orientation,rectify,disparity,grade"
 
@@ -97,6 +103,10 @@ def make_variants(cards: list[tuple[str, Path, tuple[Box, Box] | None]], out: Pa
                 image = 255 - card
             elif name == "swapped":
                 image, _, _ = orient_variant(card, same[0], same[1], False, False, True)
+            elif name == "rescaled":
+                factor = 0.6 if card.shape[1] > 1200 else 1.5
+                size = (round(card.shape[1] * factor), round(card.shape[0] * factor))
+                image = cv2.resize(card, size, interpolation=cv2.INTER_AREA if factor < 1 else cv2.INTER_CUBIC)
             else:
                 image = card
             file_name = f"{stem}__{name}.png"
@@ -106,7 +116,7 @@ def make_variants(cards: list[tuple[str, Path, tuple[Box, Box] | None]], out: Pa
                 "variant": name,
                 "flags": dict(zip(FLAGS, flags)),
                 "split": "tune" if stem in TUNE else "held_out",
-                "boxes": _variant_truth(name, card.shape[:2], same, boxes),
+                "boxes": None if name == "rescaled" else _variant_truth(name, card.shape[:2], same, boxes),
             }
     return truths
 
@@ -170,6 +180,7 @@ def evaluate(truths: dict[str, dict[str, Any]], report: dict[str, Any], cards: l
                 "truth": truth["flags"],
                 "right": right,
                 "flags_step": {f: (metrics.get("flags") or {}).get(f, {}).get("value") for f in FLAGS},
+                "proposal_right": (metrics.get("proposed") or {}) == truth["flags"],
                 "graded": stages["grade"]["status"] == "done",
                 "grade": stages["grade"].get("outcome"),
                 "crop": crop,
@@ -207,6 +218,16 @@ def summarise(rows: list[dict[str, Any]], report: dict[str, Any]) -> dict[str, A
         "auto_wrong": [r["source"] for r in auto if not r["right"]],
         "auto_right_fraction": round(sum(r["right"] for r in auto) / n, 4) if n else None,
         "sent_to_people": sum(r["orientation"]["decided_by"] is None for r in rows),
+        "decisions": {d: sum(r["decision"] == d for r in rows) for d in ("auto", "confirm", "ask")},
+        "confirm_proposals_right": sum(r["decision"] == "confirm" and r["proposal_right"] for r in rows),
+        "per_variant": {
+            v: {
+                "n": sum(r["variant"] == v for r in rows),
+                "auto_right": sum(r["variant"] == v and r["right"] and r["orientation"]["decided_by"] == "auto" for r in rows),
+                "sent_to_people": sum(r["variant"] == v and r["orientation"]["decided_by"] is None for r in rows),
+            }
+            for v in VARIANT_FLAGS
+        },
         "originals_sent_to_people": sum(r["orientation"]["decided_by"] is None for r in originals),
         "originals": len(originals),
         "waiting_for_people": report.get("waiting_for_people"),

@@ -139,7 +139,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any, cast
@@ -151,6 +151,7 @@ from scipy.stats import spearmanr
 from .disparity import DisparityParams, estimate_disparity
 from .errors import InvalidInputError, PipelineError
 from .photo_area import PhotoAreaParams, PhotoAreas, find_photo_areas
+from .upright import SHIPPED_HEAD_VERSION
 
 Box = tuple[int, int, int, int]
 
@@ -169,6 +170,17 @@ CUE_FLAGS: dict[str, tuple[str, ...]] = {
     "smooth_bright": ("inverted",),
     "arched_top": ("upside_down",),
     "text_upright": ("upside_down",),
+    "learned_tone": ("inverted",),
+    "learned_upright": ("upside_down",),
+    "learned_upright_inverse": ("upside_down",),
+}
+
+# Cues measured on the photos as one tone hypothesis has them: they speak only to the hypotheses
+# with that value of the flag (the learned upright cue reads the photos as a positive, so under
+# "a negative" it reads them inverted).
+CUE_CONDITIONS: dict[str, tuple[str, bool]] = {
+    "learned_upright": ("inverted", False),
+    "learned_upright_inverse": ("inverted", True),
 }
 
 
@@ -239,6 +251,24 @@ class OrientationParams:
     # clearly one way and not the other (value about 0.45) gives upside_down 0.98 on its own.
     # Measured: on the 15 shared cards both ways up, every line that counted read the right way.
     w_text_upright: float = 4.5
+    # The learned cues' values are their heads' log-odds (pipeline.upright; the L2 strength
+    # chosen by cross-validation keeps them calibrated), averaged over the two photos.
+    w_learned_tone: float = 0.5
+    w_learned_upright: float = 1.0
+    learned_max_log_odds: float = 5.0
+    """A learned cue's value is clipped to +-this (P 0.993): one photo the network is sure of
+    must not outweigh everything else on the card."""
+    learned_head: str = ""
+    """Path of a refitted head (``keystone orientation fit``), or "" for the shipped one."""
+    learned_head_version: str = SHIPPED_HEAD_VERSION
+    """The head's version (part of the parameter hash: a refit reruns the step)."""
+    learned_tone_sure: float = 4.0
+    """Log-odds: when the hand-made tone cues (colour above all) are at least this sure, the
+    photos are read by the network in that tone only (2 passes a photo instead of 4)."""
+    confirm_probability: float = 0.5
+    """A card not decided automatically whose most probable combination has at least this
+    probability goes to people as a proposal to confirm at a glance (``decision`` "confirm");
+    below it, people judge it from scratch ("ask")."""
     text_detect_side: int = 1024
     """px: the card's longer side for the text detector (0 turns the text cue off)."""
     fill_only_when_it_could_matter: bool = True
@@ -264,12 +294,17 @@ class OrientationParams:
             )
         if not 0.5 < self.auto_probability < 1.0:
             raise InvalidInputError(f"Expected 0.5 < auto_probability < 1, got {self.auto_probability}")
+        if not 0.0 <= self.confirm_probability <= self.auto_probability:
+            raise InvalidInputError(f"Expected 0 <= confirm_probability <= auto_probability, got {self.confirm_probability}")
+        if not (math.isfinite(self.learned_max_log_odds) and self.learned_max_log_odds > 0):
+            raise InvalidInputError(f"Expected learned_max_log_odds > 0, got {self.learned_max_log_odds}")
         for name in self.weights():
             if not math.isfinite(self.weights()[name]) or self.weights()[name] < 0:
                 raise InvalidInputError(f"Expected a finite weight >= 0 for {name}, got {self.weights()[name]}")
 
     def weights(self) -> dict[str, float]:
-        return {cue: float(getattr(self, f"w_{cue}")) for cue in CUE_FLAGS}
+        # the inverse reading is the same cue under the other tone hypothesis: one weight
+        return {cue: float(getattr(self, f"w_{cue.removesuffix('_inverse')}")) for cue in CUE_FLAGS}
 
 
 @dataclass(frozen=True)
@@ -335,6 +370,12 @@ class OrientationEstimate:
     photo_areas: PhotoAreas | None = field(default=None, repr=False, compare=False)
     photo_areas_scale: tuple[float, float] = (1.0, 1.0)
     photo_areas_inverted: bool = False
+    proposed: tuple[bool, bool, bool] | None = None  # the most probable (upside_down, inverted, swapped)
+    confirm_probability: float = 0.5  # OrientationParams.confirm_probability, for decision
+    known: dict[str, bool] = field(default_factory=dict)  # flags people fixed for the collection
+    # The learned heads' inputs (pipeline.upright), kept so a collection can refit the head on its
+    # own decided cards; not part of as_dict().
+    learned_differences: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def with_upside_down(self, upside_down: bool) -> dict[str, Any] | None:
         """The orientation once a person has said whether the card is upside down: ``swapped``
@@ -356,6 +397,23 @@ class OrientationEstimate:
         return self.undecidable is None and self.combination_decided and all(flag.decided for flag in self.flags)
 
     @property
+    def decision(self) -> str:
+        """``auto`` (decided: no person looks), ``confirm`` (a proposal people confirm at a glance,
+        :attr:`proposed`, whose probability is at least ``confirm_probability``) or ``ask``
+        (people judge the card from scratch: undecidable, or no combination stands out)."""
+        if self.decided:
+            return "auto"
+        if self.undecidable is None and self.proposed is not None and self.combination_probability >= self.confirm_probability:
+            return "confirm"
+        return "ask"
+
+    def proposed_orientation(self) -> dict[str, bool] | None:
+        """The most probable flags (None when undecidable): what a confirmation grid shows."""
+        if self.undecidable is not None or self.proposed is None:
+            return None
+        return dict(zip(FLAGS, self.proposed))
+
+    @property
     def confidence(self) -> float:
         """The smallest of the flags' probabilities of the chosen value (0 when undecidable)."""
         if self.undecidable is not None:
@@ -375,6 +433,9 @@ class OrientationEstimate:
             "same_turn_and_swap": round(self.same_turn_and_swap, 4),
             "tie_decided": self.tie_decided,
             "combination_probability": round(self.combination_probability, 4),
+            "decision": self.decision,
+            "proposed": self.proposed_orientation(),
+            "known": self.known,
             "flags": {f.name: f.as_dict() for f in self.flags},
             "seconds": round(self.seconds, 4),
             "details": self.details,
@@ -695,7 +756,7 @@ def eye_order_support(values: dict[str, float], weights: dict[str, float], swapp
 
 
 def decided_combination(
-    values: dict[str, float], weights: dict[str, float], threshold: float
+    values: dict[str, float], weights: dict[str, float], threshold: float, known: Known | None = None
 ) -> tuple[tuple[bool, bool, bool] | None, str]:
     """The flag combination a card is decided on, or None and why it goes to people: the most
     probable combination must reach ``threshold``, and to call a pair scanned with its eyes
@@ -704,7 +765,7 @@ def decided_combination(
     without the rule, 50 with it, none wrong either way; asking the same of "not swapped" kept
     47, vetoing on leans of 0.03-0.04 log-odds, which is noise. On the demo's Motorcycle crops it
     sends the six decided swapped, wrongly, to people."""
-    joint = hypothesis_probabilities(values, weights)
+    joint = hypothesis_probabilities(values, weights, known)
     best = max(joint, key=joint.__getitem__)
     if joint[best] < threshold:
         return None, f"the most probable combination has P {joint[best]:.2f} < {threshold}"
@@ -717,12 +778,16 @@ def decided_combination(
     return best, ""
 
 
-def _outcome(values: dict[str, float], weights: dict[str, float], threshold: float) -> tuple[bool, bool, bool] | None:
+def _outcome(
+    values: dict[str, float], weights: dict[str, float], threshold: float, known: Known | None = None
+) -> tuple[bool, bool, bool] | None:
     """The combination the card would be decided on, or None when it would go to people."""
-    return decided_combination(values, weights, threshold)[0]
+    return decided_combination(values, weights, threshold, known)[0]
 
 
-def _fill_not_needed(values: dict[str, float], weights: dict[str, float], params: OrientationParams) -> str | None:
+def _fill_not_needed(
+    values: dict[str, float], weights: dict[str, float], params: OrientationParams, known: Known | None = None
+) -> str | None:
     """Why ``occlusion_fill`` cannot change the step's outcome on this card, or None when it could.
 
     Each hypothesis's probability is monotone in every cue's value (a cue moves the logits of one
@@ -731,13 +796,14 @@ def _fill_not_needed(values: dict[str, float], weights: dict[str, float], params
     value does.
     The card is decided on the same flags at both ends of the fill cue (print is then never read,
     whatever the fill), or it goes to people at every corner of the fill cue and the print."""
-    ends = {_outcome({**values, "occlusion_fill": end}, weights, params.auto_probability) for end in (-1.0, 1.0)}
+    ends = {_outcome({**values, "occlusion_fill": end}, weights, params.auto_probability, known) for end in (-1.0, 1.0)}
     if len(ends) == 1 and None not in ends:
         return "not measured: the card is decided on the same flags whatever it reads"
     text = (-1.0, 1.0) if params.text_detect_side else (0.0,)
     corners = itertools.product((-1.0, 1.0), text)
     if all(
-        _outcome({**values, "occlusion_fill": f, "text_upright": t}, weights, params.auto_probability) is None for f, t in corners
+        _outcome({**values, "occlusion_fill": f, "text_upright": t}, weights, params.auto_probability, known) is None
+        for f, t in corners
     ):
         return "not measured: whatever it and the print read, the card goes to people"
     return None
@@ -837,6 +903,113 @@ def _arched_ends(evidence: Iterable[str], end: str) -> int:
     return sum(f"{half}: arched {end}" in evidence for half in ("left", "right"))
 
 
+def _learned_photos(card: np.ndarray, lb: Box, rb: Box, areas: PhotoAreas | None) -> tuple[list[np.ndarray], str]:
+    """The two photos the network reads (RGB, working px): the photo areas where they were found,
+    else the split's boxes less 6 % a side (measured: scored on boxes that keep the mount,
+    negatives went wrong; the mount's paper is not the photo's tone)."""
+    rgb = card if card.ndim == 3 else np.repeat(card[:, :, None], 3, axis=2)
+    boxes, where = (lb, rb), "split boxes, inset 6 %"
+    if areas is not None and not areas.is_fallback:
+        if min(min(b[2] - b[0], b[3] - b[1]) for b in (areas.left_box, areas.right_box)) >= MIN_PHOTO_SIDE:
+            boxes, where = (areas.left_box, areas.right_box), "photo areas"
+    if where != "photo areas":
+        boxes = tuple(
+            (
+                b[0] + (b[2] - b[0]) * 6 // 100,
+                b[1] + (b[3] - b[1]) * 6 // 100,
+                b[2] - (b[2] - b[0]) * 6 // 100,
+                b[3] - (b[3] - b[1]) * 6 // 100,
+            )
+            for b in boxes
+        )
+    return [np.ascontiguousarray(rgb[b[1] : b[3], b[0] : b[2]]) for b in boxes], where
+
+
+@dataclass(frozen=True)
+class LearnedReading:
+    """What the network read: the cue values (clipped log-odds), in words, and the heads' inputs
+    (``turn``, ``turn_negative``, ``tone``: ``(2, 1280)`` each, the left photo first) for a refit."""
+
+    values: dict[str, float]
+    details: dict[str, Any]
+    differences: dict[str, np.ndarray]
+
+
+def read_learned_cues(
+    card: np.ndarray,
+    lb: Box,
+    rb: Box,
+    areas: PhotoAreas | None,
+    tone_log_odds: float,
+    params: OrientationParams,
+    known: Known | None,
+) -> LearnedReading:
+    """The learned cues (:mod:`pipeline.upright`) on the card's two photos.
+
+    ``learned_upright`` reads the photos as a positive, ``learned_upright_inverse`` as a negative
+    (each counts only under that tone hypothesis, :data:`CUE_CONDITIONS`); ``learned_tone`` is the
+    positive-vs-negative head. Where the tone is known (an operator's word) or the hand-made tone
+    cues are at least ``learned_tone_sure`` log-odds sure (colour), only that tone is read and
+    both upright readings take its value, so the cue adds nothing about the tone; no tone head."""
+    from .upright import (
+        UprightInputError,
+        UprightModelMissingError,
+        load_head,
+        tone_difference,
+        turn_difference,
+        view_features,
+    )
+
+    photos, where = _learned_photos(card, lb, rb, areas)
+    inverted = None if not known else known.get("inverted")
+    if inverted is None and abs(tone_log_odds) >= params.learned_tone_sure:
+        inverted = tone_log_odds < 0
+    views = (
+        ("as_given", "turned", "negative", "negative_turned")
+        if inverted is None
+        else ("negative", "negative_turned")
+        if inverted
+        else ("as_given", "turned")
+    )
+    zero = dict.fromkeys(("learned_tone", "learned_upright", "learned_upright_inverse"), 0.0)
+    try:
+        head = load_head(params.learned_head)
+        features = view_features(photos, head.input_side, views)
+    except (UprightModelMissingError, UprightInputError) as exc:
+        return LearnedReading(zero, {"read": f"not read: {exc}", "on": where}, {})
+    except PipelineError as exc:
+        return LearnedReading(zero, {"read": f"not read ({exc.code}): {exc}", "on": where}, {})
+    limit = params.learned_max_log_odds
+    differences: dict[str, np.ndarray] = {}
+    margins: dict[str, list[float]] = {}
+    if "as_given" in features:
+        differences["turn"] = turn_difference(features)
+    if "negative" in features:
+        differences["turn_negative"] = turn_difference(features, negative=True)
+    if "as_given" in features and "negative" in features:
+        differences["tone"] = tone_difference(features)
+    for name, difference in differences.items():
+        margins[name] = [float(v) for v in head.margins("tone" if name == "tone" else "turn", difference)]
+
+    def mean(name: str) -> float:
+        return float(np.clip(np.mean(margins[name]), -limit, limit))
+
+    upright = mean("turn") if "turn" in margins else mean("turn_negative")
+    upright_inverse = mean("turn_negative") if "turn_negative" in margins else upright
+    values = {
+        "learned_tone": mean("tone") if "tone" in margins else 0.0,
+        "learned_upright": upright,
+        "learned_upright_inverse": upright_inverse,
+    }
+    details = {
+        "read": f"read as {'both tones' if inverted is None else 'a negative' if inverted else 'a positive'}",
+        "on": where,
+        "head": head.version,
+        "margins": {name: [round(v, 3) for v in values_] for name, values_ in margins.items()},
+    }
+    return LearnedReading(values, details, differences)
+
+
 def _text_upright(card: np.ndarray, detect_side: int) -> tuple[float, Any]:
     """:func:`pipeline.text_orientation.read_text_orientation` on the card (a positive): its
     value and what it read; 0 with the reason when the text models are not installed."""
@@ -867,27 +1040,47 @@ def parity(hypothesis: tuple[bool, bool, bool], flags: tuple[str, ...]) -> int:
     return sum(hypothesis[FLAGS.index(f)] for f in flags) % 2
 
 
-def hypothesis_probabilities(values: dict[str, float], weights: dict[str, float]) -> dict[tuple[bool, bool, bool], float]:
+Known = Mapping[str, bool]
+
+
+def _allowed(hypothesis: tuple[bool, bool, bool], known: Known | None) -> bool:
+    return not known or all(hypothesis[FLAGS.index(flag)] == value for flag, value in known.items())
+
+
+def hypothesis_probabilities(
+    values: dict[str, float], weights: dict[str, float], known: Known | None = None
+) -> dict[tuple[bool, bool, bool], float]:
     """``P(h)`` for the eight hypotheses ``h = (upside_down, inverted, swapped)`` under the
-    log-linear model of the module docstring."""
+    log-linear model of the module docstring; a conditional cue (:data:`CUE_CONDITIONS`) counts
+    only for the hypotheses it was measured under. ``known``: flags fixed by people (an
+    operator's word for the collection); hypotheses against them get probability 0."""
     scores = np.array(
-        [sum(weights[c] * values.get(c, 0.0) * (1 - 2 * parity(h, CUE_FLAGS[c])) for c in CUE_FLAGS) for h in HYPOTHESES]
+        [
+            sum(
+                weights[c] * values.get(c, 0.0) * (1 - 2 * parity(h, CUE_FLAGS[c]))
+                for c in CUE_FLAGS
+                if c not in CUE_CONDITIONS or h[FLAGS.index(CUE_CONDITIONS[c][0])] == CUE_CONDITIONS[c][1]
+            )
+            if _allowed(h, known)
+            else -np.inf
+            for h in HYPOTHESES
+        ]
     )
     p = np.exp(scores - scores.max())
     p /= p.sum()
     return {h: float(p[k]) for k, h in enumerate(HYPOTHESES)}
 
 
-def flag_probabilities(values: dict[str, float], weights: dict[str, float]) -> dict[str, float]:
+def flag_probabilities(values: dict[str, float], weights: dict[str, float], known: Known | None = None) -> dict[str, float]:
     """Marginal ``P(flag set)`` under the log-linear model of the module docstring."""
-    joint = hypothesis_probabilities(values, weights)
+    joint = hypothesis_probabilities(values, weights, known)
     return {flag: sum(p for h, p in joint.items() if h[i]) for i, flag in enumerate(FLAGS)}
 
 
-def same_turn_and_swap_probability(values: dict[str, float], weights: dict[str, float]) -> float:
+def same_turn_and_swap_probability(values: dict[str, float], weights: dict[str, float], known: Known | None = None) -> float:
     """``P(upside_down == swapped)`` under the same model: the ground plane sees exactly this
     parity, so it is often certain while both flags are not (one answer then settles both)."""
-    return sum(p for h, p in hypothesis_probabilities(values, weights).items() if h[0] == h[2])
+    return sum(p for h, p in hypothesis_probabilities(values, weights, known).items() if h[0] == h[2])
 
 
 def _meaning(name: str, value: float) -> str:
@@ -896,6 +1089,9 @@ def _meaning(name: str, value: float) -> str:
             "warm_tone": "greyscale scan: no colour evidence",
             "arched_top": "no arched photo tops found",
             "text_upright": "no readable horizontal print (or not read: see details)",
+            "learned_tone": "not read (see details): no network evidence",
+            "learned_upright": "not read (see details): no network evidence",
+            "learned_upright_inverse": "not read (see details): no network evidence",
         }.get(name, "no measurable evidence")
     even = value > 0
     return {
@@ -933,6 +1129,17 @@ def _meaning(name: str, value: float) -> str:
             "the photos' arched tops are at the top: upright" if even else "the photos' arched tops are at the bottom: turned"
         ),
         "text_upright": "the printed text reads upright" if even else "the printed text reads upside down: turned",
+        "learned_tone": ("the network sees a positive print" if even else "the network sees a negative: tones inverted"),
+        "learned_upright": (
+            "read as a positive, the network sees the photos upright"
+            if even
+            else "read as a positive, the network sees the photos upside down: turned"
+        ),
+        "learned_upright_inverse": (
+            "read as a negative, the network sees the photos upright"
+            if even
+            else "read as a negative, the network sees the photos upside down: turned"
+        ),
     }[name]
 
 
@@ -972,7 +1179,11 @@ def _stereo_photos(grey: np.ndarray, lb: Box, rb: Box, areas: PhotoAreas | None)
 
 
 def estimate_orientation(
-    card: np.ndarray, left_box: Box, right_box: Box, params: OrientationParams = OrientationParams()
+    card: np.ndarray,
+    left_box: Box,
+    right_box: Box,
+    params: OrientationParams = OrientationParams(),
+    known: Known | None = None,
 ) -> OrientationEstimate:
     """Estimate ``upside_down``, ``inverted`` and ``swapped`` for a card as scanned.
 
@@ -980,9 +1191,15 @@ def estimate_orientation(
     one left of the right one. Order of decisions: contract checks (raise
     :class:`OrientationInputError`); a blank photo, two identical photos or a third copy of the
     photo beside the boxes -> ``undecidable`` with the reason; else the cues, their
-    combination and the per-flag decision (module docstring).
+    combination and the per-flag decision (module docstring). ``known``: flags people fixed for
+    the whole collection (an operator's word): the hypotheses against them are ruled out, and
+    the other flags are decided as usual.
     """
     clock = time.perf_counter()
+    unknown = sorted(set(known or {}) - set(FLAGS))
+    if unknown:
+        raise OrientationInputError(f"Expected known flags among {FLAGS}, got {unknown}")
+    known = {flag: bool(value) for flag, value in (known or {}).items()}
     card = _to_uint8(card)
     scan = card  # full resolution: the text cue needs it
     height, width = card.shape[:2]
@@ -1019,6 +1236,9 @@ def estimate_orientation(
     weights = params.weights()
     tone = sum(weights[c] * values[c] for c in values if CUE_FLAGS[c] == ("inverted",))
     values["arched_top"], details["arches"], areas = _arched_top(255 - card if tone < 0 else card, params.arch_working_width)
+    learned = read_learned_cues(card, lb, rb, areas, tone, params, known)
+    values.update(learned.values)
+    details["learned"] = learned.details
     stereo_left, stereo_right, details["stereo_on"] = _stereo_photos(grey, lb, rb, areas)
     with _stereo_failures():
         occlusion, ground, stereo_details, forward = _stereo_cues(stereo_left, stereo_right)
@@ -1038,7 +1258,7 @@ def estimate_orientation(
     # The fill cue needs a second stereo pass (about a third of the step). It is measured only
     # where its value could change the outcome: elsewhere the card is decided, or sent to
     # people, the same either way.
-    skipped = _fill_not_needed(values, weights, params) if params.fill_only_when_it_could_matter else None
+    skipped = _fill_not_needed(values, weights, params, known) if params.fill_only_when_it_could_matter else None
     if skipped is not None:
         details["occlusion_fill_votes"] = skipped
     else:
@@ -1046,10 +1266,10 @@ def estimate_orientation(
             values["occlusion_fill"], details["occlusion_fill_votes"] = _occlusion_fill(stereo_left, stereo_right, forward)
     if params.text_detect_side == 0:
         details["text"] = "text cue off"
-    elif params.text_only_when_undecided and _outcome(values, weights, params.auto_probability) is not None:
+    elif params.text_only_when_undecided and _outcome(values, weights, params.auto_probability, known) is not None:
         details["text"] = "not read: the card is decided without it"
     elif params.text_only_when_undecided and all(
-        _outcome({**values, "text_upright": bound}, weights, params.auto_probability) is None for bound in (-1.0, 1.0)
+        _outcome({**values, "text_upright": bound}, weights, params.auto_probability, known) is None for bound in (-1.0, 1.0)
     ):
         # Print read as clearly as it can be, either way up, would still leave the card to people
         # (no colour, no ground plane: the doubt is about another flag).
@@ -1065,7 +1285,7 @@ def estimate_orientation(
     cues = tuple(
         Cue(name=c, flags=CUE_FLAGS[c], value=float(values[c]), weight=weights[c], meaning=meanings[c]) for c in CUE_FLAGS
     )
-    probabilities = flag_probabilities(values, weights)
+    probabilities = flag_probabilities(values, weights, known)
     estimates = []
     for flag in FLAGS:
         p = probabilities[flag]
@@ -1073,10 +1293,12 @@ def estimate_orientation(
         estimates.append(
             FlagEstimate(name=flag, probability=p, decided=decided, evidence=tuple(c for c in cues if flag in c.flags))
         )
-    tie = same_turn_and_swap_probability(values, weights)
+    tie = same_turn_and_swap_probability(values, weights, known)
     tie_decided = tie >= params.auto_probability or tie <= 1.0 - params.auto_probability
-    best = max(hypothesis_probabilities(values, weights).values())
-    chosen, why_not = decided_combination(values, weights, params.auto_probability)
+    joint = hypothesis_probabilities(values, weights, known)
+    proposed = max(joint, key=joint.__getitem__)
+    best = joint[proposed]
+    chosen, why_not = decided_combination(values, weights, params.auto_probability, known)
     if best >= params.auto_probability and chosen is None:
         details["eye_order"] = why_not
         # The eye order is the doubtful flag, and the turn tied to it by the ground plane.
@@ -1095,6 +1317,10 @@ def estimate_orientation(
         photo_areas=areas,
         photo_areas_scale=(scanned[1] / card.shape[1], scanned[0] / card.shape[0]),
         photo_areas_inverted=bool(tone < 0),
+        proposed=proposed,
+        confirm_probability=params.confirm_probability,
+        known=dict(known),
+        learned_differences=learned.differences,
     )
 
 

@@ -165,3 +165,24 @@ def record_event(
     )
     db.session.add(event_row)
     return event_row
+
+
+class UprightHeadFit(db.Model):
+    """A refit of the orientation step's learned upright / positive heads on a collection's own
+    decided cards (``keystone orientation fit``; :mod:`review.upright_fit`).
+
+    ``collection_id`` None: fitted on every collection, used where a collection has no refit of
+    its own. The newest row for a collection is the one in force; older rows stay so a decision
+    can be traced to the head that made it (the head's ``version`` reaches the orientation
+    step's inputs, so a refit changes decisions only on the next run, which lists them)."""
+
+    __tablename__ = "upright_head_fits"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    collection_id: Mapped[int | None] = mapped_column(ForeignKey("collections.id", ondelete="CASCADE"), index=True)
+    version: Mapped[str] = mapped_column(String(80), unique=True)
+    head: Mapped[dict[str, Any]] = mapped_column(JSONType)  # pipeline.upright.UprightHead.as_dict()
+    fitted_on: Mapped[int] = mapped_column(Integer, default=0)  # decided cards used
+    evaluation: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)  # held out, before and after
+    created_by: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
+    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

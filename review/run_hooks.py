@@ -48,6 +48,13 @@ def _grade_params() -> Any:
     return params
 
 
+def _upright_heads(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    # the learned head a collection refitted (keystone orientation fit), for the orientation step
+    from .upright_fit import upright_head_inputs
+
+    return upright_head_inputs(card_ids)
+
+
 def _sync_new_grades(card_ids: list[int]) -> None:
     # New automatic grades reach the curators' queue at once (decided cards keep theirs).
     from .tasks import sync_reviews
@@ -59,5 +66,6 @@ def register(app: Flask) -> None:
     hooks = stage_hooks(app)
     hooks.people_work.append(card_reviews)
     hooks.decisions.append(orientation_overrides)
+    hooks.decisions.append(_upright_heads)
     hooks.stage_params["grade"] = _grade_params
     hooks.after_write.setdefault("grade", []).append(_sync_new_grades)

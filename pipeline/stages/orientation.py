@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 from ..errors import PipelineError
@@ -43,6 +44,7 @@ from ..orientation import (
 )
 from ..photo_area import PhotoAreaParams, PhotoAreas, find_photo_areas
 from ..records import CardTask
+from ..upright import write_learned_differences
 from .base import StageOutput, stage_task
 
 __all__ = ["OrientationStageParams", "orientation_metrics", "orientation_task"]
@@ -82,7 +84,13 @@ def orientation_metrics(estimate: OrientationEstimate, areas: PhotoAreas | None)
         }
     metrics: dict[str, Any] = {
         "flags": flags,
-        "decision": "auto" if estimate.decided else "ask",
+        "decision": estimate.decision,
+        # the most probable flags, what a confirmation grid shows (null when undecidable)
+        "proposed": estimate.proposed_orientation(),
+        "known_flags": estimate.known or None,
+        "learned": estimate.details.get("learned"),
+        # every cue's value: what a refit of the learned head re-decides from (review.upright_fit)
+        "cue_values": {cue.name: round(cue.value, 4) for cue in estimate.cues},
         "confidence": round(estimate.confidence, 4),
         "combination_probability": round(estimate.combination_probability, 4),
         "same_turn_and_swap": round(estimate.same_turn_and_swap, 4),
@@ -115,7 +123,10 @@ def _reason(metrics: dict[str, Any]) -> str:
     for flag, info in metrics["flags"].items():
         state = "yes" if info["value"] else "no" if info["value"] is False else "?"
         words.append(f"{flag} {state} (P {info['p']:.2f})")
-    verdict = "decided automatically" if metrics["decision"] == "auto" else "asking people"
+    verdict = {
+        "auto": "decided automatically",
+        "confirm": "asking people to confirm the most probable orientation",
+    }.get(metrics["decision"], "asking people")
     return f"{verdict}: " + ", ".join(words)
 
 
@@ -157,8 +168,19 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
     card, (full_width, full_height) = decoded.pixels, decoded.full_size
     # the scan's px per decoded px, along x and y (1.0 at full size)
     to_scan = (full_width / card.shape[1], full_height / card.shape[0])
+    known = task.inputs.get("known_flags") or None
+    orientation_params = params.orientation
+    head = task.inputs.get("upright_head")
+    if head:  # a collection's refit (keystone orientation fit): a path under the data dir
+        orientation_params = replace(
+            orientation_params, learned_head=str(Path(task.data_dir) / head["path"]), learned_head_version=str(head["version"])
+        )
     estimate = estimate_orientation(
-        card, _to_decoded(boxes[0], to_scan, card.shape[:2]), _to_decoded(boxes[1], to_scan, card.shape[:2]), params.orientation
+        card,
+        _to_decoded(boxes[0], to_scan, card.shape[:2]),
+        _to_decoded(boxes[1], to_scan, card.shape[:2]),
+        orientation_params,
+        known=known,
     )
     clock = time.perf_counter()
     found = estimate.photo_areas
@@ -181,4 +203,10 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
     metrics["seconds_photo_area"] = round(time.perf_counter() - clock, 4)
     metrics["card_size"] = [int(full_width), int(full_height)]
     metrics["decode_factor"] = decoded.factor
-    return StageOutput(outcome=metrics["decision"], reason=_reason(metrics), metrics=metrics)
+    artifacts = {}
+    if estimate.learned_differences:
+        # The learned heads' inputs, so `keystone orientation fit` can refit the head on the
+        # collection's decided cards without running the network again (float16: ~15 KB a card).
+        path = write_learned_differences(Path(task.work_dir) / "upright_differences.npz", estimate.learned_differences)
+        artifacts["upright_differences"] = str(path.relative_to(task.data_dir))
+    return StageOutput(outcome=metrics["decision"], reason=_reason(metrics), metrics=metrics, artifacts=artifacts)

@@ -258,22 +258,25 @@ def _crops(rgb: np.ndarray, boxes: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-def _pyramid(rgb: np.ndarray, params: FaceParams) -> list[float]:
-    first = PNET_WINDOW / params.min_face_px
-    scales: list[float] = []
-    shorter = min(rgb.shape[:2]) * first
-    while shorter >= PNET_WINDOW:
-        scales.append(first * params.scale_factor ** len(scales))
-        shorter *= params.scale_factor
-    return scales
-
-
-def _pnet_stage(nets: _Nets, rgb: np.ndarray, params: FaceParams) -> np.ndarray:
-    """Squared candidate boxes ``(N, 5)`` (x1, y1, x2, y2 inclusive px, P-net's score)."""
+def _pyramid(rgb: np.ndarray, params: FaceParams) -> list[tuple[float, np.ndarray]]:
+    """P-net's levels: (scale, the photo resized by it), from ``12 / min_face_px`` down by
+    ``scale_factor`` while the shorter side keeps at least one 12 px window."""
     height, width = rgb.shape[:2]
-    levels = []
-    for scale in _pyramid(rgb, params):
-        small = cv2.resize(rgb, (int(np.ceil(width * scale)), int(np.ceil(height * scale))), interpolation=cv2.INTER_AREA)
+    first = PNET_WINDOW / params.min_face_px
+    levels: list[tuple[float, np.ndarray]] = []
+    shorter = min(height, width) * first
+    while shorter >= PNET_WINDOW:
+        scale = first * params.scale_factor ** len(levels)
+        size = (int(np.ceil(width * scale)), int(np.ceil(height * scale)))
+        levels.append((scale, cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)))
+        shorter *= params.scale_factor
+    return levels
+
+
+def _pnet_stage(nets: _Nets, levels: list[tuple[float, np.ndarray]], params: FaceParams) -> np.ndarray:
+    """Squared candidate boxes ``(N, 5)`` (x1, y1, x2, y2 inclusive px, P-net's score)."""
+    found = []
+    for scale, small in levels:
         offsets, probability = nets.run(nets.pnet, _normalised(small[None]), _PNET_OUTPUTS)
         xi, yi = np.nonzero(probability[0, :, :, 1] >= params.thresholds[0])  # the output is (x, y) too
         if xi.size == 0:
@@ -282,10 +285,10 @@ def _pnet_stage(nets: _Nets, rgb: np.ndarray, params: FaceParams) -> np.ndarray:
         top_left = np.fix((PNET_STRIDE * cells + 1) / scale)
         bottom_right = np.fix((PNET_STRIDE * cells + PNET_WINDOW) / scale)
         boxes = np.hstack([top_left, bottom_right, probability[0, xi, yi, 1:2], offsets[0, xi, yi]])
-        levels.append(boxes[_nms(boxes, 0.5)])
-    if not levels:
+        found.append(boxes[_nms(boxes, 0.5)])
+    if not found:
         return np.empty((0, 5))
-    boxes = np.vstack(levels)
+    boxes = np.vstack(found)
     boxes = boxes[_nms(boxes, 0.7)]
     # P-net's regression is in units of the box's width without the +1 (as trained)
     w, h = boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]
@@ -334,17 +337,12 @@ def _working_rgb(image: np.ndarray, params: FaceParams) -> tuple[np.ndarray, flo
     return np.ascontiguousarray(rgb), scale
 
 
-def detect_faces(rgb: np.ndarray, params: FaceParams = FaceParams()) -> list[Face]:
-    """Faces in a photo (module docstring), strongest first, at O-net's ``thresholds[2]``.
-
-    Raises :class:`InvalidInputError` for a bad array (not uint8 (H, W) or (H, W, 3), shorter
-    side under ``min_face_px``), :class:`FaceModelMissingError` when the nets cannot be loaded
-    and :class:`FaceDetectionFailedError` when OpenCV refuses to run them (the caller turns the
-    last two into "no evidence").
-    """
-    working, scale = _working_rgb(rgb, params)
-    nets = _nets()
-    boxes = _pnet_stage(nets, working, params)
+def _detect_working(
+    nets: _Nets, working: np.ndarray, levels: list[tuple[float, np.ndarray]], scale: float, params: FaceParams
+) -> list[Face]:
+    """Faces in a working-size RGB photo (with its pyramid), in the pixels of the photo it was
+    scaled from by ``scale``."""
+    boxes = _pnet_stage(nets, levels, params)
     if len(boxes):
         boxes = _rnet_stage(nets, working, boxes, params)
     if not len(boxes):
@@ -361,18 +359,32 @@ def detect_faces(rgb: np.ndarray, params: FaceParams = FaceParams()) -> list[Fac
     return sorted(faces, key=lambda f: -f.score)
 
 
-def _turned_back(face: Face, width: int, height: int) -> Face:
-    """A face found on the photo turned 180 deg, in the given photo's pixels (the landmarks
-    keep their names: as seen in the turned frame)."""
-    x0, y0, x1, y1 = face.box
-    landmarks = np.array([width - 1, height - 1], np.float64) - face.landmarks
-    return Face(box=(width - x1, height - y1, width - x0, height - y0), score=face.score, landmarks=landmarks)
+def detect_faces(rgb: np.ndarray, params: FaceParams = FaceParams()) -> list[Face]:
+    """Faces in a photo (module docstring), strongest first, at O-net's ``thresholds[2]``.
+
+    Raises :class:`InvalidInputError` for a bad array (not uint8 (H, W) or (H, W, 3), shorter
+    side under ``min_face_px``), :class:`FaceModelMissingError` when the nets cannot be loaded
+    and :class:`FaceDetectionFailedError` when OpenCV refuses to run them (the caller turns the
+    last two into "no evidence").
+    """
+    working, scale = _working_rgb(rgb, params)
+    return _detect_working(_nets(), working, _pyramid(working, params), scale, params)
 
 
 def faces_both_ways(photo: np.ndarray, params: FaceParams = FaceParams()) -> PhotoFaces:
-    """The faces in a photo as given and turned 180 deg (each in the frame it was found in)."""
-    turned = np.ascontiguousarray(photo[::-1, ::-1])
-    return PhotoFaces(tuple(detect_faces(photo, params)), tuple(detect_faces(turned, params)), params.min_score)
+    """The faces in a photo as given and turned 180 deg, each in the frame it was found in.
+    Raises as :func:`detect_faces`.
+
+    The photo is scaled to its working size and its pyramid built once; the turned search reads
+    both turned (a resize commutes with a turn up to rounding at the far edges).
+    """
+    working, scale = _working_rgb(photo, params)
+    nets = _nets()
+    levels = _pyramid(working, params)
+    turned = np.ascontiguousarray(working[::-1, ::-1])
+    turned_levels = [(s, np.ascontiguousarray(level[::-1, ::-1])) for s, level in levels]
+    upright = _detect_working(nets, working, levels, scale, params)
+    return PhotoFaces(tuple(upright), tuple(_detect_working(nets, turned, turned_levels, scale, params)), params.min_score)
 
 
 def face_upright(photos: list[np.ndarray], params: FaceParams = FaceParams()) -> tuple[float, dict[str, Any]]:

@@ -17,7 +17,7 @@ value is not 0), ``right`` (value > 0 for an upright photo, < 0 for a turned one
 landmark check (eyes above mouth). Seconds: median wall and CPU time of one photo's two searches
 on one OpenCV thread (as in a pipeline worker), and of reading the nets once.
 
-    python -m benchmarks.faces [--json] [--data DIR] [--max-side 640] [--photos]
+    python -m benchmarks.faces [--json] [--data DIR] [--max-side 640] [--min-face 20] [--photos] [--sets cards,...]
 """
 
 from __future__ import annotations
@@ -125,13 +125,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--max-side", type=int, default=FaceParams().max_side)
+    parser.add_argument("--min-face", type=float, default=FaceParams().min_face_px, help="min_face_px")
     parser.add_argument("--photos", action="store_true", help="list every photo where a face was found")
     parser.add_argument("--sets", default="cards,cards_negative,keystonedepth")
     args = parser.parse_args(argv)
     if not (args.data / "stereocards").is_dir():
         print(f"no shared data at {args.data}", file=sys.stderr)
         return 2
-    params = dataclasses.replace(FaceParams(), max_side=args.max_side)
+    params = dataclasses.replace(FaceParams(), max_side=args.max_side, min_face_px=args.min_face)
     cv2.setNumThreads(1)  # as pipeline.runner.init_worker: one core per worker
     clock = time.perf_counter()
     detect_faces(np.zeros((64, 64, 3), np.uint8), params)  # reads the nets once

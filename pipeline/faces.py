@@ -113,7 +113,7 @@ class FaceParams:
             raise InvalidInputError(f"Expected three thresholds and min_score in [0, 1), got {self.thresholds}, {self.min_score}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # eq would compare the landmark arrays elementwise
 class Face:
     """One face: its box ``(x0, y0, x1, y1)`` (px, end exclusive), O-net's probability and five
     landmarks ``(5, 2)`` (x, y): left eye, right eye, nose, left and right mouth corner (as seen)."""
@@ -346,7 +346,7 @@ def _onet_stage(nets: _Nets, rgb: np.ndarray, boxes: np.ndarray, params: FacePar
 def _working_rgb(image: np.ndarray, params: FaceParams) -> tuple[np.ndarray, float]:
     """The photo as RGB at most ``max_side`` px long, and its scale (working px per input px)."""
     check_image(image, "photo", min_width=int(np.ceil(params.min_face_px)), min_height=int(np.ceil(params.min_face_px)))
-    rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image
+    rgb = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else np.ascontiguousarray(image)
     height, width = rgb.shape[:2]
     scale = min(1.0, params.max_side / max(height, width))
     if scale < 1.0:

@@ -44,7 +44,8 @@ Measured (``python -m benchmarks.faces --json``, defaults, OpenCV 5.0.0 on one t
   17 right, 0 wrong; turned 17 fired, 17 right, 0 wrong (the sweep: 0.8 fires on 19, 0.99 on 13,
   none wrong; ``max_side`` 480: 15 fired, 1 wrong).
 * seconds for one photo searched both ways (:func:`faces_both_ways`, two detections), median:
-  0.07-0.08 CPU-s on the cards' photos (216-1596 px long), 0.16-0.18 CPU-s on the KeystoneDepth photos
+  0.05-0.11 CPU-s on the cards' photos (216-1596 px long; over three runs, the 2 cores
+  shared), 0.16-0.18 CPU-s on the KeystoneDepth photos
   (about 640 x 520 at working size; 0.32-0.41 s wall with the 2 cores shared, load ~5). One
   detection is half that (the issue's figure: 0.19 s a photo). Reading the nets: 0.03 s once.
 """

@@ -39,8 +39,8 @@ from pipeline.stages.rectify import rectify_task
 from .chains import ChainOutcome, ChainTask, ResultView, run_chain
 from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
 from .db import db, one_writer, utcnow
-from .models import CARD_STATES, Card, StageResult
-from .orientation import is_decided, public_orientation, resolve_orientation
+from .models import CARD_STATES, Card, CollectionOrientation, StageResult
+from .orientation import is_decided, public_orientation, resolve_orientation, said_flags
 from .stage_hooks import after_write, approved_decisions, people_work, stage_params
 
 WRITE_BATCH = 50
@@ -70,6 +70,10 @@ class StageSpec:
     # Its inputs come from the card's own stage results alone (no people's decisions), so a
     # worker may run it on a card right after the stage before it in the run (app.chains).
     chains: bool = False
+    # Of some card ids, those whose inputs read people's decisions after all (the orientation
+    # step's: an operator's word for the card's collection). A chain carries only the card's
+    # own results, so the stage's own pass runs these cards.
+    unchained: Callable[[list[int]], set[int]] | None = None
 
 
 def filter_boxes(card: Card) -> dict[str, Any]:
@@ -96,16 +100,35 @@ def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
 
 def card_orientation(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     """The orientation the pipeline uses for ``card`` (:func:`app.orientation.resolve_orientation`)
-    from its latest orientation result, approved judgement and curator override."""
+    from its latest orientation result, approved judgement, curator override and the operator's
+    word for its collection."""
     return resolve_orientation(
-        card.latest_results().get("orientation"), approved.get("judge"), approved.get("orientation_override")
+        card.latest_results().get("orientation"),
+        approved.get("judge"),
+        approved.get("orientation_override"),
+        approved.get("operator_orientation"),
     )
 
 
 def orientation_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
-    """What the orientation step reads: the filter's split boxes (card pixels)."""
+    """What the orientation step reads: the filter's split boxes (card pixels) and, where an
+    operator has given a word for the card's collection, ``known_flags`` (flag -> value) for the
+    step to take as given. Without a word the key is absent, so the inputs digest of such cards
+    stays what it was; a new word changes it, and the step reruns."""
     boxes = filter_boxes(card)
-    return {"left_box": boxes["left_box"], "right_box": boxes["right_box"]} if boxes else {}
+    if not boxes:
+        return {}
+    inputs: dict[str, Any] = {"left_box": boxes["left_box"], "right_box": boxes["right_box"]}
+    known = said_flags(approved.get("operator_orientation"))
+    if known:
+        inputs["known_flags"] = known
+    return inputs
+
+
+def cards_with_operator_word(card_ids: list[int]) -> set[int]:
+    """Of ``card_ids``, those whose collection has an operator's word (one query)."""
+    word = CollectionOrientation.collection_id == Card.collection_id
+    return set(db.session.scalars(select(Card.id).join(CollectionOrientation, word).where(Card.id.in_(card_ids))))
 
 
 def photo_area_boxes(card: Card) -> dict[str, Any]:
@@ -255,6 +278,7 @@ def available_stages() -> dict[str, StageSpec]:
             requires="filter",
             ready=_has_inputs,
             chains=True,
+            unchained=cards_with_operator_word,
         ),
         # Cards the filter passed whose orientation is decided; cards in review wait for the
         # crowd's judgement too, and a culled card gets nothing.
@@ -683,10 +707,12 @@ class _Chain:
             name: {card_id: result_fingerprint(r.status, r.started_at) for card_id, r in results.items()}
             for name, results in own.items()
         }
+        unchained = {f.name: f.unchained(ids) if f.unchained is not None else set() for f in self.followers}
         db.session.commit()  # no read transaction open while the cards compute
         claimed_by: dict[str, set[int]] = {}
         for name, h in self.hashes.items():
-            round_ = self.driver.claim(name, h, ids, {card_id: seen[name].get(card_id) for card_id in ids})
+            chainable = [card_id for card_id in ids if card_id not in unchained[name]]
+            round_ = self.driver.claim(name, h, chainable, {card_id: seen[name].get(card_id) for card_id in chainable})
             claimed_by[name] = set(round_.claimed)
         for task in leads:
             stages = tuple(name for name in self.hashes if task.card_id in claimed_by[name])
@@ -909,7 +935,7 @@ def _crowd_status(
                 "not needed: the filter passed the card as a stereo pair and the orientation "
                 f"step decided it (confidence {orientation['confidence']})",
             )
-        if orientation["decided_by"] == "curator":
+        if orientation["decided_by"] in ("curator", "operator"):
             return _status("skipped", f"not needed: {orientation['source']}")
         return _status("pending", f"waiting for {orientation['waiting_for']}" if orientation["waiting_for"] else None)
     rectify = latest.get("rectify")

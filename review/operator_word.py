@@ -112,7 +112,9 @@ def set_collection_orientation(
     before = _word_flags(row)
     after = {**before, **flags}
     flags_changed = after != before
-    note_changed = note_text is not None and note_text != (row.note if row is not None else "")
+    cleared = all(value is None for value in after.values())
+    # A new note matters only on a word that stays in force.
+    note_changed = not cleared and note_text is not None and note_text != (row.note if row is not None else "")
     if not flags_changed and not note_changed:
         return {"collection": collection.name, "changed": False, "word": word_document(row) if row is not None else None}
     before_doc = {"collection": collection.name, **before, "note": row.note if row is not None else None}
@@ -124,7 +126,6 @@ def set_collection_orientation(
     row.set_by_id, row.set_by, row.set_by_name = (by.id if by is not None else None), by, by_name
     row.note = note_text if note_text is not None else ("" if flags_changed else row.note or "")
     row.set_at = utcnow()
-    cleared = all(value is None for value in after.values())
     try:
         db.session.flush()
         word_id = row.id

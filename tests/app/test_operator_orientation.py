@@ -158,6 +158,8 @@ def test_set_show_and_clear_a_word_with_its_audit_trail(app, runner, make_card, 
     cleared = _invoke(runner, "set", "--collection", "prints", "--inverted", "clear", "--swapped", "clear", "--json")
     assert json.loads(cleared.stdout) == {"collection": "prints", "changed": True, "word": None}
     assert json.loads(_invoke(runner, "show", "--json").stdout) == {"words": []}
+    nothing = _invoke(runner, "set", "--collection", "prints", "--inverted", "clear", "--note", "still nothing", "--json")
+    assert json.loads(nothing.stdout)["changed"] is False  # no word to clear: nothing written
 
     events = _events(app)
     assert [e.action for e in events] == ["collection_word", "collection_word", "collection_word_cleared"]

@@ -93,8 +93,9 @@ def filter_boxes(card: Card) -> dict[str, Any]:
 
 def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     """People's approved decisions per card (the features register them, see
-    :mod:`app.stage_hooks`): the crowd's approved judge and crop aggregates and a curator's
-    orientation override, ``{card: {"judge": .., "crop": .., "orientation_override": ..}}``."""
+    :mod:`app.stage_hooks`): the crowd's approved judge and crop aggregates, a curator's
+    orientation override and the operator's word for the card's collection,
+    ``{card: {"judge": .., "crop": .., "orientation_override": .., "operator_orientation": ..}}``."""
     return approved_decisions(card_ids)
 
 

@@ -90,8 +90,8 @@ def set_collection_orientation(
     """Set (true / false) or clear (None) the operator's word on each flag named in ``flags``
     for every card of the collection; flags not named keep their word. ``by`` is the operator's
     account when one was named, ``by_name`` the name shown (the account's username, or the OS
-    user). ``note`` replaces the word's note (None: the note is kept when nothing else changes,
-    emptied when the flags do).
+    user). ``note`` replaces the word's note; without one, a change of flags empties it (the
+    old reason may not hold for the new word) and a command that changes nothing keeps it.
 
     Returns ``{"collection", "changed", "word"}``: ``word`` is the word now in force (as
     :func:`word_document`), or None when every flag is clear (the row is removed). A command
@@ -124,7 +124,7 @@ def set_collection_orientation(
     for flag, value in after.items():
         setattr(row, flag, value)
     row.set_by_id, row.set_by, row.set_by_name = (by.id if by is not None else None), by, by_name
-    row.note = note_text if note_text is not None else ("" if flags_changed else row.note or "")
+    row.note = note_text or ""  # a word's note is the one said with its latest change
     row.set_at = utcnow()
     try:
         db.session.flush()

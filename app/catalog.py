@@ -252,10 +252,11 @@ def cards() -> Any:
 @bp.route("/cards/<int:card_id>")
 @role_required(*STAFF_ROLES)
 def card_page(card_id: int) -> Any:
-    from .runs import card_stage_statuses
+    from .runs import card_orientation, card_stage_statuses, people_and_decisions
 
     with read_only():
         card = get_card_or_404(card_id)
+        work = people_and_decisions([card.id]).get(card.id, {})
         latest = card.latest_results()
         filter_result = latest.get("filter")
         rectify_result = latest.get("rectify")
@@ -273,7 +274,8 @@ def card_page(card_id: int) -> Any:
             views_result=latest.get("views"),
             stereo_downloads=stereo_downloads(card, rectify_result, disparity_result),
             filter_view=FilterView.of(card, filter_result) if filter_result is not None else None,
-            statuses=card_stage_statuses(card),
+            statuses=card_stage_statuses(card, work=work),
+            orientation=card_orientation(card, work.get("approved", {})),
             history=list(reversed(card.stage_results)),
             records=records,
         )

@@ -52,6 +52,36 @@ class Collection(db.Model):
     cards: Mapped[list[Card]] = relationship(back_populates="collection")
 
 
+class CollectionOrientation(db.Model):
+    """An operator's word on the orientation of every card of a collection, flag by flag: a
+    collection known to be prints (``inverted`` false), or known to be scanned in eye order
+    (``swapped`` false). Null: not said; the step, the crowd and curators decide that flag card
+    by card. One row per collection, replaced by the next word and removed when every flag is
+    cleared; a curator's override on one card wins over it (see :mod:`app.orientation`). Every
+    change is also an audit event (entity ``orientation``, no card)."""
+
+    __tablename__ = "collection_orientations"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    collection_id: Mapped[int] = mapped_column(ForeignKey("collections.id", ondelete="CASCADE"), unique=True)
+    upside_down: Mapped[bool | None] = mapped_column()
+    inverted: Mapped[bool | None] = mapped_column()
+    swapped: Mapped[bool | None] = mapped_column()
+    # Who said it: an operator's account when named, and always a name to show (the account's
+    # username, else the OS user who ran the command).
+    set_by_id: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
+    set_by_name: Mapped[str] = mapped_column(String(200))
+    note: Mapped[str] = mapped_column(Text, default="")
+    set_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    collection: Mapped[Collection] = relationship()
+    set_by: Mapped[Person | None] = relationship()
+
+    @property
+    def collection_name(self) -> str:
+        return self.collection.name
+
+
 class Card(db.Model):
     """One scanned stereo card. The original is stored once, by content, and never modified."""
 

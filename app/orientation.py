@@ -1,17 +1,20 @@
-"""The orientation the pipeline uses for a card: the step's, the crowd's, or a curator's.
+"""The orientation the pipeline uses for a card: the step's, the crowd's, an operator's or a curator's.
 
-Three sources, each flag taken from the strongest that speaks to it:
+Four sources, each flag taken from the strongest that speaks to it:
 
 1. a curator's override (``review.models.OrientationOverride``), flag by flag;
-2. the crowd's approved judge aggregate: ``upside_down`` and ``inverted`` always; ``swapped``
+2. an operator's word for the card's whole collection (``app.models.CollectionOrientation``):
+   known prints, known to be scanned in eye order, flag by flag;
+3. the crowd's approved judge aggregate: ``upside_down`` and ``inverted`` always; ``swapped``
    when the judge task asked it (``label["swapped"]``), else the step's own value when the step
    was confident on that flag, else undecided (a person answers it);
-3. the orientation stage's result, when it decided the card automatically (``outcome ==
-   "auto"``); a step that asked contributes nothing on its own.
+4. the orientation stage's result, when it decided the card automatically (``outcome ==
+   "auto"``); a step that asked contributes nothing on its own (given the operator's word as
+   ``known_flags``, the step decides the remaining flags itself when it can).
 
-``decided_by`` names the strongest source used (``curator`` > ``crowd`` > ``auto``); any
-flag still null means the card is undecided: it waits for people, and it is not rectified,
-graded, accepted or released (the flow rule of DESIGN.md).
+``decided_by`` names the strongest source used (``curator`` > ``operator`` > ``crowd`` >
+``auto``); any flag still null means the card is undecided: it waits for people, and it is not
+rectified, graded, accepted or released (the flow rule of DESIGN.md).
 """
 
 from __future__ import annotations
@@ -19,18 +22,49 @@ from __future__ import annotations
 from typing import Any
 
 FLAGS: tuple[str, ...] = ("upside_down", "inverted", "swapped")
+# What an operator's word on one flag says of a collection, in words (flag -> value -> phrase).
+WORD_PHRASES: dict[str, dict[bool, str]] = {
+    "upside_down": {False: "scanned upright", True: "scanned upside down"},
+    "inverted": {False: "known prints", True: "known negatives"},
+    "swapped": {False: "scanned in eye order", True: "scanned with the eyes exchanged"},
+}
 
 
 def _as_flag(value: Any) -> bool | None:
     return None if value is None else bool(value)
 
 
-def resolve_orientation(step: Any | None, judge: Any | None, override: Any | None) -> dict[str, Any]:
-    """The ``orientation`` field of ``keystone cards --json`` plus ``source`` (in words) and
-    ``waiting_for`` (why it is undecided, or null).
+def said_flags(word: Any | None) -> dict[str, bool]:
+    """The flags an operator's word (a CollectionOrientation row, or None) sets: flag -> value."""
+    if word is None:
+        return {}
+    return {flag: bool(value) for flag in FLAGS if (value := getattr(word, flag)) is not None}
+
+
+def word_phrase(word: Any) -> str:
+    """What the word says, e.g. ``known prints, scanned in eye order``."""
+    return ", ".join(WORD_PHRASES[flag][value] for flag, value in said_flags(word).items())
+
+
+def word_source(word: Any) -> str:
+    """The word as a source of a card's orientation, in words."""
+    return f"operator's word for collection {word.collection_name} (by {word.set_by_name}, {word.set_at:%Y-%m-%d})"
+
+
+def word_sentence(word: Any) -> str:
+    """The word as a card page shows it: ``Collection X: known prints, said by NAME on DATE``."""
+    return f"Collection {word.collection_name}: {word_phrase(word)}, said by {word.set_by_name} on {word.set_at:%Y-%m-%d}"
+
+
+def resolve_orientation(step: Any | None, judge: Any | None, override: Any | None, operator: Any | None = None) -> dict[str, Any]:
+    """The ``orientation`` field of ``keystone cards --json`` plus ``source`` (in words),
+    ``waiting_for`` (why it is undecided, or null), ``operator_word`` (the collection's word as
+    a sentence, or null) and ``operator_overridden`` (the flags of that word a curator's
+    override replaces on this card).
 
     ``step``: the latest ``orientation`` StageResult (or None); ``judge``: the latest APPROVED
-    judge Aggregate (or None); ``override``: the card's OrientationOverride row (or None).
+    judge Aggregate (or None); ``override``: the card's OrientationOverride row (or None);
+    ``operator``: the card's collection's CollectionOrientation row (or None).
     """
     flags: dict[str, bool | None] = dict.fromkeys(FLAGS)
     sources: list[str] = []
@@ -60,6 +94,15 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
         sure = [float(v) for k, v in posterior.items() if k in FLAGS and isinstance(v, (int, float))]
         confidence = min(sure) if sure else 1.0
         sources.append(f"crowd judgement (batch {judge.batch_id})")
+    said = said_flags(operator)
+    if said:
+        flags.update(said)
+        decided_by = "operator"
+        # The operator is sure of what was said; the flags left to the step or the crowd keep
+        # their confidence.
+        confidence = 1.0 if len(said) == len(FLAGS) else confidence
+        sources.append(word_source(operator))
+    overridden: list[str] = []
     if override is not None:
         touched = False
         for flag in FLAGS:
@@ -67,6 +110,8 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
             if value is not None:
                 flags[flag] = bool(value)
                 touched = True
+                if flag in said:
+                    overridden.append(flag)
         if touched:
             decided_by, confidence = "curator", 1.0
             sources.append(f"curator override (by {override.curator_name or 'a curator'})")
@@ -80,8 +125,8 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
         elif judge is None and step.metrics.get("undecidable"):
             waiting_for = f"people (the orientation step cannot tell: {step.metrics['undecidable']})"
         elif judge is None:
-            unsure = [flag for flag in FLAGS if not (step_flags.get(flag) or {}).get("decided")]
-            waiting_for = f"people (the orientation step is not sure of {', '.join(unsure or FLAGS)})"
+            unsure = [flag for flag in FLAGS if not (step_flags.get(flag) or {}).get("decided") and flag not in said]
+            waiting_for = f"people (the orientation step is not sure of {', '.join(unsure or undecided)})"
         else:
             waiting_for = f"people ({', '.join(undecided)} undecided)"
     return {
@@ -90,6 +135,8 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
         "confidence": None if confidence is None else round(float(confidence), 4),
         "source": "; ".join(sources) or None,
         "waiting_for": waiting_for,
+        "operator_word": word_sentence(operator) if said else None,
+        "operator_overridden": overridden,
     }
 
 

@@ -40,7 +40,7 @@ from .chains import ChainOutcome, ChainTask, ResultView, run_chain
 from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
 from .db import db, one_writer, utcnow
 from .models import CARD_STATES, Card, StageResult
-from .orientation import is_decided, public_orientation, resolve_orientation
+from .orientation import is_decided, public_orientation, resolve_orientation, said_flags
 from .stage_hooks import after_write, approved_decisions, people_work, stage_params
 
 WRITE_BATCH = 50
@@ -89,34 +89,49 @@ def filter_boxes(card: Card) -> dict[str, Any]:
 
 def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     """People's approved decisions per card (the features register them, see
-    :mod:`app.stage_hooks`): the crowd's approved judge and crop aggregates and a curator's
-    orientation override, ``{card: {"judge": .., "crop": .., "orientation_override": ..}}``."""
+    :mod:`app.stage_hooks`): the crowd's approved judge and crop aggregates, a curator's
+    orientation override and the operator's word for the card's collection,
+    ``{card: {"judge": .., "crop": .., "orientation_override": .., "operator_orientation": ..}}``."""
     return approved_decisions(card_ids)
 
 
 def card_orientation(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     """The orientation the pipeline uses for ``card`` (:func:`app.orientation.resolve_orientation`)
-    from its latest orientation result, approved judgement and curator override."""
+    from its latest orientation result, approved judgement, curator override and the operator's
+    word for its collection."""
     return resolve_orientation(
-        card.latest_results().get("orientation"), approved.get("judge"), approved.get("orientation_override")
+        card.latest_results().get("orientation"),
+        approved.get("judge"),
+        approved.get("orientation_override"),
+        approved.get("operator_orientation"),
     )
 
 
-# Decisions about a card's whole collection, plain JSON, that a chained worker is given with the
-# card (app.chains.ChainTask.approved): the learned head in force (review.upright_fit).
-COLLECTION_DECISIONS: tuple[str, ...] = ("upright_head",)
+def collection_decisions(approved: Mapping[str, Any]) -> dict[str, Any]:
+    """The plain-JSON decisions about a card's whole collection that the orientation step reads:
+    ``known_flags`` from an operator's word (``approved["operator_orientation"]``, a row) and
+    ``upright_head`` (the refit in force, :mod:`review.upright_fit`). A chained worker has no
+    database, so the driver sends it this with the card (:class:`app.chains.ChainTask`); the
+    function reads its own output back unchanged."""
+    found: dict[str, Any] = {}
+    known = said_flags(approved.get("operator_orientation")) or dict(approved.get("known_flags") or {})
+    if known:
+        found["known_flags"] = known
+    if approved.get("upright_head"):
+        found["upright_head"] = dict(approved["upright_head"])
+    return found
 
 
 def orientation_inputs(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
-    """What the orientation step reads: the filter's split boxes (card pixels), and the learned
-    head refitted for the card's collection where there is one (``keystone orientation fit``)."""
+    """What the orientation step reads: the filter's split boxes (card pixels) and what is
+    known of the card's whole collection (:func:`collection_decisions`): an operator's word as
+    ``known_flags`` (flag -> value) for the step to take as given, and the learned head the
+    collection refitted. Without either the keys are absent, so the inputs digest of such cards
+    stays what it was; a new word or refit changes it, and the step reruns."""
     boxes = filter_boxes(card)
     if not boxes:
         return {}
-    inputs = {"left_box": boxes["left_box"], "right_box": boxes["right_box"]}
-    if approved.get("upright_head"):
-        inputs["upright_head"] = dict(approved["upright_head"])
-    return inputs
+    return {"left_box": boxes["left_box"], "right_box": boxes["right_box"], **collection_decisions(approved)}
 
 
 def photo_area_boxes(card: Card) -> dict[str, Any]:
@@ -694,11 +709,7 @@ class _Chain:
             name: {card_id: result_fingerprint(r.status, r.started_at) for card_id, r in results.items()}
             for name, results in own.items()
         }
-        decided = approved_annotations(ids)
-        collection_wide = {
-            card_id: {kind: value for kind, value in kinds.items() if kind in COLLECTION_DECISIONS}
-            for card_id, kinds in decided.items()
-        }
+        collection_wide = {card_id: collection_decisions(kinds) for card_id, kinds in approved_annotations(ids).items()}
         db.session.commit()  # no read transaction open while the cards compute
         claimed_by: dict[str, set[int]] = {}
         for name, h in self.hashes.items():
@@ -926,7 +937,7 @@ def _crowd_status(
                 "not needed: the filter passed the card as a stereo pair and the orientation "
                 f"step decided it (confidence {orientation['confidence']})",
             )
-        if orientation["decided_by"] == "curator":
+        if orientation["decided_by"] in ("curator", "operator"):
             return _status("skipped", f"not needed: {orientation['source']}")
         return _status("pending", f"waiting for {orientation['waiting_for']}" if orientation["waiting_for"] else None)
     rectify = latest.get("rectify")

@@ -6,9 +6,10 @@ from typing import Any
 
 from flask import Flask
 from sqlalchemy import select
-from sqlalchemy.orm import selectinload
+from sqlalchemy.orm import joinedload, selectinload
 
 from app.db import db
+from app.models import Card, CollectionOrientation
 from app.stage_hooks import stage_hooks
 
 from .models import CardReview, OrientationOverride
@@ -41,6 +42,23 @@ def orientation_overrides(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     return found
 
 
+def operator_words(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """The operator's word for each card's collection, where there is one:
+    ``{card: {"operator_orientation": row}}`` (one query per chunk of cards; the cards of a
+    collection share its row)."""
+    found: dict[int, dict[str, Any]] = {}
+    for start in range(0, len(card_ids), CHUNK):
+        rows = db.session.execute(
+            select(Card.id, CollectionOrientation)
+            .join(CollectionOrientation, CollectionOrientation.collection_id == Card.collection_id)
+            .where(Card.id.in_(card_ids[start : start + CHUNK]))
+            .options(joinedload(CollectionOrientation.collection))
+        )
+        for card_id, word in rows:
+            found.setdefault(card_id, {})["operator_orientation"] = word
+    return found
+
+
 def _grade_params() -> Any:
     from .grading import active_grade_params
 
@@ -66,6 +84,7 @@ def register(app: Flask) -> None:
     hooks = stage_hooks(app)
     hooks.people_work.append(card_reviews)
     hooks.decisions.append(orientation_overrides)
+    hooks.decisions.append(operator_words)
     hooks.decisions.append(_upright_heads)
     hooks.stage_params["grade"] = _grade_params
     hooks.after_write.setdefault("grade", []).append(_sync_new_grades)

@@ -27,7 +27,7 @@ def test_the_driver_and_the_registry_import_no_feature_package():
 
 def test_features_register_what_a_run_needs(app):
     hooks = stage_hooks(app)
-    assert sorted(p.__module__ for p in hooks.decisions) == ["annotation.run_hooks", "review.run_hooks"]
+    assert sorted(p.__module__ for p in hooks.decisions) == ["annotation.run_hooks"] + ["review.run_hooks"] * 3
     assert sorted(p.__module__ for p in hooks.people_work) == ["annotation.run_hooks", "review.run_hooks"]
     assert set(hooks.stage_params) == {"grade"} and [h.__module__ for h in hooks.after_write["grade"]] == ["review.run_hooks"]
 

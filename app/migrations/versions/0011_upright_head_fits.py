@@ -3,8 +3,8 @@
 One row per `keystone orientation fit`; the newest row of a collection (or of all collections,
 collection_id null) is in force.
 
-Revision ID: 0012
-Revises: 0009a
+Revision ID: 0011
+Revises: 0010
 Create Date: 2026-11-27
 """
 
@@ -14,8 +14,8 @@ from sqlalchemy.dialects import postgresql
 
 JSON = sa.JSON().with_variant(postgresql.JSONB(astext_type=sa.Text()), "postgresql")
 
-revision = "0012"
-down_revision = "0009a"
+revision = "0011"
+down_revision = "0010"
 branch_labels = None
 depends_on = None
 

@@ -111,7 +111,9 @@ def test_annotator_walks_the_invite_link_through_judge_and_crop(app, server, bro
     wait_until(page, "['eye-order-as-is', 'eye-order-swapped'].every(id => document.getElementById(id).naturalWidth === 360)")
     as_scanned, exchanged = (page.locator(f"#eye-order-{order}").bounding_box() for order in ("as-is", "swapped"))
     assert page.is_visible("#eye-order-as-is") and page.is_visible("#eye-order-swapped")
-    assert as_scanned["width"] >= (170 if phone else 300) and exchanged["width"] == pytest.approx(as_scanned["width"], abs=1)
+    assert as_scanned["width"] >= (170 if phone else 200) and exchanged["width"] == pytest.approx(as_scanned["width"], abs=1)
+    if not phone:  # beside the card, on the first screen: no scroll for every card
+        assert as_scanned["y"] + as_scanned["height"] <= 800
     assert as_scanned["y"] == pytest.approx(exchanged["y"], abs=1) and as_scanned["x"] + as_scanned["width"] < exchanged["x"]
     assert "warm = near, cool = far; pick the one where near things are warm" in page.inner_text(".eye-order-key")
     click(".eye-order-pick[data-swapped=true]")

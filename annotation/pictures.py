@@ -29,6 +29,8 @@ EXAMPLES: dict[str, str] = {
     "bad-crop": "A bad crop: the boxes take in the card's mount, its printed title and the gap between the photos.",
     "upside-down": "An upside-down card: the sky is at the bottom and the writing reads upside-down.",
     "negative": "A negative: dark skies, white shadows.",
+    "eye-order": "The two colour pictures of a card: as scanned (left) the motorcycle in front is warm and the "
+    "shelves behind it cool, the right order; with the photos exchanged (right) it is inside out.",
 }
 EXAMPLE_WIDTH = 480  # px: the help dialog shows them at most this wide
 # px: two sit side by side on a 390 px phone at about 175 CSS px each, so this gives two device
@@ -94,6 +96,13 @@ def example_picture(name: str) -> bytes:
         margin = round(0.02 * (cx1 - cx0))
         _draw_box(image, [cx0 + margin, cy0 + margin, middle + margin, cy1 - margin], BAD, thickness)
         _draw_box(image, [middle + 2 * margin, cy0 + margin, cx1 - margin, cy1 - margin], BAD, thickness)
+    elif name == "eye-order":
+        left_box, right_box = card.truth["photo_boxes"]
+        gap = 8
+        width = (EXAMPLE_WIDTH - gap) // 2
+        as_is, swapped = (eye_order_depth(image, left_box, right_box, order, width) for order in EYE_ORDERS)
+        blank = np.full((as_is.shape[0], gap, 3), 255, np.uint8)
+        return _jpeg(np.hstack([as_is, blank, swapped]), quality=90, full_colour=True)
     elif name == "upside-down":
         image = np.ascontiguousarray(image[::-1, ::-1])
     else:

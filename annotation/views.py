@@ -44,9 +44,9 @@ from .crowd_settings import DEFAULT_MIN_BOX_PX, DEFAULT_RESERVATION_MINUTES
 from .models import TASK_KINDS, Worker
 from .pictures import (
     EXAMPLES,
-    WIGGLE_ORDERS,
+    EYE_ORDERS,
     example_picture,
-    eye_order_wiggle,
+    eye_order_picture,
     sample_card_picture,
 )
 from .progress import answer_count, batch_positions
@@ -226,8 +226,9 @@ def _api_entry() -> tuple[SignedWorker, dict[str, Any]]:
 def _task_json(task: Any) -> dict[str, Any]:
     document = {**task.as_json(), "image_url": url_for("crowd.task_image", token=task.reservation_token)}
     if task.kind == "judge":
+        # The key keeps its old name: it is the task JSON's contract (DESIGN.md), now still pictures.
         document["wiggle_urls"] = {
-            order: url_for("crowd.task_wiggle", token=task.reservation_token, order=order) for order in WIGGLE_ORDERS
+            order: url_for("crowd.task_eye_order", token=task.reservation_token, order=order) for order in EYE_ORDERS
         }
     else:
         with read_only():
@@ -342,14 +343,15 @@ def task_image(token: str) -> Response:
     return response
 
 
-@bp.route("/task/<token>/wiggle/<order>.gif")
-def task_wiggle(token: str, order: str) -> Response:
-    """The eye-order animation of a reserved card: its photos as scanned (``as-is``) or exchanged (``swapped``)."""
+@bp.route("/task/<token>/eye-order/<order>.jpg")
+def task_eye_order(token: str, order: str) -> Response:
+    """The eye-order picture of a reserved card (its depth in colour, near warm, far cool): its photos
+    as scanned (``as-is``) or exchanged (``swapped``)."""
     from pipeline.errors import PipelineError
     from pipeline.io import read_image
 
-    if order not in WIGGLE_ORDERS:
-        abort(404, "No such animation.")
+    if order not in EYE_ORDERS:
+        abort(404, "No such eye order.")
     with read_only():
         reservation = reservation_by_token(token)
         if reservation is None:
@@ -364,10 +366,10 @@ def task_wiggle(token: str, order: str) -> Response:
         else ([0, 0, width // 2, height], [width - width // 2, 0, width, height])
     )
     try:
-        data = eye_order_wiggle(key, lambda: read_image(path), left, right, order)
-    except (OSError, ValueError, PipelineError) as exc:  # a missing or unreadable original
-        abort(404, f"No animation for this card: {exc}")
-    response = Response(data, mimetype="image/gif")
+        data = eye_order_picture(key, lambda: read_image(path), left, right, order)
+    except (OSError, ValueError, PipelineError) as exc:  # a missing or unreadable original, photo boxes too small
+        abort(404, f"No eye-order picture for this card: {exc}")
+    response = Response(data, mimetype="image/jpeg")
     response.headers["Cache-Control"] = "private, max-age=3600"
     return response
 

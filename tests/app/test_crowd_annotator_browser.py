@@ -1,7 +1,8 @@
 """The annotator's main path in headless Chromium, on a laptop (1366 x 800, mouse) and a phone
-(390 x 844, touch): one invite link, a judge card, then a crop card that starts from the proposed
-photo boxes, adjusted and submitted (stored in original pixels), "n of N" progress, and a finished
-screen without controls; no page scrolls sideways. Screenshots go to /tmp/shots-annotate/.
+(390 x 844, touch): one invite link, a judge card with its two eye-order pictures side by side (each
+at least 170 px wide on the phone), then a crop card that starts from the proposed photo boxes,
+adjusted and submitted (stored in original pixels), "n of N" progress, and a finished screen
+without controls; no page scrolls sideways. Screenshots go to /tmp/shots-annotate/.
 """
 
 from __future__ import annotations
@@ -105,7 +106,22 @@ def test_annotator_walks_the_invite_link_through_judge_and_crop(app, server, bro
     page.screenshot(path=str(SHOTS / f"{device}-1-judge-help.png"))
     click("#help button[type=submit]")
     assert page.inner_text("#position") == "Card 1 of 1" and page.evaluate(NO_SIDEWAYS_SCROLL)
-    wait_until(page, "document.getElementById('wiggle-swapped').naturalWidth > 0")
+    # The eye-order pictures (depth in colour), side by side, each about half a phone's width;
+    # tapping one picks it, the same answer as the S box.
+    wait_until(page, "['eye-order-as-is', 'eye-order-swapped'].every(id => document.getElementById(id).naturalWidth === 360)")
+    as_scanned, exchanged = (page.locator(f"#eye-order-{order}").bounding_box() for order in ("as-is", "swapped"))
+    assert page.is_visible("#eye-order-as-is") and page.is_visible("#eye-order-swapped")
+    assert as_scanned["width"] >= (170 if phone else 200) and exchanged["width"] == pytest.approx(as_scanned["width"], abs=1)
+    if not phone:  # beside the card, on the first screen: no scroll for every card
+        assert as_scanned["y"] + as_scanned["height"] <= 800
+    assert as_scanned["y"] == pytest.approx(exchanged["y"], abs=1) and as_scanned["x"] + as_scanned["width"] < exchanged["x"]
+    assert "warm = near, cool = far; pick the one where near things are warm" in page.inner_text(".eye-order-key")
+    click(".eye-order-pick[data-swapped=true]")
+    assert page.is_checked("input[name=swapped]")
+    assert page.get_attribute(".eye-order-pick[data-swapped=true]", "aria-pressed") == "true"
+    click(".eye-order-pick[data-swapped=false]")
+    assert not page.is_checked("input[name=swapped]")
+    assert page.get_attribute(".eye-order-pick[data-swapped=false]", "aria-pressed") == "true"
     click("#show-help")  # help by tap or click, not only by key
     assert page.is_visible("#help")
     click("#help button[type=submit]")

@@ -2,7 +2,7 @@
 
 One link serves judge, then crop, then a finished screen; progress is "n of N" per batch; crop
 tasks start from proposed boxes (orientation result, photo areas, filter split, in that order);
-a lapsed reservation renews; instruction pictures and eye-order wiggles are served; Prolific
+a lapsed reservation renews; instruction pictures and the eye-order pictures (depth in colour) are served; Prolific
 without a completion code thanks the participant; curators create batches, invite, flag, check
 Prolific submissions and download answers, each POST with CSRF and a confirmation.
 """
@@ -194,39 +194,72 @@ def test_judge_answers_take_swapped_and_refuse_a_bad_one(app, client, cards):
         assert db.session.scalar(select(Answer.payload))["swapped"] is True
 
 
-def test_eye_order_wiggles_show_the_photos_in_both_orders(app, client, cards):
-    new_batch(app, cards(1))
+def test_eye_order_pictures_show_the_depth_in_colour_in_both_orders(app, client, make_card):
+    """A real stereo card (the synthetic one from Middlebury's Motorcycle pair, photo boxes found on
+    it): both pictures are colour JPEGs with clearly warm and clearly cool parts (the old GIF's
+    palette came from the photo and left no blue pixel), and the motorcycle, nearer than the
+    shelves behind it, is warm as scanned and cool exchanged."""
+    from simulation.cards import make_stereo_card
+
+    card = make_stereo_card(0, 0)
+    new_batch(app, [make_card(card.image, state="review")])
     t = worker_token(client.get(invite_link(app, "hal")).get_data(as_text=True))
     task = api(client, "next", t, {"kind": "judge"}).get_json()["tasks"][0]
-    frames = {}
+    assert set(task["wiggle_urls"]) == {"as-is", "swapped"}
+    pictures = {}
     for order, url in task["wiggle_urls"].items():
         response = client.get(url)
-        assert response.status_code == 200 and response.mimetype == "image/gif" and len(response.data) < 200_000
-        with Image.open(io.BytesIO(response.data)) as gif:
-            # The photo, then its depth in colours, each held for two of the wiggle writer's frames.
-            assert gif.n_frames == 2 and gif.width == 180 and gif.info["duration"] >= 140
-            frames[order] = []
-            for index in range(gif.n_frames):
-                gif.seek(index)
-                frames[order].append(gif.convert("L").copy())
+        assert response.status_code == 200 and response.mimetype == "image/jpeg" and len(response.data) < 150_000
+        assert response.headers["Cache-Control"] == "private, max-age=3600"
+        with Image.open(io.BytesIO(response.data)) as picture:
+            assert picture.mode == "RGB" and picture.width == 360
+            pictures[order] = np.asarray(picture, np.float32)
+        warmth = pictures[order][..., 0] - pictures[order][..., 2]  # red minus blue
+        warm, cool = float((warmth > 60).mean()), float((warmth < -60).mean())
+        assert warm > 0.15 and cool > 0.15, (order, warm, cool)  # measured 0.59 / 0.20 and 0.20 / 0.54
 
-    # Swapped starts with the other photo than "as is" (each GIF has its own palette, so the
-    # same picture differs by a grey level or two; the two photos differ by their parallax).
-    def difference(a: Image.Image, b: Image.Image) -> float:
-        return float(np.abs(np.asarray(a, np.float32) - np.asarray(b, np.float32)).mean())
+    # The motorcycle fills the middle of the photo, shelves stand behind it at the top.
+    def warmth_of(order: str, rows: slice, columns: slice) -> float:
+        picture = pictures[order]
+        return float((picture[rows, columns, 0] - picture[rows, columns, 2]).mean())
 
-    assert difference(frames["swapped"][0], frames["as-is"][0]) > 2.0
-    assert difference(frames["swapped"][1], frames["as-is"][1]) > 2.0  # the depth colours differ
+    height, width = pictures["as-is"].shape[:2]
+    motorcycle = (slice(height * 3 // 10, height * 7 // 10), slice(width // 5, width * 4 // 5))
+    shelves = (slice(0, height // 6), slice(0, width))
+    # Measured (red minus blue): motorcycle +122, shelves -70 as scanned; -98 and +81 exchanged.
+    assert warmth_of("as-is", *motorcycle) > 60 and warmth_of("swapped", *motorcycle) < -60
+    assert warmth_of("as-is", *shelves) < warmth_of("as-is", *motorcycle) - 60
+    assert warmth_of("swapped", *shelves) > warmth_of("swapped", *motorcycle) + 60
     assert client.get(task["wiggle_urls"]["as-is"].replace("as-is", "sideways")).status_code == 404
-    assert client.get("/crowd/task/guessed/wiggle/as-is.gif").status_code == 404
+    assert client.get("/crowd/task/guessed/eye-order/as-is.jpg").status_code == 404
+
+
+def test_eye_order_pictures_of_photo_boxes_too_small_are_a_404_that_says_why(
+    app, client, make_card, card_image, add_stage_result
+):
+    card_id = make_card(card_image(), state="review")
+    add_stage_result(card_id, "orientation", metrics={"photo_left_box": [0, 0, 1, 1], "photo_right_box": [10, 0, 11, 1]})
+    new_batch(app, [card_id])
+    t = worker_token(client.get(invite_link(app, "ida")).get_data(as_text=True))
+    task = api(client, "next", t, {"kind": "judge"}).get_json()["tasks"][0]
+    response = client.get(task["wiggle_urls"]["swapped"])
+    assert response.status_code == 404
+    assert "No eye-order picture for this card: Expected photo boxes that keep at least 2 x 2 px" in response.get_data(
+        as_text=True
+    )
 
 
 def test_instruction_pictures_are_rendered_from_the_synthetic_card(client):
-    for name in ("good-crop", "bad-crop", "upside-down", "negative"):
+    for name in ("good-crop", "bad-crop", "upside-down", "negative", "eye-order"):
         response = client.get(f"/crowd/examples/{name}.jpg")
         assert response.status_code == 200 and response.mimetype == "image/jpeg"
         with Image.open(io.BytesIO(response.data)) as picture:
             assert picture.width == 480 and picture.height > 150
+            pixels = np.asarray(picture.convert("RGB"), np.float32)
+    # The last, the eye-order example: warm on its left half (as scanned), cool on its right (exchanged);
+    # measured +48 and -27 red minus blue on average (the grey photo shows where no depth was read).
+    warmth = pixels[..., 0] - pixels[..., 2]
+    assert warmth[:, :236].mean() > 25 and warmth[:, 244:].mean() < -15
     assert client.get("/crowd/examples/secret.jpg").status_code == 404
 
 

@@ -7,18 +7,23 @@
   if (!root) return;
   const form = document.getElementById("judge-form");
   const image = document.getElementById("card-image");
-  const wiggles = { "as-is": document.getElementById("wiggle-as-is"), swapped: document.getElementById("wiggle-swapped") };
+  // The eye-order pictures (the task's wiggle_urls): tapping one picks it, the same answer as the S box.
+  const eyeOrders = { "as-is": document.getElementById("eye-order-as-is"), swapped: document.getElementById("eye-order-swapped") };
+  const picks = form.querySelectorAll(".eye-order-pick");
+  const showPick = () => {
+    picks.forEach(pick => { pick.setAttribute("aria-pressed", String((pick.dataset.swapped === "true") === form.elements.swapped.checked)); });
+  };
 
   const client = window.KeystoneTasks.create(root, {
     kind: "judge",
     undoneText: "Undone: judge this card again.",
     cardText: (n, total) => "Card " + n + (total ? " of " + total : ""),
     show(task) {
-      image.src = task.image_url; image.hidden = false; form.reset();
-      for (const order in wiggles) {
+      image.src = task.image_url; image.hidden = false; form.reset(); showPick();
+      for (const order in eyeOrders) {
         const url = task.wiggle_urls && task.wiggle_urls[order];
-        wiggles[order].hidden = !url;
-        if (url) wiggles[order].src = url;
+        eyeOrders[order].hidden = !url;
+        if (url) eyeOrders[order].src = url;
       }
     },
     showPreview(url) {
@@ -26,9 +31,9 @@
       if (!url) return;
       image.src = url; image.hidden = false;
       document.getElementById("status").textContent = "A card like the ones in this task. Accept the HIT to answer.";
-      form.querySelectorAll("input").forEach(input => { input.disabled = true; });
+      form.querySelectorAll("input, .eye-order-pick").forEach(input => { input.disabled = true; });
     },
-    hide() { image.hidden = true; for (const order in wiggles) wiggles[order].hidden = true; },
+    hide() { image.hidden = true; for (const order in eyeOrders) eyeOrders[order].hidden = true; },
     answer() {
       return {
         is_stereo: !form.elements.not_stereo.checked,
@@ -41,13 +46,18 @@
   const help = window.KeystoneTasks.instructions(document.getElementById("help"), "keystone-crowd-help-seen");
 
   form.addEventListener("submit", (event) => { event.preventDefault(); client.submit(); });
+  form.elements.swapped.addEventListener("change", showPick);
+  picks.forEach(pick => pick.addEventListener("click", () => {
+    form.elements.swapped.checked = pick.dataset.swapped === "true";
+    showPick();
+  }));
   document.getElementById("undo").addEventListener("click", client.undo);
   document.getElementById("show-help").addEventListener("click", help.open);
   document.addEventListener("keydown", (event) => {
     if (event.ctrlKey || event.metaKey || event.altKey || help.isOpen()) return;
     const key = event.key.toLowerCase();
     const box = form.querySelector('input[data-key="' + key + '"]');
-    if (box) { event.preventDefault(); if (!box.disabled) box.checked = !box.checked; return; }
+    if (box) { event.preventDefault(); if (!box.disabled) box.checked = !box.checked; showPick(); return; }
     if (key === "enter") { event.preventDefault(); client.submit(); }
     else if (key === "u") { event.preventDefault(); client.undo(); }
     else if (key === "h" || key === "?") { event.preventDefault(); help.open(); }

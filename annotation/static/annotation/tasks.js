@@ -102,7 +102,9 @@ window.KeystoneTasks = (function () {
       if (shown === task.token && !force) return;
       shown = task.token;
       page.show(task);
-      if (queue[1]) { const next = new Image(); next.src = queue[1].image_url; }  // preload
+      if (queue[1]) {  // preload the next card and its pictures (the eye-order ones are made on request)
+        for (const url of [queue[1].image_url, ...Object.values(queue[1].wiggle_urls || {})]) { const next = new Image(); next.src = url; }
+      }
       say(text);
       submitButton.disabled = false;
       scheduleRenew(task);

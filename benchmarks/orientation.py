@@ -38,6 +38,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -385,6 +386,12 @@ def main(argv: list[str] | None = None) -> int:
         help="instead: the acceptance variants with every card rescaled by each of these factors "
         "(comma-separated, e.g. 0.6,0.8,1,1.3,1.7), decided and wrong at each threshold",
     )
+    parser.add_argument(
+        "--head",
+        type=Path,
+        help="the learned cue's head to use (a JSON file of `python -m benchmarks.upright --out`), e.g. one trained "
+        "without the held-out cards, for a held-out figure of the whole step",
+    )
     args = parser.parse_args(argv)
     if args.flow:
         from .orientation_flow import main_flow
@@ -396,6 +403,10 @@ def main(argv: list[str] | None = None) -> int:
     # Every cue measured on every variant (the step leaves out the second stereo pass where it
     # could not change the outcome at its own threshold; the fit and the sweep need its value).
     params = OrientationParams(fill_only_when_it_could_matter=False)
+    if args.head is not None:
+        from pipeline.upright import load_head
+
+        params = replace(params, learned_head=str(args.head), learned_head_version=load_head(str(args.head)).version)
     if args.scales:
         scales = tuple(float(v) for v in args.scales.split(","))
         if not scales or any(not 0.1 <= v <= 4.0 for v in scales):

@@ -203,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--side", type=int, default=224)
     parser.add_argument("--copies", type=int, default=AUGMENTATIONS)
     parser.add_argument("--train", action="store_true", help="write the shipped head")
+    parser.add_argument("--exclude", action="append", default=[], help="leave this source (a card's file stem) out of training")
+    parser.add_argument("--out", type=Path, help="write the trained head here instead of the shipped head's file")
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--cache", type=Path, help="keep the feature tables here (.npz) and reuse them")
     args = parser.parse_args(argv)
@@ -215,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
         f"train-{args.side}-{args.copies}",
         lambda: feature_table(training_photos(args.data, args.extra), args.side, args.copies, seed=0),
     )
+    if args.exclude:
+        keep = ~np.isin(train["sources"], args.exclude)
+        train = {key: value[keep] for key, value in train.items()}
     cpu = time.process_time()
     test = cached(args.cache, f"test-{args.side}", lambda: feature_table(test_photos(args.data), args.side, 0, seed=1))
     seconds_per_photo = (time.process_time() - cpu) / max(1, len(test["sources"]))
@@ -240,14 +245,15 @@ def main(argv: list[str] | None = None) -> int:
             "keystone_mast_raw_scans": margin_summary(margins[~kd]),
         }
     report["cpu_seconds_total"] = round(time.process_time() - clock, 1)
-    if args.train:
+    if args.train or args.out:
         head = UprightHead(
-            version=f"shipped-{datetime.date.today().isoformat()}",
+            version=f"shipped-{datetime.date.today().isoformat()}" if args.out is None else f"trial-{args.out.stem}",
             input_side=args.side,
             turn=tuple(float(v) for v in heads["turn"]),
             tone=tuple(float(v) for v in heads["tone"]),
         )
-        HEAD_FILE.parent.mkdir(exist_ok=True)
+        target = args.out or HEAD_FILE
+        target.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             **head.as_dict(),
             "trained_on": report["training_sources"],
@@ -256,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
         }
         payload["turn"] = [round(v, 6) for v in payload["turn"]]
         payload["tone"] = [round(v, 6) for v in payload["tone"]]
-        HEAD_FILE.write_text(json.dumps(payload) + "\n")
+        target.write_text(json.dumps(payload) + "\n")
         assert len(payload["turn"]) == FEATURE_SIZE
     if args.json:
         print(json.dumps(report, indent=2))

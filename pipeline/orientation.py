@@ -170,6 +170,7 @@ CUE_FLAGS: dict[str, tuple[str, ...]] = {
     "smooth_bright": ("inverted",),
     "arched_top": ("upside_down",),
     "text_upright": ("upside_down",),
+    "face_upright": ("upside_down",),
     "learned_tone": ("inverted",),
     "learned_upright": ("upside_down",),
     "learned_upright_inverse": ("upside_down",),
@@ -251,6 +252,12 @@ class OrientationParams:
     # clearly one way and not the other (value about 0.45) gives upside_down 0.98 on its own.
     # Measured: on the 15 shared cards both ways up, every line that counted read the right way.
     w_text_upright: float = 4.5
+    # Faces (pipeline.faces, MTCNN): one face found upright and none turned gives 0.5, so 2.0
+    # log-odds on its own (P 0.88); a face on both photos 0.67, 2.7 (P 0.94). Measured: every
+    # face that counted voted right (shared cards 8 of 30 photos, KeystoneDepth 17 of 100).
+    w_face_upright: float = 4.0
+    face_max_side: int = 640
+    """px: the longer side each photo is searched at for faces (0 turns the face cue off)."""
     # The learned cues' values are their heads' log-odds (pipeline.upright; the L2 strength
     # chosen by cross-validation keeps them calibrated), averaged over the two photos.
     w_learned_tone: float = 0.5
@@ -262,9 +269,11 @@ class OrientationParams:
     """Path of a refitted head (``keystone orientation fit``), or "" for the shipped one."""
     learned_head_version: str = SHIPPED_HEAD_VERSION
     """The head's version (part of the parameter hash: a refit reruns the step)."""
-    learned_tone_sure: float = 4.0
-    """Log-odds: when the hand-made tone cues (colour above all) are at least this sure, the
-    photos are read by the network in that tone only (2 passes a photo instead of 4)."""
+    learned_tone_sure: float = 1.5
+    """Log-odds: when the hand-made tone cues are at least this sure, the photos are read by the
+    network in that tone only (2 passes a photo instead of 4). Colour decides it: on the shared
+    cards the sepia prints score 1.9-2.8 and were right on all 104 colour variants, the greyscale
+    Keystone-Mast scans 0.1-0.6 (read both ways)."""
     confirm_probability: float = 0.5
     """A card not decided automatically whose most probable combination has at least this
     probability goes to people as a proposal to confirm at a glance (``decision`` "confirm");
@@ -286,6 +295,8 @@ class OrientationParams:
     def __post_init__(self) -> None:
         if self.working_width < 4 * MIN_PHOTO_SIDE:
             raise InvalidInputError(f"Expected working_width >= {4 * MIN_PHOTO_SIDE} px, got {self.working_width}")
+        if self.face_max_side != 0 and self.face_max_side < 64:
+            raise InvalidInputError(f"Expected face_max_side 0 (off) or >= 64 px, got {self.face_max_side}")
         if self.text_detect_side != 0 and self.text_detect_side < 128:
             raise InvalidInputError(f"Expected text_detect_side 0 (off) or >= 128 px, got {self.text_detect_side}")
         if self.arch_working_width != 0 and self.arch_working_width < 4 * MIN_PHOTO_SIDE:
@@ -800,10 +811,12 @@ def _fill_not_needed(
     if len(ends) == 1 and None not in ends:
         return "not measured: the card is decided on the same flags whatever it reads"
     text = (-1.0, 1.0) if params.text_detect_side else (0.0,)
-    corners = itertools.product((-1.0, 1.0), text)
+    faces = (-1.0, 1.0) if params.face_max_side else (0.0,)
+    corners = itertools.product((-1.0, 1.0), text, faces)
     if all(
-        _outcome({**values, "occlusion_fill": f, "text_upright": t}, weights, params.auto_probability, known) is None
-        for f, t in corners
+        _outcome({**values, "occlusion_fill": f, "text_upright": t, "face_upright": g}, weights, params.auto_probability, known)
+        is None
+        for f, t, g in corners
     ):
         return "not measured: whatever it and the print read, the card goes to people"
     return None
@@ -908,20 +921,15 @@ def _learned_photos(card: np.ndarray, lb: Box, rb: Box, areas: PhotoAreas | None
     else the split's boxes less 6 % a side (measured: scored on boxes that keep the mount,
     negatives went wrong; the mount's paper is not the photo's tone)."""
     rgb = card if card.ndim == 3 else np.repeat(card[:, :, None], 3, axis=2)
-    boxes, where = (lb, rb), "split boxes, inset 6 %"
+
+    def inset(b: Box) -> Box:
+        dx, dy = (b[2] - b[0]) * 6 // 100, (b[3] - b[1]) * 6 // 100
+        return (b[0] + dx, b[1] + dy, b[2] - dx, b[3] - dy)
+
+    boxes, where = (inset(lb), inset(rb)), "split boxes, inset 6 %"
     if areas is not None and not areas.is_fallback:
         if min(min(b[2] - b[0], b[3] - b[1]) for b in (areas.left_box, areas.right_box)) >= MIN_PHOTO_SIDE:
             boxes, where = (areas.left_box, areas.right_box), "photo areas"
-    if where != "photo areas":
-        boxes = tuple(
-            (
-                b[0] + (b[2] - b[0]) * 6 // 100,
-                b[1] + (b[3] - b[1]) * 6 // 100,
-                b[2] - (b[2] - b[0]) * 6 // 100,
-                b[3] - (b[3] - b[1]) * 6 // 100,
-            )
-            for b in boxes
-        )
     return [np.ascontiguousarray(rgb[b[1] : b[3], b[0] : b[2]]) for b in boxes], where
 
 
@@ -1010,6 +1018,21 @@ def read_learned_cues(
     return LearnedReading(values, details, differences)
 
 
+def _face_upright(card: np.ndarray, lb: Box, rb: Box, areas: PhotoAreas | None, max_side: int) -> tuple[float, Any]:
+    """:func:`pipeline.faces.face_upright` on the two photos (a positive, working px): its value
+    and what it found; 0 with the reason when the face nets are not installed or fail."""
+    from .faces import FaceDetectionFailedError, FaceModelMissingError, FaceParams, face_upright
+
+    photos, where = _learned_photos(card, lb, rb, areas)
+    try:
+        value, found = face_upright(photos, FaceParams(max_side=max_side))
+    except (FaceModelMissingError, FaceDetectionFailedError, InvalidInputError) as exc:
+        return 0.0, f"not searched: {exc}"
+    except cv2.error as exc:  # a numerical corner case inside OpenCV's DNN: no face evidence, said
+        return 0.0, f"not searched (OpenCV: {str(exc).strip()[:80]})"
+    return value, {"note": found["note"], "on": where, "n_upright": found["n_upright"], "n_turned": found["n_turned"]}
+
+
 def _text_upright(card: np.ndarray, detect_side: int) -> tuple[float, Any]:
     """:func:`pipeline.text_orientation.read_text_orientation` on the card (a positive): its
     value and what it read; 0 with the reason when the text models are not installed."""
@@ -1089,6 +1112,7 @@ def _meaning(name: str, value: float) -> str:
             "warm_tone": "greyscale scan: no colour evidence",
             "arched_top": "no arched photo tops found",
             "text_upright": "no readable horizontal print (or not read: see details)",
+            "face_upright": "no face found either way up (or not searched: see details)",
             "learned_tone": "not read (see details): no network evidence",
             "learned_upright": "not read (see details): no network evidence",
             "learned_upright_inverse": "not read (see details): no network evidence",
@@ -1129,6 +1153,7 @@ def _meaning(name: str, value: float) -> str:
             "the photos' arched tops are at the top: upright" if even else "the photos' arched tops are at the bottom: turned"
         ),
         "text_upright": "the printed text reads upright" if even else "the printed text reads upside down: turned",
+        "face_upright": "faces are found the right way up" if even else "faces are found only with the card turned: turned",
         "learned_tone": ("the network sees a positive print" if even else "the network sees a negative: tones inverted"),
         "learned_upright": (
             "read as a positive, the network sees the photos upright"
@@ -1254,7 +1279,7 @@ def estimate_orientation(
             clock,
             details,
         )
-    values.update(occlusion_side=occlusion, occlusion_fill=0.0, ground_plane=ground, text_upright=0.0)
+    values.update(occlusion_side=occlusion, occlusion_fill=0.0, ground_plane=ground, text_upright=0.0, face_upright=0.0)
     # The fill cue needs a second stereo pass (about a third of the step). It is measured only
     # where its value could change the outcome: elsewhere the card is decided, or sent to
     # people, the same either way.
@@ -1264,6 +1289,20 @@ def estimate_orientation(
     else:
         with _stereo_failures():
             values["occlusion_fill"], details["occlusion_fill_votes"] = _occlusion_fill(stereo_left, stereo_right, forward)
+    values["face_upright"] = 0.0
+    if params.face_max_side == 0:
+        details["faces"] = "face cue off"
+    elif _outcome(values, weights, params.auto_probability, known) is not None:
+        details["faces"] = "not searched: the card is decided without them"
+    elif all(
+        _outcome({**values, "face_upright": bound, "text_upright": text}, weights, params.auto_probability, known) is None
+        for bound in (-1.0, 1.0)
+        for text in (-1.0, 1.0)
+    ):
+        details["faces"] = "not searched: faces either way up (and print) could not decide the card"
+    else:
+        positive = 255 - card if tone < 0 else card
+        values["face_upright"], details["faces"] = _face_upright(positive, lb, rb, areas, params.face_max_side)
     if params.text_detect_side == 0:
         details["text"] = "text cue off"
     elif params.text_only_when_undecided and _outcome(values, weights, params.auto_probability, known) is not None:

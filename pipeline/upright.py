@@ -254,7 +254,8 @@ def write_learned_differences(path: Path, differences: dict[str, np.ndarray]) ->
     a float16 ``.npz``; :func:`read_learned_differences` reads it back as float32."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, **{name: np.asarray(v, np.float16) for name, v in differences.items()})
+    arrays: dict[str, Any] = {name: np.asarray(v, np.float16) for name, v in differences.items()}
+    np.savez_compressed(tmp, **arrays)
     tmp.replace(path)
     return path
 

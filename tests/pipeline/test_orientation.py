@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -402,7 +403,16 @@ def test_sixteen_bit_and_greyscale_scans(scene_card):
 
 
 @pytest.mark.parametrize(
-    "changes", [{"auto_probability": 0.4}, {"working_width": 50}, {"w_ground_plane": -1.0}, {"arch_working_width": 50}]
+    "changes",
+    [
+        {"auto_probability": 0.4},
+        {"working_width": 50},
+        {"w_ground_plane": -1.0},
+        {"arch_working_width": 50},
+        {"confirm_probability": 0.9},
+        {"face_max_side": 10},
+        {"learned_max_log_odds": 0.0},
+    ],
 )
 def test_params_are_checked(changes):
     with pytest.raises(InvalidInputError):
@@ -450,3 +460,77 @@ def test_one_answer_settles_a_doubtful_turn_and_swap(motorcycle_card):
         assert estimate.with_upside_down(flags[0]) == dict(zip(FLAGS, flags))
     blank, lb, rb = mount(np.full((200, 240), 90, np.uint8), np.full((200, 240), 90, np.uint8))
     assert estimate_orientation(blank, lb, rb).with_upside_down(False) is None
+
+
+# ---------------------------------------------------------------- learned cues, known flags
+
+
+def test_a_conditional_cue_speaks_only_under_its_tone_hypothesis():
+    weights = OrientationParams().weights()
+    # read as a positive the photos look upright; read as a negative, turned: the turn follows
+    # the tone, and the tone is decided by the tone cues
+    values = {"learned_upright": 4.0, "learned_upright_inverse": -4.0, "warm_tone": 1.0}
+    joint = hypothesis_probabilities(values, weights)
+    assert max(joint, key=joint.__getitem__) == (False, False, False)
+    negative = {**values, "warm_tone": -1.0}
+    joint = hypothesis_probabilities(negative, weights)
+    assert max(joint, key=joint.__getitem__) == (True, True, False)
+    # both readings alike: the cue says nothing about the tone
+    same = flag_probabilities({"learned_upright": 3.0, "learned_upright_inverse": 3.0}, weights)
+    assert same["inverted"] == pytest.approx(0.5) and same["upside_down"] < 0.1
+
+
+def test_known_flags_rule_out_hypotheses():
+    weights = OrientationParams().weights()
+    values = {"warm_tone": -0.2, "ground_plane": 0.8, "arched_top": 1.0}
+    assert flag_probabilities(values, weights)["inverted"] > 0.5
+    known = flag_probabilities(values, weights, {"inverted": False})
+    assert known["inverted"] == 0.0
+    chosen, _ = decided_combination(values, weights, 0.85, {"inverted": False})
+    assert chosen == (False, False, False)
+
+
+def test_an_operator_word_decides_a_greyscale_card_the_step_could_not(scene_card):
+    card, lb, rb = scene_card
+    grey = cv2.cvtColor(card, cv2.COLOR_RGB2GRAY)  # no colour: the tone rests on weaker cues
+    params = OrientationParams(w_learned_tone=0.0, w_learned_upright=0.0, text_detect_side=0, face_max_side=0)
+    alone = estimate_orientation(grey, lb, rb, params)
+    told = estimate_orientation(grey, lb, rb, params, known={"inverted": False})
+    assert told.inverted.probability == 0.0 and told.inverted.value is False
+    assert told.combination_probability >= alone.combination_probability
+    assert told.as_dict()["known"] == {"inverted": False}
+    with pytest.raises(OrientationInputError, match="known flags"):
+        estimate_orientation(grey, lb, rb, params, known={"sideways": True})
+
+
+def test_a_proposal_is_made_between_confirm_and_auto(scene_card):
+    card, lb, rb = scene_card
+    params = OrientationParams(text_detect_side=0, face_max_side=0, w_learned_upright=0.0, w_learned_tone=0.0)
+    estimate = estimate_orientation(card, lb, rb, params)
+    assert estimate.proposed is not None
+    if estimate.decided:
+        assert estimate.decision == "auto"
+    strict = estimate_orientation(card, lb, rb, replace(params, auto_probability=0.999))
+    assert strict.decision == ("confirm" if strict.combination_probability >= 0.5 else "ask")
+    assert strict.proposed_orientation() == dict(zip(FLAGS, strict.proposed))
+    blank, lb2, rb2 = mount(np.full((200, 240), 90, np.uint8), np.full((200, 240), 90, np.uint8))
+    undecidable = estimate_orientation(blank, lb2, rb2)
+    assert undecidable.decision == "ask" and undecidable.proposed_orientation() is None
+
+
+@pytest.mark.skipif(
+    __import__("importlib").util.find_spec("efficientnet_lite_pytorch") is None, reason="efficientnet-lite-pytorch not installed"
+)
+def test_the_learned_cue_reads_real_photos_as_a_positive_and_turns_with_the_card(load_card):
+    """A real NYPL card and its 180-degree turn: the learned cue reads it upright as scanned and
+    turned when turned (measured on the photo areas), and keeps the heads' inputs for a refit."""
+    card = load_card("full_cards/nypl_stereogranimator_demo5.jpg")
+    split = split_card(card)
+    for upside_down in (False, True):
+        variant, vl, vr = orient_variant(card, split.left_box, split.right_box, upside_down, False, False)
+        estimate = estimate_orientation(variant, vl, vr)
+        value = next(c.value for c in estimate.cues if c.name == "learned_upright")
+        assert (value > 1.0) if not upside_down else (value < -1.0), value
+        assert estimate.upside_down.value is upside_down
+        assert estimate.learned_differences["turn"].shape == (2, 1280)
+        assert estimate.details["learned"]["read"] == "read as a positive"  # a colour card: tone sure

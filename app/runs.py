@@ -351,6 +351,9 @@ class StageReport:
     chained: int = 0
     chained_cards: list[int] = field(default_factory=list)
     followers: dict[str, StageReport] = field(default_factory=dict)
+    # The orientation step's decisions this run changed on cards it had decided before (a
+    # collection's refitted head, an operator's word): card, before, after (decided_changes).
+    changed_decisions: list[dict[str, Any]] = field(default_factory=list)
 
     def absorb(self, chained: StageReport) -> None:
         """Count what a chain led by an earlier stage computed for this stage: those cards were
@@ -361,13 +364,16 @@ class StageReport:
         self.chained += chained.chained
         self.chained_cards.extend(chained.chained_cards)
         self.failures.extend(chained.failures)
+        self.changed_decisions.extend(chained.changed_decisions)
         for outcome, count in chained.outcomes.items():
             self.outcomes[outcome] = self.outcomes.get(outcome, 0) + count
         self.skipped_existing = max(0, self.skipped_existing - chained.done)
         self.seconds += chained.seconds
 
     def as_json(self) -> dict[str, Any]:
+        extra = {"changed_decisions": self.changed_decisions} if self.stage == "orientation" else {}
         return {
+            **extra,
             "stage": self.stage,
             "param_hash": self.param_hash,
             "processed": self.processed,
@@ -630,12 +636,12 @@ def run_stage(
             if on_record is not None:
                 on_record(record)
             if len(batch) >= WRITE_BATCH or time.monotonic() - last_write > WRITE_INTERVAL_S:
-                write_records(batch, digests, driver)
+                report.changed_decisions += write_records(batch, digests, driver)
                 if chain is not None:
                     chain.write()
                 batch, last_write = [], time.monotonic()
         if batch:
-            write_records(batch, digests, driver)
+            report.changed_decisions += write_records(batch, digests, driver)
         if chain is not None:
             chain.write()
 
@@ -750,9 +756,10 @@ class _Chain:
     def write(self) -> None:
         """Write the followers' records in flow order (the lead's are written first) and free
         the follower claims the chains did not use."""
-        for made in self.pending.values():
+        for name, made in self.pending.items():
             if made:
-                write_records([record for record, _ in made], {r.card_id: d for r, d in made if d is not None}, self.driver)
+                digests = {r.card_id: d for r, d in made if d is not None}
+                self.reports[name].changed_decisions += write_records([record for record, _ in made], digests, self.driver)
                 made.clear()
         unused = {name: ids for name, ids in self.unused.items() if ids}
         if unused:
@@ -841,17 +848,52 @@ def _count(report: StageReport, record: StageRecord) -> None:
             report.outcomes[record.outcome] = report.outcomes.get(record.outcome, 0) + 1
 
 
-def write_records(records: list[StageRecord], digests: dict[int, str] | None = None, driver: Driver | None = None) -> None:
+def _words(decision: Mapping[str, Any]) -> str:
+    proposed = decision.get("proposed") or {}
+    set_flags = [flag for flag, value in proposed.items() if value]
+    return f"{decision.get('decision')} ({', '.join(set_flags) or 'upright, positive, eyes in order'})"
+
+
+def _decision(outcome: str | None, metrics: Mapping[str, Any]) -> dict[str, Any]:
+    return {"decision": outcome, "proposed": metrics.get("proposed")}
+
+
+def decided_changes(session: Any, records: list[StageRecord]) -> list[dict[str, Any]]:
+    """Of new orientation records, those whose decision (``auto`` / ``confirm`` / ``ask`` and the
+    proposed flags) differs from the card's latest orientation result before them: what a
+    collection's refitted head or an operator's word changed, listed in the run's report."""
+    new = {r.card_id: r for r in records if r.stage == "orientation" and r.status == "done"}
+    if not new:
+        return []
+    before: dict[int, dict[str, Any]] = {}
+    for row in session.scalars(
+        select(StageResult)
+        .where(StageResult.stage == "orientation", StageResult.status == "done", StageResult.card_id.in_(new))
+        .order_by(StageResult.id)
+    ):
+        before[row.card_id] = _decision(row.outcome, row.metrics or {})
+    return [
+        {"card_id": card_id, "before": before[card_id], "after": after}
+        for card_id, record in sorted(new.items())
+        if card_id in before and (after := _decision(record.outcome, record.metrics)) != before[card_id]
+    ]
+
+
+def write_records(
+    records: list[StageRecord], digests: dict[int, str] | None = None, driver: Driver | None = None
+) -> list[dict[str, Any]]:
     """Upsert results (one row per card, stage and parameters), update card states and release
-    the driver's claims on these cards, in one transaction.
+    the driver's claims on these cards, in one transaction. Returns the orientation decisions the
+    records changed (:func:`decided_changes`).
 
     An upsert, not read-then-insert: a row another run wrote meanwhile (its claim lapsed and
     was taken over, or it ran before claims existed) is overwritten, never a unique-key error.
     """
     if not records:
-        return
+        return []
     session = db.session()
     with one_writer(session):
+        changes = decided_changes(session, records)
         connection = session.connection()
         insert = (postgresql.insert if connection.dialect.name == "postgresql" else sqlite.insert)(StageResult)
         now = utcnow()
@@ -891,6 +933,7 @@ def write_records(records: list[StageRecord], digests: dict[int, str] | None = N
             for stage in {record.stage for record in records}:
                 connection.execute(driver.release_statement(stage, {r.card_id for r in records if r.stage == stage}))
         session.commit()
+    return changes
 
 
 DOWNSTREAM_OF_CULL = ("orientation", "judge", "crop", "rectify", "disparity", "grade", "review", "views")
@@ -1169,6 +1212,11 @@ def run_command(
                     )
                     for failure in report.failures:
                         say(f"  card {failure['card_id']}: {failure['reason']}", as_json)
+                    for change in report.changed_decisions:
+                        say(
+                            f"  card {change['card_id']}: decision changed {_words(change['before'])} -> {_words(change['after'])}",
+                            as_json,
+                        )
                 if report.still_held:
                     say(
                         f"{name}: left {report.still_held} card(s) that another run holds "

@@ -122,3 +122,30 @@ def test_fit_refuses_unknown_collections_and_too_few_cards(app, runner, make_car
     result = runner.invoke(args=["orientation", "fit", "--collection", "small"])
     assert result.exit_code == 1 and "at least 10 cards" in result.output
     assert "Traceback" not in result.output
+
+
+def test_a_changed_decision_is_listed_when_written(app, make_card, add_stage_result):  # type: ignore[no-untyped-def]
+    """The run's report lists the cards whose orientation decision a rerun changed (a refitted
+    head reaches the step through its inputs, so only the next run changes decisions)."""
+    from app.runs import write_records
+    from pipeline.records import StageRecord
+
+    card_id = make_card(state="pass")
+    add_stage_result(card_id, "orientation", outcome="confirm", metrics={"proposed": {"upside_down": False}})
+    unchanged = make_card(np.random.default_rng(7).integers(0, 255, size=(120, 330, 3), dtype=np.uint8), state="pass")
+    add_stage_result(unchanged, "orientation", outcome="auto", metrics={"proposed": {"upside_down": True}})
+
+    def record(card: int, outcome: str, upside_down: bool) -> StageRecord:
+        return StageRecord(
+            card, "orientation", "0123456789abcdef", "done", outcome, metrics={"proposed": {"upside_down": upside_down}}
+        )
+
+    with app.app_context():
+        changes = write_records([record(card_id, "auto", False), record(unchanged, "auto", True)])
+    assert changes == [
+        {
+            "card_id": card_id,
+            "before": {"decision": "confirm", "proposed": {"upside_down": False}},
+            "after": {"decision": "auto", "proposed": {"upside_down": False}},
+        }
+    ]

@@ -47,6 +47,7 @@ from scipy.optimize import minimize
 
 from pipeline.io import read_image
 from pipeline.orientation import (
+    CUE_CONDITIONS,
     CUE_FLAGS,
     FLAGS,
     HYPOTHESES,
@@ -79,6 +80,24 @@ def load_cards(data: Path) -> list[tuple[str, np.ndarray]]:
         h = min(left.shape[0], right.shape[0])
         cards.append(("depthy_7995", np.concatenate([left[:h], right[:h]], axis=1)))
     return cards
+
+
+def cue_table(rows: list[dict]) -> dict[str, dict[str, dict[str, int]]]:
+    """Each cue's fire rate, right and wrong, per split: a cue fires on a variant when its value
+    is not 0, and is right when its sign says the parity of its flags that the truth has. A cue
+    read under one tone hypothesis (CUE_CONDITIONS) counts only on variants of that tone."""
+    table: dict[str, dict[str, dict[str, int]]] = {}
+    for cue, flags in CUE_FLAGS.items():
+        table[cue] = {}
+        for split in ("tune", "held_out"):
+            chosen = [r for r in rows if r["split"] == split]
+            if cue in CUE_CONDITIONS:
+                flag, value = CUE_CONDITIONS[cue]
+                chosen = [r for r in chosen if r["truth"][flag] == value]
+            fired = [r for r in chosen if abs(r["values"].get(cue, 0.0)) > 1e-9]
+            right = sum((r["values"][cue] > 0) == (sum(r["truth"][f] for f in flags) % 2 == 0) for r in fired)
+            table[cue][split] = {"variants": len(chosen), "fired": len(fired), "right": right, "wrong": len(fired) - right}
+    return table
 
 
 def measure(cards: list[tuple[str, np.ndarray]], params: OrientationParams) -> list[dict]:
@@ -432,6 +451,7 @@ def main(argv: list[str] | None = None) -> int:
         "auto_probability": params.auto_probability,
         "threshold_sweep": threshold_sweep(tune, held, params.weights()),
         "split_seconds_mean": round(float(np.mean([r["split_seconds"] for r in rows])), 4),
+        "cues": cue_table(rows),
     }
     if args.rows:
         report["rows"] = rows

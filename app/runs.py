@@ -90,7 +90,7 @@ def filter_boxes(card: Card) -> dict[str, Any]:
 def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     """People's approved decisions per card (the features register them, see
     :mod:`app.stage_hooks`): the crowd's approved judge and crop aggregates and a curator's
-    orientation override, ``{card: {"judge": .., "crop": .., "orientation_override": ..}}``."""
+    orientation override, ``{card: {"judge": .., "crop": .., "confirm": .., "orientation_override": ..}}``."""
     return approved_decisions(card_ids)
 
 
@@ -98,7 +98,10 @@ def card_orientation(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
     """The orientation the pipeline uses for ``card`` (:func:`app.orientation.resolve_orientation`)
     from its latest orientation result, approved judgement and curator override."""
     return resolve_orientation(
-        card.latest_results().get("orientation"), approved.get("judge"), approved.get("orientation_override")
+        card.latest_results().get("orientation"),
+        approved.get("judge"),
+        approved.get("orientation_override"),
+        confirm=approved.get("confirm"),
     )
 
 
@@ -909,7 +912,8 @@ def _crowd_status(
                 "not needed: the filter passed the card as a stereo pair and the orientation "
                 f"step decided it (confidence {orientation['confidence']})",
             )
-        if orientation["decided_by"] == "curator":
+        if orientation["decided_by"] in ("curator", "crowd"):
+            # crowd without a judge aggregate: people confirmed the step's proposal in a grid.
             return _status("skipped", f"not needed: {orientation['source']}")
         return _status("pending", f"waiting for {orientation['waiting_for']}" if orientation["waiting_for"] else None)
     rectify = latest.get("rectify")

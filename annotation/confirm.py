@@ -76,6 +76,26 @@ def aggregate_taps(answers: Sequence[TapAnswer], gold: Mapping[Hashable, Flags] 
     }
 
 
+def pick_gold(candidates: Sequence[tuple[Hashable, int, Flags]], k: int) -> list[Hashable]:
+    """Which ``k`` gold items a grid hides, from ``(item, answers so far, gold taps)``: one
+    shown right (no tap is the answer: a worker who taps everything fails it) and the rest
+    shown wrong on as many different flags as there are, least answered first within each
+    (so every gold card gathers evidence on workers)."""
+    pool = sorted(candidates, key=lambda c: (c[1], str(c[0])))
+    right = [c for c in pool if not any(c[2].get(f) for f in FLAGS)]
+    wrong = [c for c in pool if any(c[2].get(f) for f in FLAGS)]
+    picked: list[tuple[Hashable, int, Flags]] = right[:1] if k > 0 else []
+    seen: set[str] = set()
+    for c in wrong:  # one of each wrong flag first, then the least answered of the rest
+        flag = next(f for f in FLAGS if c[2].get(f))
+        if len(picked) < k and flag not in seen:
+            picked.append(c)
+            seen.add(flag)
+    rest = [c for c in pool if c not in picked]
+    picked += rest[: max(0, k - len(picked))]
+    return [c[0] for c in picked]
+
+
 def grid_order(items: Iterable[tuple[Hashable, str]]) -> list[Hashable]:
     """The order a grid shows its cards in: by each reservation token (random, never stored
     order), so gold items sit anywhere among the regular ones."""

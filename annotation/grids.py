@@ -25,8 +25,9 @@ from app.models import Card
 
 from . import assignment as strategy
 from .answers import CardSize, submit, validate_payload
-from .confirm import grid_order
+from .confirm import grid_order, pick_gold
 from .crowd_settings import reservation_ttl
+from .models import BatchItem
 from .queries import (
     OPEN_BATCHES,
     OPEN_GOLD,
@@ -44,6 +45,8 @@ from .task_errors import TaskError
 DEFAULT_GRID_SIZE = 30  # cards a grid shows, gold included (the brief: 24 to 48)
 DEFAULT_GRID_GOLD = 3  # gold cards hidden in each grid
 MAX_GRID = 48
+# The gold a grid may hide, with its answers so far and its known taps (to mix right and wrong).
+GRID_GOLD = OPEN_GOLD.add_columns(BatchItem.__table__.c.gold_answer)
 
 
 def grid_size() -> tuple[int, int]:
@@ -94,8 +97,9 @@ def _reserve_grid(
             if why is None or reason.reason != strategy.NoTaskReason.BATCH_COMPLETE:
                 why = reason
             continue
-        # The least-answered gold first, so every gold card gathers evidence on workers.
-        gold = sorted(run_prebuilt(OPEN_GOLD, params), key=lambda row: (row.answers, row.id))[:gold_wanted]
+        candidates = {row.id: row for row in run_prebuilt(GRID_GOLD, params)}
+        chosen = pick_gold([(row.id, row.answers, row.gold_answer or {}) for row in candidates.values()], gold_wanted)
+        gold = [candidates[item_id] for item_id in chosen]
         expires_at = now + reservation_ttl()
         tasks = [_hold(row, worker_id, session, batch_id, "confirm", now, expires_at) for row in [*regular, *gold]]
         recount_items([row.id for row in [*regular, *gold]], locked=True)

@@ -15,6 +15,7 @@ from annotation.confirm import (
     as_flags,
     gold_shown,
     grid_order,
+    pick_gold,
     taps_between,
 )
 
@@ -65,3 +66,21 @@ def test_the_vote_follows_reliable_workers_over_a_spammer_who_taps_everything():
 
 def test_grid_order_is_the_tokens_order_not_the_items():  # type: ignore[no-untyped-def]
     assert grid_order([(1, "b"), (2, "a"), (3, "c")]) == [2, 1, 3]
+
+
+def test_a_grids_gold_has_one_card_shown_right_and_the_rest_wrong_on_different_flags():  # type: ignore[no-untyped-def]
+    def taps(*flags: str) -> dict[str, bool]:
+        return {f: f in flags for f in FLAGS}
+
+    candidates = [
+        (1, 0, taps("upside_down")),
+        (2, 0, taps("upside_down")),
+        (3, 1, taps("inverted")),
+        (4, 2, taps()),
+        (5, 0, taps("swapped")),
+        (6, 0, taps()),
+    ]
+    assert pick_gold(candidates, 3) == [6, 1, 5]  # right, then least answered of two flags
+    assert pick_gold(candidates, 4) == [6, 1, 5, 3]
+    assert pick_gold(candidates, 6) == [6, 1, 5, 3, 2, 4]
+    assert pick_gold(candidates, 0) == [] and pick_gold([], 3) == []

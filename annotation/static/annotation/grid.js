@@ -53,7 +53,7 @@
 
   function countMarked() {
     const wrong = cards.filter(c => Object.values(c.taps).some(Boolean)).length;
-    marked.textContent = wrong ? wrong + " of " + cards.length + " marked wrong" : "Nothing marked: every card looks right";
+    marked.textContent = wrong ? wrong + " of " + cards.length + " marked wrong" : "None marked: all look right";
   }
 
   function toggle(index, flag) {

@@ -117,12 +117,25 @@ def _step_outcomes(card_ids: list[int]) -> dict[int, str | None]:
     return outcomes
 
 
+def _escalated(card_ids: list[int]) -> set[int]:
+    """Cards whose latest confirm aggregate says the grid could not agree (state ``escalated``)."""
+    latest: dict[int, str] = {}
+    for start in range(0, len(card_ids), 500):
+        rows = db.session.execute(
+            select(Aggregate.card_id, Aggregate.state)
+            .where(Aggregate.kind == "confirm", Aggregate.card_id.in_(card_ids[start : start + 500]))
+            .order_by(Aggregate.id)
+        )
+        latest.update({card_id: state for card_id, state in rows})
+    return {card_id for card_id, state in latest.items() if state == "escalated"}
+
+
 def orientation_queue_card_ids() -> list[int]:
     """Cards whose orientation the orientation step could not decide (it asked, or failed) and
     that no crowd judgement or curator has decided yet, whatever their filter band: they wait
     for a judge batch (``keystone crowd create-batch --from-review`` includes them). Cards the
     step proposed an orientation for (``confirm``) wait for a grid instead
-    (:func:`confirm_queue_card_ids`)."""
+    (:func:`confirm_queue_card_ids`), unless a grid could not agree on them."""
     return _waiting_for_orientation("judge")
 
 
@@ -136,8 +149,11 @@ def _waiting_for_orientation(kind: str) -> list[int]:
     from app.runs import waiting_for_people
 
     waiting = waiting_for_people()["orientation"]
-    outcomes = _step_outcomes(waiting)
-    waiting = [card_id for card_id in waiting if (outcomes.get(card_id) == "confirm") == (kind == "confirm")]
+    outcomes, escalated = _step_outcomes(waiting), _escalated(waiting)
+    # A grid that could not agree on a card sends it to a judge task: people judge it from scratch.
+    waiting = [
+        card_id for card_id in waiting if (outcomes.get(card_id) == "confirm" and card_id not in escalated) == (kind == "confirm")
+    ]
     # A card already in a batch of this kind whose answers are not aggregated yet is on its way.
     in_flight: set[int] = set()
     for start in range(0, len(waiting), 500):

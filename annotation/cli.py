@@ -160,6 +160,7 @@ def aggregate_command(batch_id: int, as_json: bool) -> None:
         doc,
         as_json,
         f"batch {batch_id}: {doc['approved']} approved, {doc['needs_curator']} for a curator, "
+        f"{doc['escalated']} sent on to judge tasks (a grid could not agree), "
         f"{doc['pending']} unfinished, {doc['flagged_workers']} workers flagged",
     )
 

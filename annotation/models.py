@@ -32,7 +32,9 @@ from app.models import Card, Person
 # looks wrong (annotation.grids).
 TASK_KINDS: tuple[str, ...] = ("judge", "crop", "confirm")
 PROVIDERS: tuple[str, ...] = ("invite", "prolific", "mturk")
-AGGREGATE_STATES: tuple[str, ...] = ("approved", "needs_curator")
+# escalated: a confirm grid's crowd could not agree on a card; it goes to a one-card judge task
+# (people judge it from scratch) rather than to a curator's dispute queue.
+AGGREGATE_STATES: tuple[str, ...] = ("approved", "needs_curator", "escalated")
 
 
 def _in(column: str, values: tuple[str, ...]) -> str:

@@ -39,12 +39,14 @@ class AggregationReport:
     pending: int  # items with fewer than N usable answers
     flagged_workers: int
     agreement: dict[str, dict[str, float | None]] = field(default_factory=dict)
+    escalated: int = 0  # confirm cards the grid could not agree on: they go to judge tasks
 
     def as_json(self) -> dict[str, Any]:
         return {
             "batch": self.batch_id,
             "approved": self.approved,
             "needs_curator": self.needs_curator,
+            "escalated": self.escalated,
             "pending": self.pending,
             "flagged_workers": self.flagged_workers,
             "agreement": self.agreement,
@@ -170,7 +172,7 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
                 for h, c in consensus.items()
             }
             results[it.id] = (posterior, label, unconfident_reasons(boxes=consensus, rules=rules))
-    approved = needs = 0
+    approved = needs = escalated = 0
     for item_id, (posterior, label, reasons) in results.items():
         it = items[item_id]
         row = db.session.scalar(select(Aggregate).where(Aggregate.batch_id == batch.id, Aggregate.card_id == it.card_id))
@@ -182,10 +184,12 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
             row = Aggregate(batch_id=batch.id, card_id=it.card_id, kind=batch.kind)
             db.session.add(row)
         row.posterior, row.label, row.confident = posterior, label, not reasons
-        row.state = "approved" if not reasons else "needs_curator"
+        # A grid that cannot agree sends its card to a judge task, not to a curator's queue.
+        row.state = "approved" if not reasons else "escalated" if batch.kind == "confirm" else "needs_curator"
         row.reasons, row.answers = "; ".join(reasons), len(by_item[item_id])
         approved += not reasons
-        needs += bool(reasons)
+        needs += bool(reasons) and batch.kind != "confirm"
+        escalated += bool(reasons) and batch.kind == "confirm"
     db.session.commit()
     regular = [it.id for it in items.values() if not it.is_gold]
     return AggregationReport(
@@ -195,4 +199,5 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
         pending,
         sum(1 for q in quality.values() if q["flagged"]),
         batch_agreement(batch.kind, answers, regular),
+        escalated,
     )

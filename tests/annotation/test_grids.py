@@ -250,3 +250,30 @@ def test_curators_reach_the_grid_from_the_crowd_pages(app, client, runner, grid_
     assert response.status_code == 303 and "kind=confirm" in response.headers["Location"]
     page = client.get(response.headers["Location"]).get_data(as_text=True)
     assert "annotation/grid.js" in page and 'data-grid-url="/crowd/api/grid"' in page
+
+
+def test_a_card_the_grid_cannot_agree_on_goes_to_a_judge_task(app, client, runner, grid_world):  # type: ignore[no-untyped-def]
+    from annotation.batches import confirm_queue_card_ids, orientation_queue_card_ids
+    from annotation.models import Aggregate
+    from review.tasks import disputed_aggregates
+
+    confirm = grid_world["confirm"]
+    doc = _create_batch(runner, n=2)
+    for name, wrong in (("ada", {confirm[0]: "inverted"}), ("bob", {})):  # one says negative, one does not
+        token = _worker(app, client, name)
+        grid = _api(client, "grid", token, {}).get_json()
+        items = _items(app, [c["token"] for c in grid["cards"]])
+        assert _api(client, "grid/submit", token, {"key": f"split-{name}", "answers": _taps(items, wrong)}).status_code == 201
+    report = runner.invoke(cli, ["crowd", "aggregate", str(doc["batch"]), "--json"])
+    assert report.exit_code == 0, report.output
+    counts = json.loads(report.stdout)
+    with app.app_context():
+        states = {row.card_id: row.state for row in db.session.scalars(select(Aggregate))}
+        assert states[confirm[0]] == "escalated"
+        assert counts["escalated"] == sum(s == "escalated" for s in states.values()) and counts["needs_curator"] == 0
+        escalated = {card_id for card_id, state in states.items() if state == "escalated"}
+        # People judge those from scratch; the grid does not ask again; no curator dispute.
+        assert set(orientation_queue_card_ids()) == escalated
+        assert confirm_queue_card_ids() == []
+        assert disputed_aggregates() == ([], 0)
+    assert _cards(runner)[confirm[0]]["orientation"]["decided_by"] is None

@@ -1,4 +1,4 @@
-"""Crowd pages and their small JSON API (the confirm grid's routes: :mod:`annotation.grid_views`).
+"""Crowd pages and their small JSON API (the confirm grid's routes are :mod:`annotation.grid_views`).
 
 Identity and anti-forgery: crowd routes do not use the session cookie. MTurk shows the page
 in an iframe on mturk.com, where browsers block third-party cookies, so a cookie-based login
@@ -379,4 +379,4 @@ def task_wiggle(token: str, order: str) -> Response:
 
 
 # The staff pages (batches, invites, workers, submissions, exports) register on this blueprint.
-from . import grid_views, staff_views  # noqa: E402, F401 (their routes need bp, defined above)
+from . import staff_views  # noqa: E402, F401 (its routes need bp, defined above)

@@ -229,7 +229,7 @@ def _task_json(task: Any) -> dict[str, Any]:
         document["wiggle_urls"] = {
             order: url_for("crowd.task_wiggle", token=task.reservation_token, order=order) for order in WIGGLE_ORDERS
         }
-    else:
+    elif task.kind == "crop":
         with read_only():
             card = db.session.get(Card, task.card_id)
             proposal = proposed_boxes(card) if card is not None else None

@@ -277,3 +277,25 @@ def test_a_card_the_grid_cannot_agree_on_goes_to_a_judge_task(app, client, runne
         assert confirm_queue_card_ids() == []
         assert disputed_aggregates() == ([], 0)
     assert _cards(runner)[confirm[0]]["orientation"]["decided_by"] is None
+
+
+def test_a_grid_whose_holds_lapsed_is_renewed_and_sent_again_under_the_same_key(app, client, runner, grid_world):  # type: ignore[no-untyped-def]
+    from datetime import timedelta
+
+    from app.db import utcnow
+
+    _create_batch(runner)
+    token = _worker(app, client, "slow")
+    grid = _api(client, "grid", token, {}).get_json()
+    tokens = [c["token"] for c in grid["cards"]]
+    with app.app_context():
+        for row in db.session.scalars(select(Reservation).where(Reservation.token.in_(tokens))):
+            row.expires_at = utcnow() - timedelta(seconds=1)
+        db.session.commit()
+    answers = [{"token": t, "taps": NONE} for t in tokens]
+    late = _api(client, "grid/submit", token, {"key": "slow-grid-1", "answers": answers})
+    assert late.status_code == 409 and "expired" in late.get_json()["error"]["message"]
+    for t in tokens:  # what the page does: renew every card, send the same answers again
+        assert _api(client, "renew", token, {"token": t}).status_code == 200
+    again = _api(client, "grid/submit", token, {"key": "slow-grid-1", "answers": answers})
+    assert again.status_code == 201 and again.get_json()["stored"] == len(tokens)

@@ -136,8 +136,24 @@
     busy = true; submitButton.disabled = true; clearError();
     status.textContent = "Sending…";
     const answers = cards.map(c => ({ token: c.token, taps: c.taps }));
+    const send = () => api(controls.dataset.gridSubmitUrl, { key: gridKey, answers });
+    const lapsed = (refusal) => refusal.status === 409 && /expired/.test(refusal.message);
     try {
-      const data = await api(controls.dataset.gridSubmitUrl, { key: gridKey, answers });
+      let data;
+      try {
+        data = await send();
+      } catch (err) {
+        // The grid's holds lapsed while the worker looked: renew them and send the same
+        // answers again under the same key (anything already stored is a duplicate).
+        if (!lapsed(err)) throw err;
+        await renewAll(cards.map(c => c.token));
+        data = await send();
+      }
+      const late = data.refused.filter(lapsed);
+      if (late.length) {
+        await renewAll(late.map(r => r.token));
+        data = await send();
+      }
       answered.textContent = data.answered;
       if (data.finish && data.finish.post) { postToMTurk(data.finish.post); return; }
       if (data.refused.length) fail(data.refused.length + " card(s) could not be saved: " + data.refused[0].message);
@@ -150,6 +166,10 @@
       if (err.status === 409 || err.status === 403 || err.status === 404) { busy = false; await load().catch(e => fail(e.message)); }
       else submitButton.disabled = false;
     } finally { busy = false; }
+  }
+
+  async function renewAll(tokens) {
+    for (const token of tokens) await api(cfg.renewUrl, { token });
   }
 
   function postToMTurk(post) {

@@ -242,10 +242,23 @@ def test_bad_grid_posts_are_refused_with_a_reason(app, client, runner, grid_worl
         assert db.session.scalar(select(db.func.count()).select_from(Answer)) == 0  # nothing stored by a bad post
 
 
-def test_curators_reach_the_grid_from_the_crowd_pages(app, client, runner, grid_world, login):  # type: ignore[no-untyped-def]
-    _create_batch(runner)
+def test_curators_make_a_confirm_batch_and_reach_the_grid_from_the_crowd_pages(  # type: ignore[no-untyped-def]
+    app, client, runner, grid_world, login, csrf_token, make_card, card_image
+):
     login("curator")
     assert 'id="confirm-grid-link"' in client.get("/crowd/batches").get_data(as_text=True)
+    form = {"kind": "confirm", "from_review": "1", "answers_per_item": "2", "csrf_token": csrf_token("/crowd/batches")}
+    assert client.post("/crowd/batches/new", data=form).status_code == 303
+    with app.app_context():
+        batch = db.session.scalar(select(Batch))
+        assert batch.kind == "confirm" and sorted(it.card_id for it in batch.items if not it.is_gold) == grid_world["confirm"]
+        assert sum(it.is_gold for it in batch.items) == 4  # gold made from the decided cards
+    # A card nobody proposed an orientation for cannot be shown in a grid: a sentence, no batch.
+    refused = client.post("/crowd/batches/new", data={**form, "from_review": "", "cards": str(grid_world["known"][0] + 100)})
+    assert refused.status_code == 404
+    bare = make_card(card_image()[:, ::-1].copy(), state="pass")  # no orientation result
+    no_proposal = runner.invoke(cli, ["crowd", "create-batch", "--kind", "confirm", "--cards", str(bare), "--json"])
+    assert no_proposal.exit_code == 1 and "no proposed orientation to confirm" in no_proposal.output
     response = client.get("/crowd/grid")
     assert response.status_code == 303 and "kind=confirm" in response.headers["Location"]
     page = client.get(response.headers["Location"]).get_data(as_text=True)

@@ -102,7 +102,7 @@ def _taps(items: dict[str, BatchItem], wrong_on: dict[int, str], gold_right: boo
     return answers
 
 
-def test_confirm_cards_go_to_grids_and_the_crowds_taps_decide_them(app, client, runner, grid_world, make_person):  # type: ignore[no-untyped-def]
+def test_confirm_cards_go_to_grids_and_the_crowds_taps_decide_them(app, client, runner, grid_world, make_person, tmp_path):  # type: ignore[no-untyped-def]
     from annotation.batches import orientation_queue_card_ids
 
     confirm, known = grid_world["confirm"], grid_world["known"]
@@ -161,6 +161,10 @@ def test_confirm_cards_go_to_grids_and_the_crowds_taps_decide_them(app, client, 
     aggregated = runner.invoke(cli, ["crowd", "aggregate", str(doc["batch"]), "--json"])
     assert aggregated.exit_code == 0, aggregated.output
     assert json.loads(aggregated.stdout)["approved"] == 6, aggregated.stdout
+
+    exported = runner.invoke(cli, ["crowd", "export", str(doc["batch"]), "--out", str(tmp_path / "export"), "--json"])
+    assert exported.exit_code == 0, exported.output
+    assert "upside_down" in (tmp_path / "export" / "aggregates.csv").read_text()
 
     after = _cards(runner)
     # Card 1 was proposed upside down; the crowd tapped it: it is not. Card 2: exchanged.
@@ -253,6 +257,8 @@ def test_curators_make_a_confirm_batch_and_reach_the_grid_from_the_crowd_pages( 
         batch = db.session.scalar(select(Batch))
         assert batch.kind == "confirm" and sorted(it.card_id for it in batch.items if not it.is_gold) == grid_world["confirm"]
         assert sum(it.is_gold for it in batch.items) == 4  # gold made from the decided cards
+    page = client.get("/crowd/batches")
+    assert page.status_code == 200 and "confirm" in page.get_data(as_text=True)
     # A card nobody proposed an orientation for cannot be shown in a grid: a sentence, no batch.
     refused = client.post("/crowd/batches/new", data={**form, "from_review": "", "cards": str(grid_world["known"][0] + 100)})
     assert refused.status_code == 404

@@ -4,10 +4,10 @@ Three sources, each flag taken from the strongest that speaks to it:
 
 1. a curator's override (``review.models.OrientationOverride``), flag by flag;
 2. the crowd's approved confirm aggregate (a grid: the flags the card was shown with, each
-   flag a majority tapped flipped; ``annotation.confirm``), all three flags; then the crowd's
-   approved judge aggregate: ``upside_down`` and ``inverted`` always; ``swapped``
-   when the judge task asked it (``label["swapped"]``), else the step's own value when the step
-   was confident on that flag, else undecided (a person answers it);
+   flag the crowd's vote says was tapped flipped; ``annotation.confirm``), all three flags;
+   then the crowd's approved judge aggregate: ``upside_down`` and ``inverted`` always;
+   ``swapped`` when the judge task asked it (``label["swapped"]``), else the step's own value
+   when the step was confident on that flag, else undecided (a person answers it);
 3. the orientation stage's result, when it decided the card automatically (``outcome ==
    "auto"``); a step that asked, or that only proposes an orientation for people to confirm
    (``outcome == "confirm"``), contributes nothing on its own.

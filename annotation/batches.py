@@ -3,6 +3,7 @@ card a preview shows."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection, Mapping, Sequence
 from typing import Any
 
@@ -14,10 +15,10 @@ from app.models import Card, StageResult
 
 from . import assignment as strategy, confirm as confirm_flags
 from .answers import validate_payload
+from .crowd_settings import grid_size
 from .models import TASK_KINDS, Aggregate, Batch, BatchItem
 from .task_errors import TaskError
 
-GOLD_CARDS = 12  # gold items per confirm batch: three grids' worth for each worker (grids hide 3 or 4)
 GOLD_AUTO_CONFIDENCE = 0.99  # the step's own decisions good enough to be gold
 
 
@@ -175,8 +176,17 @@ def _waiting_for_orientation(kind: str) -> list[int]:
     return [card_id for card_id in waiting if card_id not in in_flight]
 
 
-def confirm_gold(exclude: Collection[int], count: int = GOLD_CARDS) -> tuple[dict[int, dict], dict[int, dict]]:
-    """Gold for a confirm batch: up to ``count`` cards whose orientation is known (a curator's,
+def confirm_gold_needed(cards: int) -> int:
+    """Gold items a confirm batch of ``cards`` needs so a worker who answers every card of it
+    meets fresh gold in every grid (each worker sees a gold item once), and at least four (one
+    shown right, one wrong on each flag)."""
+    size, gold = grid_size()
+    return max(4, math.ceil(cards / max(1, size - gold)) * gold)
+
+
+def confirm_gold(exclude: Collection[int], count: int | None = None) -> tuple[dict[int, dict], dict[int, dict]]:
+    """Gold for a confirm batch: up to ``count`` (default :func:`confirm_gold_needed` for the
+    cards of ``exclude``) cards whose orientation is known (a curator's,
     the crowd's, or the step's own with a wide margin: confidence >= :data:`GOLD_AUTO_CONFIDENCE`),
     none of ``exclude``; each shown wrong on one flag in turn, or right
     (:func:`annotation.confirm.gold_shown`). Returns ``(gold taps, shown flags)`` by card id.
@@ -185,6 +195,7 @@ def confirm_gold(exclude: Collection[int], count: int = GOLD_CARDS) -> tuple[dic
     its confidence says."""
     from app.runs import approved_annotations, card_orientation
 
+    count = confirm_gold_needed(len(exclude)) if count is None else count
     excluded, known = set(exclude), []
     after = 0
     while len(known) < 4 * count:

@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
-from flask import current_app
 from sqlalchemy.exc import IntegrityError
 
 from app.db import db, one_writer, read_only, utcnow
@@ -26,7 +25,7 @@ from app.models import Card
 from . import assignment as strategy
 from .answers import CardSize, submit, validate_payload
 from .confirm import grid_order, pick_gold
-from .crowd_settings import reservation_ttl
+from .crowd_settings import MAX_GRID, grid_size, reservation_ttl
 from .models import BatchItem
 from .queries import (
     OPEN_BATCHES,
@@ -42,18 +41,8 @@ from .queries import (
 from .reservations import Task, _hold, _why_nothing, open_tasks, release_lapsed_holds
 from .task_errors import TaskError
 
-DEFAULT_GRID_SIZE = 30  # cards a grid shows, gold included (the brief: 24 to 48)
-DEFAULT_GRID_GOLD = 3  # gold cards hidden in each grid
-MAX_GRID = 48
 # The gold a grid may hide, with its answers so far and its known taps (to mix right and wrong).
 GRID_GOLD = OPEN_GOLD.add_columns(BatchItem.__table__.c.gold_answer)
-
-
-def grid_size() -> tuple[int, int]:
-    """(cards per grid, gold cards among them) from ``KEYSTONE_CROWD_GRID_SIZE`` / ``_GRID_GOLD``."""
-    size = int(current_app.config.get("KEYSTONE_CROWD_GRID_SIZE", DEFAULT_GRID_SIZE))
-    gold = int(current_app.config.get("KEYSTONE_CROWD_GRID_GOLD", DEFAULT_GRID_GOLD))
-    return max(1, min(size, MAX_GRID)), max(0, min(gold, size - 1))
 
 
 def next_grid(worker: Any, now: datetime | None = None, session: int | None = None) -> tuple[list[Task], strategy.NoTask | None]:

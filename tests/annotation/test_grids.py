@@ -103,7 +103,7 @@ def _taps(items: dict[str, BatchItem], wrong_on: dict[int, str], gold_right: boo
 
 
 def test_confirm_cards_go_to_grids_and_the_crowds_taps_decide_them(app, client, runner, grid_world, make_person, tmp_path):  # type: ignore[no-untyped-def]
-    from annotation.batches import orientation_queue_card_ids
+    from annotation.batches import confirm_gold_needed, orientation_queue_card_ids
 
     confirm, known = grid_world["confirm"], grid_world["known"]
     before = _cards(runner)
@@ -118,6 +118,8 @@ def test_confirm_cards_go_to_grids_and_the_crowds_taps_decide_them(app, client, 
     assert all(before[k]["orientation"]["decided_by"] == "auto" for k in known)
     with app.app_context():
         assert orientation_queue_card_ids() == []  # confirm cards never go to one-card judge tasks
+        # Enough gold for every grid a worker could be given (grids of 8 with 2 gold), at least 4.
+        assert (confirm_gold_needed(6), confirm_gold_needed(100)) == (4, 34)
 
     # Three answers a card: with six cards a batch gives Dawid-Skene little to learn each worker
     # from (two answers reach posterior 0.89-0.97 here, but 0.99 over grids of 30 cards).

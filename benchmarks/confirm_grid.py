@@ -17,11 +17,12 @@ worker, marking exactly the wrong cards (the proposal's wrong flag, each gold ca
 
 Measured per walk: ``load_s`` (the page opened until every picture is decoded; the first walk
 makes the pictures, later walks mostly find them cached), ``act_s`` (the scripted marking and
-the submit until the server acknowledged it), actions per card, and the answers checked in the
-database. A script marks cards in milliseconds, so its cards per minute are the machine's
-ceiling, not a person's: ``person_estimate`` adds the stated seconds a person spends looking at
-a card and per action (assumptions, not a measurement with people), for the grid and for the
-one-card judge task (one page per card: at least one action a card).
+the submit until the next grid, or the finished screen, is shown), ``submit_s`` (the grid's
+submit request alone), actions per card, and the answers checked in the database. A script
+marks cards in milliseconds, so its cards per minute are the machine's ceiling, not a
+person's: ``person_estimate`` adds the stated seconds a person spends looking at a card and
+per action (assumptions, not a measurement with people), for the grid and for the one-card
+judge task (one page per card: at least one action a card).
 
     python -m benchmarks.confirm_grid [--json] [--shots DIR] [--cards 30] [--gold 3]
 """
@@ -234,12 +235,15 @@ def walk(app: Any, browser: Any, server: str, mode: str, marks: dict[int, dict[s
             actions += 1
     if shots:
         page.screenshot(path=str(shots / f"confirm-grid-{mode}-marked.png"), full_page=True)
-    if mode == "desktop-keys":
-        page.keyboard.press("Enter")
-    elif mode == "phone-touch":
-        page.tap("#submit-answer")
-    else:
-        page.click("#submit-answer")
+    sent = time.perf_counter()
+    with page.expect_response(lambda response: response.url.endswith("/crowd/api/grid/submit")):
+        if mode == "desktop-keys":
+            page.keyboard.press("Enter")
+        elif mode == "phone-touch":
+            page.tap("#submit-answer")
+        else:
+            page.click("#submit-answer")
+    submit_s = time.perf_counter() - sent
     actions += 1
     _wait(page, "!document.getElementById('finished').hidden")
     act_s = time.perf_counter() - started
@@ -256,6 +260,7 @@ def walk(app: Any, browser: Any, server: str, mode: str, marks: dict[int, dict[s
         "columns": columns,
         "load_s": round(load_s, 3),
         "act_s": round(act_s, 3),
+        "submit_s": round(submit_s, 3),
         "actions": actions,
         "swipes": swipes,
         "actions_per_card": round(actions / cards, 3),
@@ -363,7 +368,8 @@ def bench_confirm_grid_command(
     for w in walks:
         click.echo(
             f"{w['mode']}: {w['cards']} cards ({w['gold']} gold, {w['marked']} marked), {w['columns']} columns; "
-            f"load {w['load_s']} s, marking + submit {w['act_s']} s; {w['actions']} actions + {w['swipes']} swipes "
+            f"load {w['load_s']} s, marking + submit {w['act_s']} s (submit request {w['submit_s']} s); "
+            f"{w['actions']} actions + {w['swipes']} swipes "
             f"= {w['actions_per_card']} actions a card; machine {w['machine_cards_per_minute']} cards/min; "
             f"person (estimate) {w['person_estimate']['grid_cards_per_minute']} cards/min in a grid vs "
             f"{w['person_estimate']['judge_task_cards_per_minute']} in one-card judge tasks"

@@ -51,6 +51,7 @@ def test_every_command_has_help(runner):
 COMMAND_TREE = {
     "bench",
     "bench catalogue",
+    "bench confirm-grid",
     "bench crowd",
     "bench disparity",
     "bench export",

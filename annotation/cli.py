@@ -124,6 +124,8 @@ def create_batch_command(
     except TaskError as exc:
         raise click.ClickException(exc.message) from exc
     progress = batch_progress(batch)
+    if kind == "confirm" and not gold:
+        click.echo("warning: no card with a known orientation to make gold from: these grids hide no gold", err=True)
     _emit(progress, as_json, f"batch {batch.id}: {progress['items']} {kind} items, {progress['gold_items']} gold, N={n}")
 
 

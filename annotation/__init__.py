@@ -12,6 +12,7 @@ from typing import Any
 def __getattr__(name: str) -> Any:
     # Lazy, so importing the pure modules (annotation.assignment, ...) never pulls in Flask.
     if name == "bp":
+        from . import grid_views  # noqa: F401 (the confirm grid's routes, on the same blueprint)
         from .views import bp
 
         return bp

@@ -25,6 +25,7 @@ from .aggregation import (
     InvalidBoxError,
     validate_box,
 )
+from .confirm import FLAGS as CONFIRM_FLAGS
 from .crowd_settings import min_box_px, reservation_ttl
 from .models import Aggregate, Answer, Worker
 from .queries import (
@@ -86,10 +87,16 @@ def validate_payload(kind: str, payload: Any, card: Card | CardSize) -> dict[str
     judge: ``{"is_stereo", "upside_down", "inverted"}`` booleans, and ``swapped`` (the photos in
     the wrong eye order) where the page asked it; stored only when given, so aggregation can tell
     "not asked" from "no". crop: ``{"left", "right"}`` boxes ``[x0, y0, x1, y1]`` in original
-    image pixels, inside the card, at least the minimum size.
+    image pixels, inside the card, at least the minimum size. confirm: ``{"upside_down",
+    "inverted", "swapped"}`` booleans, true where the worker tapped it (it looked wrong).
     """
     if not isinstance(payload, dict):
         raise TaskError(f"Expected a JSON object as the answer, got {type(payload).__name__}")
+    if kind == "confirm":
+        extra = sorted(set(payload) - set(CONFIRM_FLAGS))
+        if extra:
+            raise TaskError(f"Unexpected fields in the answer: {', '.join(map(str, extra))[:200]}")
+        return {flag: _as_bool(payload, flag) for flag in CONFIRM_FLAGS}
     expected = set(ALL_QUESTIONS) if kind == "judge" else set(HALVES)
     extra = sorted(set(payload) - expected)
     if extra:

@@ -14,7 +14,13 @@ from sqlalchemy import select
 
 from app.db import db
 
-from .batches import create_batch, orientation_queue_card_ids, review_queue_card_ids
+from .batches import (
+    confirm_gold,
+    confirm_queue_card_ids,
+    create_batch,
+    orientation_queue_card_ids,
+    review_queue_card_ids,
+)
 from .models import (
     TASK_KINDS,
     Aggregate,
@@ -65,7 +71,10 @@ def crowd_group() -> None:
     "orientation the orientation step could not decide (whatever their filter band).",
 )
 @click.option(
-    "--from-orientation", is_flag=True, help="Add only the cards whose orientation the orientation step could not decide."
+    "--from-orientation",
+    is_flag=True,
+    help="Add only the cards whose orientation the orientation step could not decide (with --kind confirm: the "
+    "cards it proposed an orientation for with a narrow margin; their grids hide gold made from decided cards).",
 )
 @click.option("--cards", "cards", default="", help="Comma-separated card ids.")
 @click.option("--kind", type=click.Choice(TASK_KINDS), default="judge", show_default=True)
@@ -91,10 +100,16 @@ def create_batch_command(
 ) -> None:
     """Create a batch of KIND tasks over the chosen cards."""
     _ensure()
-    ids = _card_ids(cards) + (review_queue_card_ids() if from_review else [])
+    ids = _card_ids(cards) + (review_queue_card_ids() if from_review and kind != "confirm" else [])
     if (from_review or from_orientation) and kind == "judge":
         ids = list(dict.fromkeys(ids + orientation_queue_card_ids()))
+    if (from_review or from_orientation) and kind == "confirm":
+        ids = list(dict.fromkeys(ids + confirm_queue_card_ids()))
     gold: dict[int, dict[str, Any]] = {}
+    shown: dict[int, dict[str, bool]] = {}
+    if kind == "confirm" and gold_file is None and ids:
+        # Every grid hides gold: cards whose orientation is known, shown wrong on purpose.
+        gold, shown = confirm_gold(exclude=ids)
     if gold_file is not None:
         try:
             gold = {int(k): v for k, v in json.loads(gold_file.read_text()).items()}
@@ -105,10 +120,12 @@ def create_batch_command(
             "no cards: give --cards IDS, --from-review or --from-orientation (and some card must be waiting for people)"
         )
     try:
-        batch = create_batch(ids, kind, n, gold_rate, gold=gold)
+        batch = create_batch(ids, kind, n, gold_rate, gold=gold, shown=shown)
     except TaskError as exc:
         raise click.ClickException(exc.message) from exc
     progress = batch_progress(batch)
+    if kind == "confirm" and not gold:
+        click.echo("warning: no card with a known orientation to make gold from: these grids hide no gold", err=True)
     _emit(progress, as_json, f"batch {batch.id}: {progress['items']} {kind} items, {progress['gold_items']} gold, N={n}")
 
 
@@ -145,6 +162,7 @@ def aggregate_command(batch_id: int, as_json: bool) -> None:
         doc,
         as_json,
         f"batch {batch_id}: {doc['approved']} approved, {doc['needs_curator']} for a curator, "
+        f"{doc['escalated']} sent on to judge tasks (a grid could not agree), "
         f"{doc['pending']} unfinished, {doc['flagged_workers']} workers flagged",
     )
 

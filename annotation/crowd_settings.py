@@ -13,6 +13,9 @@ DEFAULT_RESERVATION_MINUTES = 10
 DEFAULT_MIN_BOX_PX = 16
 DEFAULT_GOLD_THRESHOLD = 0.7
 DEFAULT_MIN_GOLD = 3
+DEFAULT_GRID_SIZE = 30  # cards a confirm grid shows, gold included (24 to 48 fit a screen or two)
+DEFAULT_GRID_GOLD = 3  # gold cards hidden in each grid
+MAX_GRID = 48
 
 
 def reservation_ttl() -> timedelta:
@@ -34,3 +37,12 @@ def gold_threshold() -> float:
 def min_gold() -> int:
     """How many gold answers a worker gives before their accuracy can flag them."""
     return int(current_app.config.get("KEYSTONE_CROWD_MIN_GOLD", DEFAULT_MIN_GOLD))
+
+
+def grid_size() -> tuple[int, int]:
+    """(cards per confirm grid, gold cards among them): ``KEYSTONE_CROWD_GRID_SIZE`` and
+    ``KEYSTONE_CROWD_GRID_GOLD``, at most :data:`MAX_GRID` cards and always one regular card."""
+    size = int(current_app.config.get("KEYSTONE_CROWD_GRID_SIZE", DEFAULT_GRID_SIZE))
+    gold = int(current_app.config.get("KEYSTONE_CROWD_GRID_GOLD", DEFAULT_GRID_GOLD))
+    size = max(1, min(size, MAX_GRID))
+    return size, max(0, min(gold, size - 1))

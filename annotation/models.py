@@ -28,9 +28,13 @@ from sqlalchemy.orm import Mapped, mapped_column, relationship
 from app.db import JSONType, db, utcnow
 from app.models import Card, Person
 
-TASK_KINDS: tuple[str, ...] = ("judge", "crop")
+# confirm: a grid of cards shown as the orientation step would fix them; a worker taps what
+# looks wrong (annotation.grids).
+TASK_KINDS: tuple[str, ...] = ("judge", "crop", "confirm")
 PROVIDERS: tuple[str, ...] = ("invite", "prolific", "mturk")
-AGGREGATE_STATES: tuple[str, ...] = ("approved", "needs_curator")
+# escalated: a confirm grid's crowd could not agree on a card; it goes to a one-card judge task
+# (people judge it from scratch) rather than to a curator's dispute queue.
+AGGREGATE_STATES: tuple[str, ...] = ("approved", "needs_curator", "escalated")
 
 
 def _in(column: str, values: tuple[str, ...]) -> str:
@@ -81,6 +85,10 @@ class BatchItem(db.Model):
     answers: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     taken: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     rank: Mapped[int] = mapped_column(BigInteger, default=0, server_default="0")
+    # confirm items: the orientation flags (as scanned) the grid applies before showing the card,
+    # fixed when the batch is made, so taps always refer to the picture the worker saw (the
+    # step's proposal may change on a rerun; a gold item shows a deliberately wrong one).
+    shown: Mapped[dict[str, Any] | None] = mapped_column(JSONType)
 
     batch: Mapped[Batch] = relationship(back_populates="items")
     card: Mapped[Card] = relationship()

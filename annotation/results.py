@@ -25,7 +25,8 @@ from .aggregation import (
     unconfident_reasons,
 )
 from .agreement import gwet_ac1, krippendorff_alpha_boxes, krippendorff_alpha_nominal, percent_agreement
-from .models import Aggregate, Answer, Batch
+from .confirm import FLAGS as CONFIRM_FLAGS, TapAnswer, aggregate_taps, apply_taps
+from .models import Aggregate, Answer, Batch, BatchItem
 from .task_errors import TaskError
 from .workers import update_worker_quality
 
@@ -38,12 +39,14 @@ class AggregationReport:
     pending: int  # items with fewer than N usable answers
     flagged_workers: int
     agreement: dict[str, dict[str, float | None]] = field(default_factory=dict)
+    escalated: int = 0  # confirm cards the grid could not agree on: they go to judge tasks
 
     def as_json(self) -> dict[str, Any]:
         return {
             "batch": self.batch_id,
             "approved": self.approved,
             "needs_curator": self.needs_curator,
+            "escalated": self.escalated,
             "pending": self.pending,
             "flagged_workers": self.flagged_workers,
             "agreement": self.agreement,
@@ -64,11 +67,15 @@ def batch_agreement(kind: str, answers: Sequence[Answer], items: Iterable[int]) 
     alpha with 1 - IoU distance per crop half. Why all three: see :mod:`annotation.agreement`.
     """
     item_ids = sorted(set(items))
-    if kind == "judge":
+    if kind in ("judge", "confirm"):
         workers = sorted({a.worker_id for a in answers})
         column, row = {it: j for j, it in enumerate(item_ids)}, {w: i for i, w in enumerate(workers)}
         out: dict[str, dict[str, float | None]] = {}
-        asked = [q for q in ALL_QUESTIONS if q in QUESTIONS or any(q in a.payload for a in answers)]
+        asked = (
+            list(CONFIRM_FLAGS)
+            if kind == "confirm"
+            else [q for q in ALL_QUESTIONS if q in QUESTIONS or any(q in a.payload for a in answers)]
+        )
         for q in asked:
             R = np.full((len(workers), len(item_ids)), np.nan)
             for a in answers:
@@ -98,12 +105,33 @@ def _judgement(payload: Mapping[str, Any]) -> Judgement:
     )
 
 
+def _confirm_results(
+    items: Mapping[int, BatchItem], finished: Sequence[BatchItem], answers: Sequence[Answer], rules: ConfidenceRules
+) -> dict[int, tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]]:
+    """Per finished confirm item: the posterior of each flag's MAP (tapped or not), the label
+    (what was shown, what the crowd tapped, and the orientation that makes: shown XOR tapped)
+    and why it waits for a curator."""
+    votes = aggregate_taps(
+        [TapAnswer(a.item_id, a.worker_id, a.payload) for a in answers],
+        {it.id: it.gold_answer for it in items.values() if it.is_gold and it.gold_answer},
+    )
+    out = {}
+    for it in finished:
+        tapped = {flag: bool(votes[flag].label_of(it.id)) for flag in CONFIRM_FLAGS}
+        sure = {flag: float(votes[flag].posterior(it.id)[int(tapped[flag])]) for flag in CONFIRM_FLAGS}
+        shown = {flag: bool((it.shown or {}).get(flag, False)) for flag in CONFIRM_FLAGS}
+        label = {**apply_taps(shown, tapped), "shown": shown, "tapped": tapped}
+        out[it.id] = ({f: round(p, 6) for f, p in sure.items()}, label, unconfident_reasons(sure, rules=rules))
+    return out
+
+
 def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> AggregationReport:
     """Flag workers on gold, then aggregate every finished item and store approved / needs_curator.
 
     Judge: one binary Dawid-Skene per question seeded with the batch's gold; when the crowd
     says "not a stereo pair", orientation and inversion are moot and do not block approval.
-    Crop: :func:`consensus_box` per half in original pixels.
+    Crop: :func:`consensus_box` per half in original pixels. Confirm: one binary Dawid-Skene
+    per flag over the taps (:func:`annotation.confirm.aggregate_taps`).
     """
     rules = rules or ConfidenceRules()
     batch = db.session.get(Batch, batch_id)
@@ -130,6 +158,8 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
             asked = here if label["is_stereo"] else ["is_stereo"]
             reasons = unconfident_reasons({q: float(ds[q].posterior(it.id)[int(label[q])]) for q in asked}, rules=rules)
             results[it.id] = (posterior, label, reasons)
+    elif batch.kind == "confirm" and finished:
+        results = _confirm_results(items, finished, answers, rules)
     elif batch.kind == "crop":
         for it in finished:
             card = it.card
@@ -142,7 +172,7 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
                 for h, c in consensus.items()
             }
             results[it.id] = (posterior, label, unconfident_reasons(boxes=consensus, rules=rules))
-    approved = needs = 0
+    approved = needs = escalated = 0
     for item_id, (posterior, label, reasons) in results.items():
         it = items[item_id]
         row = db.session.scalar(select(Aggregate).where(Aggregate.batch_id == batch.id, Aggregate.card_id == it.card_id))
@@ -154,10 +184,12 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
             row = Aggregate(batch_id=batch.id, card_id=it.card_id, kind=batch.kind)
             db.session.add(row)
         row.posterior, row.label, row.confident = posterior, label, not reasons
-        row.state = "approved" if not reasons else "needs_curator"
+        # A grid that cannot agree sends its card to a judge task, not to a curator's queue.
+        row.state = "approved" if not reasons else "escalated" if batch.kind == "confirm" else "needs_curator"
         row.reasons, row.answers = "; ".join(reasons), len(by_item[item_id])
         approved += not reasons
-        needs += bool(reasons)
+        needs += bool(reasons) and batch.kind != "confirm"
+        escalated += bool(reasons) and batch.kind == "confirm"
     db.session.commit()
     regular = [it.id for it in items.values() if not it.is_gold]
     return AggregationReport(
@@ -167,4 +199,5 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
         pending,
         sum(1 for q in quality.values() if q["flagged"]),
         batch_agreement(batch.kind, answers, regular),
+        escalated,
     )

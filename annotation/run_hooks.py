@@ -16,7 +16,7 @@ CHUNK = 500  # card ids per query: under SQLite's bound-parameter limit
 
 
 def _aggregates(card_ids: list[int], approved_only: bool) -> dict[int, dict[str, Any]]:
-    """The latest aggregate per card and task kind: ``{card: {"judge": Aggregate, "crop": Aggregate}}``."""
+    """The latest aggregate per card and task kind: ``{card: {"judge": Aggregate, "crop": Aggregate, "confirm": Aggregate}}``."""
     found: dict[int, dict[str, Any]] = {}
     for start in range(0, len(card_ids), CHUNK):
         query = select(Aggregate).where(Aggregate.card_id.in_(card_ids[start : start + CHUNK]))

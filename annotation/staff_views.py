@@ -20,7 +20,7 @@ from werkzeug.wrappers import Response
 from app.auth import role_required
 from app.db import db, read_only
 
-from .batches import create_batch, review_queue_card_ids
+from .batches import confirm_gold, confirm_queue_card_ids, create_batch, review_queue_card_ids
 from .cli import ANSWER_COLUMNS, answer_rows
 from .models import TASK_KINDS, Batch, CrowdSession, Worker
 from .progress import batch_progress, worker_progress
@@ -89,16 +89,20 @@ def batches() -> str:
 def new_batch() -> Response:
     kind = request.form.get("kind", "judge")
     if kind not in TASK_KINDS:
-        raise TaskError(f"Expected kind judge or crop, got {kind[:20]!r}")
+        raise TaskError(f"Expected kind {', '.join(TASK_KINDS)}, got {kind[:20]!r}")
     n = _number("answers_per_item", "3", int, 1, 50)
     gold_rate = _number("gold_rate", "0.1", float, 0.0, 1.0)
+    gold: dict[int, dict[str, bool]] = {}
+    shown: dict[int, dict[str, bool]] = {}
     with read_only():
         ids = _card_ids(request.form.get("cards", ""))
         if request.form.get("from_review"):
-            ids += review_queue_card_ids()
+            ids += confirm_queue_card_ids() if kind == "confirm" else review_queue_card_ids()
+        if kind == "confirm" and ids:
+            gold, shown = confirm_gold(exclude=ids)  # every grid hides gold
     if not ids:
         raise TaskError("No cards: tick 'the review queue' (it must not be empty) or list card ids")
-    batch = create_batch(ids, kind, n, gold_rate, created_by=current_user.id)
+    batch = create_batch(ids, kind, n, gold_rate, gold=gold, shown=shown, created_by=current_user.id)
     progress = batch_progress(batch)
     flash(
         f"Batch {batch.id} created: {progress['items']} {kind} cards, {n} answers each "

@@ -1,4 +1,4 @@
-"""Crowd pages and their small JSON API.
+"""Crowd pages and their small JSON API (the confirm grid's routes are :mod:`annotation.grid_views`).
 
 Identity and anti-forgery: crowd routes do not use the session cookie. MTurk shows the page
 in an iframe on mturk.com, where browsers block third-party cookies, so a cookie-based login
@@ -125,7 +125,7 @@ def _task_page(entry: Entry) -> str:
     """
     forced = request.args.get("kind")
     if forced is not None and forced not in TASK_KINDS:
-        raise TaskError(f"Expected kind judge or crop, got {forced!r}")
+        raise TaskError(f"Expected kind {', '.join(TASK_KINDS)}, got {forced[:20]!r}")
     worker_token = sign_entry(entry) if entry.worker is not None else ""
     kinds: list[str] = []
     if entry.worker is not None and entry.session is not None:
@@ -230,7 +230,7 @@ def _task_json(task: Any) -> dict[str, Any]:
         document["wiggle_urls"] = {
             order: url_for("crowd.task_eye_order", token=task.reservation_token, order=order) for order in EYE_ORDERS
         }
-    else:
+    elif task.kind == "crop":
         with read_only():
             card = db.session.get(Card, task.card_id)
             proposal = proposed_boxes(card) if card is not None else None
@@ -248,6 +248,8 @@ def _positions(worker_id: int, tasks: list[Any]) -> dict[str, dict[str, int]]:
 def api_next() -> Any:
     caller, body = _api_entry()
     kind = body.get("kind", "judge")
+    if kind == "confirm":
+        raise TaskError("Confirm tasks come as a grid: fetch them from /crowd/api/grid")
     if kind not in TASK_KINDS:
         raise TaskError(f"Expected kind judge or crop, got {kind!r}")
     tasks, why = next_tasks(caller.worker_id, kind, session=caller.session_id)

@@ -13,6 +13,7 @@ import click
 # command name -> "module:attribute" of its click command in the benchmarks package
 LAZY_BENCHMARKS = {
     "catalogue": "benchmarks.catalogue:bench_catalogue_command",
+    "confirm-grid": "benchmarks.confirm_grid:bench_confirm_grid_command",
     "crowd": "benchmarks.crowd:bench_crowd_command",
     "disparity": "benchmarks.disparity:bench_disparity_command",
     "export": "benchmarks.export:bench_export_command",

@@ -5,11 +5,14 @@ Four sources, each flag taken from the strongest that speaks to it:
 1. a curator's override (``review.models.OrientationOverride``), flag by flag;
 2. an operator's word for the card's whole collection (``app.models.CollectionOrientation``):
    known prints, known to be scanned in eye order, flag by flag;
-3. the crowd's approved judge aggregate: ``upside_down`` and ``inverted`` always; ``swapped``
-   when the judge task asked it (``label["swapped"]``), else the step's own value when the step
-   was confident on that flag, else undecided (a person answers it);
+3. the crowd's approved confirm aggregate (a grid: the flags the card was shown with, each
+   flag the crowd's vote says was tapped flipped; ``annotation.confirm``), all three flags;
+   then the crowd's approved judge aggregate: ``upside_down`` and ``inverted`` always;
+   ``swapped`` when the judge task asked it (``label["swapped"]``), else the step's own value
+   when the step was confident on that flag, else undecided (a person answers it);
 4. the orientation stage's result, when it decided the card automatically (``outcome ==
-   "auto"``); a step that asked contributes nothing on its own (given the operator's word as
+   "auto"``); a step that asked, or that only proposes an orientation for people to confirm
+   (``outcome == "confirm"``), contributes nothing on its own (given the operator's word as
    ``known_flags``, the step decides the remaining flags itself when it can).
 
 ``decided_by`` names the strongest source used (``curator`` > ``operator`` > ``crowd`` >
@@ -56,7 +59,9 @@ def word_sentence(word: Any) -> str:
     return f"Collection {word.collection_name}: {word_phrase(word)}, said by {word.set_by_name} on {word.set_at:%Y-%m-%d}"
 
 
-def resolve_orientation(step: Any | None, judge: Any | None, override: Any | None, operator: Any | None = None) -> dict[str, Any]:
+def resolve_orientation(
+    step: Any | None, judge: Any | None, override: Any | None, operator: Any | None = None, *, confirm: Any | None = None
+) -> dict[str, Any]:
     """The ``orientation`` field of ``keystone cards --json`` plus ``source`` (in words),
     ``waiting_for`` (why it is undecided, or null), ``operator_word`` (the collection's word as
     a sentence, or null) and ``operator_overridden`` (the flags of that word a curator's
@@ -64,7 +69,8 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
 
     ``step``: the latest ``orientation`` StageResult (or None); ``judge``: the latest APPROVED
     judge Aggregate (or None); ``override``: the card's OrientationOverride row (or None);
-    ``operator``: the card's collection's CollectionOrientation row (or None).
+    ``operator``: the card's collection's CollectionOrientation row (or None); ``confirm``: the
+    latest APPROVED confirm Aggregate (or None).
     """
     flags: dict[str, bool | None] = dict.fromkeys(FLAGS)
     sources: list[str] = []
@@ -76,6 +82,15 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
         flags = {flag: _as_flag((step_flags.get(flag) or {}).get("value")) for flag in FLAGS}
         decided_by, confidence = "auto", step.metrics.get("confidence")
         sources.append(f"orientation step ({step.param_hash})")
+    if confirm is not None:
+        # The label's flags are what the grid showed with the crowd's taps applied: the shown
+        # flags are kept on the batch item, so a rerun of the step that proposes something
+        # else cannot turn a confirmation into its opposite.
+        flags = {flag: _as_flag((confirm.label or {}).get(flag)) for flag in FLAGS}
+        decided_by = "crowd"
+        sure = [float(v) for v in (confirm.posterior or {}).values() if isinstance(v, (int, float))]
+        confidence = min(sure) if sure else 1.0
+        sources.append(f"crowd confirmation (batch {confirm.batch_id})")
     if judge is not None:
         label = judge.label or {}
         flags["upside_down"] = bool(label.get("upside_down"))
@@ -122,6 +137,8 @@ def resolve_orientation(step: Any | None, judge: Any | None, override: Any | Non
             waiting_for = "the orientation step (not run yet)"
         elif step.status == "failed":
             waiting_for = f"people (the orientation step failed: {step.reason})"
+        elif judge is None and confirm is None and step.outcome == "confirm":
+            waiting_for = "people (a grid confirmation)"
         elif judge is None and step.metrics.get("undecidable"):
             waiting_for = f"people (the orientation step cannot tell: {step.metrics['undecidable']})"
         elif judge is None:

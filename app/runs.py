@@ -89,9 +89,9 @@ def filter_boxes(card: Card) -> dict[str, Any]:
 
 def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     """People's approved decisions per card (the features register them, see
-    :mod:`app.stage_hooks`): the crowd's approved judge and crop aggregates, a curator's
-    orientation override and the operator's word for the card's collection,
-    ``{card: {"judge": .., "crop": .., "orientation_override": .., "operator_orientation": ..}}``."""
+    :mod:`app.stage_hooks`): the crowd's approved judge, confirm and crop aggregates, a
+    curator's orientation override and the operator's word for the card's collection,
+    ``{card: {"judge": .., "crop": .., "confirm": .., "orientation_override": .., "operator_orientation": ..}}``."""
     return approved_decisions(card_ids)
 
 
@@ -104,6 +104,7 @@ def card_orientation(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
         approved.get("judge"),
         approved.get("orientation_override"),
         approved.get("operator_orientation"),
+        confirm=approved.get("confirm"),
     )
 
 
@@ -980,7 +981,8 @@ def _crowd_status(
                 "not needed: the filter passed the card as a stereo pair and the orientation "
                 f"step decided it (confidence {orientation['confidence']})",
             )
-        if orientation["decided_by"] in ("curator", "operator"):
+        if orientation["decided_by"] in ("curator", "operator", "crowd"):
+            # crowd without a judge aggregate: people confirmed the step's proposal in a grid.
             return _status("skipped", f"not needed: {orientation['source']}")
         return _status("pending", f"waiting for {orientation['waiting_for']}" if orientation["waiting_for"] else None)
     rectify = latest.get("rectify")

@@ -51,6 +51,7 @@ def test_every_command_has_help(runner):
 COMMAND_TREE = {
     "bench",
     "bench catalogue",
+    "bench confirm-grid",
     "bench crowd",
     "bench disparity",
     "bench export",
@@ -108,7 +109,7 @@ def test_init_reports_json_and_is_idempotent(app, runner):
     result = runner.invoke(cli, ["init", "--json"])
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
-    assert document["revision"] == "0011" and document["migrated"] is False
+    assert document["revision"] == "0012" and document["migrated"] is False
     assert "password" not in document["database"]
 
 
@@ -148,6 +149,6 @@ def test_database_url_from_the_environment(database, tmp_path, monkeypatch):
         db.engine.dispose()  # close pooled connections now, not at garbage collection
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
-    assert document["migrated"] is True and document["revision"] == "0011"
+    assert document["migrated"] is True and document["revision"] == "0012"
     assert document["database"].split(":")[0] == ("postgresql+psycopg" if "postgresql" in url else "sqlite")
     assert document["data_dir"] == str(tmp_path / "store")

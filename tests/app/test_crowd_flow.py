@@ -369,7 +369,7 @@ def test_curators_check_prolific_submissions(app, client, cards, login, csrf_tok
         ({"cards": "1, two"}, 400, "whole numbers"),
         ({"cards": "999"}, 404, "No card with id 999"),
         ({"cards": ""}, 400, "No cards"),
-        ({"cards": "1", "kind": "paint"}, 400, "judge or crop"),
+        ({"cards": "1", "kind": "paint"}, 400, "judge, crop, confirm"),
         ({"cards": "1", "answers_per_item": "0"}, 400, "answers per item"),
         ({"cards": "1", "gold_rate": "lots"}, 400, "gold rate to be a number"),
     ],

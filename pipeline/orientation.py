@@ -962,6 +962,9 @@ def _learned_photos(card: np.ndarray, lb: Box, rb: Box, areas: PhotoAreas | None
     return [np.ascontiguousarray(rgb[b[1] : b[3], b[0] : b[2]]) for b in boxes], where
 
 
+_HEAD_OF = {"turn": "turn", "turn_negative": "turn", "tone": "tone"}  # which head reads each difference
+
+
 @dataclass(frozen=True)
 class LearnedReading:
     """What the network read: the cue values (clipped log-odds), in words, and the heads' inputs
@@ -985,9 +988,14 @@ def read_learned_cues(
 
     ``learned_upright`` reads the photos as a positive, ``learned_upright_inverse`` as a negative
     (each counts only under that tone hypothesis, :data:`CUE_CONDITIONS`); ``learned_tone`` is the
-    positive-vs-negative head. Where the tone is known (an operator's word) or the hand-made tone
-    cues are at least ``learned_tone_sure`` log-odds sure (colour), only that tone is read and
-    both upright readings take its value, so the cue adds nothing about the tone; no tone head."""
+    positive-vs-negative head. The tone is settled first, so the turn is read in one tone where it
+    can be: known (an operator's word), or the hand-made tone cues at least ``learned_tone_sure``
+    log-odds sure (colour; no tone head then), or those cues and the tone head together that
+    sure (greyscale: 3 passes a photo). Only where the tone stays in doubt are both turns read (4
+    passes). Read in one tone, both upright readings take its value, so the cue says nothing
+    about the tone. The second photo is read only where the first one's readings are short of
+    the clip (``learned_max_log_odds``): the two photos of a card show one scene, and a reading
+    at the clip cannot be moved by its partner's."""
     from .upright import (
         UprightInputError,
         UprightModelMissingError,
@@ -999,34 +1007,44 @@ def read_learned_cues(
 
     photos, where = _learned_photos(card, lb, rb, areas)
     inverted = None if not known else known.get("inverted")
+    settled_by = "the operator's word" if inverted is not None else None
     if inverted is None and abs(tone_log_odds) >= params.learned_tone_sure:
-        inverted = tone_log_odds < 0
-    views = (
-        ("as_given", "turned", "negative", "negative_turned")
-        if inverted is None
-        else ("negative", "negative_turned")
-        if inverted
-        else ("as_given", "turned")
-    )
+        inverted, settled_by = tone_log_odds < 0, "the tone cues"
     zero = dict.fromkeys(("learned_tone", "learned_upright", "learned_upright_inverse"), 0.0)
+    limit = params.learned_max_log_odds
+    rows: dict[str, list[np.ndarray]] = {}
+    read = 0
     try:
         head = load_head(params.learned_head)
-        features = view_features(photos, head.input_side, views)
+        for photo in photos:
+            if read and all(
+                abs(float(np.mean(head.margins(_HEAD_OF[name], np.concatenate(r))))) >= limit for name, r in rows.items()
+            ):
+                break  # the first photo's readings are already at the clip: its partner cannot move them
+            read += 1
+            if inverted is None:
+                features = view_features([photo], head.input_side, ("as_given", "negative"))
+                rows.setdefault("tone", []).append(tone_difference(features))
+                tone = float(np.clip(np.mean(head.margins("tone", np.concatenate(rows["tone"]))), -limit, limit))
+                combined = tone_log_odds + params.w_learned_tone * tone
+                if abs(combined) >= params.learned_tone_sure:
+                    inverted, settled_by = combined < 0, "the tone cues and the network"
+            else:
+                features = view_features([photo], head.input_side, ("negative",) if inverted else ("as_given",))
+            turned_views = (
+                ("turned", "negative_turned") if inverted is None else ("negative_turned",) if inverted else ("turned",)
+            )
+            features.update(view_features([photo], head.input_side, tuple(v for v in turned_views)))
+            if "turned" in features and "as_given" in features:
+                rows.setdefault("turn", []).append(turn_difference(features))
+            if "negative_turned" in features and "negative" in features:
+                rows.setdefault("turn_negative", []).append(turn_difference(features, negative=True))
     except (UprightModelMissingError, UprightInputError) as exc:
         return LearnedReading(zero, {"read": f"not read: {exc}", "on": where}, {})
     except PipelineError as exc:
         return LearnedReading(zero, {"read": f"not read ({exc.code}): {exc}", "on": where}, {})
-    limit = params.learned_max_log_odds
-    differences: dict[str, np.ndarray] = {}
-    margins: dict[str, list[float]] = {}
-    if "as_given" in features:
-        differences["turn"] = turn_difference(features)
-    if "negative" in features:
-        differences["turn_negative"] = turn_difference(features, negative=True)
-    if "as_given" in features and "negative" in features:
-        differences["tone"] = tone_difference(features)
-    for name, difference in differences.items():
-        margins[name] = [float(v) for v in head.margins("tone" if name == "tone" else "turn", difference)]
+    differences = {name: np.concatenate(r) for name, r in rows.items()}
+    margins = {name: [float(v) for v in head.margins(_HEAD_OF[name], difference)] for name, difference in differences.items()}
 
     def mean(name: str) -> float:
         return float(np.clip(np.mean(margins[name]), -limit, limit))
@@ -1038,10 +1056,12 @@ def read_learned_cues(
         "learned_upright": upright,
         "learned_upright_inverse": upright_inverse,
     }
+    tone_words = "both tones" if inverted is None else "a negative" if inverted else "a positive"
     details = {
-        "read": f"read as {'both tones' if inverted is None else 'a negative' if inverted else 'a positive'}",
+        "read": f"read as {tone_words}" + (f" (the tone settled by {settled_by})" if settled_by else ""),
         "on": where,
         "head": head.version,
+        "photos_read": read,
         "margins": {name: [round(v, 3) for v in values_] for name, values_ in margins.items()},
     }
     return LearnedReading(values, details, differences)

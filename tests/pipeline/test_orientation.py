@@ -532,5 +532,5 @@ def test_the_learned_cue_reads_real_photos_as_a_positive_and_turns_with_the_card
         value = next(c.value for c in estimate.cues if c.name == "learned_upright")
         assert (value > 1.0) if not upside_down else (value < -1.0), value
         assert estimate.upside_down.value is upside_down
-        assert estimate.learned_differences["turn"].shape == (2, 1280)
-        assert estimate.details["learned"]["read"] == "read as a positive"  # a colour card: tone sure
+        assert estimate.learned_differences["turn"].shape[1] == 1280  # a row a photo read (1 or 2)
+        assert estimate.details["learned"]["read"].startswith("read as a positive (the tone settled by the tone cues")  # colour

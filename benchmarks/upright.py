@@ -148,10 +148,21 @@ def feature_table(photos: list[tuple[str, np.ndarray]], side: int, copies: int, 
     for source, photo in photos:
         batch = [photo] + [augment(photo, rng) for _ in range(copies)]
         features = view_features(batch, side)
-        rows["turn"].append(turn_difference(features))
-        rows["tone"].append(tone_difference(features))
-        sources += [source] * len(batch)
-        augmented += [False] + [True] * copies
+        # The tone head reads a photo whichever way up it was scanned (the step settles the tone
+        # before the turn): each way up is a row of its own. The turn head's row for the photo
+        # turned is its negation (the same loss), so its rows are simply given twice and both
+        # kinds share one index of sources.
+        rows["turn"].append(np.concatenate([turn_difference(features), turn_difference(features)]))
+        rows["tone"].append(
+            np.concatenate(
+                [
+                    tone_difference({"as_given": features["as_given"], "negative": features["negative"]}),
+                    tone_difference({"as_given": features["turned"], "negative": features["negative_turned"]}),
+                ]
+            )
+        )
+        sources += [source] * len(batch) * 2
+        augmented += ([False] + [True] * copies) * 2
     return {
         "sources": np.array(sources),
         "augmented": np.array(augmented),
@@ -214,14 +225,14 @@ def main(argv: list[str] | None = None) -> int:
     clock = time.process_time()
     train = cached(
         args.cache,
-        f"train-{args.side}-{args.copies}",
+        f"train-{args.side}-{args.copies}-both-ways",
         lambda: feature_table(training_photos(args.data, args.extra), args.side, args.copies, seed=0),
     )
     if args.exclude:
         keep = ~np.isin(train["sources"], args.exclude)
         train = {key: value[keep] for key, value in train.items()}
     cpu = time.process_time()
-    test = cached(args.cache, f"test-{args.side}", lambda: feature_table(test_photos(args.data), args.side, 0, seed=1))
+    test = cached(args.cache, f"test-{args.side}-both-ways", lambda: feature_table(test_photos(args.data), args.side, 0, seed=1))
     seconds_per_photo = (time.process_time() - cpu) / max(1, len(test["sources"]))
     report: dict[str, Any] = {
         "side": args.side,

@@ -149,9 +149,9 @@ With the eye-order rule of :func:`decided_combination` on top: held out 25, tune
 
 With the learned cues (``learned_upright`` / ``learned_tone``, :mod:`pipeline.upright`), the
 faces and the ground plane at 3.5 (issue 30), ``python -m benchmarks.orientation --head HEAD
---json`` with a head trained without the eight held-out cards: held out 52 of 64 variants
-decided automatically, none wrongly (25 before); acceptance variants 26 of 32, 1 of 8 originals
-to people; every decided flag right (upside_down 63/63, inverted 64/64, swapped 62/62). Tune
+--json`` with a head trained without the eight held-out cards: held out 53 of 64 variants
+decided automatically, none wrongly (25 before); acceptance variants 28 of 32, 1 of 8 originals
+to people; every decided flag right (upside_down 63/63, inverted 60/60, swapped 63/63). Tune
 52 of 56, none wrongly. The undecided ones are nearly all exchanged photos whose occlusion cues
 lean against the swap: they are proposed, rightly, for a confirmation grid (``decision``
 "confirm"). The report's ``cues`` table gives each cue's fire rate, right and wrong, per split.

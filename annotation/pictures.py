@@ -203,11 +203,12 @@ def depth_over_photo(photo: np.ndarray, disparity: np.ndarray) -> np.ndarray:
 
 
 def eye_order_picture(key: tuple[Any, ...], card: Any, left_box: list[float], right_box: list[float], order: str) -> bytes:
-    """The JPEG of :func:`eye_order_depth`, cached under ``(*key, order)``.
+    """The JPEG of :func:`eye_order_depth`, cached under ``key``, the boxes and ``order`` (a card
+    whose photo boxes change, say by a new orientation step, gets a new picture).
 
     ``card`` is the image or a callable returning it (so a cached picture never decodes the original).
     """
-    cache_key = (*key, order)
+    cache_key = (*key, tuple(float(v) for v in left_box), tuple(float(v) for v in right_box), order)
     with _eye_order_lock:
         if cache_key in _eye_order_pictures:
             _eye_order_pictures.move_to_end(cache_key)

@@ -220,7 +220,7 @@ def test_a_curator_makes_a_batch_and_an_invite_link_on_the_web(app, server, brow
     page.click("input[type=submit], button[type=submit]")
     page.wait_for_load_state()
     page.goto(f"{server}/crowd/batches")
-    assert "The review queue (1 cards)" in page.inner_text("#new-batch")
+    assert "The review queue (1 cards;" in page.inner_text("#new-batch")
     page.click("#new-batch button[type=submit]")  # the review queue is ticked by default
     page.wait_for_selector(".flash:has-text('Batch 1 created: 1 judge cards, 3 answers each')")
     assert "0 of 3" in page.inner_text("#batch-1")

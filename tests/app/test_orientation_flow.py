@@ -69,14 +69,14 @@ def flow_cards(tmp_path: Path, runner, mount_pair) -> Path:  # type: ignore[no-u
 def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     app, runner, client, login, csrf_token, flow_cards, monkeypatch
 ):  # type: ignore[no-untyped-def]
-    # The step reads these three Motorcycle cards at P 0.79-0.81, on the default threshold's
-    # edge: a strict threshold makes every one wait for people, which is the path under test.
+    # The step decides these three Motorcycle cards itself (the learned upright cue); a threshold
+    # no card reaches, with no proposals for a grid, makes every one wait for a one-card judge
+    # task, which is the path under test.
     from pipeline.orientation import OrientationParams
     from pipeline.stages.orientation import OrientationStageParams
 
-    monkeypatch.setattr(
-        "app.runs.OrientationStageParams", lambda: OrientationStageParams(orientation=OrientationParams(auto_probability=0.95))
-    )
+    strict = OrientationParams(auto_probability=0.99999, confirm_probability=0.99999)
+    monkeypatch.setattr("app.runs.OrientationStageParams", lambda: OrientationStageParams(orientation=strict))
     first = _run(runner)
     stages = {s["stage"]: s for s in first["stages"]}
     assert [s["stage"] for s in first["stages"]] == ["filter", "orientation", "rectify", "disparity", "grade"]
@@ -94,9 +94,9 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
         step = card["stages"]["orientation"]
         assert step["outcome"] == "ask" and set(step["metrics"]["flags"]) == {"upside_down", "inverted", "swapped"}
         assert all(isinstance(w, str) for f in step["metrics"]["flags"].values() for w in f["evidence"])
-    # The negative flag is read from tones alone, confidently, even while the card waits.
-    assert cards["negative.png"]["stages"]["orientation"]["metrics"]["flags"]["inverted"]["value"] is True
-    assert cards["upright.png"]["stages"]["orientation"]["metrics"]["flags"]["inverted"]["value"] is False
+    # The negative flag is read confidently, even while the card waits.
+    assert cards["negative.png"]["stages"]["orientation"]["metrics"]["flags"]["inverted"]["p"] > 0.95
+    assert cards["upright.png"]["stages"]["orientation"]["metrics"]["flags"]["inverted"]["p"] < 0.05
 
     # The crowd's judge queue takes them whatever their filter band.
     batch = runner.invoke(cli, ["crowd", "create-batch", "--from-review", "--n", "3", "--json"])

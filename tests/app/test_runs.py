@@ -255,12 +255,14 @@ def test_rectify_stage_warps_a_misaligned_pair_and_skips_an_aligned_one(app, run
 
     # The default run adds the grade stage: only it has work; a second run has none at all.
     graded = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"]
-    # The orientation step runs too (it adds nothing here: the photos fill their halves, so
-    # the photo-area finder keeps the split and rectification's inputs do not change).
+    # The orientation step runs too. The photos fill their halves, so the photo-area finder keeps
+    # the split; but the step now decides both cards itself (the learned upright cue), agreeing
+    # with the curator, and rectification's inputs name who decided: it reruns once, on the
+    # same flags and boxes.
     assert [(r["stage"], r["processed"]) for r in graded] == [
         ("filter", 0),
         ("orientation", 2),
-        ("rectify", 0),
+        ("rectify", 2),
         ("disparity", 0),
         ("grade", 2),
     ]

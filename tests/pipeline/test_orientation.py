@@ -279,7 +279,9 @@ def test_warm_tone_is_confident_on_sepia_and_ignores_a_faint_cold_cast(scene_car
         assert estimate.inverted.decided and estimate.inverted.value == flags[1]
     grey = cv2.cvtColor(card, cv2.COLOR_RGB2GRAY).astype(np.int16)
     cold = np.clip(np.stack([grey - 3, grey, grey + 3], axis=2), 0, 255).astype(np.uint8)
-    estimate = estimate_orientation(cold, lb, rb)
+    # The colour cue alone: the network's tone head reads this rendered texture (no photograph)
+    # as a negative, and it is the colour cue's reading of a faint cast that is checked here.
+    estimate = estimate_orientation(cold, lb, rb, OrientationParams(w_learned_tone=0.0))
     assert -0.5 < cue(estimate, "warm_tone") < 0
     assert estimate.inverted.value in (None, False)
 

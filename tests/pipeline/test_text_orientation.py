@@ -117,6 +117,10 @@ def test_missing_models_are_a_typed_error_and_no_evidence_in_the_step(tmp_path: 
     assert cue.value == 0.0 and "not read" in str(estimate.details["text"])
 
 
+# The step without its learned cues and faces: what the print does where nothing else decides.
+WITHOUT_NETWORK = OrientationParams(w_learned_upright=0.0, w_learned_tone=0.0, face_max_side=0)
+
+
 def test_real_caption_decides_the_turned_card(load_card) -> None:
     """The Pima card's caption ("387-The Pima Indians of Arizona") reads upright as scanned and
     upside down turned; the step then decides the turned card upside down by itself."""
@@ -125,7 +129,11 @@ def test_real_caption_decides_the_turned_card(load_card) -> None:
     turned = np.ascontiguousarray(card[::-1, ::-1])
     assert read_text_orientation(turned).value < -0.2
     split = split_card(turned)
-    estimate = estimate_orientation(turned, split.left_box, split.right_box)
+    # The network's "which way up" decides the turned card before the print is needed...
+    default = estimate_orientation(turned, split.left_box, split.right_box)
+    assert default.upside_down.value is True and default.details["text"] == "not read: the card is decided without it"
+    # ...and without the network (and faces), the caption decides it.
+    estimate = estimate_orientation(turned, split.left_box, split.right_box, WITHOUT_NETWORK)
     cue = next(c for c in estimate.cues if c.name == "text_upright")
     assert cue.value < -0.2 and "upside down" in cue.meaning and "Pima" in cue.meaning  # what was read, in words
     assert estimate.upside_down.decided and estimate.upside_down.value is True
@@ -143,10 +151,11 @@ def test_the_text_cue_is_skipped_when_the_card_is_decided_without_it(load_card) 
 
 def test_the_text_cue_is_skipped_when_no_reading_could_decide_the_card(load_card) -> None:
     """A greyscale Keystone-Mast scan: its tones do not settle whether it is a negative, so print
-    read either way up could not decide it; the step says so instead of spending the reading."""
+    read either way up could not decide it (without the network's tone head); the step says so
+    instead of spending the reading."""
     card = load_card("keystone_mast_raw_scans/09995.jpg")
     split = split_card(card)
-    estimate = estimate_orientation(card, split.left_box, split.right_box)
+    estimate = estimate_orientation(card, split.left_box, split.right_box, WITHOUT_NETWORK)
     assert not estimate.decided
     assert estimate.details["text"] == "not read: print either way up could not decide the card"
     assert next(c.value for c in estimate.cues if c.name == "text_upright") == 0.0

@@ -34,22 +34,8 @@
 
   const fail = (text) => { errorBox.textContent = text; errorBox.hidden = false; };
   const clearError = () => { errorBox.hidden = true; errorBox.textContent = ""; };
-  const newKey = () => (window.crypto && crypto.randomUUID ? crypto.randomUUID() : Date.now().toString(36) + Math.random().toString(36).slice(2)).slice(0, 40);
-
-  async function api(url, body) {
-    const response = await fetch(url, {
-      method: "POST", credentials: "omit", body: JSON.stringify(body || {}),
-      headers: { "Content-Type": "application/json", "X-Crowd-Token": cfg.workerToken },
-    });
-    let data = {};
-    try { data = await response.json(); } catch (e) { /* an HTML error page */ }
-    if (!response.ok) {
-      const err = new Error((data.error && data.error.message) || ("The server answered " + response.status));
-      err.status = response.status;
-      throw err;
-    }
-    return data;
-  }
+  const newKey = () => window.KeystoneTasks.newKey().slice(0, 40);
+  const api = window.KeystoneTasks.client(cfg.workerToken);
 
   function countMarked() {
     const wrong = cards.filter(c => Object.values(c.taps).some(Boolean)).length;

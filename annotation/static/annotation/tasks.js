@@ -22,6 +22,25 @@ window.KeystoneTasks = (function () {
     return Date.now().toString(36) + Math.random().toString(36).slice(2);
   }
 
+  // POST a JSON body with the signed worker token (no cookies: MTurk frames these pages); the
+  // reply's JSON, or an Error with the server's message and the HTTP status. Shared with the grid.
+  function client(workerToken) {
+    return async function api(url, body) {
+      const response = await fetch(url, {
+        method: "POST", credentials: "omit", body: JSON.stringify(body || {}),
+        headers: { "Content-Type": "application/json", "X-Crowd-Token": workerToken },
+      });
+      let data = {};
+      try { data = await response.json(); } catch (e) { /* an HTML error page */ }
+      if (!response.ok) {
+        const err = new Error((data.error && data.error.message) || ("The server answered " + response.status));
+        err.status = response.status;
+        throw err;
+      }
+      return data;
+    };
+  }
+
   function postToMTurk(post) {
     const out = document.createElement("form");
     out.method = "POST";
@@ -56,20 +75,7 @@ window.KeystoneTasks = (function () {
     const fail = (text) => { errorBox.textContent = text; errorBox.hidden = false; };
     const clearError = () => { errorBox.hidden = true; errorBox.textContent = ""; };
 
-    async function api(url, body) {
-      const response = await fetch(url, {
-        method: "POST", credentials: "omit", body: JSON.stringify(body || {}),
-        headers: { "Content-Type": "application/json", "X-Crowd-Token": cfg.workerToken },
-      });
-      let data = {};
-      try { data = await response.json(); } catch (e) { /* an HTML error page */ }
-      if (!response.ok) {
-        const err = new Error((data.error && data.error.message) || ("The server answered " + response.status));
-        err.status = response.status;
-        throw err;
-      }
-      return data;
-    }
+    const api = client(cfg.workerToken);
 
     function progressText(task) {
       const p = positions[String(task.batch)];
@@ -224,5 +230,5 @@ window.KeystoneTasks = (function () {
     return { open, isOpen: () => Boolean(help && help.open) };
   }
 
-  return { create, instructions };
+  return { create, instructions, client, newKey };
 })();

@@ -55,6 +55,7 @@ from pipeline.upright import (
     tone_difference,
     turn_difference,
     view_features,
+    weights_digest,
 )
 
 DEFAULT_DATA = Path(os.environ.get("KEYSTONE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -258,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     report["cpu_seconds_total"] = round(time.process_time() - clock, 1)
     if args.train or args.out:
         head = UprightHead(
-            version=f"shipped-{datetime.date.today().isoformat()}" if args.out is None else f"trial-{args.out.stem}",
+            version=(f"shipped-{datetime.date.today().isoformat()}" if args.out is None else f"trial-{args.out.stem}")
+            + f"-{weights_digest(heads['turn'], heads['tone'])}",
             input_side=args.side,
             turn=tuple(float(v) for v in heads["turn"]),
             tone=tuple(float(v) for v in heads["tone"]),

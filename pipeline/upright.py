@@ -47,7 +47,7 @@ HEAD_FILE = Path(__file__).with_name("models") / "upright_head.json"
 KINDS = ("turn", "tone")
 # The version inside HEAD_FILE (a test checks they agree): the orientation step's parameters
 # carry it, so retraining the shipped head changes the step's parameter hash.
-SHIPPED_HEAD_VERSION = "shipped-2026-11-27"
+SHIPPED_HEAD_VERSION = "shipped-2026-11-27-1ffbd13c"
 
 
 class UprightInputError(InvalidInputError):
@@ -101,6 +101,15 @@ class UprightHead:
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InvalidInputError(f"Expected a head with version, input_side, turn and tone: {exc}") from exc
+
+
+def weights_digest(turn: Any, tone: Any) -> str:
+    """8 hex digits of the heads' weights (rounded to 6 places, as the head file stores them):
+    part of every head's version, so two heads with one name cannot share a parameter hash."""
+    import hashlib
+
+    rounded = [[round(float(v), 6) for v in turn], [round(float(v), 6) for v in tone]]
+    return hashlib.sha256(json.dumps(rounded).encode()).hexdigest()[:8]
 
 
 _head_lock = threading.Lock()

@@ -19,7 +19,6 @@ the cards whose decision changed. The fit itself reports held-out accuracy befor
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from datetime import UTC, datetime
@@ -216,7 +215,7 @@ def fit_collection(
     """Refit the heads on ``collection``'s decided cards (every collection when None); report
     held-out accuracy before and after, the decisions that would change, and save unless told
     not to. Raises :class:`UprightFitError` when it cannot."""
-    from pipeline.upright import UprightHead, fit_linear_head
+    from pipeline.upright import UprightHead, fit_linear_head, weights_digest
 
     collection_id = None
     if collection is not None:
@@ -245,7 +244,7 @@ def fit_collection(
         rows = np.concatenate([r[kind] for r in (signed_rows(card) for card in cards) if kind in r])
         weights[kind] = tuple(float(v) for v in fit_linear_head(rows, l2, np.asarray(getattr(head, kind))))
         report["heads"][kind] = {"l2": l2, **usable[l2]}
-    digest = hashlib.sha256(json.dumps([weights["turn"], weights["tone"]]).encode()).hexdigest()[:8]
+    digest = weights_digest(weights["turn"], weights["tone"])
     stamp = datetime.now(UTC).strftime("%Y%m%d%H%M%S")
     version = f"{_slug(collection) if collection else 'all'}-{stamp}-{digest}"
     new_head = UprightHead(version=version, input_side=head.input_side, turn=weights["turn"], tone=weights["tone"])

@@ -235,7 +235,11 @@ def test_a_card_no_fill_could_decide_skips_the_second_pass(scene_card):
     flat = np.full_like(grey, 128)
     flat[lb[1] : lb[3], lb[0] : lb[2]] = grey[lb[1] : lb[3], lb[0] : lb[2]]
     flat[rb[1] : rb[3], rb[0] : rb[2]] = grey[rb[1] : rb[3], rb[0] : rb[2]]
-    estimate = estimate_orientation(flat, lb, rb, OrientationParams(arch_working_width=0, text_detect_side=0))
+    # without the network's cues too: its tone head reads this rendered texture's tone
+    params = OrientationParams(
+        arch_working_width=0, text_detect_side=0, face_max_side=0, w_learned_tone=0.0, w_learned_upright=0.0
+    )
+    estimate = estimate_orientation(flat, lb, rb, params)
     if estimate.inverted.decided:
         pytest.skip("the tone cues decide this synthetic card's inverted flag")
     assert estimate.details["occlusion_fill_votes"] == "not measured: whatever it and the print read, the card goes to people"

@@ -141,7 +141,7 @@
         data = await send();
       }
       answered.textContent = data.answered;
-      if (data.finish && data.finish.post) { postToMTurk(data.finish.post); return; }
+      if (data.finish && data.finish.post) { window.KeystoneTasks.postToMTurk(data.finish.post); return; }
       if (data.refused.length) fail(data.refused.length + " card(s) could not be saved: " + data.refused[0].message);
       busy = false;
       await load();
@@ -158,17 +158,6 @@
     for (const token of tokens) await api(cfg.renewUrl, { token });
   }
 
-  function postToMTurk(post) {
-    const out = document.createElement("form");
-    out.method = "POST"; out.action = post.url;
-    for (const [name, value] of Object.entries(post.fields)) {
-      const input = document.createElement("input");
-      input.type = "hidden"; input.name = name; input.value = value;
-      out.appendChild(input);
-    }
-    document.body.appendChild(out);
-    out.submit();
-  }
 
   // The instructions: shown the first time (remembered) and on demand (button or H).
   const seen = () => { try { return localStorage.getItem("keystone-grid-help-seen") === "1"; } catch (e) { return false; } };

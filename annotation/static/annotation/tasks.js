@@ -230,5 +230,5 @@ window.KeystoneTasks = (function () {
     return { open, isOpen: () => Boolean(help && help.open) };
   }
 
-  return { create, instructions, client, newKey };
+  return { create, instructions, client, newKey, postToMTurk };
 })();

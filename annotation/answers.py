@@ -14,8 +14,8 @@ from typing import Any, NamedTuple
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 
-from app.db import db, one_writer, read_only, utcnow
-from app.models import Card
+from core.db import db, one_writer, read_only, utcnow
+from core.models import Card
 
 from .aggregation import (
     ALL_QUESTIONS,

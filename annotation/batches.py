@@ -10,8 +10,8 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 
-from app.db import db
-from app.models import Card, StageResult
+from core.db import db
+from core.models import Card, StageResult
 
 from . import assignment as strategy, confirm as confirm_flags
 from .answers import validate_payload
@@ -147,7 +147,7 @@ def confirm_queue_card_ids() -> list[int]:
 
 
 def _waiting_for_orientation(kind: str) -> list[int]:
-    from app.runs import waiting_for_people
+    from runs.driver import waiting_for_people
 
     waiting = waiting_for_people()["orientation"]
     outcomes, escalated = _step_outcomes(waiting), _escalated(waiting)
@@ -193,7 +193,7 @@ def confirm_gold(exclude: Collection[int], count: int | None = None) -> tuple[di
 
     Curators' and the crowd's decisions come first: the step's own are right only as often as
     its confidence says."""
-    from app.runs import approved_annotations, card_orientation
+    from runs.driver import approved_annotations, card_orientation
 
     count = confirm_gold_needed(len(exclude)) if count is None else count
     excluded, known = set(exclude), []

@@ -12,7 +12,7 @@ from flask import current_app, url_for
 from flask.cli import with_appcontext
 from sqlalchemy import select
 
-from app.db import db
+from core.db import db
 
 from .batches import (
     confirm_gold,
@@ -37,13 +37,13 @@ from .task_errors import TaskError
 
 
 def _ensure() -> None:
-    from app.console import ensure_database
+    from core.console import ensure_database
 
     ensure_database()
 
 
 def _emit(document: Any, as_json: bool, human: str) -> None:
-    from app.console import emit_json
+    from core.console import emit_json
 
     if as_json:
         emit_json(document)

@@ -16,9 +16,9 @@ from flask import abort, jsonify, redirect, url_for
 from flask_login import current_user
 from werkzeug.wrappers import Response
 
-from app.auth import role_required
-from app.db import read_only
-from app.extensions import csrf
+from core.auth import role_required
+from core.db import read_only
+from core.extensions import csrf
 
 from .grid_pictures import grid_picture, picture_key
 from .grids import card_photo_boxes, next_grid, submit_grid
@@ -69,8 +69,8 @@ def api_grid_submit() -> Any:
 @bp.route("/task/<token>/grid.jpg")
 def grid_image(token: str) -> Response:
     """One grid card's picture (:mod:`annotation.grid_pictures`), named by its reservation token."""
-    from app.catalog import ensure_previews
-    from app.http_images import not_modified, send_image
+    from catalogue.views import ensure_previews
+    from core.http_images import not_modified, send_image
 
     with read_only():
         reservation = reservation_by_token(token)

@@ -25,8 +25,8 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
-from app.db import JSONType, db, utcnow
-from app.models import Card, Person
+from core.db import JSONType, db, utcnow
+from core.models import Card, Person
 
 # confirm: a grid of cards shown as the orientation step would fix them; a worker taps what
 # looks wrong (annotation.grids).

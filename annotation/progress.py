@@ -8,7 +8,7 @@ from typing import Any
 
 from sqlalchemy import and_, case, func, or_, select
 
-from app.db import db, utcnow
+from core.db import db, utcnow
 
 from .models import Answer, Batch, BatchItem, CrowdSession, Reservation, Worker
 from .queries import ANSWER_COUNT, as_utc, run_prebuilt, worker_id_of

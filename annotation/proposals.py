@@ -27,8 +27,8 @@ from typing import Any
 from flask import current_app
 from sqlalchemy import select
 
-from app.db import db
-from app.models import Card, StageResult
+from core.db import db
+from core.models import Card, StageResult
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from flask import current_app
 from itsdangerous import BadSignature, URLSafeSerializer
 from sqlalchemy import bindparam, func, select
 
-from app.db import db
+from core.db import db
 
 from .models import Answer, CrowdSession, Worker
 from .sessions import invite_session, open_session

@@ -14,8 +14,8 @@ from typing import Any
 
 from sqlalchemy import Integer, and_, bindparam, func, inspect as sa_inspect, or_, select
 
-from app.db import db
-from app.models import Card
+from core.db import db
+from core.models import Card
 
 from .models import Answer, Batch, BatchItem, CrowdSession, Reservation, Worker
 
@@ -299,7 +299,7 @@ def on_sqlite() -> bool:
 def run_prebuilt(statement: Any, params: Mapping[str, Any]) -> Any:
     """Run a prebuilt statement on the session's connection: plain rows, none of the ORM's row handling.
 
-    Same transaction as the session (a read-only one inside :func:`app.db.read_only`).
+    Same transaction as the session (a read-only one inside :func:`core.db.read_only`).
     """
     return db.session.connection().execute(statement, params)
 

@@ -14,7 +14,7 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
-from app.db import db, one_writer, read_only, utcnow
+from core.db import db, one_writer, read_only, utcnow
 
 from . import assignment as strategy
 from .crowd_settings import reservation_ttl
@@ -63,7 +63,7 @@ from .task_errors import TaskError
 #   locked row; every statement after a lock sees what was committed before it (READ
 #   COMMITTED), so recounts are exact. Waiting locks are taken in id order (no deadlocks).
 #   SQLite's BEGIN IMMEDIATE serializes writers, and the writers of every server process queue
-#   for it at :func:`app.db.one_writer` rather than in SQLite's sleeping busy handler.
+#   for it at :func:`core.db.one_writer` rather than in SQLite's sleeping busy handler.
 # - Hot statements are built once with bound parameters and run on the session's connection:
 #   building a select() costs about as much Python as running it, ORM row handling more.
 

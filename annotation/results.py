@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from sqlalchemy import select
 
-from app.db import db
+from core.db import db
 
 from .aggregation import (
     ALL_QUESTIONS,

@@ -1,4 +1,4 @@
-"""What a pipeline run needs from the crowd, registered with the app (see :mod:`app.stage_hooks`)."""
+"""What a pipeline run needs from the crowd, registered with the app (see :mod:`core.hooks`)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from typing import Any
 from flask import Flask
 from sqlalchemy import select
 
-from app.db import db
-from app.stage_hooks import stage_hooks
+from core.db import db
+from core.hooks import stage_hooks
 
 from .models import Aggregate
 

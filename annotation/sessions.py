@@ -30,7 +30,7 @@ from flask import current_app, request
 from sqlalchemy import func, select, text
 from sqlalchemy.exc import IntegrityError
 
-from app.db import db, utcnow
+from core.db import db, utcnow
 
 from .models import CrowdSession, Worker
 from .task_errors import TaskError

@@ -31,8 +31,8 @@ import numpy as np
 from flask import current_app
 from sqlalchemy import select
 
-from app.db import db, read_only
-from app.models import Card, StageResult
+from core.db import db, read_only
+from core.models import Card, StageResult
 
 from .aggregation import ALL_QUESTIONS, HALVES
 from .answers import submit

@@ -17,8 +17,8 @@ from flask_login import current_user
 from sqlalchemy import func, select
 from werkzeug.wrappers import Response
 
-from app.auth import role_required
-from app.db import db, read_only
+from core.auth import role_required
+from core.db import db, read_only
 
 from .batches import confirm_gold, confirm_queue_card_ids, create_batch, review_queue_card_ids
 from .cli import ANSWER_COLUMNS, answer_rows

@@ -30,12 +30,12 @@ from flask import (
 from flask_login import current_user
 from werkzeug.wrappers import Response
 
-from app.auth import add_nav_link, role_required
-from app.db import db, read_only
-from app.extensions import csrf
-from app.json_body import load_json_body
-from app.models import Card
-from app.security import frameable_by
+from core.auth import add_nav_link, role_required
+from core.db import db, read_only
+from core.extensions import csrf
+from core.json_body import load_json_body
+from core.models import Card
+from core.security import frameable_by
 
 from . import run_hooks
 from .answers import submit, undo_last
@@ -182,8 +182,8 @@ def mine() -> Response:
 @frameable_by("'self'", *MTURK_SUBMIT_ORIGINS)
 def preview_image() -> Response:
     """What an MTurk preview shows: a card of the oldest open judge batch, else the synthetic example card."""
-    from app.catalog import ensure_previews, preview_etag
-    from app.http_images import send_image as _send_image
+    from catalogue.views import ensure_previews, preview_etag
+    from core.http_images import send_image as _send_image
 
     with read_only():
         card = preview_card()
@@ -219,7 +219,7 @@ def _api_entry() -> tuple[SignedWorker, dict[str, Any]]:
     """
     with read_only():
         caller = load_signed_worker(request.headers.get(TOKEN_HEADER))
-    # Bounded in size, depth and numbers: a 415 or 400 with the reason (app.json_body).
+    # Bounded in size, depth and numbers: a 415 or 400 with the reason (core.json_body).
     return caller, load_json_body()
 
 
@@ -327,8 +327,8 @@ def finish() -> Response:
 @bp.route("/task/<token>/image")
 def task_image(token: str) -> Response:
     """The display image of a reserved card, named by the reservation token (never a card id or path)."""
-    from app.catalog import ensure_previews, preview_etag
-    from app.http_images import not_modified as _not_modified, send_image as _send_image
+    from catalogue.views import ensure_previews, preview_etag
+    from core.http_images import not_modified as _not_modified, send_image as _send_image
 
     with read_only():
         reservation = reservation_by_token(token)

@@ -13,7 +13,7 @@ from typing import Any
 from sqlalchemy import delete, func, select, update
 from sqlalchemy.exc import IntegrityError
 
-from app.db import db, one_writer, read_only
+from core.db import db, one_writer, read_only
 
 from .aggregation import (
     ALL_QUESTIONS,

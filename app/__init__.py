@@ -18,7 +18,7 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     )
     Path(app.instance_path).mkdir(parents=True, exist_ok=True)
 
-    from .config import config_from_environment
+    from core.config import config_from_environment
 
     app.config.from_mapping(config_from_environment(app.instance_path))
     if test_config is not None:
@@ -26,16 +26,17 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     if app.config["SQLALCHEMY_DATABASE_URI"].startswith("sqlite"):
         app.config.setdefault("SQLALCHEMY_ENGINE_OPTIONS", {"connect_args": {"timeout": 30}})
 
-    from . import limits
-    from .db import db
-    from .extensions import csrf, login_manager
+    from core import limits
+    from core.db import db
+    from core.extensions import csrf, login_manager
 
     limits.init_app(app)  # first: blueprints bind its id converter, CSRF reads bodies it limits
     db.init_app(app)
     csrf.init_app(app)
     login_manager.init_app(app)
 
-    from . import auth, catalog, security
+    from catalogue import views as catalog
+    from core import auth, security
 
     app.register_blueprint(auth.bp)
     app.register_blueprint(catalog.bp)
@@ -44,11 +45,10 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
 
     app.register_blueprint(crowd_bp)
 
+    from catalogue import viewer
     from exports.views import bp as exports_bp
     from review.report_views import bp as reports_bp
     from review.views import bp as review_bp
-
-    from . import viewer
 
     app.register_blueprint(review_bp)
     app.register_blueprint(reports_bp)

@@ -15,7 +15,7 @@ import click
 from flask import Flask
 from flask.cli import FlaskGroup
 
-from . import create_app
+from app import create_app
 
 # "module:function" of each feature's register_cli(group), in the order they are called
 FEATURE_CLIS = (

@@ -8,7 +8,7 @@ import click
 from flask import current_app
 from flask.cli import with_appcontext
 
-from .console import data_dir, emit_json, ensure_database
+from core.console import data_dir, emit_json, ensure_database
 
 
 @click.command("init")
@@ -16,8 +16,8 @@ from .console import data_dir, emit_json, ensure_database
 @with_appcontext
 def init_command(as_json: bool) -> None:
     """Create or upgrade the catalogue database (applies migrations)."""
-    from .db import db
-    from .schema import current_revision
+    from app.schema import current_revision
+    from core.db import db
 
     applied = ensure_database()
     document = {
@@ -51,7 +51,7 @@ def init_command(as_json: bool) -> None:
 @with_appcontext
 def serve_command(host: str, port: int, threads: int | None, processes: int | None) -> None:
     """Serve the web app with a production WSGI server: gunicorn's pre-forked workers, or waitress."""
-    from .serving import serve
+    from app.serving import serve
 
     ensure_database()
     serve(
@@ -65,12 +65,12 @@ def serve_command(host: str, port: int, threads: int | None, processes: int | No
 
 def register_cli(group: click.Group) -> None:
     """Add the app package's commands to ``group`` (the ``keystone`` command)."""
-    from .demo import demo_command
-    from .geometry import check_homographies_command
-    from .ingest import ingest_command
-    from .inpainting_cli import train_inpainting_command
-    from .people import users_group
-    from .runs import cards_command, run_command
+    from app.demo import demo_command
+    from app.inpainting_cli import train_inpainting_command
+    from catalogue.geometry import check_homographies_command
+    from catalogue.ingest import ingest_command
+    from core.people import users_group
+    from runs.driver import cards_command, run_command
 
     for command in (
         init_command,

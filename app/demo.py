@@ -33,8 +33,8 @@ def _demo_logins(folder: Path) -> dict[str, str]:
 
 
 def _card_ids_by_name() -> dict[str, int]:
-    from .db import db
-    from .models import Card
+    from core.db import db
+    from core.models import Card
 
     return {Path(name).stem: card_id for card_id, name in db.session.execute(select(Card.id, Card.source_name))}
 
@@ -55,9 +55,8 @@ def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-un
     from annotation.aggregation import QUESTIONS
     from annotation.models import Batch
     from annotation.simulate import seed_simulated_crowd
-
-    from .db import db
-    from .runs import waiting_for_people
+    from core.db import db
+    from runs.driver import waiting_for_people
 
     if db.session.scalar(select(Batch.id).limit(1)) is not None:
         return {"note": "crowd batches exist already: not seeded again"}
@@ -112,12 +111,11 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     ground-plane cue turns over on close-ups without ground), else the first stereo card the
     step and the crowd left undecided (a disputed judgement is left for you to try), else the
     last stereo card (confirming what is known)."""
+    from core.db import db
+    from core.models import Card, Person
     from review.models import OrientationOverride
     from review.orientation import override_orientation
-
-    from .db import db
-    from .models import Card, Person
-    from .runs import approved_annotations, card_orientation, waiting_for_people
+    from runs.driver import approved_annotations, card_orientation, waiting_for_people
 
     if db.session.scalar(select(OrientationOverride.id).limit(1)) is not None:
         return {"note": "an orientation override exists already: not made again"}
@@ -192,12 +190,11 @@ def _shrunk(box: list, margin: float = 0.03) -> list[float]:
 def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     """The demo curator accepts the automatic grade of the cards the grader is surest of and
     leaves the rest (and any disputed crowd answer) in the review queue to try by hand."""
+    from core.db import db
+    from core.models import Person
     from review.models import CardReview
     from review.orientation import flow_blockers
     from review.tasks import decide, open_disputes, sync_reviews
-
-    from .db import db
-    from .models import Person
 
     sync_reviews()
     curator = db.session.scalar(select(Person).where(Person.username == "curator"))
@@ -228,11 +225,10 @@ def release_demo(folder: Path, echo=click.echo) -> dict:  # type: ignore[no-unty
     """Publish a release of the accepted cards (unless one with the same data exists) and verify it."""
     from flask import current_app
 
+    from core.db import db
+    from core.models import Person
     from exports.release import ReleaseError, plan_release, publish_release
     from exports.verify import verify_release
-
-    from .db import db
-    from .models import Person
 
     releases = Path(current_app.config.get("KEYSTONE_RELEASES_DIR") or folder / "releases")
     plan = plan_release(min_grade="some")
@@ -262,14 +258,13 @@ def release_demo(folder: Path, echo=click.echo) -> dict:  # type: ignore[no-unty
 
 def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     """Make the cards, ingest them, run the stages, add demo people; returns a summary."""
+    from app.schema import ensure_schema
+    from catalogue.ingest import ingest
+    from core.db import db
+    from core.models import Card, Person
+    from core.people import create_person
+    from runs.driver import available_stages, make_executor, run_stage
     from simulation.cards import make_demo_cards, write_demo_cards
-
-    from .db import db
-    from .ingest import ingest
-    from .models import Card, Person
-    from .people import create_person
-    from .runs import available_stages, make_executor, run_stage
-    from .schema import ensure_schema
 
     clock = time.perf_counter()
     scans = folder / "scans"
@@ -359,8 +354,8 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
 @click.option("--workers", default=2, show_default=True, type=click.IntRange(1, 64))
 def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: int) -> None:
     """Build the demo collection end to end (embedded SQLite in --dir), then serve the app."""
-    from . import create_app
-    from .serving import serve
+    from app import create_app
+    from app.serving import serve
 
     folder = folder.resolve()
     folder.mkdir(parents=True, exist_ok=True)

@@ -22,8 +22,8 @@ def catalogue_gd_images() -> list:
     from flask import current_app
     from sqlalchemy import select
 
-    from app.db import db, read_only
-    from app.models import StageResult
+    from core.db import db, read_only
+    from core.models import StageResult
     from pipeline.errors import PipelineError
     from pipeline.io import read_image, to_grey
     from pipeline.views import make_gd_image

@@ -32,9 +32,8 @@ def target_metadata() -> MetaData:
     import annotation.models  # noqa: F401
     import exports.models  # noqa: F401
     import review.models  # noqa: F401
-
-    from . import claims, models  # noqa: F401
-    from .db import db
+    from core import models  # noqa: F401
+    from core.db import db
 
     return db.metadata
 

@@ -12,7 +12,7 @@ gunicorn's ``gthread`` workers instead, and one process runs waitress (pure Pyth
 
 The app is created once in the parent; database connections are dropped before the fork
 (SQLite and psycopg connections must not cross one). SQLite writers of all the processes queue
-at :func:`app.db.one_writer`.
+at :func:`core.db.one_writer`.
 
 Every request runs in a fresh :class:`contextvars.Context` (:func:`one_context_per_request`).
 ``keystone serve`` is a click command, and Flask's CLI pushes an app context for it; a sync
@@ -123,7 +123,7 @@ def _serve_gunicorn(app: WSGIApp, wsgi: WSGIApp, host: str, port: int, threads: 
         raise click.UsageError("--processes above 1 needs gunicorn, which runs on Linux and macOS only")
     from gunicorn.app.base import BaseApplication
 
-    from .db import db
+    from core.db import db
 
     if isinstance(app, Flask):
         with app.app_context():

@@ -64,8 +64,8 @@ def build_catalogue(count: int, echo: Callable[[str], None]) -> float:
     """Bulk-insert ``count`` cards with stage results and reviews; seconds taken."""
     from sqlalchemy import insert, select
 
-    from app.db import db
-    from app.models import Card, Collection, StageResult
+    from core.db import db
+    from core.models import Card, Collection, StageResult
     from review.models import CardReview
 
     clock = time.perf_counter()
@@ -188,8 +188,8 @@ def drop_catalogue() -> None:
     """Delete what :func:`build_catalogue` made (its collections, their cards and dependants)."""
     from sqlalchemy import delete, select
 
-    from app.db import db
-    from app.models import Card, Collection, StageResult
+    from core.db import db
+    from core.models import Card, Collection, StageResult
     from review.models import CardReview
 
     bench = select(Collection.id).where(Collection.name.like("bench-catalogue-%")).scalar_subquery()
@@ -243,13 +243,13 @@ def _cards_json_child(collection: str, env: dict[str, str]) -> tuple[float, floa
 
 def time_operations(app: Any, count: int, repeats: int, child_env: dict[str, str]) -> dict[str, Any]:
     """The operations' median seconds on the built catalogue."""
-    from app.auth import LOGIN_AT_KEY, SESSION_VERSION_KEY
-    from app.db import db
-    from app.people import create_person
-    from app.runs import available_stages, pending_cards
+    from core.auth import LOGIN_AT_KEY, SESSION_VERSION_KEY
+    from core.db import db
+    from core.people import create_person
     from exports.release import plan_release
     from pipeline.records import param_hash
     from review.report import build_report
+    from runs.driver import available_stages, pending_cards
 
     figures: dict[str, Any] = {}
     stages = available_stages()
@@ -324,9 +324,9 @@ def benchmark_catalogue(
     from flask import current_app
     from sqlalchemy import func, select
 
-    from app.console import ensure_database
-    from app.db import db
-    from app.models import Card
+    from core.console import ensure_database
+    from core.db import db
+    from core.models import Card
 
     ensure_database()
     existing = db.session.scalar(select(func.count()).select_from(Card)) or 0
@@ -352,7 +352,7 @@ def benchmark_catalogue(
         if not keep:
             echo("deleting the synthetic catalogue")
             drop_catalogue()
-            from app.models import Person
+            from core.models import Person
 
             db.session.execute(Person.__table__.delete().where(Person.username == "bench-curator"))
             db.session.commit()

@@ -84,10 +84,10 @@ def build(root: Path, data: Path, n_cards: int, n_gold: int, wrong_rate: float) 
     batch. Returns the app and, per confirm card, what the walk must mark (flag or None)."""
     from annotation.batches import confirm_gold, create_batch
     from app import create_app
-    from app.db import db
-    from app.ingest import ingest
-    from app.models import Card, StageResult
     from app.schema import upgrade
+    from catalogue.ingest import ingest
+    from core.db import db
+    from core.models import Card, StageResult
 
     app = create_app(
         {
@@ -174,7 +174,7 @@ def _wait(page: Any, expression: str, timeout_s: float = 120.0) -> None:
 
 def _on_screen(app: Any, page: Any) -> list[tuple[int, bool, dict[str, bool] | None]]:
     from annotation.models import Reservation
-    from app.db import db
+    from core.db import db
 
     sources = page.evaluate("[...document.querySelectorAll('#grid img')].map(i => i.src)")
     tokens = [src.split("/task/")[1].split("/")[0] for src in sources]
@@ -285,7 +285,7 @@ def _estimate(cards: int, actions: int, taps: int) -> dict[str, Any]:
 
 def _check_answers(app: Any, marks: dict[int, dict[str, Any]]) -> dict[str, Any]:
     from annotation.models import Answer, BatchItem
-    from app.db import db
+    from core.db import db
 
     wrong = 0
     with app.app_context():
@@ -301,8 +301,8 @@ def picture_cost(app: Any) -> dict[str, Any]:
     from annotation import grid_pictures
     from annotation.grids import card_photo_boxes
     from annotation.models import BatchItem
-    from app.catalog import ensure_previews
-    from app.db import db
+    from catalogue.views import ensure_previews
+    from core.db import db
 
     grid_pictures._pictures.clear()
     cold, warm = [], []

@@ -111,10 +111,10 @@ def build_instance(
     from annotation.batches import create_batch
     from annotation.providers import InviteProvider
     from app import create_app
-    from app.db import db
-    from app.ingest import ingest
-    from app.models import Card
     from app.schema import upgrade
+    from catalogue.ingest import ingest
+    from core.db import db
+    from core.models import Card
 
     items = math.ceil(annotators * (tasks_per_annotator + hold) / n)
     config = _app_config(root, database_url)
@@ -427,7 +427,7 @@ def _stored_figures(instance: CrowdInstance, acknowledged: set[int]) -> dict[str
 
     from annotation.models import Answer, Batch, BatchItem, Reservation
     from app import create_app
-    from app.db import db, utcnow
+    from core.db import db, utcnow
 
     app = create_app(instance.config, instance_path=instance.root / "instance")
     with app.app_context():

@@ -95,8 +95,8 @@ def build_synthetic_catalogue(
     (``map_size``: see :func:`view_size_for`; None keeps the small default maps)."""
     from sqlalchemy import insert
 
-    from app.db import db
-    from app.models import Card, Collection, StageResult
+    from core.db import db
+    from core.models import Card, Collection, StageResult
     from pipeline.io import write_json, write_npy, write_png
     from review.models import CardReview
 
@@ -238,7 +238,7 @@ def peak_rss_mb() -> float:
 def _child_export(database_url: str, data_dir: str, out_dir: str, formats: str) -> dict[str, Any]:
     """Runs in the child process: export, then report time and this process's peak RSS."""
     from app import create_app
-    from app.db import db
+    from core.db import db
     from exports.release import publish_release
 
     app = create_app({"SQLALCHEMY_DATABASE_URI": database_url, "KEYSTONE_DATA_DIR": data_dir})
@@ -270,8 +270,8 @@ def benchmark_export(
 ) -> dict[str, Any]:
     """Build the catalogue, export it in a child process, verify the release; the figures."""
     from app import create_app
-    from app.db import db
     from app.schema import upgrade
+    from core.db import db
     from exports.verify import verify_release
 
     root = Path(folder) if folder else Path(tempfile.mkdtemp(prefix="keystone-bench-export-"))
@@ -361,7 +361,7 @@ def bench_export_command(card_count: int, formats: str, folder: Path | None, map
     """Release throughput (cards/s) and peak memory on a synthetic catalogue of accepted cards.
 
     The export runs in a child process so its peak resident memory is its own."""
-    from app.console import emit_json
+    from core.console import emit_json
 
     document = benchmark_export(
         card_count,

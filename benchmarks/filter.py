@@ -152,7 +152,7 @@ def film_strip_pair(left: np.ndarray, right: np.ndarray, edge: int = 12) -> np.n
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
 def bench_filter_command(repeats: int, shared_data: Path | None, as_json: bool) -> None:
     """Seconds per card on one core for the split + SIFT filter, split into detect and match."""
-    from app.console import emit_json
+    from core.console import emit_json
 
     if shared_data is None:
         candidate = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -19,7 +19,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-PRODUCT_PACKAGES = ("app", "annotation", "review", "exports", "pipeline")
+PRODUCT_PACKAGES = ("app", "core", "runs", "catalogue", "annotation", "review", "exports", "pipeline")
 ALL_PACKAGES = (*PRODUCT_PACKAGES, "benchmarks")
 REPO_ROOT = Path(__file__).resolve().parent.parent
 

@@ -1,7 +1,7 @@
 """``keystone bench pipeline``: CPU seconds per card for each stage, and peak memory, on real cards.
 
 The cards are ingested into a throwaway instance (SQLite, its own data dir) and run through
-the real stages (``app.runs.run_stage``, inline on one core with one OpenCV thread as in a pool
+the real stages (``runs.driver.run_stage``, inline on one core with one OpenCV thread as in a pool
 worker, so each card's CPU time is this process's): filter, orientation, rectify, disparity,
 grade (the default pipeline) and views. Each stage's
 task is wrapped to read ``time.process_time()`` around every card. A card the filter does not
@@ -12,7 +12,7 @@ Variants, side by side in one run (``--variant``, default ``full`` and ``work``)
 rectification and disparity at full resolution (``work_side=None``, the behaviour before the
 working resolution), ``work`` with the defaults (views stored and matched at
 ``RectifyParams.work_side``), both with the stages chained as ``keystone run`` chains them
-(:mod:`app.chains`), and ``stage-by-stage`` the defaults with every stage over all cards before
+(:mod:`runs.chains`), and ``stage-by-stage`` the defaults with every stage over all cards before
 the next (``keystone run --stage-by-stage``). Each variant
 runs in its own fresh process (spawned), one after the other, so its ``peak_rss_mb`` is its own;
 CPU seconds (``time.process_time``) move less with other load on the machine than wall time.
@@ -173,8 +173,8 @@ def decide_as_stored() -> None:
     the orientation step is measured on every card whatever the step decided."""
     from sqlalchemy import select
 
-    from app.db import db
-    from app.models import Card
+    from core.db import db
+    from core.models import Card
     from review.models import OrientationOverride
 
     for card_id in db.session.scalars(select(Card.id).where(~Card.id.in_(select(OrientationOverride.card_id)))):
@@ -197,18 +197,18 @@ def benchmark_pipeline(
     """Ingest ``cards`` into a throwaway instance and run ``stages`` inline; per-card CPU seconds.
     ``sbs_order`` is ``keystone ingest --sbs-order`` (None: JPS files are read cross-eyed);
     ``params``: stage name -> parameters replacing that stage's defaults; ``chain``: stages
-    chained as ``keystone run`` does by default (:mod:`app.chains`), else stage by stage."""
+    chained as ``keystone run`` does by default (:mod:`runs.chains`), else stage by stage."""
     from dataclasses import replace
 
     from sqlalchemy import select
 
     from app import create_app
-    from app.db import db
-    from app.ingest import ingest
-    from app.models import Card
-    from app.runs import StageReport, StageSpec, available_stages, run_stage, run_stages
     from app.schema import upgrade
-    from app.stereo_ingest import StereoOptions
+    from catalogue.ingest import ingest
+    from catalogue.stereo_ingest import StereoOptions
+    from core.db import db
+    from core.models import Card
+    from runs.driver import StageReport, StageSpec, available_stages, run_stage, run_stages
 
     root = Path(tempfile.mkdtemp(prefix="keystone-bench-pipeline-"))
     data_dir = root / "data"

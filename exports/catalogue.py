@@ -18,8 +18,8 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import selectinload
 
-from app.db import db
-from app.models import Card
+from core.db import db
+from core.models import Card
 from review.models import CardReview
 from review.orientation import flow_blockers_for
 

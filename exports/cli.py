@@ -43,7 +43,7 @@ def export_command(out_dir: Path, min_grade: str, formats: str, dry_run: bool, n
     WebDataset tars; always croissant.json, README.md (dataset card), CHANGELOG.md, SHA256SUMS.
     Exits 1 when no accepted card is ready to release.
     """
-    from app.console import emit_json, ensure_database, fail, progress_bar, say
+    from core.console import emit_json, ensure_database, fail, progress_bar, say
 
     from .records import parse_formats
     from .release import ReleaseError, plan_release, publish_release
@@ -101,7 +101,7 @@ def export_command(out_dir: Path, min_grade: str, formats: str, dry_run: bool, n
 def verify_command(path: Path, no_mlcroissant: bool, as_json: bool) -> None:
     """Check a release: every checksum, the Croissant file, the Parquet schema, and that every
     listed file exists and every file present is listed. Exits 1 naming each problem."""
-    from app.console import emit_json
+    from core.console import emit_json
 
     from .verify import verify_release
 

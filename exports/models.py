@@ -8,8 +8,8 @@ from typing import Any
 from sqlalchemy import DateTime, ForeignKey, Integer, String, Text
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
-from app.db import JSONType, db, utcnow
-from app.models import Person
+from core.db import JSONType, db, utcnow
+from core.models import Person
 
 
 class Release(db.Model):

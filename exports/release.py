@@ -21,8 +21,8 @@ from typing import Any
 
 from sqlalchemy.exc import IntegrityError
 
-from app.db import db, read_only
-from app.models import Person
+from core.db import db, read_only
+from core.models import Person
 
 from .catalogue import (
     Exclusion,
@@ -61,7 +61,7 @@ class ReleaseError(RuntimeError):
 
 
 class Progress:
-    """What the writer reports to a progress bar (``app.console.progress_bar`` fits)."""
+    """What the writer reports to a progress bar (``core.console.progress_bar`` fits)."""
 
     def start(self, total: int) -> None: ...
 
@@ -197,7 +197,7 @@ class _ViewsCount:
 
 
 def _data_dir() -> Path:
-    from app.console import data_dir
+    from core.console import data_dir
 
     return data_dir()
 

@@ -1,7 +1,7 @@
 """Stereo viewing files of a card: anaglyph, wiggles, side-by-side, JPS and MPO, with the card's facts.
 
 Shared by the ``stereo`` release format (:class:`StereoWriter`) and the card page's downloads
-(:mod:`app.catalog`). The pixels come from :mod:`pipeline.stereo_formats`; this module encodes
+(:mod:`catalogue.views`). The pixels come from :mod:`pipeline.stereo_formats`; this module encodes
 them and writes the card's title, date, accession and licence into each file where the format
 has a place for them: EXIF ``ImageDescription`` / ``Artist`` / ``Copyright`` (ASCII, accents
 folded) plus an XMP packet in Dublin Core (UTF-8) for JPEG, JPS, MPO and WebP; the comment

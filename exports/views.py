@@ -47,8 +47,8 @@ from wtforms.fields.choices import SelectChoice
 from wtforms.validators import Length
 from wtforms.widgets import CheckboxInput, ListWidget
 
-from app.auth import add_nav_link, role_required
-from app.db import db, read_only
+from core.auth import add_nav_link, role_required
+from core.db import db, read_only
 
 from .models import Release
 from .records import DEFAULT_FORMATS, FORMATS, RELEASABLE_GRADES
@@ -224,7 +224,7 @@ def publish() -> Any:
             "error",
         )
         return _preview_page(form, plan, status=409)
-    # The logged-in person is already loaded and detached (app.auth): using it opens no
+    # The logged-in person is already loaded and detached (core.auth): using it opens no
     # transaction, so the export's reads do not hold SQLite's write lock for minutes.
     actor = current_user._get_current_object()
     try:

@@ -15,7 +15,7 @@ from flask.cli import with_appcontext
 def report_command(as_json: bool) -> None:
     """Grade distribution per collection beside the paper's 23 / 49 / 28 %, agreement of the
     automatic grades with curators, and crowd agreement per batch."""
-    from app.console import emit_json, ensure_database
+    from core.console import emit_json, ensure_database
 
     from .report import build_report
 
@@ -86,7 +86,7 @@ def grade_group() -> None:
 @with_appcontext
 def grade_show_command(as_json: bool) -> None:
     """Print the thresholds the grade stage uses now (fitted ones, or the defaults)."""
-    from app.console import emit_json, ensure_database
+    from core.console import emit_json, ensure_database
 
     from .grading import active_grade_params
 
@@ -137,7 +137,7 @@ def grade_fit_command(
     Then `keystone run --stages grade` regrades with them."""
     import json
 
-    from app.console import emit_json, ensure_database, fail
+    from core.console import emit_json, ensure_database, fail
 
     from .grading import GradingError, fit_from_bench, fit_from_curators
 
@@ -219,9 +219,9 @@ def orientation_set_command(
 
     from sqlalchemy import select
 
-    from app.console import emit_json, ensure_database, fail
-    from app.db import db
-    from app.models import Person
+    from core.console import emit_json, ensure_database, fail
+    from core.db import db
+    from core.models import Person
 
     from .operator_word import set_collection_orientation
     from .tasks import ReviewError
@@ -262,8 +262,8 @@ def orientation_set_command(
 @with_appcontext
 def orientation_show_command(collection_name: str | None, as_json: bool) -> None:
     """List the operators' words in force, a line per collection."""
-    from app.console import emit_json, ensure_database, fail
-    from app.db import read_only
+    from core.console import emit_json, ensure_database, fail
+    from core.db import read_only
 
     from .operator_word import collection_words
     from .tasks import ReviewError
@@ -297,7 +297,7 @@ def orientation_fit_command(collection_name: str | None, folds: int, seed: int, 
     whose orientation was decided (by people, or by the step with a wide margin), and report
     held-out accuracy before and after. Saved refits are versioned; the next `keystone run`
     reruns the orientation step on the collection with the new head and lists what changed."""
-    from app.console import emit_json, ensure_database, fail
+    from core.console import emit_json, ensure_database, fail
 
     from .upright_fit import UprightFitError, fit_collection
 

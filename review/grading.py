@@ -12,7 +12,7 @@ from typing import Any
 
 from sqlalchemy import select
 
-from app.db import db
+from core.db import db
 
 from .models import GRADES, CardReview, GradeModel, record_event
 from .report import LABELLED_DECISIONS
@@ -34,7 +34,7 @@ def active_grade_params() -> tuple[Any, GradeModel | None]:
 
 def labelled_measurements() -> list[tuple[dict[str, Any], str]]:
     """(grade measurements, curator grade) for every card a curator graded and the grader measured."""
-    from app.models import StageResult
+    from core.models import StageResult
 
     labels = {
         r.card_id: r.grade

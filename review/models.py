@@ -1,6 +1,6 @@
 """Curator review rows: one review per card, the fitted grade models, and the audit trail.
 
-A card's *automatic* grade is a ``grade`` stage result (``app.models.StageResult``); the
+A card's *automatic* grade is a ``grade`` stage result (``core.models.StageResult``); the
 curator's decision and the card's final grade live in :class:`CardReview`. Every change to a
 grade, a decision or a crowd annotation is also written to :class:`AuditEvent`, which is
 append-only: the ORM refuses updates and deletes, and the migration adds database triggers
@@ -15,8 +15,8 @@ from typing import Any
 from sqlalchemy import CheckConstraint, DateTime, Float, ForeignKey, Index, Integer, String, Text, event
 from sqlalchemy.orm import Mapped, Session, mapped_column, relationship
 
-from app.db import JSONType, db, utcnow
-from app.models import Card, Person
+from core.db import JSONType, db, utcnow
+from core.models import Card, Person
 
 # The paper's three categories, best first. "few" and "some" are artifact levels.
 GRADES: tuple[str, ...] = ("few", "some", "failure")
@@ -73,7 +73,7 @@ class CardReview(db.Model):
 class OrientationOverride(db.Model):
     """A curator's word on a card's orientation, flag by flag (null: not overridden, the step's
     or the crowd's value stands). One row per card, replaced by the next override; every
-    change is also an audit event (entity ``orientation``). See :mod:`app.orientation`."""
+    change is also an audit event (entity ``orientation``). See :mod:`runs.orientation`."""
 
     __tablename__ = "orientation_overrides"
 

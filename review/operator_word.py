@@ -3,11 +3,11 @@
 An operator who knows a collection (prints, never negatives; scanned in eye order) says so once
 for all its cards, flag by flag. Each card's orientation then takes the word for those flags
 over the crowd's and the step's, and a curator's override on one card still wins over it
-(:mod:`app.orientation`). The orientation step is given the word as ``known_flags`` and decides
+(:mod:`runs.orientation`). The orientation step is given the word as ``known_flags`` and decides
 the other flags itself where it can; the word is part of the step's inputs, so the next
 ``keystone run`` reruns the step on the collection's cards.
 
-The word (``app.models.CollectionOrientation``) and an audit event (entity ``orientation``, no
+The word (``core.models.CollectionOrientation``) and an audit event (entity ``orientation``, no
 card; before and after the word) are committed together.
 """
 
@@ -19,9 +19,9 @@ from typing import Any
 from sqlalchemy import func, or_, select
 from sqlalchemy.exc import IntegrityError
 
-from app.db import db, utcnow
-from app.models import Card, Collection, CollectionOrientation, Person
-from app.orientation import FLAGS, word_phrase
+from core.db import db, utcnow
+from core.models import Card, Collection, CollectionOrientation, Person
+from runs.orientation import FLAGS, word_phrase
 
 from .models import OrientationOverride, record_event
 from .tasks import MAX_NOTE_CHARS, ReviewError

@@ -18,9 +18,9 @@ from typing import Any
 
 from sqlalchemy import select
 
-from app.db import db
-from app.models import Card, Person
-from app.orientation import FLAGS, is_decided, public_orientation
+from core.db import db
+from core.models import Card, Person
+from runs.orientation import FLAGS, is_decided, public_orientation
 
 from .models import OrientationOverride, record_event
 from .tasks import MAX_NOTE_CHARS, ReviewError
@@ -29,8 +29,8 @@ __all__ = ["current_orientation", "flow_blockers", "flow_blockers_for", "overrid
 
 
 def current_orientation(card: Card) -> dict[str, Any]:
-    """The orientation the pipeline uses for ``card`` (see :mod:`app.orientation`)."""
-    from app.runs import approved_annotations, card_orientation
+    """The orientation the pipeline uses for ``card`` (see :mod:`runs.orientation`)."""
+    from runs.driver import approved_annotations, card_orientation
 
     return card_orientation(card, approved_annotations([card.id]).get(card.id, {}))
 
@@ -97,7 +97,7 @@ def flow_blockers(card: Card) -> list[str]:
 def flow_blockers_for(cards: list[Card]) -> dict[int, list[str]]:
     """:func:`flow_blockers` for many cards with three queries (cards' results loaded)."""
     from annotation.models import Aggregate
-    from app.runs import approved_annotations, card_orientation
+    from runs.driver import approved_annotations, card_orientation
 
     ids = [card.id for card in cards]
     approved = approved_annotations(ids)

@@ -11,8 +11,8 @@ from typing import Any
 
 from sqlalchemy import select
 
-from app.db import db, read_only
-from app.models import Card, Collection, StageResult
+from core.db import db, read_only
+from core.models import Card, Collection, StageResult
 
 from .models import GRADES, CardReview, GradeModel
 

@@ -7,7 +7,7 @@ from typing import Any
 
 from flask import Blueprint, Response, render_template, request
 
-from app.auth import add_nav_link, role_required
+from core.auth import add_nav_link, role_required
 
 from .report import build_report, plot_confusion, plot_distribution
 

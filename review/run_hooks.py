@@ -1,4 +1,4 @@
-"""What a pipeline run needs from curator review, registered with the app (see :mod:`app.stage_hooks`)."""
+"""What a pipeline run needs from curator review, registered with the app (see :mod:`core.hooks`)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from flask import Flask
 from sqlalchemy import select
 from sqlalchemy.orm import joinedload, selectinload
 
-from app.db import db
-from app.models import Card, CollectionOrientation
-from app.stage_hooks import stage_hooks
+from core.db import db
+from core.hooks import stage_hooks
+from core.models import Card, CollectionOrientation
 
 from .models import CardReview, OrientationOverride
 
@@ -29,7 +29,7 @@ def card_reviews(card_ids: list[int]) -> dict[int, dict[str, Any]]:
 
 def orientation_overrides(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     """A curator's orientation override per card: ``{card: {"orientation_override": row}}``
-    (app.orientation resolves the orientation the pipeline uses from it)."""
+    (runs.orientation resolves the orientation the pipeline uses from it)."""
     found: dict[int, dict[str, Any]] = {}
     for start in range(0, len(card_ids), CHUNK):
         rows = db.session.scalars(

@@ -20,8 +20,8 @@ from sqlalchemy.orm import selectinload
 from sqlalchemy.orm.exc import StaleDataError
 
 from annotation.models import Aggregate, Answer, BatchItem, GoldAnswer
-from app.db import db, utcnow
-from app.models import Card, Person, StageResult
+from core.db import db, utcnow
+from core.models import Card, Person, StageResult
 
 from .models import GRADE_NAMES, GRADES, AuditEvent, CardReview, record_event
 

@@ -19,7 +19,7 @@ from typing import Any
 
 from sqlalchemy import select
 
-from app.db import db
+from core.db import db
 
 from .models import GradeModel
 

@@ -29,8 +29,8 @@ import numpy as np
 from flask import current_app
 from sqlalchemy import func, select
 
-from app.db import db
-from app.models import Card, Collection
+from core.db import db
+from core.models import Card, Collection
 
 from .models import UprightHeadFit, record_event
 
@@ -100,8 +100,8 @@ def _current_head(collection_id: int | None) -> tuple[Any, str]:
 def labelled_cards(collection_id: int | None) -> list[dict[str, Any]]:
     """Cards whose orientation is decided by people or by the step with a wide margin, and whose
     step stored the network's readings: ``{"card", "orientation", "step", "differences"}``."""
-    from app.runs import approved_annotations, card_orientation
     from pipeline.upright import read_learned_differences
+    from runs.driver import approved_annotations, card_orientation
 
     data_dir = Path(current_app.config["KEYSTONE_DATA_DIR"])
     query = select(Card).where(Card.state.in_(("pass", "review"))).order_by(Card.id)

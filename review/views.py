@@ -33,11 +33,11 @@ from sqlalchemy.orm import selectinload
 from werkzeug.wrappers import Response
 
 from annotation.models import Aggregate, Worker
-from app.auth import add_nav_link, role_required
-from app.db import db, read_only
-from app.json_body import load_json_body
-from app.limits import parse_positive_int
-from app.models import Collection
+from core.auth import add_nav_link, role_required
+from core.db import db, read_only
+from core.json_body import load_json_body
+from core.limits import parse_positive_int
+from core.models import Collection
 
 from . import run_hooks
 from .models import GRADE_NAMES, GRADES, CardReview
@@ -78,8 +78,8 @@ bp.record_once(lambda state: run_hooks.register(state.app))
 @bp.app_template_global()
 def queue_thumb_url(row: Any) -> str:
     """The catalogue's cached thumbnail (<= 320 px JPEG, versioned URL cached for a year) of a queue row."""
-    from app.catalog import preview_etag
-    from app.http_images import url_version
+    from catalogue.views import preview_etag
+    from core.http_images import url_version
 
     return url_for("catalog.thumb_image", card_id=row.card_id, v=url_version(preview_etag(row.content_hash, "thumb")))
 
@@ -279,7 +279,7 @@ def card_state_sentence(card: Any, latest: dict[str, Any]) -> str:
 @bp.route("/cards/<int:card_id>")
 @role_required("curator")
 def card(card_id: int) -> Any:
-    from app.catalog import get_card_or_404
+    from catalogue.views import get_card_or_404
 
     filters = _filters(request.args)
     with read_only():
@@ -468,7 +468,7 @@ def undo(card_id: int) -> Any:
 @bp.route("/cards/<int:card_id>/history")
 @role_required("curator")
 def history(card_id: int) -> Any:
-    from app.catalog import get_card_or_404
+    from catalogue.views import get_card_or_404
 
     with read_only():
         card = get_card_or_404(card_id, with_results=False)
@@ -479,14 +479,14 @@ def history(card_id: int) -> Any:
 
 
 def _anaglyph_etag(card: Any, rectify: Any) -> str:
-    from app.catalog import artifact_etag
+    from catalogue.views import artifact_etag
 
     parts = [artifact_etag(card, rectify, name) for name in ("left_preview", "right_preview")]
     return hashlib.sha256("\0".join([*parts, ANAGLYPH_VERSION]).encode()).hexdigest()[:32]
 
 
 def _anaglyph_url(card: Any, rectify: Any) -> str | None:
-    from app.http_images import url_version as _version
+    from core.http_images import url_version as _version
 
     artifacts = (rectify.artifacts or {}) if rectify is not None else {}
     if not (artifacts.get("left_preview") and artifacts.get("right_preview")):
@@ -523,8 +523,8 @@ def red_cyan_anaglyph(left: np.ndarray, right: np.ndarray) -> np.ndarray:
 def anaglyph(card_id: int) -> Response:
     from PIL import Image
 
-    from app.catalog import get_card_or_404, inside_data_dir
-    from app.http_images import cache_headers as _cache_headers, not_modified as _not_modified
+    from catalogue.views import get_card_or_404, inside_data_dir
+    from core.http_images import cache_headers as _cache_headers, not_modified as _not_modified
     from pipeline.errors import ImageReadError
     from pipeline.io import read_image
 
@@ -587,7 +587,7 @@ def _label_from_form(kind: str, form: Any) -> dict[str, Any]:
 
 
 def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200) -> Any:
-    from app.catalog import get_card_or_404
+    from catalogue.views import get_card_or_404
 
     with read_only():
         aggregate = db.session.get(Aggregate, aggregate_id)

@@ -134,8 +134,8 @@ def database(request: pytest.FixtureRequest, tmp_path: Path) -> str:
 @pytest.fixture
 def app(database: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):  # type: ignore[no-untyped-def]
     from app import create_app
-    from app.db import db
     from app.schema import upgrade
+    from core.db import db
 
     monkeypatch.setenv("KEYSTONE_INSTANCE_PATH", str(tmp_path / "instance"))
     application = create_app(
@@ -230,8 +230,8 @@ def card_image() -> Callable[..., np.ndarray]:
 
 @pytest.fixture
 def make_person(app) -> Callable[..., PersonInfo]:  # type: ignore[no-untyped-def]
-    from app.db import db
-    from app.models import Person
+    from core.db import db
+    from core.models import Person
 
     counter = iter(range(1, 10_000))
 
@@ -252,8 +252,8 @@ def make_person(app) -> Callable[..., PersonInfo]:  # type: ignore[no-untyped-de
 @pytest.fixture
 def make_card(app, data_dir: Path) -> Callable[..., int]:  # type: ignore[no-untyped-def]
     """Store an image as ingest would (``originals/<hash[:2]>/<hash><suffix>``, read-only); return the card id."""
-    from app.db import db
-    from app.models import Card, Collection
+    from core.db import db
+    from core.models import Card, Collection
 
     def make(
         image: np.ndarray | None = None,
@@ -305,8 +305,8 @@ def make_card(app, data_dir: Path) -> Callable[..., int]:  # type: ignore[no-unt
 @pytest.fixture
 def add_stage_result(app, data_dir: Path) -> Callable[..., int]:  # type: ignore[no-untyped-def]
     """Record a stage result for a card; for the filter, write its two halves as PNG artifacts."""
-    from app.db import db
-    from app.models import Card, StageResult
+    from core.db import db
+    from core.models import Card, StageResult
     from pipeline.io import read_image, write_png
 
     def add(
@@ -525,8 +525,8 @@ def decide_orientation(app) -> Callable[..., list[int]]:  # type: ignore[no-unty
     curator who knows how the test's cards were made would: the flow rule keeps a card whose
     orientation is undecided out of rectification, and the orientation step asks people about
     most synthetic cards. Returns the card ids."""
-    from app.db import db
-    from app.models import Card
+    from core.db import db
+    from core.models import Card
     from review.models import OrientationOverride
 
     def decide(

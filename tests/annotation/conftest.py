@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from sqlalchemy import func, select
 
-from app.db import db
-from app.models import Card, Collection
+from core.db import db
+from core.models import Card, Collection
 
 
 @pytest.fixture

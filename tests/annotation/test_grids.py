@@ -14,7 +14,7 @@ from sqlalchemy import select
 
 from annotation.models import Answer, Batch, BatchItem, Reservation, Worker
 from app.cli import cli
-from app.db import db
+from core.db import db
 
 pytestmark = pytest.mark.both_databases
 
@@ -183,7 +183,7 @@ def test_confirm_cards_go_to_grids_and_the_crowds_taps_decide_them(app, client, 
     assert {f: after[confirm[0]]["orientation"][f] for f in FLAGS} == NONE
 
     # A curator's override still wins, flag by flag.
-    from app.models import Person
+    from core.models import Person
     from review.orientation import override_orientation
 
     curator = make_person("curator")
@@ -303,7 +303,7 @@ def test_a_card_the_grid_cannot_agree_on_goes_to_a_judge_task(app, client, runne
 def test_a_grid_whose_holds_lapsed_is_renewed_and_sent_again_under_the_same_key(app, client, runner, grid_world):  # type: ignore[no-untyped-def]
     from datetime import timedelta
 
-    from app.db import utcnow
+    from core.db import utcnow
 
     _create_batch(runner)
     token = _worker(app, client, "slow")

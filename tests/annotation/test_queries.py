@@ -8,7 +8,7 @@ from sqlalchemy import select, text
 
 from annotation import assignment as strategy
 from annotation.models import BatchItem
-from app.db import db, utcnow
+from core.db import db, utcnow
 
 JUDGE_OK = {"is_stereo": True, "upside_down": False, "inverted": False}
 

@@ -12,7 +12,7 @@ from sqlalchemy import func, select
 
 from annotation import assignment as strategy
 from annotation.models import Answer, BatchItem, Reservation, Worker
-from app.db import db, utcnow
+from core.db import db, utcnow
 
 JUDGE_OK = {"is_stereo": True, "upside_down": False, "inverted": False}
 JUDGE_WRONG = {"is_stereo": False, "upside_down": True, "inverted": True}

@@ -6,7 +6,7 @@ import pytest
 from sqlalchemy import func, select
 
 from annotation.models import Aggregate, Answer, Batch, BatchItem, Reservation, Worker
-from app.db import db
+from core.db import db
 
 
 @pytest.fixture

@@ -97,7 +97,7 @@ def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, c
     from annotation.batches import create_batch
     from annotation.models import Aggregate
     from annotation.providers import InviteProvider
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
     from review.tasks import sync_reviews
 

@@ -17,10 +17,10 @@ from sqlalchemy import func, select, text
 from werkzeug.security import generate_password_hash
 
 from app import create_app
-from app.db import db
-from app.login_throttle import ThrottlePolicy, lockout_of, normalise_address
-from app.models import AuthEvent, AuthEventTamperError, LoginThrottle, Person
 from app.schema import upgrade
+from core.db import db
+from core.login_throttle import ThrottlePolicy, lockout_of, normalise_address
+from core.models import AuthEvent, AuthEventTamperError, LoginThrottle, Person
 
 _CSRF_INPUT = re.compile(r'<input[^>]*name="csrf_token"[^>]*value="([^"]+)"')
 WINDOW = timedelta(minutes=15)

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 from sqlalchemy import func, select
 
-from app.auth import role_required, safe_next
-from app.db import db
-from app.models import Person
+from core.auth import role_required, safe_next
+from core.db import db
+from core.models import Person
 
 ROLES = [None, "annotator", "curator", "exporter", "admin"]
 

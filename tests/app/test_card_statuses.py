@@ -17,7 +17,7 @@ def _cards(runner) -> dict[int, dict]:  # type: ignore[no-untyped-def]
 @pytest.mark.both_databases
 def test_judge_crop_and_review_statuses(app, runner, make_card, add_stage_result, card_image) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Aggregate, Batch
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     passed = make_card(card_image()[:, 1:])

@@ -118,8 +118,8 @@ def test_catalogue_filters_by_collection(client, login, make_card):
     login("exporter")
     make_card(image=np.zeros((20, 40, 3), np.uint8), collection="nypl", metadata={"title": "From NYPL"})
     make_card(image=np.ones((20, 40, 3), np.uint8), collection="ucr", metadata={"title": "From UCR"})
-    from app.db import db
-    from app.models import Collection
+    from core.db import db
+    from core.models import Collection
 
     with client.application.app_context():
         nypl = db.session.query(Collection).filter_by(name="nypl").one().id
@@ -231,8 +231,8 @@ def test_card_page_shows_thresholds_when_recorded(client, login, make_card, add_
 def test_card_page_shows_the_current_thresholds_when_the_result_used_them(app, client, login, make_card, add_stage_result):
     from dataclasses import asdict
 
-    from app.runs import available_stages
     from pipeline.records import param_hash
+    from runs.driver import available_stages
 
     with app.app_context():  # the grade stage's thresholds come from the database
         params = available_stages()["filter"].params

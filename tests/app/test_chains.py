@@ -12,12 +12,12 @@ import pytest
 from PIL import Image
 from sqlalchemy import delete, select, update
 
-from app.claims import Driver, StageClaim
 from app.cli import cli
-from app.db import db
-from app.models import Card, StageResult
-from app.runs import available_stages
+from core.db import db
+from core.models import Card, StageResult
 from pipeline.records import param_hash
+from runs.claims import Driver, StageClaim
+from runs.driver import available_stages
 
 pytestmark = pytest.mark.both_databases
 

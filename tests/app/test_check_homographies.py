@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from app.geometry import check_homographies_command
+from catalogue.geometry import check_homographies_command
 
 
 def _write(path: Path, H_l: np.ndarray, H_r: np.ndarray, **extra: object) -> Path:

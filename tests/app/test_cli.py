@@ -99,7 +99,7 @@ def test_the_command_tree_is_the_features_registrations():
 def test_importing_the_command_imports_no_feature():
     code = (
         "import sys, app.cli; "
-        "print(sorted(m for m in ('annotation', 'review', 'exports', 'app.runs', 'app.bench') if m in sys.modules))"
+        "print(sorted(m for m in ('annotation', 'review', 'exports', 'runs.driver', 'app.bench') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout
@@ -127,7 +127,7 @@ def test_users_add_and_list(runner):
 
 
 def test_plain_postgresql_urls_use_psycopg_3():
-    from app.config import normalise_database_url
+    from core.config import normalise_database_url
 
     assert normalise_database_url("postgresql://u@h/db") == "postgresql+psycopg://u@h/db"
     assert normalise_database_url("postgres://u@h/db") == "postgresql+psycopg://u@h/db"
@@ -137,7 +137,7 @@ def test_plain_postgresql_urls_use_psycopg_3():
 def test_database_url_from_the_environment(database, tmp_path, monkeypatch):
     """KEYSTONE_DATABASE_URL picks the catalogue (plain postgresql:// URLs included)."""
     from app import create_app
-    from app.db import db
+    from core.db import db
 
     url = database.replace("postgresql+psycopg://", "postgresql://")
     monkeypatch.setenv("KEYSTONE_DATABASE_URL", url)

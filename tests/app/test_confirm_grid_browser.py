@@ -9,7 +9,7 @@ import pytest
 from sqlalchemy import select
 
 from annotation.models import Answer, BatchItem
-from app.db import db
+from core.db import db
 
 FLAGS = ("upside_down", "inverted", "swapped")
 NONE = dict.fromkeys(FLAGS, False)

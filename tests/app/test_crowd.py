@@ -12,7 +12,7 @@ import pytest
 from sqlalchemy import func, select
 
 from annotation.models import Aggregate, Answer, Batch, BatchItem, Reservation, Worker
-from app.db import db, utcnow
+from core.db import db, utcnow
 
 TOKEN = re.compile(r'data-worker-token="([^"]*)"')
 JUDGE_OK = {"is_stereo": True, "upside_down": False, "inverted": False}

@@ -13,7 +13,7 @@ import pytest
 from sqlalchemy import select
 
 from annotation.models import Answer, BatchItem
-from app.db import db
+from core.db import db
 
 SHOTS = Path("/tmp/shots-annotate")
 NO_SIDEWAYS_SCROLL = "document.documentElement.scrollWidth <= window.innerWidth"
@@ -79,7 +79,7 @@ def two_batches(app, make_card, card_image, add_stage_result):  # type: ignore[n
 def test_annotator_walks_the_invite_link_through_judge_and_crop(app, server, browser, two_batches, wait_until, device):
     from annotation.proposals import proposed_boxes
     from annotation.providers import InviteProvider
-    from app.models import Card
+    from core.models import Card
 
     judge_card, crop_card = two_batches
     phone = device == "phone"

@@ -14,7 +14,7 @@ import pytest
 from sqlalchemy import select
 
 from annotation.models import Answer, Reservation
-from app.db import db
+from core.db import db
 
 
 @pytest.fixture(autouse=True)

@@ -20,7 +20,7 @@ from PIL import Image
 from sqlalchemy import func, select
 
 from annotation.models import Answer, Batch, Reservation, Worker
-from app.db import db, utcnow
+from core.db import db, utcnow
 
 TOKEN = re.compile(r'data-worker-token="([^"]*)"')
 JUDGE_OK = {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": False}
@@ -108,7 +108,7 @@ def test_finished_screen_says_when_others_hold_the_rest(app, client, cards):
 
 def test_proposed_boxes_come_from_orientation_then_photo_areas_then_the_filter(app, cards, add_stage_result, data_dir):
     from annotation.proposals import _photo_area_cache, proposed_boxes
-    from app.models import Card
+    from core.models import Card
 
     card_id = cards(1, state="pass")[0]
     add_stage_result(card_id, "filter")

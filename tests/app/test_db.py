@@ -11,8 +11,8 @@ import threading
 import pytest
 from sqlalchemy import func, select
 
-from app.db import db, read_only
-from app.models import Card, Collection, StageResult
+from core.db import db, read_only
+from core.models import Card, Collection, StageResult
 
 pytestmark = pytest.mark.both_databases
 
@@ -88,7 +88,7 @@ GATED_WRITER = """
 import sys, time
 from pathlib import Path
 from app import create_app
-from app.db import db, one_writer
+from core.db import db, one_writer
 from sqlalchemy import text
 database, log, rounds = sys.argv[1], Path(sys.argv[2]), int(sys.argv[3])
 app = create_app({"SQLALCHEMY_DATABASE_URI": database, "SECRET_KEY": "x", "KEYSTONE_DATA_DIR": str(log.parent)},
@@ -131,7 +131,7 @@ def test_a_session_holding_the_write_lock_goes_through_the_gate(app):
     is waiting for that lock (it would wait out the gate's timeout, or forever)."""
     import time
 
-    from app.db import one_writer
+    from core.db import one_writer
 
     if not app.config["SQLALCHEMY_DATABASE_URI"].startswith("sqlite"):
         pytest.skip("the gate is SQLite's")

@@ -217,7 +217,7 @@ def review_forms(draw: st.DrawFn) -> tuple[str, dict[str, str]]:
 def test_the_main_forms_never_answer_5xx(app, client, hostile_world, case, with_token, query):
     from sqlalchemy import select
 
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     form, fields = case
@@ -245,7 +245,7 @@ def test_the_main_forms_never_answer_5xx(app, client, hostile_world, case, with_
 
 def test_generated_numbers_include_what_the_loader_must_refuse():
     # The strategies above reach the loader's refusals, or the property would prove nothing.
-    from app.json_body import JSONBodyError, parse_json
+    from core.json_body import JSONBodyError, parse_json
 
     refused = []
     for value in (10**400, math.nan, math.inf, -math.inf, 2**53 + 1):

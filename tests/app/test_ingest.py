@@ -14,10 +14,10 @@ import pytest
 from PIL import Image
 from sqlalchemy import func, select
 
-from app import ingest as ingest_module
 from app.cli import cli
-from app.db import db
-from app.models import Card, MetadataRecord
+from catalogue import ingest as ingest_module
+from core.db import db
+from core.models import Card, MetadataRecord
 
 pytestmark = pytest.mark.both_databases
 
@@ -75,7 +75,7 @@ def test_ingest_folder_recursively_into_content_addressed_store(app, runner, sca
         assert [c.source_name for c in cards] == ["1996.0009.17827.jpg", "card_b.png", "card_c.tif", "card_d.jps"]
         for card in cards:
             # A JPS is cross-eyed by default: its card image is derived (halves swapped, see
-            # app.stereo_ingest) and its original is kept, as it came, in stereo_source.
+            # catalogue.stereo_ingest) and its original is kept, as it came, in stereo_source.
             original = card.stereo_source["originals"][0] if card.stereo_source else None
             content_hash = original["sha256"] if original else card.content_hash
             stored = data_dir / (original["stored_path"] if original else card.stored_path)
@@ -129,7 +129,7 @@ def test_interrupted_ingest_resumes(app, runner, scans, monkeypatch):
 
 def test_store_file_without_row_is_completed_on_rerun(app, runner, scans):
     """A crash between copying the original and committing its row leaves a stored file; rerun adopts it."""
-    from app.ingest import sha256_file, store_original
+    from catalogue.ingest import sha256_file, store_original
 
     source = scans / "1996.0009.17827.jpg"
     store_original(source, sha256_file(source), Path(app.config["KEYSTONE_DATA_DIR"]))

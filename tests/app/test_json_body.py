@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from app.json_body import MAX_DEPTH, MAX_SAFE_INTEGER, JSONBodyError, parse_json
+from core.json_body import MAX_DEPTH, MAX_SAFE_INTEGER, JSONBodyError, parse_json
 
 
 def test_ordinary_bodies_parse_as_json_does():
@@ -78,7 +78,7 @@ def test_malformed_json_says_where(raw, reason):
 
 
 def test_the_loader_refuses_bodies_of_the_wrong_type_and_unstorable_text(app):
-    from app.json_body import NotJSONError, load_json_body
+    from core.json_body import NotJSONError, load_json_body
 
     cases = [
         (b"[1, 2]", "application/json", "Expected a JSON object body, got list."),

@@ -14,7 +14,7 @@ import pytest
 from sqlalchemy import func, select
 from werkzeug.routing import IntegerConverter
 
-from app.limits import DATABASE_ID_MAX, DatabaseIdConverter, parse_positive_int
+from core.limits import DATABASE_ID_MAX, DatabaseIdConverter, parse_positive_int
 
 # Past PostgreSQL's INTEGER, past SQLite's 64-bit INTEGER, past a float, past Python's
 # 4,300-digit int() limit; and 0, which no id is.
@@ -393,7 +393,7 @@ ABSURD_COORDINATES = [
 @pytest.mark.both_databases
 def test_absurd_box_coordinates_are_400_and_store_nothing(app, client, hostile_world):
     from annotation.models import Answer
-    from app.db import db
+    from core.db import db
 
     crowd = {"X-Crowd-Token": hostile_world.worker_token}
     task = client.post("/crowd/api/next", headers=crowd, json={"kind": "crop"}).get_json()["tasks"][0]

@@ -14,8 +14,8 @@ import pytest
 from PIL import Image
 from sqlalchemy import select
 
-from app.db import db
-from app.orientation import resolve_orientation
+from core.db import db
+from runs.orientation import resolve_orientation
 
 SAID_AT = datetime(2026, 11, 27, 9, 30, tzinfo=UTC)
 
@@ -237,8 +237,8 @@ def _card(runner) -> dict[str, Any]:  # type: ignore[no-untyped-def]
 
 
 def _step_inputs(app) -> dict[str, Any]:  # type: ignore[no-untyped-def]
-    from app.models import Card
-    from app.runs import approved_annotations, orientation_inputs
+    from core.models import Card
+    from runs.driver import approved_annotations, orientation_inputs
 
     with app.app_context():
         card = db.session.scalar(select(Card))
@@ -247,7 +247,7 @@ def _step_inputs(app) -> dict[str, Any]:  # type: ignore[no-untyped-def]
 
 @pytest.mark.both_databases
 def test_a_new_word_changes_the_step_inputs_and_the_step_reruns(app, runner, prints_card) -> None:  # type: ignore[no-untyped-def]
-    from app.runs import inputs_digest
+    from runs.driver import inputs_digest
 
     first = _run(runner, "filter", "orientation")
     assert first["orientation"]["processed"] == 1 and first["orientation"]["chained"] == 1
@@ -275,8 +275,8 @@ def test_a_new_word_changes_the_step_inputs_and_the_step_reruns(app, runner, pri
 @pytest.mark.both_databases
 def test_a_word_before_the_first_run_reaches_a_chained_step(app, runner, prints_card) -> None:  # type: ignore[no-untyped-def]
     """The chain's worker has no database: the driver sends the collection's word with the card
-    (app.chains.ChainTask.approved), so the chained step runs with it and is not redone."""
-    from app.runs import inputs_digest
+    (runs.chains.ChainTask.approved), so the chained step runs with it and is not redone."""
+    from runs.driver import inputs_digest
 
     _invoke(runner, "set", "--collection", "prints", "--inverted", "no")
     first = _run(runner, "filter", "orientation")
@@ -289,7 +289,7 @@ def test_a_word_before_the_first_run_reaches_a_chained_step(app, runner, prints_
 
 @pytest.mark.both_databases
 def test_cards_and_card_pages_show_the_word_and_a_curator_still_wins(app, runner, client, login, prints_card) -> None:  # type: ignore[no-untyped-def]
-    from app.models import Person
+    from core.models import Person
     from review.orientation import override_orientation
 
     curator = login("curator")

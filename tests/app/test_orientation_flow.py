@@ -13,7 +13,7 @@ from PIL import Image
 from sqlalchemy import select
 
 from app.cli import cli
-from app.db import db
+from core.db import db
 
 pytestmark = pytest.mark.both_databases
 
@@ -76,7 +76,7 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     from pipeline.stages.orientation import OrientationStageParams
 
     strict = OrientationParams(auto_probability=0.99999, confirm_probability=0.99999)
-    monkeypatch.setattr("app.runs.OrientationStageParams", lambda: OrientationStageParams(orientation=strict))
+    monkeypatch.setattr("runs.driver.OrientationStageParams", lambda: OrientationStageParams(orientation=strict))
     first = _run(runner)
     stages = {s["stage"]: s for s in first["stages"]}
     assert [s["stage"] for s in first["stages"]] == ["filter", "orientation", "rectify", "disparity", "grade"]
@@ -183,7 +183,7 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
 
     # Accept and release: the curator accepts all three; then the upright card's override is
     # cleared (undecided again) and the turned card's judgement is disputed in a new batch.
-    from app.models import Person
+    from core.models import Person
     from review.models import CardReview
     from review.tasks import ReviewError, decide
 
@@ -231,9 +231,9 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
 def test_a_confident_step_decides_and_its_correction_is_applied(app, runner, flow_cards, monkeypatch):  # type: ignore[no-untyped-def]
     """The step decides a card itself when its posterior clears ``auto_probability``; measured on
     these synthetic cards at the default 0.9 it never does, so the test lowers the bar."""
-    from app import runs
     from pipeline.orientation import OrientationParams
     from pipeline.stages.orientation import OrientationStageParams, orientation_task
+    from runs import driver as runs
 
     original = runs.available_stages
 

@@ -10,15 +10,15 @@ from sqlalchemy import select
 
 
 def _person_id(app, username: str) -> int:  # type: ignore[no-untyped-def]
-    from app.db import db
-    from app.models import Person
+    from core.db import db
+    from core.models import Person
 
     with app.app_context():
         return db.session.scalar(select(Person.id).where(Person.username == username))
 
 
 def _trail(app, person_id: int) -> list[tuple[str, str, dict, dict]]:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import AuditEvent
 
     with app.app_context():

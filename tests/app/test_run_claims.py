@@ -21,10 +21,10 @@ from pathlib import Path
 import pytest
 from sqlalchemy import func, select
 
-from app.claims import StageClaim
 from app.cli import cli
-from app.db import db, utcnow
-from app.models import StageResult
+from core.db import db, utcnow
+from core.models import StageResult
+from runs.claims import StageClaim
 
 pytestmark = pytest.mark.both_databases
 
@@ -234,8 +234,8 @@ def test_write_records_upserts_a_row_another_transaction_inserted_meanwhile(app,
     the same result between its read and its insert; the upsert waits and overwrites."""
     from sqlalchemy import create_engine
 
-    from app.runs import write_records
     from pipeline.records import StageRecord
+    from runs.driver import write_records
 
     other = create_engine(database)
     connection = other.connect()
@@ -304,7 +304,7 @@ def test_a_failed_result_is_retried_under_a_claim(app, cards, runner, add_stage_
 
 
 def test_the_heartbeat_renews_a_live_drivers_claims_and_release_frees_them(app, cards):
-    from app.claims import Driver
+    from runs.claims import Driver
 
     with app.app_context():
         driver = Driver(db.engine, ttl_s=2)

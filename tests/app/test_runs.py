@@ -12,8 +12,8 @@ from PIL import Image
 from sqlalchemy import delete, func, select
 
 from app.cli import cli
-from app.db import db
-from app.models import Card, StageResult
+from core.db import db
+from core.models import Card, StageResult
 
 pytestmark = pytest.mark.both_databases
 
@@ -98,8 +98,8 @@ def test_rerun_skips_finished_cards_and_changed_parameters_rerun(app, runner, ca
     again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"][0]
     assert (first["processed"], again["processed"], again["already_done"]) == (3, 0, 3)
 
-    from app import runs
     from pipeline.filter import FilterParams
+    from runs import driver as runs
 
     original = runs.available_stages
 
@@ -144,7 +144,7 @@ def test_an_inline_run_is_one_worker_with_a_pool_workers_set_up():
 
     code = (
         "import cv2, json, threadpoolctl\n"
-        "from app.runs import make_executor\n"
+        "from runs.driver import make_executor\n"
         "before = cv2.getNumThreads()\n"
         "with make_executor('local', 1, None) as executor:\n"
         "    blas = {i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas'}\n"

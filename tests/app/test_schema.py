@@ -7,7 +7,6 @@ from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
 from sqlalchemy import inspect, text
 
-from app.db import db
 from app.schema import (
     EXPRESSION_INDEXES,
     current_revision,
@@ -17,6 +16,7 @@ from app.schema import (
     target_metadata,
     upgrade,
 )
+from core.db import db
 
 pytestmark = pytest.mark.both_databases
 

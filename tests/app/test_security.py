@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.security import content_security_policy, frameable_by
+from core.security import content_security_policy, frameable_by
 
 
 def assert_security_headers(response, framing: str = "'self'") -> None:  # type: ignore[no-untyped-def]

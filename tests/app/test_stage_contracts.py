@@ -67,7 +67,7 @@ def records(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
 
 def _card(found: dict[str, Any]) -> Any:
-    """A stand-in for app.models.Card as the input builders read it: the latest result per stage."""
+    """A stand-in for core.models.Card as the input builders read it: the latest result per stage."""
     results = {
         stage: SimpleNamespace(
             stage=stage, status=r.status, outcome=r.outcome, metrics=r.metrics, artifacts=r.artifacts, param_hash=r.param_hash
@@ -78,7 +78,7 @@ def _card(found: dict[str, Any]) -> Any:
 
 
 def _runs_input(builder: str, found: dict[str, Any]) -> dict[str, Any]:
-    from app import runs
+    from runs import driver as runs
 
     inputs: dict[str, Any] = getattr(runs, builder)(_card(found), {})
     return inputs

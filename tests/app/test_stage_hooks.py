@@ -5,7 +5,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-from app.stage_hooks import after_write, merged, stage_hooks, stage_params
+from core.hooks import after_write, merged, stage_hooks, stage_params
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -21,7 +21,7 @@ def _imported_packages(path: Path) -> set[str]:
 
 
 def test_the_driver_and_the_registry_import_no_feature_package():
-    for module in ("app/runs.py", "app/stage_hooks.py", "app/claims.py"):
+    for module in ("runs/driver.py", "core/hooks.py", "runs/claims.py"):
         assert not _imported_packages(ROOT / module) & {"annotation", "review", "exports"}, module
 
 

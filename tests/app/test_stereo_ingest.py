@@ -22,8 +22,8 @@ def _sha(path: Path) -> str:
 def _cards(app) -> list:  # type: ignore[no-untyped-def]
     from sqlalchemy import select
 
-    from app.db import db
-    from app.models import Card
+    from core.db import db
+    from core.models import Card
 
     with app.app_context():
         cards = list(db.session.scalars(select(Card).order_by(Card.id)))
@@ -48,7 +48,7 @@ def _save_mpo(path: Path, left: np.ndarray, right: np.ndarray | None) -> Path:
 
 
 def test_pairs_are_matched_by_name_in_every_documented_pattern(tmp_path) -> None:
-    from app.stereo_ingest import StereoOptions, plan_stereo
+    from catalogue.stereo_ingest import StereoOptions, plan_stereo
 
     names = [
         "7995l-image.jpg",

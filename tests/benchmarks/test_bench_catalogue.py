@@ -9,8 +9,8 @@ import pytest
 from sqlalchemy import func, select
 
 from app.cli import cli
-from app.db import db
-from app.models import Card, Collection, Person, StageResult
+from core.db import db
+from core.models import Card, Collection, Person, StageResult
 
 pytestmark = pytest.mark.both_databases
 

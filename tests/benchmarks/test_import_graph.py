@@ -14,7 +14,7 @@ from benchmarks.import_graph import (
 )
 
 # Largest strongly connected component of the product's module graph when this test was written:
-# app.auth and app.security import each other (inside functions). It may only shrink.
+# core.auth and core.security import each other (inside functions). It may only shrink.
 LARGEST_CYCLE_NOW = 2
 
 

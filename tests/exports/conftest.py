@@ -18,7 +18,7 @@ def review_card(app) -> Callable[..., None]:  # type: ignore[no-untyped-def]
     """Set (or change) a card's curator review: decision and final grade."""
     from sqlalchemy import select
 
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     def set_review(card_id: int, grade: str | None, decision: str = "accepted", auto_grade: str | None = None) -> None:

@@ -12,14 +12,14 @@ STEREO_NAMES = ("anaglyph.jpg", "wiggle.gif", "wiggle.webp", "sbs_full.jpg", "sb
 
 
 def test_a_release_with_the_stereo_format_verifies(app, runner, tmp_path, processed_cards, review_card) -> None:
-    from app.db import db
-    from app.models import Card
+    from core.db import db
+    from core.models import Card
     from exports.verify import verify_release
 
     ids = processed_cards(2)
     review_card(ids[0], "few")
     review_card(ids[1], "some")
-    with app.app_context():  # as app.stereo_ingest records an MPO's card
+    with app.app_context():  # as catalogue.stereo_ingest records an MPO's card
         db.session.get(Card, ids[0]).stereo_source = {
             "kind": "mpo",
             "frames": 2,

@@ -24,12 +24,12 @@ def make_views(app, data_dir, add_stage_result):  # type: ignore[no-untyped-def]
     def run(card_id: int, **params: Any) -> dict[str, str]:
         from sqlalchemy import select
 
-        from app.db import db
-        from app.models import Card
-        from app.runs import card_work_dir
+        from core.db import db
+        from core.models import Card
         from pipeline.records import CardTask, param_hash
         from pipeline.stages.views import views_task
         from pipeline.view_synthesis import ViewsStageParams
+        from runs.driver import card_work_dir
 
         settings = ViewsStageParams(**{**VIEWS_PARAMS, **params})
         with app.app_context():

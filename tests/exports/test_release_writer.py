@@ -58,8 +58,8 @@ def test_release_layouts_hold_the_pipeline_outputs(app, tmp_path, processed_card
     with app.app_context():
         from sqlalchemy import select
 
-        from app.db import db
-        from app.models import StageResult
+        from core.db import db
+        from core.models import StageResult
 
         row = db.session.scalar(select(StageResult).where(StageResult.card_id == ids[0], StageResult.stage == "disparity"))
         expected = np.load(data_dir / row.artifacts["disparity_left"])
@@ -102,7 +102,7 @@ def test_release_layouts_hold_the_pipeline_outputs(app, tmp_path, processed_card
     with app.app_context():
         from sqlalchemy import select
 
-        from app.db import db
+        from core.db import db
         from exports.models import Release
         from review.models import AuditEvent
 
@@ -155,7 +155,7 @@ def test_versions_follow_the_changes_and_data_files_stay_byte_identical(app, tmp
 
 
 def test_same_inputs_give_byte_identical_releases(app, tmp_path, processed_cards, review_card) -> None:
-    from app.db import db
+    from core.db import db
     from exports.models import Release
 
     ids = processed_cards(2)
@@ -171,7 +171,7 @@ def test_same_inputs_give_byte_identical_releases(app, tmp_path, processed_cards
 
 
 def test_a_crash_mid_release_leaves_no_release_and_no_row(app, tmp_path, processed_cards, review_card, monkeypatch) -> None:
-    from app.db import db
+    from core.db import db
     from exports import writers
     from exports.models import Release
 
@@ -214,8 +214,8 @@ def test_a_card_with_a_missing_artifact_is_left_out_with_the_reason(
 ) -> None:
     from sqlalchemy import select
 
-    from app.db import db
-    from app.models import StageResult
+    from core.db import db
+    from core.models import StageResult
 
     ids = processed_cards(2)
     for card_id in ids:

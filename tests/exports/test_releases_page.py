@@ -72,7 +72,7 @@ def test_preview_then_publish_from_the_page(app, client, login, csrf_token, proc
     with app.app_context():
         from sqlalchemy import select
 
-        from app.db import db
+        from core.db import db
         from exports.models import Release
         from review.models import AuditEvent
 

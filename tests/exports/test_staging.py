@@ -153,13 +153,13 @@ def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, dat
     """A writer killed inside atomic_write leaves its .tmp: the next ``keystone run`` removes it
     from the card's work folder before the card runs again (and a killed ingest's from the store)
     once older than ten minutes, and leaves a fresh one (a concurrent writer's) alone."""
-    from app.runs import available_stages, card_work_dir
     from pipeline.records import param_hash
+    from runs.driver import available_stages, card_work_dir
 
     card_id = make_card()
     with app.app_context():
-        from app.db import db
-        from app.models import Card
+        from core.db import db
+        from core.models import Card
 
         card = db.session.get(Card, card_id)
         work = card_work_dir(data_dir, card.content_hash, "filter", param_hash(available_stages()["filter"].params))

@@ -43,7 +43,7 @@ def graded_cards(app, make_card, add_stage_result, card_image, decide_orientatio
 
 
 def decision_of(app, card_id: int) -> str:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     with app.app_context():
@@ -93,7 +93,7 @@ def crop_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped-
     from annotation.batches import create_batch
     from annotation.models import Aggregate, Answer, BatchItem
     from annotation.workers import get_or_create_worker
-    from app.db import db
+    from core.db import db
 
     card_id = make_card(card_image(), state="review")  # 604 x 200 px
     with app.app_context():
@@ -125,7 +125,7 @@ def crop_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped-
 
 def test_a_curator_draws_crop_boxes_on_a_phone(app, server, screen_page, make_person, crop_dispute, look) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Aggregate
-    from app.db import db
+    from core.db import db
 
     page = screen_page("phone", make_person("curator"))
     page.goto(f"{server}/review/disputes/{crop_dispute}")

@@ -33,7 +33,7 @@ def two_graded(app, make_card, add_stage_result, card_image, decide_orientation)
 
 
 def _review(app, card_id: int) -> tuple[str, str | None, int]:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     with app.app_context():
@@ -76,7 +76,7 @@ def test_each_decision_is_confirmed_and_undone(app, client, login, csrf_token, t
 
 def test_a_send_back_names_its_batch_and_undo_removes_it(app, client, login, csrf_token, two_graded) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Batch
-    from app.db import db
+    from core.db import db
 
     card = two_graded[0]
     login("curator")
@@ -99,7 +99,7 @@ def test_a_send_back_names_its_batch_and_undo_removes_it(app, client, login, csr
 def test_undo_refuses_once_the_crowd_answered(app, client, login, csrf_token, two_graded) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Answer, BatchItem
     from annotation.workers import get_or_create_worker
-    from app.db import db
+    from core.db import db
 
     card = two_graded[0]
     login("curator")
@@ -186,8 +186,8 @@ def judge_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped
     from annotation.batches import create_batch
     from annotation.models import Aggregate, Answer, BatchItem
     from annotation.workers import get_or_create_worker
-    from app.db import db
-    from app.models import Person
+    from core.db import db
+    from core.models import Person
 
     card_id = make_card(card_image(), state="review")
     with app.app_context():

@@ -14,8 +14,8 @@ def test_reaggregating_keeps_the_curators_label(app, make_card, make_person, car
     from annotation.reservations import next_tasks
     from annotation.results import aggregate_batch
     from annotation.workers import get_or_create_worker
-    from app.db import db
-    from app.models import Person
+    from core.db import db
+    from core.models import Person
     from review.tasks import resolve_aggregate
 
     card_id = make_card(card_image(), state="review")

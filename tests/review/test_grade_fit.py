@@ -36,7 +36,7 @@ def _measurements(rng: np.random.Generator) -> dict:
 @pytest.fixture
 def labelled(app, make_card, add_stage_result, card_image):  # type: ignore[no-untyped-def]
     """60 graded cards whose curators judged by row misalignment alone: < 1 px few, < 2.5 px some."""
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     rng = np.random.default_rng(7)
@@ -54,10 +54,10 @@ def labelled(app, make_card, add_stage_result, card_image):  # type: ignore[no-u
 
 
 def test_fit_stores_a_model_with_held_out_agreement_and_the_stage_uses_it(app, runner, labelled) -> None:  # type: ignore[no-untyped-def]
-    from app.db import db
-    from app.runs import available_stages
+    from core.db import db
     from pipeline.records import param_hash
     from review.models import AuditEvent, GradeModel
+    from runs.driver import available_stages
 
     with app.app_context():
         default_hash = param_hash(available_stages()["grade"].params)
@@ -91,7 +91,7 @@ def test_fit_stores_a_model_with_held_out_agreement_and_the_stage_uses_it(app, r
 
 
 def test_dry_run_saves_nothing(app, runner, labelled) -> None:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import GradeModel
 
     result = runner.invoke(args=["grade", "fit", "--dry-run", "--json"])
@@ -133,7 +133,7 @@ def _bench_document(n: int = 60) -> dict:
 
 
 def test_fit_from_bench_learns_the_true_error_and_the_stage_uses_it(app, runner, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.grading import active_grade_params
     from review.models import AuditEvent, GradeModel
 

@@ -22,7 +22,7 @@ CARDS = [
 
 @pytest.fixture
 def graded(app, make_card, add_stage_result, card_image):  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     ids = []

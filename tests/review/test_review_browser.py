@@ -36,7 +36,7 @@ def queue_cards(app, make_card, add_stage_result, card_image, decide_orientation
 
 
 def decision_of(app, card_id: int) -> tuple[str, str | None]:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     with app.app_context():

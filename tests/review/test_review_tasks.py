@@ -47,8 +47,8 @@ def synced(app, graded) -> list[int]:  # type: ignore[no-untyped-def]
 @pytest.fixture
 def person(app, make_person) -> Callable[..., Any]:  # type: ignore[no-untyped-def]
     """A curator as a detached Person row, as views pass ``current_user``."""
-    from app.db import db
-    from app.models import Person
+    from core.db import db
+    from core.models import Person
 
     def make(name: str) -> Any:
         info = make_person("curator", username=name)
@@ -61,7 +61,7 @@ def person(app, make_person) -> Callable[..., Any]:  # type: ignore[no-untyped-d
 
 
 def review_of(card_id: int) -> Any:
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     db.session.expire_all()
@@ -69,7 +69,7 @@ def review_of(card_id: int) -> Any:
 
 
 def events(card_id: int | None = None, entity: str | None = None) -> list[Any]:
-    from app.db import db
+    from core.db import db
     from review.models import AuditEvent
 
     query = select(AuditEvent).order_by(AuditEvent.id)
@@ -158,8 +158,8 @@ def test_a_new_automatic_grade_updates_pending_cards_but_never_a_decided_grade(a
 
 
 def test_queue_sorts_by_uncertainty_then_card_and_filters(app, synced, person) -> None:  # type: ignore[no-untyped-def]
-    from app.db import db
-    from app.models import Collection
+    from core.db import db
+    from core.models import Collection
     from review.tasks import (
         QueueFilters,
         ReviewError,
@@ -289,7 +289,7 @@ def test_bad_input_is_refused_and_changes_nothing(app, synced, person) -> None: 
 
 def test_send_back_puts_the_card_in_a_crowd_batch_with_curator_gold(app, synced, person) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Batch, BatchItem, GoldAnswer
-    from app.db import db
+    from core.db import db
     from review.tasks import decide
 
     curator = person("carol")
@@ -338,8 +338,8 @@ def test_send_back_puts_the_card_in_a_crowd_batch_with_curator_gold(app, synced,
 def test_a_sent_back_card_graded_again_returns_to_the_queue(app, synced, add_stage_result, person) -> None:  # type: ignore[no-untyped-def]
     from datetime import timedelta
 
-    from app.db import db, utcnow
-    from app.models import StageResult
+    from core.db import db, utcnow
+    from core.models import StageResult
     from review.tasks import decide, review_queue, sync_reviews
 
     curator = person("carol")
@@ -386,7 +386,7 @@ def test_bulk_decisions_go_on_past_a_conflict(app, synced, person) -> None:  # t
 
 @pytest.mark.both_databases
 def test_audit_events_cannot_be_changed_or_deleted(app, synced) -> None:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import AuditEvent, AuditTamperError
 
     with app.app_context():
@@ -429,7 +429,7 @@ def disputed(app, make_card, card_image, decide_orientation) -> dict[str, int]: 
     """Two aggregates waiting for a curator: a judge one and a crop one."""
     from annotation.batches import create_batch
     from annotation.models import Aggregate
-    from app.db import db
+    from core.db import db
 
     cards = [make_card(card_image()[:, 20 + i :], state="review") for i in range(2)]
     decide_orientation(cards)
@@ -464,7 +464,7 @@ def disputed(app, make_card, card_image, decide_orientation) -> dict[str, int]: 
 @pytest.mark.both_databases
 def test_resolving_a_disputed_judgement_makes_it_truth_and_gold(app, disputed, person) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Aggregate, GoldAnswer
-    from app.db import db
+    from core.db import db
     from review.tasks import ReviewConflict, disputed_aggregates, resolve_aggregate
 
     carol, dave = person("carol"), person("dave")
@@ -494,7 +494,7 @@ def test_resolving_a_disputed_judgement_makes_it_truth_and_gold(app, disputed, p
 
 def test_resolving_a_crop_checks_the_boxes_and_can_skip_gold(app, disputed, person) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Aggregate, GoldAnswer
-    from app.db import db
+    from core.db import db
     from review.tasks import ReviewError, resolve_aggregate
 
     carol = person("carol")

@@ -35,7 +35,7 @@ def graded(app, make_card, add_stage_result, card_image, decide_orientation) -> 
 
 
 def review_of(app, card_id: int) -> Any:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     with app.app_context():
@@ -144,8 +144,8 @@ def test_a_json_decision_answers_with_the_next_card(app, client, login, csrf_tok
 
 
 def test_a_stale_version_gets_409_naming_who_changed_the_card(app, client, login, csrf_token, make_person, graded) -> None:  # type: ignore[no-untyped-def]
-    from app.db import db
-    from app.models import Person
+    from core.db import db
+    from core.models import Person
     from review.tasks import decide
 
     alice = make_person("curator", username="alice")
@@ -257,7 +257,7 @@ def crop_dispute(app, make_card, card_image) -> tuple[int, int]:  # type: ignore
     from annotation.batches import create_batch
     from annotation.models import Aggregate, Answer, BatchItem
     from annotation.workers import get_or_create_worker
-    from app.db import db
+    from core.db import db
 
     card_id = make_card(card_image()[:, 30:], state="review")  # 574 x 200 px
     with app.app_context():
@@ -289,7 +289,7 @@ def crop_dispute(app, make_card, card_image) -> tuple[int, int]:  # type: ignore
 
 def test_disputes_are_listed_shown_with_boxes_and_resolved_as_gold(app, client, login, csrf_token, crop_dispute) -> None:  # type: ignore[no-untyped-def]
     from annotation.models import Aggregate, GoldAnswer
-    from app.db import db
+    from core.db import db
 
     card_id, aggregate_id = crop_dispute
     login("curator")
@@ -330,7 +330,7 @@ def test_disputes_are_listed_shown_with_boxes_and_resolved_as_gold(app, client, 
 def test_card_page_shows_the_parallax_preview_when_views_exist(
     app, client, login, make_card, add_stage_result, card_image
 ) -> None:  # type: ignore[no-untyped-def]
-    from app.db import db
+    from core.db import db
     from review.models import CardReview
 
     login("curator")

@@ -26,8 +26,8 @@ def _readings(rng: np.random.Generator, direction: np.ndarray, upside_down: bool
 def decided_collection(app, data_dir, make_card, add_stage_result, card_image, make_person):  # type: ignore[no-untyped-def]
     """14 cards of collection "prints": 10 decided automatically with P 0.995, 2 turned ones a
     curator decided, 2 the step was unsure of (not labels)."""
-    from app.db import db
-    from app.models import Person
+    from core.db import db
+    from core.models import Person
     from review.orientation import override_orientation
 
     rng = np.random.default_rng(3)
@@ -79,7 +79,7 @@ def test_fit_reports_held_out_accuracy_saves_a_version_and_feeds_the_next_run(ap
     assert turn["after"]["accuracy"] >= 0.9 > turn["before"]["accuracy"]
     assert document["saved"] is True and document["head_after"].startswith("prints-")
 
-    from app.db import db
+    from core.db import db
     from review.models import AuditEvent, UprightHeadFit
     from review.upright_fit import upright_head_inputs
 
@@ -96,8 +96,8 @@ def test_fit_reports_held_out_accuracy_saves_a_version_and_feeds_the_next_run(ap
 
         # the orientation step's inputs now carry the head, so its inputs digest changes and
         # the next run recomputes it
-        from app.models import Card
-        from app.runs import approved_annotations, orientation_inputs
+        from core.models import Card
+        from runs.driver import approved_annotations, orientation_inputs
 
         card = db.session.get(Card, ids[0])
         step_inputs = orientation_inputs(card, approved_annotations([ids[0]])[ids[0]])
@@ -127,8 +127,8 @@ def test_fit_refuses_unknown_collections_and_too_few_cards(app, runner, make_car
 def test_a_changed_decision_is_listed_when_written(app, make_card, add_stage_result):  # type: ignore[no-untyped-def]
     """The run's report lists the cards whose orientation decision a rerun changed (a refitted
     head reaches the step through its inputs, so only the next run changes decisions)."""
-    from app.runs import write_records
     from pipeline.records import StageRecord
+    from runs.driver import write_records
 
     card_id = make_card(state="pass")
     add_stage_result(card_id, "orientation", outcome="confirm", metrics={"proposed": {"upside_down": False}})

@@ -281,7 +281,7 @@ def test_write_demo_cards_writes_jpegs_and_a_metadata_csv_that_round_trips(cards
 
 
 def test_metadata_csv_is_read_by_the_ingest_reader(cards, tmp_path):
-    from app.metadata import read_metadata
+    from catalogue.metadata import read_metadata
 
     write_demo_cards(cards[:3], tmp_path)
     parsed = read_metadata(tmp_path / "metadata.csv")

@@ -1,7 +1,7 @@
 """stage claims: one driver per card-stage, with a heartbeat and an expiry
 
 Two ``keystone run`` at once computed every card twice; a claim row per (card, stage) now
-says which run computes it (see app.claims).
+says which run computes it (see runs.claims).
 
 Revision ID: 0007
 Revises: 0006

@@ -2,7 +2,7 @@
 
 A card made from an MPO or a left/right pair, or a side-by-side file with a declared eye order,
 records its originals (names, hashes, stored paths), the eye order and the automatic check of
-it (see app.stereo_ingest). NULL for an ordinary scan.
+it (see catalogue.stereo_ingest). NULL for an ordinary scan.
 
 Revision ID: 0008
 Revises: 0007

@@ -25,15 +25,14 @@ from flask.cli import with_appcontext
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
+from catalogue.metadata import MetadataFormatError, MetadataRow, card_keys, read_metadata, row_keys
+from core.db import db
+from core.models import Card, Collection, MetadataRecord
 from pipeline.errors import ImageReadError
 from pipeline.io import IMAGE_SUFFIXES, probe_image
 
-from .db import db
-from .metadata import MetadataFormatError, MetadataRow, card_keys, read_metadata, row_keys
-from .models import Card, Collection, MetadataRecord
-
 if TYPE_CHECKING:
-    from .stereo_ingest import StereoOptions
+    from catalogue.stereo_ingest import StereoOptions
 
 DEFAULT_COLLECTION = "default"
 HASH_CHUNK = 1 << 20
@@ -307,9 +306,9 @@ def ingest(
         metadata_ids = _ingest_metadata(collection_id, metadata_csv, report)
 
     files = list(discover_files(paths, report))
-    # ---- stereo hook: MPOs, left/right pairs and JPS / side-by-side eye order (app.stereo_ingest)
+    # ---- stereo hook: MPOs, left/right pairs and JPS / side-by-side eye order (catalogue.stereo_ingest)
     # become cards there; the other files go on to the one-file-per-card ingest below.
-    from .stereo_ingest import StereoOptions as _StereoOptions, ingest_stereo_inputs
+    from catalogue.stereo_ingest import StereoOptions as _StereoOptions, ingest_stereo_inputs
 
     files = ingest_stereo_inputs(files, stereo or _StereoOptions(), collection_id, data_dir, max_pixels, report)
     # ---- end of the stereo hook
@@ -536,8 +535,8 @@ def ingest_command(
     Duplicates by content are a no-op; rerunning an interrupted ingest carries on where it
     stopped. Exits 1 when any file or metadata row was rejected (each is listed with a reason).
     """
-    from .console import data_dir, emit_json, ensure_database, progress_bar, say
-    from .stereo_ingest import StereoOptions as _StereoOptions
+    from catalogue.stereo_ingest import StereoOptions as _StereoOptions
+    from core.console import data_dir, emit_json, ensure_database, progress_bar, say
 
     if not paths and metadata_csv is None and pairs_csv is None:
         raise click.UsageError("give at least one PATH, --pairs CSV or --metadata CSV")

@@ -100,7 +100,7 @@ def refuse_nul_characters() -> None:
 
     No field of this app may hold one, and PostgreSQL refuses any text containing one with a
     DataError, so a single ``%00`` in a login name or a filter would otherwise be a 500 there.
-    (JSON bodies are checked by :func:`app.json_body.load_json_body`.)
+    (JSON bodies are checked by :func:`core.json_body.load_json_body`.)
     """
     fields = request.args.items(multi=True)
     if request.mimetype in ("application/x-www-form-urlencoded", "multipart/form-data"):

@@ -1,6 +1,6 @@
 """Stereo inputs at ingest: MPO files, left/right file pairs, JPS and side-by-side eye order.
 
-Called from :func:`app.ingest.ingest` (one hook) with the files found there; it turns the stereo
+Called from :func:`catalogue.ingest.ingest` (one hook) with the files found there; it turns the stereo
 ones into cards and hands back the rest:
 
 * an **MPO** with two frames (or more: the first two are the stereo pair, as 3D cameras write
@@ -38,10 +38,9 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
+from core.db import db
+from core.models import Card
 from pipeline.errors import ImageReadError
-
-from .db import db
-from .models import Card
 
 EYE_ORDERS = ("cross", "parallel")
 JPS_DEFAULT_ORDER = "cross"  # the JPS convention: right view on the left half, for cross-eyed viewing
@@ -272,7 +271,7 @@ def _store_derived(payload: bytes, content_hash: str, data_dir: Path) -> Path:
 
 
 def _original_entry(role: str, path: Path, data_dir: Path) -> dict[str, Any]:
-    from .ingest import sha256_file, store_original
+    from catalogue.ingest import sha256_file, store_original
 
     content_hash = sha256_file(path)
     relative = store_original(path, content_hash, data_dir)
@@ -314,7 +313,7 @@ def _add_card(
 ) -> None:
     """Store the card image (derived PNG from ``image``, or an original ``stored`` as it is) and
     add the card; a duplicate by content is reported as one, like any ingest."""
-    from .ingest import _card_with_hash, _discard_original, _duplicate_entry, database_reason
+    from catalogue.ingest import _card_with_hash, _discard_original, _duplicate_entry, database_reason
 
     if image is not None:
         payload = _encode_png(image)
@@ -350,7 +349,7 @@ def _add_card(
     try:
         db.session.commit()
     except SQLAlchemyError as exc:
-        # As app.ingest: a race on the same bytes (IntegrityError) makes this a duplicate; a
+        # As catalogue.ingest: a race on the same bytes (IntegrityError) makes this a duplicate; a
         # database that refuses the write (a full disk) rejects the card and its stored image goes.
         db.session.rollback()
         existing = _card_with_hash(content_hash)

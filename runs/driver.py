@@ -26,6 +26,9 @@ from sqlalchemy import exists, func, select
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import selectinload
 
+from core.db import db, one_writer, utcnow
+from core.hooks import after_write, approved_decisions, people_work, stage_params
+from core.models import CARD_STATES, Card, StageResult
 from pipeline.contracts import DisparityInputs, GradeInputs, RectifyInputs, ViewsInputs
 from pipeline.filter import FilterParams
 from pipeline.records import STAGES, CardTask, StageRecord, param_hash
@@ -35,13 +38,9 @@ from pipeline.stages.disparity import DisparityStageParams, disparity_task
 from pipeline.stages.filter import filter_task
 from pipeline.stages.orientation import OrientationStageParams, orientation_task
 from pipeline.stages.rectify import rectify_task
-
-from .chains import ChainOutcome, ChainTask, ResultView, run_chain
-from .claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
-from .db import db, one_writer, utcnow
-from .models import CARD_STATES, Card, StageResult
-from .orientation import is_decided, public_orientation, resolve_orientation, said_flags
-from .stage_hooks import after_write, approved_decisions, people_work, stage_params
+from runs.chains import ChainOutcome, ChainTask, ResultView, run_chain
+from runs.claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver, result_fingerprint
+from runs.orientation import is_decided, public_orientation, resolve_orientation, said_flags
 
 WRITE_BATCH = 50
 WRITE_INTERVAL_S = 2.0
@@ -68,7 +67,7 @@ class StageSpec:
     # review waits until the crowd has judged it a stereo pair).
     ready: Callable[[Card, dict[str, Any]], bool] | None = None
     # Its inputs come from the card's own stage results alone (no people's decisions), so a
-    # worker may run it on a card right after the stage before it in the run (app.chains).
+    # worker may run it on a card right after the stage before it in the run (runs.chains).
     chains: bool = False
 
 
@@ -89,14 +88,14 @@ def filter_boxes(card: Card) -> dict[str, Any]:
 
 def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     """People's approved decisions per card (the features register them, see
-    :mod:`app.stage_hooks`): the crowd's approved judge, confirm and crop aggregates, a
+    :mod:`core.hooks`): the crowd's approved judge, confirm and crop aggregates, a
     curator's orientation override and the operator's word for the card's collection,
     ``{card: {"judge": .., "crop": .., "confirm": .., "orientation_override": .., "operator_orientation": ..}}``."""
     return approved_decisions(card_ids)
 
 
 def card_orientation(card: Card, approved: dict[str, Any]) -> dict[str, Any]:
-    """The orientation the pipeline uses for ``card`` (:func:`app.orientation.resolve_orientation`)
+    """The orientation the pipeline uses for ``card`` (:func:`runs.orientation.resolve_orientation`)
     from its latest orientation result, approved judgement, curator override and the operator's
     word for its collection."""
     return resolve_orientation(
@@ -112,7 +111,7 @@ def collection_decisions(approved: Mapping[str, Any]) -> dict[str, Any]:
     """The plain-JSON decisions about a card's whole collection that the orientation step reads:
     ``known_flags`` from an operator's word (``approved["operator_orientation"]``, a row) and
     ``upright_head`` (the refit in force, :mod:`review.upright_fit`). A chained worker has no
-    database, so the driver sends it this with the card (:class:`app.chains.ChainTask`); the
+    database, so the driver sends it this with the card (:class:`runs.chains.ChainTask`); the
     function reads its own output back unchanged."""
     found: dict[str, Any] = {}
     known = said_flags(approved.get("operator_orientation")) or dict(approved.get("known_flags") or {})
@@ -272,7 +271,7 @@ def available_stages() -> dict[str, StageSpec]:
             eligible_states=("ingested", "pass", "review", "culled", "failed"),
         ),
         # Every card the filter passed or sent to review: which way up, positive or negative,
-        # which eye, and the photo area. A doubtful card waits for people (app.orientation).
+        # which eye, and the photo area. A doubtful card waits for people (runs.orientation).
         "orientation": StageSpec(
             name="orientation",
             params=orientation_params,
@@ -339,7 +338,7 @@ class StageReport:
     outcomes: dict[str, int] = field(default_factory=dict)
     failures: list[dict[str, Any]] = field(default_factory=list)
     seconds: float = 0.0
-    # Concurrent runs (see app.claims): cards another live run held when this one reached them,
+    # Concurrent runs (see runs.claims): cards another live run held when this one reached them,
     # of those (or any) the ones another run finished meanwhile, the ones still held when this
     # run gave up on them (--no-wait), and lapsed claims of a dead run this one took over.
     held_by_other_run: int = 0
@@ -348,7 +347,7 @@ class StageReport:
     taken_over: int = 0
     held_by: set[str] = field(default_factory=set)
     # Of ``processed``, the cards a worker ran through this stage straight after the stage
-    # before it (app.chains); and the reports of the stages chained after this one.
+    # before it (runs.chains); and the reports of the stages chained after this one.
     chained: int = 0
     chained_cards: list[int] = field(default_factory=list)
     followers: dict[str, StageReport] = field(default_factory=dict)
@@ -556,7 +555,7 @@ def run_stage(
     without one the stage runs under a fresh one of its own.
 
     ``followers``: stages (each with ``chains``) that a worker runs on each card straight after
-    this one where the card qualifies (:mod:`app.chains`); their records are written here and
+    this one where the card qualifies (:mod:`runs.chains`); their records are written here and
     counted in ``report.followers``. Run each follower afterwards as usual, with
     ``leave_out={stage: cards this run computed for it}``: it picks up what the chains did not
     reach, and a card a chain failed is not retried in the same run.
@@ -668,7 +667,7 @@ def run_stage(
 
 
 class _Chain:
-    """The driver's side of chained stages (:mod:`app.chains`) for one lead stage: claims the
+    """The driver's side of chained stages (:mod:`runs.chains`) for one lead stage: claims the
     followers with the lead, sends each card's snapshot along, writes what the chains made
     after the lead's records of the same batch, and frees the claims a chain did not use."""
 
@@ -783,7 +782,7 @@ def run_stages(
     :func:`run_stage` with those two), and yield each stage's report as it finishes.
 
     With ``chain``, a stage with ``chains`` runs as a follower of the stage before it in the run
-    (:mod:`app.chains`), then on its own turn over what the chains did not reach; its report
+    (:mod:`runs.chains`), then on its own turn over what the chains did not reach; its report
     counts both."""
     followers_of: dict[str, list[StageSpec]] = {}
     lead: StageSpec | None = None
@@ -942,7 +941,7 @@ DOWNSTREAM_OF_RECTIFY = ("disparity", "grade", "views")
 
 
 def people_and_decisions(card_ids: list[int]) -> dict[int, dict[str, Any]]:
-    """:func:`app.stage_hooks.people_work` per card (the crowd's latest aggregates, the curator
+    """:func:`core.hooks.people_work` per card (the crowd's latest aggregates, the curator
     review), plus ``"approved"``: the approved decisions the orientation is resolved from
     (:func:`approved_annotations`)."""
     work = people_work(card_ids)
@@ -1152,8 +1151,8 @@ def run_command(
     Exit status: 0 done; 1 if any card failed; 3 if --no-wait left cards another run holds
     (and none failed).
     """
-    from .console import data_dir, emit_json, ensure_database, progress_bar, say
-    from .leftovers import clear_leftovers
+    from core.console import data_dir, emit_json, ensure_database, progress_bar, say
+    from runs.leftovers import clear_leftovers
 
     names = [name.strip() for name in stages.split(",") if name.strip()]
     unknown = [name for name in names if name not in RUNNABLE_STAGES]
@@ -1263,8 +1262,8 @@ def card_rows(
 ) -> Iterator[dict[str, Any]]:
     """The rows of ``keystone cards``, in id order, read a chunk at a time (keyset paging on the
     id, each chunk's results and people's work loaded together), so memory does not grow with
-    the catalogue. Call inside :func:`app.db.read_only`."""
-    from .models import Collection
+    the catalogue. Call inside :func:`core.db.read_only`."""
+    from core.models import Collection
 
     after = 0
     while True:
@@ -1300,8 +1299,8 @@ def cards_command(stage: str | None, state: str | None, collection_name: str | N
     """List cards with their stage statuses (streamed: any catalogue size in constant memory)."""
     import sys
 
-    from .console import ensure_database
-    from .db import read_only
+    from core.console import ensure_database
+    from core.db import read_only
 
     ensure_database()
     count = 0

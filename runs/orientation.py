@@ -3,7 +3,7 @@
 Four sources, each flag taken from the strongest that speaks to it:
 
 1. a curator's override (``review.models.OrientationOverride``), flag by flag;
-2. an operator's word for the card's whole collection (``app.models.CollectionOrientation``):
+2. an operator's word for the card's whole collection (``core.models.CollectionOrientation``):
    known prints, known to be scanned in eye order, flag by flag;
 3. the crowd's approved confirm aggregate (a grid: the flags the card was shown with, each
    flag the crowd's vote says was tapped flipped; ``annotation.confirm``), all three flags;

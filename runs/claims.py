@@ -11,7 +11,7 @@ the cards of a stage in small batches before it computes them: a ``stage_claims`
   stays claimed; a killed driver stops renewing and its claims lapse after at most ``ttl_s``,
   when the next driver takes them over.
 - Taking claims is one short write transaction per batch. On SQLite it begins IMMEDIATE behind
-  :func:`app.db.one_writer`, so claimers queue. On PostgreSQL it is ``INSERT ... ON CONFLICT
+  :func:`core.db.one_writer`, so claimers queue. On PostgreSQL it is ``INSERT ... ON CONFLICT
   DO NOTHING`` for new claims, and lapsed claims are taken over, renewed and released through
   ``SELECT ... FOR UPDATE SKIP LOCKED``, so no claim statement waits on a row another
   transaction holds, except the insert waiting for a concurrent insert or release of the same
@@ -56,7 +56,7 @@ from sqlalchemy.engine import Connection, Engine
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Mapped, mapped_column
 
-from .db import db, one_writer, utcnow
+from core.db import db, one_writer, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -262,7 +262,7 @@ class Driver:
     def _finished_since(
         connection: Connection, stage: str, param_hash: str, card_ids: list[int], seen: dict[int, ResultFingerprint]
     ) -> set[int]:
-        from .models import StageResult
+        from core.models import StageResult
 
         if not card_ids:
             return set()

@@ -24,8 +24,8 @@ def data_dir() -> Path:
 
 def ensure_database() -> bool:
     """Make the data dir and bring the schema to head; True when migrations ran."""
-    from .db import db
-    from .schema import ensure_schema
+    from app.schema import ensure_schema
+    from core.db import db
 
     data_dir().mkdir(parents=True, exist_ok=True)
     return ensure_schema(db.engine)

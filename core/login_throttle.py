@@ -32,8 +32,8 @@ from sqlalchemy import delete, select, tuple_
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
-from .db import db, utcnow
-from .models import THROTTLE_SCOPES, LoginThrottle
+from core.db import db, utcnow
+from core.models import THROTTLE_SCOPES, LoginThrottle
 
 # Addresses are kept to this length (IPv6 with a zone is the longest plausible form).
 ADDRESS_LENGTH = 64
@@ -117,7 +117,7 @@ def normalise_address(address: str | None) -> str:
 
 def client_address() -> str:
     """This request's client, as throttled. Behind proxies, ``KEYSTONE_TRUSTED_PROXIES`` makes
-    ``remote_addr`` the client's (app.security applies Werkzeug's ProxyFix)."""
+    ``remote_addr`` the client's (core.security applies Werkzeug's ProxyFix)."""
     return normalise_address(request.remote_addr)
 
 
@@ -151,7 +151,7 @@ def reserve_attempt(
 ) -> Lockout | None:
     """Count one attempt against the account's and the address's budgets, or say which is spent.
 
-    Runs in the caller's write transaction (begin it with :func:`app.db.one_writer`, commit it
+    Runs in the caller's write transaction (begin it with :func:`core.db.one_writer`, commit it
     after). When a budget is spent nothing is counted and the longer lockout is returned.
     """
     session = session or db.session()

@@ -2,7 +2,7 @@
 
 ``current_user`` is loaded in a short read-only transaction and detached from the session,
 so loading it never takes SQLite's write lock and never leaves a transaction open that a
-view's own :func:`app.db.read_only` block would collide with. Its columns and roles are
+view's own :func:`core.db.read_only` block would collide with. Its columns and roles are
 loaded; to reference the person in a row you write, use ``current_user.id``.
 
 Sessions end on the server, not only in the browser. A login stores the person's
@@ -10,7 +10,7 @@ Sessions end on the server, not only in the browser. A login stores the person's
 whose version is older than the person's (logging out, a new password and deactivation raise
 it) or that is older than ``PERMANENT_SESSION_LIFETIME`` (``KEYSTONE_SESSION_HOURS``), so a
 copied cookie stops working at logout. Wrong passwords are throttled per account and per
-client address (:mod:`app.login_throttle`); every login, failure, lockout, logout and refused
+client address (:mod:`core.login_throttle`); every login, failure, lockout, logout and refused
 session is written to the append-only ``auth_events`` trail.
 """
 
@@ -52,9 +52,9 @@ from wtforms import (
 from wtforms.validators import DataRequired, Length, Regexp
 from wtforms.widgets import CheckboxInput, ListWidget
 
-from .db import db, one_writer, read_only
-from .extensions import login_manager
-from .login_throttle import (
+from core.db import db, one_writer, read_only
+from core.extensions import login_manager
+from core.login_throttle import (
     Lockout,
     ThrottlePolicy,
     client_address,
@@ -62,8 +62,8 @@ from .login_throttle import (
     give_back_attempt,
     reserve_attempt,
 )
-from .models import ROLES, AuthEvent, Person
-from .people import (
+from core.models import ROLES, AuthEvent, Person
+from core.people import (
     PeopleError,
     create_person,
     person_history,
@@ -71,7 +71,7 @@ from .people import (
     set_active,
     set_roles,
 )
-from .security import prefers_json
+from core.security import prefers_json
 
 bp = Blueprint("auth", __name__, url_prefix="/auth")
 

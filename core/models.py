@@ -26,7 +26,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import Mapped, Session, mapped_column, relationship
 from werkzeug.security import check_password_hash, generate_password_hash
 
-from .db import JSONType, db, utcnow
+from core.db import JSONType, db, utcnow
 
 ROLES: tuple[str, ...] = ("annotator", "curator", "exporter", "admin")
 STAGE_STATUSES: tuple[str, ...] = ("done", "skipped", "failed")
@@ -57,7 +57,7 @@ class CollectionOrientation(db.Model):
     collection known to be prints (``inverted`` false), or known to be scanned in eye order
     (``swapped`` false). Null: not said; the step, the crowd and curators decide that flag card
     by card. One row per collection, replaced by the next word and removed when every flag is
-    cleared; a curator's override on one card wins over it (see :mod:`app.orientation`). Every
+    cleared; a curator's override on one card wins over it (see :mod:`runs.orientation`). Every
     change is also an audit event (entity ``orientation``, no card)."""
 
     __tablename__ = "collection_orientations"
@@ -102,7 +102,7 @@ class Card(db.Model):
     source_metadata: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)
     # Set when the card image was made from stereo inputs (an MPO, a left/right pair) or is a
     # side-by-side file with a declared eye order: its originals, hashes, eye order and the check
-    # of that order (app.stereo_ingest). NULL for an ordinary scan.
+    # of that order (catalogue.stereo_ingest). NULL for an ordinary scan.
     stereo_source: Mapped[dict[str, Any] | None] = mapped_column(JSONType, nullable=True)
     state: Mapped[str] = mapped_column(String(20), default="ingested", index=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)

@@ -22,19 +22,18 @@ from sqlalchemy import ColumnElement, and_, false, func, not_, or_, select
 from sqlalchemy.orm import selectinload
 from werkzeug.wrappers import Response
 
+from core.auth import add_nav_link, role_required
+from core.db import db, read_only
+from core.http_images import not_modified, send_image, url_version
+from core.limits import parse_positive_int
+from core.models import CARD_STATES, Card, Collection, MetadataRecord, StageResult
 from pipeline.errors import ImageReadError
 from pipeline.io import atomic_write, encode_jpeg, read_image
-
-from .auth import add_nav_link, role_required
-from .db import db, read_only
-from .http_images import not_modified, send_image, url_version
-from .limits import parse_positive_int
-from .models import CARD_STATES, Card, Collection, MetadataRecord, StageResult
 
 # Stages whose status is a stage result the catalogue can filter on in SQL.
 FILTERABLE_STAGES: tuple[str, ...] = ("filter", "rectify", "disparity", "grade", "views")
 
-bp = Blueprint("catalog", __name__)
+bp = Blueprint("catalog", __name__, template_folder="templates")
 
 STAFF_ROLES = ("curator", "exporter")  # and admin, who passes every role check
 STAGE_FILTER_STATUSES = ("done", "skipped", "failed", "pending")
@@ -149,12 +148,12 @@ def parse_filters(args: Any) -> CardFilters:
 def stage_status_condition(stage: str, status: str) -> ColumnElement[bool]:
     """SQL for "the card's latest ``stage`` result has ``status``", as ``keystone cards`` reports it.
 
-    No result means pending, except where ``app.runs.card_stage_statuses`` derives a skip: stages
+    No result means pending, except where ``runs.driver.card_stage_statuses`` derives a skip: stages
     after the filter for a culled card, stages after a failed rectification, and views for a card
     graded failure. (Judge, crop and review are people's work, not stage results; the review
     queue and the crowd pages filter those.)
     """
-    from .runs import DOWNSTREAM_OF_CULL, DOWNSTREAM_OF_RECTIFY
+    from runs.driver import DOWNSTREAM_OF_CULL, DOWNSTREAM_OF_RECTIFY
 
     def latest(column: Any, of_stage: str) -> Any:
         return (
@@ -252,7 +251,7 @@ def cards() -> Any:
 @bp.route("/cards/<int:card_id>")
 @role_required(*STAFF_ROLES)
 def card_page(card_id: int) -> Any:
-    from .runs import card_orientation, card_stage_statuses, people_and_decisions
+    from runs.driver import card_orientation, card_stage_statuses, people_and_decisions
 
     with read_only():
         card = get_card_or_404(card_id)
@@ -396,8 +395,7 @@ def filter_thresholds(result: StageResult) -> dict[str, Any] | None:
     from dataclasses import asdict, is_dataclass
 
     from pipeline.records import param_hash
-
-    from .runs import available_stages
+    from runs.driver import available_stages
 
     spec = available_stages().get(result.stage)
     if spec is None or not is_dataclass(spec.params):

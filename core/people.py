@@ -16,8 +16,8 @@ from flask.cli import with_appcontext
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
-from .db import db
-from .models import ROLES, Person
+from core.db import db
+from core.models import ROLES, Person
 
 
 def create_person(username: str, password: str | None, roles: list[str], display_name: str = "") -> Person:
@@ -181,7 +181,7 @@ def users_group() -> None:
 @with_appcontext
 def add_user(username: str, roles: tuple[str, ...], password: str, display_name: str) -> None:
     """Add a person who logs in with USERNAME and a password."""
-    from .console import ensure_database
+    from core.console import ensure_database
 
     ensure_database()
     if len(password) < 8:
@@ -199,7 +199,7 @@ def add_user(username: str, roles: tuple[str, ...], password: str, display_name:
 @with_appcontext
 def list_users(as_json: bool) -> None:
     """List people and their roles."""
-    from .console import emit_json, ensure_database
+    from core.console import emit_json, ensure_database
 
     ensure_database()
     people = list(db.session.scalars(select(Person).order_by(Person.username)))

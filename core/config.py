@@ -32,9 +32,8 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
+from core.limits import DEFAULT_API_MAX_BYTES, DEFAULT_MAX_CONTENT_LENGTH
 from pipeline.io import DEFAULT_MAX_PIXELS
-
-from .limits import DEFAULT_API_MAX_BYTES, DEFAULT_MAX_CONTENT_LENGTH
 
 
 def _persistent_secret(instance_path: Path) -> str:
@@ -100,9 +99,9 @@ def config_from_environment(instance_path: str) -> dict[str, Any]:
         "SECRET_KEY": env.get("KEYSTONE_SECRET_KEY") or _persistent_secret(instance),
         "KEYSTONE_MAX_PIXELS": int(env.get("KEYSTONE_MAX_PIXELS", DEFAULT_MAX_PIXELS)),
         # Flask's default is 31 days; the signed cookie is refused past this age, and the
-        # login time kept in the session ends it this long after logging in (app.auth).
+        # login time kept in the session ends it this long after logging in (core.auth).
         "PERMANENT_SESSION_LIFETIME": timedelta(hours=_positive_number(env, "KEYSTONE_SESSION_HOURS", 8)),
-        # Flask's name for the body limit of every request (app/limits.py answers 413 above it).
+        # Flask's name for the body limit of every request (core/limits.py answers 413 above it).
         "MAX_CONTENT_LENGTH": int(env.get("KEYSTONE_MAX_REQUEST_BYTES", DEFAULT_MAX_CONTENT_LENGTH)),
         "KEYSTONE_API_MAX_BYTES": int(env.get("KEYSTONE_API_MAX_BYTES", DEFAULT_API_MAX_BYTES)),
         "SESSION_COOKIE_HTTPONLY": True,

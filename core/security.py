@@ -144,7 +144,7 @@ STALE_FORM = "This form was opened before you logged in."
 def page_to_return_to() -> str | None:
     """The page a failed form was on: the Referer when it is this site (browsers send it to the
     same origin under our Referrer-Policy), else this URL for a GET; None when unknown."""
-    from .auth import safe_next  # app.auth imports this module
+    from core.auth import safe_next  # core.auth imports this module
 
     referrer = request.referrer
     if referrer:

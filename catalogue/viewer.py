@@ -23,12 +23,12 @@ from typing import Any
 from flask import Blueprint, abort, render_template, request, url_for
 from werkzeug.wrappers import Response
 
-from .auth import role_required
-from .catalog import get_card_or_404, inside_data_dir
-from .db import read_only
-from .models import ROLES, Card, StageResult
+from catalogue.views import get_card_or_404, inside_data_dir
+from core.auth import role_required
+from core.db import read_only
+from core.models import ROLES, Card, StageResult
 
-bp = Blueprint("viewer", __name__, url_prefix="/viewer")
+bp = Blueprint("viewer", __name__, url_prefix="/viewer", template_folder="templates")
 
 VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")
 # Artifact name -> mimetype: the only files this blueprint serves.

@@ -5,7 +5,7 @@ integers of thousands of digits (which numpy, SQLite and PostgreSQL then refuse 
 OverflowError or a DataError) and recurses once per nesting level (``[`` * 100,000 is a
 RecursionError). :func:`load_json_body` refuses all of those before the view sees the body:
 
-- size: the request's body limit (:func:`app.limits.request_body_limit`), 413 above it;
+- size: the request's body limit (:func:`core.limits.request_body_limit`), 413 above it;
 - depth: at most :data:`MAX_DEPTH` nested arrays/objects (checked on the parsed document; one
   deeper than the C parser's recursion limit is refused as the RecursionError it raises);
 - numbers: finite floats only, integers within +-2**53 (exact in a float and in JavaScript);
@@ -15,7 +15,7 @@ RecursionError). :func:`load_json_body` refuses all of those before the view see
 Views call it instead of ``request.get_json``; it raises :class:`JSONBodyError`, an HTTP 400
 (415 for a body that is not JSON at all) that the app's error pages render as JSON for API
 routes. Values the loader lets through still need their own checks (a box inside its card is
-the annotation module's business, an id the database's range: :mod:`app.limits`).
+the annotation module's business, an id the database's range: :mod:`core.limits`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from typing import Any
 from flask import request
 from werkzeug.exceptions import BadRequest, RequestEntityTooLarge, UnsupportedMediaType
 
-from .limits import request_body_limit
+from core.limits import request_body_limit
 
 MAX_DEPTH = 32  # crowd answers nest 2 deep, review decisions 3
 MAX_SAFE_INTEGER = 2**53
@@ -127,7 +127,7 @@ def load_json_body(*, expect: type = dict, max_depth: int = MAX_DEPTH) -> Any:
     if not request.is_json:
         raise NotJSONError()
     limit = request_body_limit()
-    raw = request.get_data(cache=True)  # 413 past the limit (app.limits sets it per request)
+    raw = request.get_data(cache=True)  # 413 past the limit (core.limits sets it per request)
     if limit is not None and len(raw) > limit:
         raise RequestEntityTooLarge(f"This request's body is {len(raw):,} bytes; the limit here is {limit:,} bytes.")
     body = parse_json(raw, max_depth=max_depth)

@@ -57,7 +57,7 @@ def clear_leftovers(as_json: bool) -> LeftoversReport:
     (on stderr under ``--json``, so stdout stays one JSON document)."""
     from flask import current_app
 
-    from .console import data_dir, say
+    from core.console import data_dir, say
 
     configured = current_app.config.get("KEYSTONE_RELEASES_DIR")
     report = remove_leftovers(data_dir(), Path(configured) if configured else None)

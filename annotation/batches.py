@@ -147,7 +147,7 @@ def confirm_queue_card_ids() -> list[int]:
 
 
 def _waiting_for_orientation(kind: str) -> list[int]:
-    from runs.driver import waiting_for_people
+    from runs.card_state import waiting_for_people
 
     waiting = waiting_for_people()["orientation"]
     outcomes, escalated = _step_outcomes(waiting), _escalated(waiting)
@@ -193,7 +193,7 @@ def confirm_gold(exclude: Collection[int], count: int | None = None) -> tuple[di
 
     Curators' and the crowd's decisions come first: the step's own are right only as often as
     its confidence says."""
-    from runs.driver import approved_annotations, card_orientation
+    from runs.specs import approved_annotations, card_orientation
 
     count = confirm_gold_needed(len(exclude)) if count is None else count
     excluded, known = set(exclude), []

@@ -70,7 +70,7 @@ def register_cli(group: click.Group) -> None:
     from catalogue.geometry import check_homographies_command
     from catalogue.ingest import ingest_command
     from core.people import users_group
-    from runs.driver import cards_command, run_command
+    from runs.cli import cards_command, run_command
 
     for command in (
         init_command,

@@ -56,7 +56,7 @@ def seed_demo_crowd(cards: list, echo=click.echo) -> dict:  # type: ignore[no-un
     from annotation.models import Batch
     from annotation.simulate import seed_simulated_crowd
     from core.db import db
-    from runs.driver import waiting_for_people
+    from runs.card_state import waiting_for_people
 
     if db.session.scalar(select(Batch.id).limit(1)) is not None:
         return {"note": "crowd batches exist already: not seeded again"}
@@ -115,7 +115,8 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     from core.models import Card, Person
     from review.models import OrientationOverride
     from review.orientation import override_orientation
-    from runs.driver import approved_annotations, card_orientation, waiting_for_people
+    from runs.card_state import waiting_for_people
+    from runs.specs import approved_annotations, card_orientation
 
     if db.session.scalar(select(OrientationOverride.id).limit(1)) is not None:
         return {"note": "an orientation override exists already: not made again"}
@@ -263,7 +264,9 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
     from core.db import db
     from core.models import Card, Person
     from core.people import create_person
-    from runs.driver import available_stages, make_executor, run_stage
+    from runs.executors import make_executor
+    from runs.loop import run_stage
+    from runs.specs import available_stages
     from simulation.cards import make_demo_cards, write_demo_cards
 
     clock = time.perf_counter()

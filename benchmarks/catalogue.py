@@ -249,7 +249,8 @@ def time_operations(app: Any, count: int, repeats: int, child_env: dict[str, str
     from exports.release import plan_release
     from pipeline.records import param_hash
     from review.report import build_report
-    from runs.driver import available_stages, pending_cards
+    from runs.planning import pending_cards
+    from runs.specs import available_stages
 
     figures: dict[str, Any] = {}
     stages = available_stages()

@@ -1,7 +1,7 @@
 """``keystone bench pipeline``: CPU seconds per card for each stage, and peak memory, on real cards.
 
 The cards are ingested into a throwaway instance (SQLite, its own data dir) and run through
-the real stages (``runs.driver.run_stage``, inline on one core with one OpenCV thread as in a pool
+the real stages (``runs.loop.run_stage``, inline on one core with one OpenCV thread as in a pool
 worker, so each card's CPU time is this process's): filter, orientation, rectify, disparity,
 grade (the default pipeline) and views. Each stage's
 task is wrapped to read ``time.process_time()`` around every card. A card the filter does not
@@ -208,7 +208,9 @@ def benchmark_pipeline(
     from catalogue.stereo_ingest import StereoOptions
     from core.db import db
     from core.models import Card
-    from runs.driver import StageReport, StageSpec, available_stages, run_stage, run_stages
+    from runs.loop import run_stage, run_stages
+    from runs.report import StageReport
+    from runs.specs import StageSpec, available_stages
 
     root = Path(tempfile.mkdtemp(prefix="keystone-bench-pipeline-"))
     data_dir = root / "data"

@@ -3,7 +3,7 @@ code before the vectorised rasteriser (a frozen copy in :mod:`benchmarks.views_f
 side in one run, with what the change did to the output.
 
 The cards are ingested into a throwaway instance (SQLite, its own data dir) and run through filter,
-rectify, disparity and grade (``runs.driver.run_stage``, inline), so the views stage sees real rectified
+rectify, disparity and grade (``runs.loop.run_stage``, inline), so the views stage sees real rectified
 views and disparities. Then, per card and repeat, the old and the new ``views_task`` run one after the
 other in this process (order alternating between repeats), each timed by ``time.process_time()``.
 
@@ -64,7 +64,8 @@ def _rectified_scenes(cards: list[Path], root: Path, sbs_order: str | None) -> l
     from catalogue.stereo_ingest import StereoOptions
     from core.db import db
     from core.models import Card
-    from runs.driver import available_stages, run_stage, views_inputs
+    from runs.loop import run_stage
+    from runs.specs import available_stages, views_inputs
 
     data_dir = root / "data"
     app = create_app(

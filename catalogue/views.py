@@ -148,12 +148,12 @@ def parse_filters(args: Any) -> CardFilters:
 def stage_status_condition(stage: str, status: str) -> ColumnElement[bool]:
     """SQL for "the card's latest ``stage`` result has ``status``", as ``keystone cards`` reports it.
 
-    No result means pending, except where ``runs.driver.card_stage_statuses`` derives a skip: stages
+    No result means pending, except where ``runs.card_state.card_stage_statuses`` derives a skip: stages
     after the filter for a culled card, stages after a failed rectification, and views for a card
     graded failure. (Judge, crop and review are people's work, not stage results; the review
     queue and the crowd pages filter those.)
     """
-    from runs.driver import DOWNSTREAM_OF_CULL, DOWNSTREAM_OF_RECTIFY
+    from runs.card_state import DOWNSTREAM_OF_CULL, DOWNSTREAM_OF_RECTIFY
 
     def latest(column: Any, of_stage: str) -> Any:
         return (
@@ -251,7 +251,8 @@ def cards() -> Any:
 @bp.route("/cards/<int:card_id>")
 @role_required(*STAFF_ROLES)
 def card_page(card_id: int) -> Any:
-    from runs.driver import card_orientation, card_stage_statuses, people_and_decisions
+    from runs.card_state import card_stage_statuses, people_and_decisions
+    from runs.specs import card_orientation
 
     with read_only():
         card = get_card_or_404(card_id)
@@ -395,7 +396,7 @@ def filter_thresholds(result: StageResult) -> dict[str, Any] | None:
     from dataclasses import asdict, is_dataclass
 
     from pipeline.records import param_hash
-    from runs.driver import available_stages
+    from runs.specs import available_stages
 
     spec = available_stages().get(result.stage)
     if spec is None or not is_dataclass(spec.params):

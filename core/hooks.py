@@ -1,6 +1,6 @@
 """What the run driver needs from the features, registered by the features themselves.
 
-The driver (:mod:`runs.driver`) sits below the features: it must not import ``annotation`` or
+The driver (:mod:`runs.loop`) sits below the features: it must not import ``annotation`` or
 ``review``. Instead each feature, when its blueprint is registered on the app, tells the app
 what a run needs from it:
 

@@ -27,7 +27,7 @@ def check_image(image: object, name: str = "image", min_width: int = 1, min_heig
 
 # --------------------------------------------------------------------------- stage records
 # What crosses from a stage, through ``stage_results.metrics`` (JSON) in the database, to the
-# run driver's input builders (``runs.driver``) and on into the next stage's ``CardTask.inputs``.
+# run driver's input builders (``runs.loop``) and on into the next stage's ``CardTask.inputs``.
 # TypedDicts, so the JSON stays plain dicts at run time (behaviour unchanged, a record from an
 # older version still loads) while a type checker sees which keys each side relies on.
 # ``total=False``: a record written by an older stage version may lack a key; readers use .get.
@@ -126,7 +126,7 @@ class DisparityMetrics(TypedDict, total=False):
 
 
 class RectifyInputs(TypedDict, total=False):
-    """``CardTask.inputs`` of the rectify stage (``runs.driver.rectify_inputs``)."""
+    """``CardTask.inputs`` of the rectify stage (``runs.specs.rectify_inputs``)."""
 
     left_box: Box
     right_box: Box
@@ -142,7 +142,7 @@ class RectifyInputs(TypedDict, total=False):
 
 
 class DisparityInputs(TypedDict, total=False):
-    """``CardTask.inputs`` of the disparity stage (``runs.driver.rectified_pair``); paths under the data dir."""
+    """``CardTask.inputs`` of the disparity stage (``runs.specs.rectified_pair``); paths under the data dir."""
 
     left: str | None
     right: str | None
@@ -160,7 +160,7 @@ class GradeInputMetrics(TypedDict, total=False):
 
 
 class GradeInputs(TypedDict, total=False):
-    """``CardTask.inputs`` of the grade stage (``runs.driver.grade_inputs``); paths under the data dir."""
+    """``CardTask.inputs`` of the grade stage (``runs.specs.grade_inputs``); paths under the data dir."""
 
     left: str | None
     right: str | None
@@ -172,7 +172,7 @@ class GradeInputs(TypedDict, total=False):
 
 
 class ViewsInputs(TypedDict, total=False):
-    """``CardTask.inputs`` of the views stage (``runs.driver.views_inputs``); paths under the data dir."""
+    """``CardTask.inputs`` of the views stage (``runs.specs.views_inputs``); paths under the data dir."""
 
     left: str | None
     disparity_left: str | None

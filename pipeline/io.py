@@ -233,7 +233,7 @@ def shared_decodes(max_entries: int = 4) -> Iterator[None]:
     :func:`write_png`) in memory, keyed by the file's identity and the JPEG reduction, so that
     reading the same file again at the same reduction gets that decode instead of a second one.
 
-    For a card taken through several stages in one go (``runs.driver``' chained stages): the
+    For a card taken through several stages in one go (``runs.loop``' chained stages): the
     filter and the orientation step decode the same scan at the same reduction, and the
     disparity, grade and views stages read the rectified views the rectify stage just wrote
     (measured on a ~3000 px JPEG card: ~34 ms a reduced decode, ~12 ms a view). The pixels are

@@ -1,6 +1,6 @@
 """Small, picklable records that cross the process boundary between driver and workers.
 
-Workers return :class:`StageRecord`; the driver (``runs.driver``) writes them to the database in
+Workers return :class:`StageRecord`; the driver (``runs.loop``) writes them to the database in
 batches. Keeping these plain dataclasses means a distributed executor can ship them cheaply.
 """
 

@@ -30,7 +30,7 @@ __all__ = ["current_orientation", "flow_blockers", "flow_blockers_for", "overrid
 
 def current_orientation(card: Card) -> dict[str, Any]:
     """The orientation the pipeline uses for ``card`` (see :mod:`runs.orientation`)."""
-    from runs.driver import approved_annotations, card_orientation
+    from runs.specs import approved_annotations, card_orientation
 
     return card_orientation(card, approved_annotations([card.id]).get(card.id, {}))
 
@@ -97,7 +97,7 @@ def flow_blockers(card: Card) -> list[str]:
 def flow_blockers_for(cards: list[Card]) -> dict[int, list[str]]:
     """:func:`flow_blockers` for many cards with three queries (cards' results loaded)."""
     from annotation.models import Aggregate
-    from runs.driver import approved_annotations, card_orientation
+    from runs.specs import approved_annotations, card_orientation
 
     ids = [card.id for card in cards]
     approved = approved_annotations(ids)

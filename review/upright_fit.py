@@ -101,7 +101,7 @@ def labelled_cards(collection_id: int | None) -> list[dict[str, Any]]:
     """Cards whose orientation is decided by people or by the step with a wide margin, and whose
     step stored the network's readings: ``{"card", "orientation", "step", "differences"}``."""
     from pipeline.upright import read_learned_differences
-    from runs.driver import approved_annotations, card_orientation
+    from runs.specs import approved_annotations, card_orientation
 
     data_dir = Path(current_app.config["KEYSTONE_DATA_DIR"])
     query = select(Card).where(Card.state.in_(("pass", "review"))).order_by(Card.id)

@@ -8,10 +8,10 @@ filter and orientation step decode its scan twice, and the disparity, grade and 
 read back the views the rectify stage has just written.
 
 A stage whose inputs come from the card's own stage results alone (no people's decisions:
-:attr:`runs.driver.StageSpec.chains`) can run in the same worker right after the stage before it,
+:attr:`runs.specs.StageSpec.chains`) can run in the same worker right after the stage before it,
 on the same card, inside :func:`pipeline.io.shared_decodes`: a second read of a file gets the
 first one's decode. The worker computes the follower's inputs with the same builder the
-driver uses (:mod:`runs.driver`), from a snapshot of the card's results the driver sends along and
+driver uses (:mod:`runs.loop`), from a snapshot of the card's results the driver sends along and
 the records the chain has just made, so the records are those a stage-by-stage run writes.
 The driver still writes every record, claims every card for every stage it computes, and runs
 each follower stage by stage afterwards for whatever a chain did not reach (a card another run
@@ -29,12 +29,12 @@ from pipeline.io import shared_decodes
 from pipeline.records import CardTask, StageRecord, param_hash
 from pipeline.runner import clear_stale_temp_files
 
-if TYPE_CHECKING:  # runs.driver imports this module
-    from runs.driver import StageSpec
+if TYPE_CHECKING:  # runs.loop imports this module
+    from runs.specs import StageSpec
 
 __all__ = ["ChainCard", "ChainOutcome", "ChainTask", "ResultView", "run_chain"]
 
-# The statuses a stage's ``requires`` must have reached (as runs.driver.pending_cards).
+# The statuses a stage's ``requires`` must have reached (as runs.planning.pending_cards).
 FINISHED = ("done", "skipped")
 
 
@@ -53,7 +53,7 @@ class ResultView:
 
 @dataclass
 class ChainCard:
-    """The card as the input builders of :mod:`runs.driver` see it: its state and its latest result
+    """The card as the input builders of :mod:`runs.loop` see it: its state and its latest result
     per stage. Starts from the driver's snapshot; each record the chain makes becomes that
     stage's latest, and a filter record sets the state as the driver will when it writes it."""
 
@@ -66,7 +66,7 @@ class ChainCard:
 
     def record(self, record: StageRecord) -> None:
         self.results[record.stage] = record
-        if record.stage == "filter":  # runs.driver.write_records
+        if record.stage == "filter":  # runs.writes.write_records
             self.state = record.outcome if record.status == "done" and record.outcome else "failed"
 
 
@@ -111,11 +111,11 @@ def run_chain(
     work_dir: Callable[[Path, str, str, str], Path],
 ) -> ChainOutcome:
     """Run ``lead`` on the card, then each stage of ``steps`` while the card qualifies for it (as
-    ``runs.driver.pending_cards`` would plan it), all inside one
+    ``runs.planning.pending_cards`` would plan it), all inside one
     :func:`pipeline.io.shared_decodes` block. Runs in a worker; returns plain records.
 
-    ``digest`` and ``work_dir`` are ``runs.driver.inputs_digest`` and ``runs.driver.card_work_dir``
-    (passed in: this module is imported by runs.driver)."""
+    ``digest`` and ``work_dir`` are ``runs.planning.inputs_digest`` and ``runs.executors.card_work_dir``
+    (passed in: this module is imported by runs.loop)."""
     with shared_decodes():
         first = lead(chain.lead)
         made: list[tuple[StageRecord, str | None]] = [(first, None)]

@@ -5,7 +5,7 @@ card as scanned (:func:`pipeline.orientation.estimate_orientation` on the filter
 and finds each photo inside its mount (:func:`pipeline.photo_area.find_photo_areas`). The
 record's ``outcome`` is the decision: ``auto`` when the most probable combination of the three
 flags is confident (the flow applies it to derived images), ``ask`` when people must look (the
-card waits in the crowd's judge queue). The driver (``runs.driver``) turns that, the crowd's
+card waits in the crowd's judge queue). The driver (``runs.loop``) turns that, the crowd's
 judgement and any curator override into the orientation the pipeline uses.
 
 Metrics (all JSON):

@@ -232,7 +232,7 @@ def test_card_page_shows_the_current_thresholds_when_the_result_used_them(app, c
     from dataclasses import asdict
 
     from pipeline.records import param_hash
-    from runs.driver import available_stages
+    from runs.specs import available_stages
 
     with app.app_context():  # the grade stage's thresholds come from the database
         params = available_stages()["filter"].params

@@ -17,7 +17,7 @@ from core.db import db
 from core.models import Card, StageResult
 from pipeline.records import param_hash
 from runs.claims import Driver, StageClaim
-from runs.driver import available_stages
+from runs.specs import available_stages
 
 pytestmark = pytest.mark.both_databases
 

@@ -99,7 +99,7 @@ def test_the_command_tree_is_the_features_registrations():
 def test_importing_the_command_imports_no_feature():
     code = (
         "import sys, app.cli; "
-        "print(sorted(m for m in ('annotation', 'review', 'exports', 'runs.driver', 'app.bench') if m in sys.modules))"
+        "print(sorted(m for m in ('annotation', 'review', 'exports', 'runs.loop', 'app.bench') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "[]", out.stdout

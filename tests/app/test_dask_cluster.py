@@ -235,7 +235,7 @@ def test_every_worker_runs_one_opencv_and_one_blas_thread_those_joining_later_to
     import threadpoolctl
     from distributed import Client
 
-    from runs.driver import make_executor
+    from runs.executors import make_executor
 
     with Client(cluster.address, timeout=30) as client:
         before = client.run(cv2.getNumThreads)

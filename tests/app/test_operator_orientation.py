@@ -238,7 +238,7 @@ def _card(runner) -> dict[str, Any]:  # type: ignore[no-untyped-def]
 
 def _step_inputs(app) -> dict[str, Any]:  # type: ignore[no-untyped-def]
     from core.models import Card
-    from runs.driver import approved_annotations, orientation_inputs
+    from runs.specs import approved_annotations, orientation_inputs
 
     with app.app_context():
         card = db.session.scalar(select(Card))
@@ -247,7 +247,7 @@ def _step_inputs(app) -> dict[str, Any]:  # type: ignore[no-untyped-def]
 
 @pytest.mark.both_databases
 def test_a_new_word_changes_the_step_inputs_and_the_step_reruns(app, runner, prints_card) -> None:  # type: ignore[no-untyped-def]
-    from runs.driver import inputs_digest
+    from runs.planning import inputs_digest
 
     first = _run(runner, "filter", "orientation")
     assert first["orientation"]["processed"] == 1 and first["orientation"]["chained"] == 1
@@ -276,7 +276,7 @@ def test_a_new_word_changes_the_step_inputs_and_the_step_reruns(app, runner, pri
 def test_a_word_before_the_first_run_reaches_a_chained_step(app, runner, prints_card) -> None:  # type: ignore[no-untyped-def]
     """The chain's worker has no database: the driver sends the collection's word with the card
     (runs.chains.ChainTask.approved), so the chained step runs with it and is not redone."""
-    from runs.driver import inputs_digest
+    from runs.planning import inputs_digest
 
     _invoke(runner, "set", "--collection", "prints", "--inverted", "no")
     first = _run(runner, "filter", "orientation")

@@ -235,7 +235,7 @@ def test_write_records_upserts_a_row_another_transaction_inserted_meanwhile(app,
     from sqlalchemy import create_engine
 
     from pipeline.records import StageRecord
-    from runs.driver import write_records
+    from runs.writes import write_records
 
     other = create_engine(database)
     connection = other.connect()

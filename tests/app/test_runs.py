@@ -98,10 +98,11 @@ def test_rerun_skips_finished_cards_and_changed_parameters_rerun(app, runner, ca
     again = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"][0]
     assert (first["processed"], again["processed"], again["already_done"]) == (3, 0, 3)
 
+    import runs.cli
     from pipeline.filter import FilterParams
-    from runs import driver as runs
+    from runs.specs import StageSpec, available_stages
 
-    original = runs.available_stages
+    original = available_stages
 
     def stricter():  # type: ignore[no-untyped-def]
         stages = original()
@@ -111,10 +112,10 @@ def test_rerun_skips_finished_cards_and_changed_parameters_rerun(app, runner, ca
 
         from pipeline.stages.filter import filter_task
 
-        stages["filter"] = runs.StageSpec("filter", params, functools.partial(filter_task, params=params), spec.eligible_states)
+        stages["filter"] = StageSpec("filter", params, functools.partial(filter_task, params=params), spec.eligible_states)
         return stages
 
-    monkeypatch.setattr(runs, "available_stages", stricter)
+    monkeypatch.setattr(runs.cli, "available_stages", stricter)
     changed = json.loads(runner.invoke(cli, ["run", "--json"]).stdout)["stages"][0]
     assert changed["processed"] == 3 and changed["param_hash"] != first["param_hash"]
     with app.app_context():
@@ -144,7 +145,7 @@ def test_an_inline_run_is_one_worker_with_a_pool_workers_set_up():
 
     code = (
         "import cv2, json, threadpoolctl\n"
-        "from runs.driver import make_executor\n"
+        "from runs.executors import make_executor\n"
         "before = cv2.getNumThreads()\n"
         "with make_executor('local', 1, None) as executor:\n"
         "    blas = {i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas'}\n"

@@ -78,7 +78,7 @@ def _card(found: dict[str, Any]) -> Any:
 
 
 def _runs_input(builder: str, found: dict[str, Any]) -> dict[str, Any]:
-    from runs import driver as runs
+    from runs import specs as runs
 
     inputs: dict[str, Any] = getattr(runs, builder)(_card(found), {})
     return inputs

@@ -29,7 +29,7 @@ def make_views(app, data_dir, add_stage_result):  # type: ignore[no-untyped-def]
         from pipeline.records import CardTask, param_hash
         from pipeline.stages.views import views_task
         from pipeline.view_synthesis import ViewsStageParams
-        from runs.driver import card_work_dir
+        from runs.executors import card_work_dir
 
         settings = ViewsStageParams(**{**VIEWS_PARAMS, **params})
         with app.app_context():

@@ -57,7 +57,7 @@ def test_fit_stores_a_model_with_held_out_agreement_and_the_stage_uses_it(app, r
     from core.db import db
     from pipeline.records import param_hash
     from review.models import AuditEvent, GradeModel
-    from runs.driver import available_stages
+    from runs.specs import available_stages
 
     with app.app_context():
         default_hash = param_hash(available_stages()["grade"].params)

@@ -97,7 +97,7 @@ def test_fit_reports_held_out_accuracy_saves_a_version_and_feeds_the_next_run(ap
         # the orientation step's inputs now carry the head, so its inputs digest changes and
         # the next run recomputes it
         from core.models import Card
-        from runs.driver import approved_annotations, orientation_inputs
+        from runs.specs import approved_annotations, orientation_inputs
 
         card = db.session.get(Card, ids[0])
         step_inputs = orientation_inputs(card, approved_annotations([ids[0]])[ids[0]])
@@ -128,7 +128,7 @@ def test_a_changed_decision_is_listed_when_written(app, make_card, add_stage_res
     """The run's report lists the cards whose orientation decision a rerun changed (a refitted
     head reaches the step through its inputs, so only the next run changes decisions)."""
     from pipeline.records import StageRecord
-    from runs.driver import write_records
+    from runs.writes import write_records
 
     card_id = make_card(state="pass")
     add_stage_result(card_id, "orientation", outcome="confirm", metrics={"proposed": {"upside_down": False}})

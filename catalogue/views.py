@@ -549,7 +549,7 @@ def _stereo_inputs(rectify: StageResult | None, disparity: StageResult | None) -
 
 
 def _stereo_etag(card: Card, inputs: tuple[str, str, str], rectify: StageResult, disparity: StageResult) -> str:
-    from exports.stereo import CardCaption
+    from pipeline.stereo_files import CardCaption
 
     caption = CardCaption.of(card.source_metadata or {}, card.accession, card.source_name)
     detail = "\0".join(
@@ -572,7 +572,7 @@ STEREO_DOWNLOAD_VERSION = "1"  # bump when the way the stereo files are made cha
 def stereo_downloads(card: Card, rectify: StageResult | None, disparity: StageResult | None) -> list[dict[str, str]]:
     """Links to the card's stereo files (anaglyph, wiggles, side-by-side, JPS, MPO), or none
     when it has no rectified pair with a disparity yet."""
-    from exports.stereo import STEREO_FORMATS
+    from pipeline.stereo_files import STEREO_FORMATS
 
     inputs = _stereo_inputs(rectify, disparity)
     if inputs is None or rectify is None or disparity is None:
@@ -596,7 +596,7 @@ def stereo_download(card_id: int, fmt: str) -> Response:
     request and cached under ``DATA_DIR/stereo_downloads`` by the inputs' fingerprint."""
     import numpy as np
 
-    from exports.stereo import STEREO_FORMATS, CardCaption, encode_stereo
+    from pipeline.stereo_files import STEREO_FORMATS, CardCaption, encode_stereo
     from pipeline.stereo_formats import StereoFormatError
 
     if fmt not in STEREO_FORMATS:

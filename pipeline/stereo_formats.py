@@ -1,6 +1,6 @@
 """Stereo viewing formats made from a rectified pair: anaglyph, wiggle frames, side-by-side layouts.
 
-Pure array code (numpy + OpenCV); encoding to files lives in :mod:`exports.stereo`.
+Pure array code (numpy + OpenCV); encoding to files lives in :mod:`pipeline.stereo_files`.
 
 Conventions (as everywhere in the pipeline): images are ``uint8`` ``(H, W)`` grey or
 ``(H, W, 3)`` RGB, row 0 at the top; the disparity is the disparity stage's ``disparity_left``,

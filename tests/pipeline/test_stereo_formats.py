@@ -125,7 +125,7 @@ def _mean_difference(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def test_encoded_files_keep_eye_order_sizes_and_the_cards_facts(motorcycle) -> None:
-    from exports.stereo import STEREO_FORMATS, CardCaption, StereoCosts, encode_stereo
+    from pipeline.stereo_files import STEREO_FORMATS, CardCaption, StereoCosts, encode_stereo
 
     left, right, disparity = motorcycle
     height, width = left.shape[:2]
@@ -208,7 +208,7 @@ def test_eye_order_check_on_the_real_jps_files_says_they_are_stored_parallel(sha
 
 def test_stereo_files_are_byte_reproducible(motorcycle) -> None:
     """A release must be byte-identical when written again from the same inputs."""
-    from exports.stereo import CardCaption, encode_stereo
+    from pipeline.stereo_files import CardCaption, encode_stereo
 
     left, right, disparity = motorcycle
     caption = CardCaption.of({"title": "Motorcycle"}, None, "scan.png")

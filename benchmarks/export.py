@@ -28,7 +28,7 @@ from typing import Any
 import click
 import numpy as np
 
-from exports.records import DEFAULT_FORMATS, FORMATS
+from exports.formats import default_format_names, format_names
 
 VARIANTS = 4
 VIEW_SIZE = (160, 108)  # (width, height) of each half in the default (small) synthetic cards
@@ -338,9 +338,9 @@ def benchmark_export(
 @click.option(
     "--format",
     "formats",
-    default=",".join(DEFAULT_FORMATS),
+    default=",".join(default_format_names()),
     show_default=True,
-    help=f"Comma-separated layouts: {', '.join(FORMATS)}.",
+    help=f"Comma-separated layouts: {', '.join(format_names())}.",
 )
 @click.option(
     "--dir",

@@ -7,7 +7,8 @@ from pathlib import Path
 import click
 from flask.cli import with_appcontext
 
-from .records import DEFAULT_FORMATS, FORMATS, RELEASABLE_GRADES
+from .formats import default_format_names, registered_formats
+from .records import RELEASABLE_GRADES
 
 
 @click.command("export")
@@ -28,9 +29,9 @@ from .records import DEFAULT_FORMATS, FORMATS, RELEASABLE_GRADES
 @click.option(
     "--format",
     "formats",
-    default=",".join(DEFAULT_FORMATS),
+    default=",".join(default_format_names()),
     show_default=True,
-    help=f"Comma-separated layouts: {', '.join(FORMATS)}.",
+    help="Comma-separated layouts: " + "; ".join(f"{fmt.name} ({fmt.description})" for fmt in registered_formats()) + ".",
 )
 @click.option("--dry-run", is_flag=True, help="Show what would go in, what changed and the version; write nothing.")
 @click.option("--notes", default="", help="Release notes (README and the releases page).")
@@ -45,7 +46,7 @@ def export_command(out_dir: Path, min_grade: str, formats: str, dry_run: bool, n
     """
     from core.console import emit_json, ensure_database, fail, progress_bar, say
 
-    from .records import parse_formats
+    from .formats import parse_formats
     from .release import ReleaseError, plan_release, publish_release
 
     try:

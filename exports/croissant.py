@@ -2,13 +2,15 @@
 
 Every file of the release except ``croissant.json`` and ``SHA256SUMS`` (which lists this file,
 so cannot be listed in it) is a ``cr:FileObject`` with its sha256; the ``cards`` record set
-reads ``cards.jsonl``, which every release has whatever formats were chosen; with the views
-component, the ``views`` record set reads ``views/views.jsonl`` (one record per card with views).
+reads ``cards.jsonl``, which every release has whatever formats were chosen; each format adds
+the record sets that describe its own files (:meth:`exports.formats.ReleaseFormat.record_sets`,
+e.g. ``views`` reading ``views/views.jsonl``) and the MIME types of its file suffixes.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping, Sequence
 from typing import IO, Any
 
 CROISSANT_VERSION = "http://mlcommons.org/croissant/1.1"
@@ -52,7 +54,8 @@ CONTEXT: dict[str, Any] = {
     "transform": "cr:transform",
 }
 
-ENCODINGS = {
+# File suffix -> MIME type common to several formats; a format adds its own (``encodings``).
+ENCODINGS: dict[str, str] = {
     ".png": "image/png",
     ".jpg": "image/jpeg",
     ".jpeg": "image/jpeg",
@@ -61,13 +64,9 @@ ENCODINGS = {
     ".exr": "image/x-exr",
     ".json": "application/json",
     ".jsonl": "application/jsonlines",
-    ".parquet": "application/x-parquet",
-    ".tar": "application/x-tar",
     ".md": "text/markdown",
     ".webp": "image/webp",
     ".gif": "image/gif",
-    ".mpo": "image/mpo",
-    ".jps": "image/x-jps",
 }
 
 # (field name, schema.org / Croissant type, description) of the ``cards`` record set.
@@ -84,59 +83,23 @@ CARD_FIELDS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-# (field name, type, description) of the ``views`` record set (``views/views.jsonl``).
-VIEW_FIELDS: tuple[tuple[str, str, str], ...] = (
-    ("key", "sc:Text", "The card's key (as in cards): its views are in views/<key>/."),
-    ("card_id", "sc:Integer", "The card's id in the catalogue."),
-    (
-        "folder",
-        "sc:Text",
-        (
-            "Folder of v0.png..v4.png (8-bit grey, or RGB for a colour card), v0_depth.exr..v4_depth.exr (float32 depth, baseline 1), "
-            "views.json (cameras) and preview.webp."
-        ),
-    ),
-    ("width", "sc:Integer", "Width of the five views in pixels."),
-    ("height", "sc:Integer", "Height of the five views in pixels."),
-    ("focal_px", "sc:Float", "Focal length of the reference view v0 in pixels."),
-    ("quad_radius", "sc:Float", "Distance of the corner cameras v1..v4 from the quad's centre, baseline units."),
-    ("preview", "sc:Text", "Path of the animated parallax preview (WebP)."),
-)
-
-
-# (field name, type, description) of the ``stereo`` record set (``stereo/stereo.jsonl``).
-STEREO_FIELDS: tuple[tuple[str, str, str], ...] = (
-    ("key", "sc:Text", "The card's key (as in cards): its stereo files are in stereo/<key>/."),
-    ("card_id", "sc:Integer", "The card's id in the catalogue."),
-    ("width", "sc:Integer", "Width of one rectified view in pixels."),
-    ("height", "sc:Integer", "Height of one rectified view in pixels."),
-    ("anaglyph", "sc:Text", "Path of the red-cyan anaglyph (JPEG, Dubois least squares)."),
-    ("wiggle_gif", "sc:Text", "Path of the animated wiggle (GIF), in-between views synthesised from the disparity."),
-    ("wiggle_webp", "sc:Text", "Path of the animated wiggle (WebP)."),
-    ("sbs_full", "sc:Text", "Path of the full side-by-side image, parallel (left view on the left)."),
-    ("sbs_half", "sc:Text", "Path of the half side-by-side image, parallel, each view at half width."),
-    ("jps", "sc:Text", "Path of the JPS file, cross-eyed (right view on the left)."),
-    ("mpo", "sc:Text", "Path of the MPO file, left view first."),
-)
-
-
-def _encoding(path: str) -> str:
+def _encoding(path: str, encodings: Mapping[str, str]) -> str:
     suffix = "." + path.rsplit(".", 1)[-1].lower() if "." in path else ""
-    return ENCODINGS.get(suffix, "application/octet-stream")
+    return encodings.get(suffix) or ENCODINGS.get(suffix, "application/octet-stream")
 
 
-def _file_id(path: str) -> str:
+def file_id(path: str) -> str:
     return "file/" + path
 
 
-def file_object(path: str, sha: str, size: int) -> dict[str, Any]:
+def file_object(path: str, sha: str, size: int, encodings: Mapping[str, str] | None = None) -> dict[str, Any]:
     return {
         "@type": "cr:FileObject",
-        "@id": _file_id(path),
+        "@id": file_id(path),
         "name": path,
         "contentUrl": path,
         "contentSize": f"{size} B",
-        "encodingFormat": _encoding(path),
+        "encodingFormat": _encoding(path, encodings or {}),
         "sha256": sha,
     }
 
@@ -156,7 +119,7 @@ def write_croissant(handle: IO[bytes], files: dict[str, tuple[str, int]], **docu
     if not files:
         handle.write(b"[]")
     for number, (path, (sha, size)) in enumerate(sorted(files.items())):
-        entry = json.dumps(file_object(path, sha, size), indent=2, sort_keys=True, ensure_ascii=False)
+        entry = json.dumps(file_object(path, sha, size, document.get("encodings")), indent=2, sort_keys=True, ensure_ascii=False)
         indented = "\n".join("    " + line for line in entry.splitlines())
         handle.write((("[\n" if number == 0 else ",\n") + indented).encode())
     if files:
@@ -164,8 +127,9 @@ def write_croissant(handle: IO[bytes], files: dict[str, tuple[str, int]], **docu
     handle.write(after.encode())
 
 
-def _jsonl_record_set(name: str, fields: Any, description: str) -> dict[str, Any]:
-    """A RecordSet read from the release's ``<name>/<name>.jsonl`` index, one field per column."""
+def jsonl_record_set(name: str, fields: Sequence[tuple[str, str, str]], description: str) -> dict[str, Any]:
+    """A RecordSet read from the release's ``<name>/<name>.jsonl`` index, one field per column
+    (``fields``: name, schema.org / Croissant type, description)."""
     return {
         "@type": "cr:RecordSet",
         "@id": name,
@@ -179,7 +143,7 @@ def _jsonl_record_set(name: str, fields: Any, description: str) -> dict[str, Any
                 "name": field,
                 "description": field_description,
                 "dataType": kind,
-                "source": {"fileObject": {"@id": _file_id(f"{name}/{name}.jsonl")}, "extract": {"column": field}},
+                "source": {"fileObject": {"@id": file_id(f"{name}/{name}.jsonl")}, "extract": {"column": field}},
             }
             for field, kind, field_description in fields
         ],
@@ -196,12 +160,13 @@ def croissant_document(
     crowd: dict[str, Any],
     notes: str,
     name: str = "keystone-stereographs",
-    views_count: int | None = None,
-    stereo_count: int | None = None,
+    record_sets: Sequence[dict[str, Any]] = (),
+    encodings: Mapping[str, str] | None = None,
 ) -> dict[str, Any]:
-    """The Croissant JSON-LD document (``files``: relative path -> (sha256, bytes));
-    ``views_count`` (cards with views) is given when the release has the views component."""
-    distribution = [file_object(path, sha, size) for path, (sha, size) in sorted(files.items())]
+    """The Croissant JSON-LD document (``files``: relative path -> (sha256, bytes)); ``record_sets``
+    (the formats' own, after ``cards``) and ``encodings`` (suffix -> MIME type beyond
+    :data:`ENCODINGS`) come from the release's formats."""
+    distribution = [file_object(path, sha, size, encodings) for path, (sha, size) in sorted(files.items())]
     fields = [
         {
             "@type": "cr:Field",
@@ -209,38 +174,18 @@ def croissant_document(
             "name": field,
             "description": description,
             "dataType": kind,
-            "source": {"fileObject": {"@id": _file_id("cards.jsonl")}, "extract": {"column": field}},
+            "source": {"fileObject": {"@id": file_id("cards.jsonl")}, "extract": {"column": field}},
         }
         for field, kind, description in CARD_FIELDS
     ]
-    record_sets = [
-        {
-            "@type": "cr:RecordSet",
-            "@id": "cards",
-            "name": "cards",
-            "description": f"One record per released card ({card_count} cards).",
-            "key": {"@id": "cards/key"},
-            "field": fields,
-        }
-    ]
-    if views_count is not None:
-        record_sets.append(
-            _jsonl_record_set(
-                "views",
-                VIEW_FIELDS,
-                f"The five GD images per card (reference view v0 and quad corners v1..v4, KeystoneDepth "
-                f"section 5) for {views_count} of {card_count} cards; one record per card with views.",
-            )
-        )
-    if stereo_count is not None:
-        record_sets.append(
-            _jsonl_record_set(
-                "stereo",
-                STEREO_FIELDS,
-                f"Viewing files of the rectified pair (anaglyph, wiggles, side-by-side, JPS, MPO) for "
-                f"{stereo_count} of {card_count} cards; one record per card with them.",
-            )
-        )
+    cards = {
+        "@type": "cr:RecordSet",
+        "@id": "cards",
+        "name": "cards",
+        "description": f"One record per released card ({card_count} cards).",
+        "key": {"@id": "cards/key"},
+        "field": fields,
+    }
     answers = crowd.get("answers_per_card")
     return {
         "@context": CONTEXT,
@@ -310,5 +255,5 @@ def croissant_document(
             "changed; every release has a CHANGELOG against the one before and a SHA256SUMS file."
         ),
         "distribution": distribution,
-        "recordSet": record_sets,
+        "recordSet": [cards, *record_sets],
     }

@@ -20,10 +20,6 @@ from typing import Any
 RELEASABLE_GRADES: tuple[str, ...] = ("few", "some")
 VIEWS_FOLDER = "views"
 RELEASED_DECISIONS: tuple[str, ...] = ("accepted", "changed")
-# ``views`` (the five GD images per card, :mod:`pipeline.views`) and ``stereo`` (anaglyph, wiggles, side-by-side,
-# JPS, MPO per card) are optional components: never a default.
-FORMATS: tuple[str, ...] = ("keystonedepth", "parquet", "webdataset", "views", "stereo")
-DEFAULT_FORMATS: tuple[str, ...] = ("keystonedepth", "parquet")
 # The views stage's artifacts a released card's views are made of (pipeline.stages.views).
 VIEW_NAMES: tuple[str, ...] = ("v0", "v1", "v2", "v3", "v4")
 VIEW_ARTIFACTS: tuple[str, ...] = (*VIEW_NAMES, *(f"{name}_depth" for name in VIEW_NAMES), "scene", "preview")
@@ -52,15 +48,6 @@ def grades_at_or_above(min_grade: str) -> tuple[str, ...]:
             "(cards graded failure are never released)"
         )
     return RELEASABLE_GRADES[: RELEASABLE_GRADES.index(min_grade) + 1]
-
-
-def parse_formats(text: str | list[str] | tuple[str, ...]) -> tuple[str, ...]:
-    """Comma-separated (or listed) format names, in the canonical order; unknown names raise."""
-    names = [part.strip() for part in (text.split(",") if isinstance(text, str) else text) if part.strip()]
-    unknown = [name for name in names if name not in FORMATS]
-    if unknown or not names:
-        raise ValueError(f"Expected formats from {', '.join(FORMATS)}, got {', '.join(unknown) or 'none'}")
-    return tuple(name for name in FORMATS if name in names)
 
 
 def card_key(card_id: int) -> str:

@@ -14,6 +14,7 @@ import os
 import shutil
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -32,26 +33,19 @@ from .catalogue import (
     stream_release_cards,
 )
 from .croissant import write_croissant
-from .models import Release
-from .records import (
-    DEFAULT_FORMATS,
-    Changes,
-    compare_manifests,
-    grades_at_or_above,
-    next_version,
+from .formats import (
+    ReleaseFormat,
+    WriteContext,
+    chosen_formats,
+    default_format_names,
+    format_encodings,
     parse_formats,
+    registered_formats,
 )
+from .models import Release
+from .records import Changes, compare_manifests, grades_at_or_above, next_version
 from .staging import ReleaseStaging, make_world_readable, remove_stale_partials
-from .stereo import StereoWriter
-from .writers import (
-    CardPayload,
-    FileLedger,
-    KeystoneDepthWriter,
-    ParquetWriter,
-    ViewsWriter,
-    WebDatasetWriter,
-    build_payload,
-)
+from .writers import CardPayload, FileLedger, build_payload
 
 MANIFEST_FILES = ("croissant.json", "SHA256SUMS")
 
@@ -86,9 +80,10 @@ class ReleaseReport:
     manifest_sha256: str | None = None
     release_id: int | None = None
     notes: str = ""
-    views: dict[str, Any] | None = None  # with the views component: cards with views, and why the others have none
     leftovers_removed: list[dict[str, Any]] = field(default_factory=list)  # staging folders of killed exports
-    stereo: dict[str, Any] | None = None  # with the stereo component: cards, cost per format per card, failures
+    # Format name -> its writer's summary (the dry run: its plan tally), e.g. views: cards with views
+    # and why the others have none; stereo: cards, cost per file kind per card, failures.
+    summaries: dict[str, dict[str, Any]] = field(default_factory=dict)
     manifest: dict[str, dict[str, Any]] = field(default_factory=dict, repr=False)
 
     def as_json(self) -> dict[str, Any]:
@@ -109,9 +104,9 @@ class ReleaseReport:
             "manifest_sha256": self.manifest_sha256,
             "release_id": self.release_id,
             "cards_per_second": round(self.cards / self.seconds, 2) if self.seconds > 0 and not self.dry_run else None,
-            "views": self.views,
             "leftovers_removed": self.leftovers_removed,
-            "stereo": self.stereo,
+            # Each reporting format under its name (None when not in this release).
+            **{fmt.name: self.summaries.get(fmt.name) for fmt in registered_formats() if fmt.reports},
         }
 
 
@@ -134,15 +129,15 @@ def _count_grades(manifest: dict[str, dict[str, Any]]) -> dict[str, int]:
 
 
 def plan_release(
-    *, min_grade: str = "some", formats: str | tuple[str, ...] = DEFAULT_FORMATS, notes: str = "", data_dir: Path | None = None
+    *, min_grade: str = "some", formats: str | tuple[str, ...] | None = None, notes: str = "", data_dir: Path | None = None
 ) -> ReleaseReport:
     """The dry run: which cards would go in, what changed since the last release, the version.
 
     Reads the catalogue only (no file is written); cards whose outputs are incomplete are
-    listed in ``excluded`` with the reason.
+    listed in ``excluded`` with the reason. ``formats``: names (default: the default formats).
     """
     clock = time.perf_counter()
-    fmt = parse_formats(formats)
+    chosen = chosen_formats(default_format_names() if formats is None else formats)
     grades_at_or_above(min_grade)
     data_dir = data_dir or _data_dir()
     with read_only():
@@ -151,17 +146,17 @@ def plan_release(
         date = inputs_date(ids)
         exclusions: list[Exclusion] = []
         manifest: dict[str, dict[str, Any]] = {}
-        views = _ViewsCount() if "views" in fmt else None
-        for card in stream_release_cards(ids, data_dir, exclusions, with_views=views is not None):
+        tallies = {fmt.name: tally for fmt in chosen if (tally := fmt.plan_tally()) is not None}
+        for card in stream_release_cards(ids, data_dir, exclusions, with_views=_with_views(chosen)):
             manifest[str(card.card_id)] = card.manifest_entry()
-            if views is not None:
-                views.add(card.views_note or "views not run")
+            for tally in tallies.values():
+                tally.add(card)
     changes = compare_manifests(previous.manifest, manifest, previous.version)
     return ReleaseReport(
         version=next_version(previous.version, changes.kind),
         path=None,
         cards=len(manifest),
-        formats=list(fmt),
+        formats=[fmt.name for fmt in chosen],
         min_grade=min_grade,
         date=date.isoformat(),
         changes=changes.as_json(),
@@ -171,29 +166,14 @@ def plan_release(
         dry_run=True,
         notes=notes,
         manifest=manifest,
-        views=views.as_json() if views is not None else None,
+        summaries={name: tally.as_json() for name, tally in tallies.items()},
     )
 
 
-class _ViewsCount:
-    """How many cards have views, and how many lack them for each reason."""
-
-    def __init__(self) -> None:
-        self.with_views = 0
-        self.without: dict[str, int] = {}
-
-    def add(self, note: str) -> None:
-        if note == "done":
-            self.with_views += 1
-        else:
-            self.without[note] = self.without.get(note, 0) + 1
-
-    def as_json(self) -> dict[str, Any]:
-        return {
-            "cards_with_views": self.with_views,
-            "cards_without_views": sum(self.without.values()),
-            "without": dict(sorted(self.without.items())),
-        }
+def _with_views(chosen: Sequence[ReleaseFormat]) -> bool:
+    """Whether the cards are read with their views artifacts (their manifest entries then carry
+    the views digest): only when a chosen format releases them."""
+    return any(fmt.with_views for fmt in chosen)
 
 
 def _data_dir() -> Path:
@@ -206,7 +186,7 @@ def publish_release(
     out_dir: str | os.PathLike[str],
     *,
     min_grade: str = "some",
-    formats: str | tuple[str, ...] = DEFAULT_FORMATS,
+    formats: str | tuple[str, ...] | None = None,
     notes: str = "",
     actor: Person | None = None,
     actor_label: str = "cli",
@@ -217,7 +197,7 @@ def publish_release(
     and an audit event. Raises :class:`ReleaseError` when there is nothing to release or the
     version's folder or row already exists; nothing is left behind on any error."""
     clock = time.perf_counter()
-    fmt = parse_formats(formats)
+    fmt = parse_formats(default_format_names() if formats is None else formats)
     data_dir = data_dir or _data_dir()
     out = Path(out_dir).resolve()
     plan = plan_release(min_grade=min_grade, formats=fmt, notes=notes, data_dir=data_dir)
@@ -257,7 +237,7 @@ def publish_release(
                 "seconds": round(time.perf_counter() - clock, 3),
                 "date": report.date,
                 "excluded": report.excluded,
-                "views": report.views,
+                **report.summaries,
                 "manifest": report.manifest,
             },
             changes=report.changes,
@@ -308,20 +288,9 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     clock = time.perf_counter()
     date = datetime.fromisoformat(plan.date)
     ledger = FileLedger(root)
-    scratch = root / ".scratch.exr"
-    writers: list[Any] = []
-    if "keystonedepth" in fmt:
-        writers.append(KeystoneDepthWriter(ledger, scratch))
-    if "parquet" in fmt:
-        writers.append(ParquetWriter(ledger))
-    if "webdataset" in fmt:
-        writers.append(WebDatasetWriter(ledger, date.timestamp()))
-    views_writer = ViewsWriter(ledger, scratch) if "views" in fmt else None
-    if views_writer is not None:
-        writers.append(views_writer)
-    stereo_writer = StereoWriter(ledger) if "stereo" in fmt else None
-    if stereo_writer is not None:
-        writers.append(stereo_writer)
+    chosen = chosen_formats(fmt)
+    context = WriteContext(ledger=ledger, scratch=root / ".scratch.exr", date=date)
+    writers = [(chosen_format, chosen_format.writer(context)) for chosen_format in chosen]
     if progress is not None:
         progress.start(plan.cards)
     manifest: dict[str, dict[str, Any]] = {}
@@ -330,14 +299,14 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     with read_only(), open(root / "cards.jsonl", "wb") as cards_file:
         ids = [int(key) for key in sorted(plan.manifest, key=int)]
         plan.manifest = {}  # the ids are all that is needed from the plan: keep one manifest in memory
-        for card in stream_release_cards(ids, data_dir, exclusions, with_views=views_writer is not None):
+        for card in stream_release_cards(ids, data_dir, exclusions, with_views=_with_views(chosen)):
             try:
                 payload = build_payload(card)
             except (OSError, ValueError) as exc:  # one bad card never stops a release
                 exclusions.append(Exclusion(card.card_id, f"unreadable output: {exc}"))
                 continue
             cards_file.write(payload.record_json + b"\n")
-            for writer in writers:
+            for _, writer in writers:
                 writer.add(payload)
             manifest[str(card.card_id)] = payload.card.manifest_entry()  # the card as written (views may be dropped)
             answers = sum(int(task.get("answers") or 0) for task in card.crowd.values())
@@ -345,7 +314,7 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
             crowd_cards += 1 if card.crowd else 0
             if progress is not None:
                 progress.advance()
-    for writer in writers:
+    for _, writer in writers:
         writer.close()
     ledger.record_file("cards.jsonl")
     if not manifest:
@@ -358,18 +327,12 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     version = next_version(previous.version, changes.kind)
     grades = _count_grades(manifest)
     excluded = plan.excluded + [{"card_id": e.card_id, "reason": e.reason} for e in exclusions]
-    views: dict[str, Any] | None = None
-    if views_writer is not None:
-        views = {
-            "cards_with_views": views_writer.with_views,
-            "cards_without_views": sum(views_writer.without.values()),
-            "without": dict(sorted(views_writer.without.items())),
-        }
-    stereo = stereo_writer.summary() if stereo_writer is not None else None
-    ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, views, stereo).encode())
+    summaries = {written.name: summary for written, writer in writers if (summary := writer.summary()) is not None}
+    sections = [line for written in chosen for line in written.changelog(summaries.get(written.name))]
+    ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, sections).encode())
     ledger.write_bytes(
         "README.md",
-        dataset_card(version, plan.date, len(manifest), grades, fmt, plan.notes, changes, plan.min_grade, views, stereo).encode(),
+        dataset_card(version, plan.date, len(manifest), grades, chosen, summaries, plan.notes, changes, plan.min_grade).encode(),
     )
     crowd = {"answers_per_card": crowd_answers / crowd_cards if crowd_cards else None, "cards_with_crowd": crowd_cards}
     with open(root / "croissant.json", "wb") as handle:
@@ -382,8 +345,10 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
             grade_counts=grades,
             crowd=crowd,
             notes=plan.notes,
-            views_count=views["cards_with_views"] if views is not None else None,
-            stereo_count=stereo["cards"] if stereo is not None else None,
+            record_sets=[
+                record_set for written in chosen for record_set in written.record_sets(summaries.get(written.name), len(manifest))
+            ],
+            encodings=format_encodings(),
         )
     ledger.record_file("croissant.json")
     sums_hash = hashlib.sha256()
@@ -410,8 +375,7 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
         manifest_sha256=sums_hash.hexdigest(),
         notes=plan.notes,
         manifest=manifest,
-        views=views,
-        stereo=stereo,
+        summaries=summaries,
     )
 
 
@@ -425,11 +389,11 @@ def changelog(
     date: str,
     changes: Changes,
     excluded: list[dict[str, Any]],
-    views: dict[str, Any] | None = None,
-    stereo: dict[str, Any] | None = None,
+    format_sections: Sequence[str] = (),
 ) -> str:
     """CHANGELOG.md: cards added, removed and changed against the previous release, and why;
-    with the views component, how many cards have views and why the others have none."""
+    then the formats' own sections (``format_sections``, lines; e.g. how many cards have views and why the others
+    have none), then the accepted cards left out."""
     day = date[:10]
     lines = ["# Changelog", "", f"## {version} ({day})", ""]
     if changes.previous_version is None:
@@ -450,16 +414,7 @@ def changelog(
         )
         for title, items in sections:
             lines += ["", f"### {title} ({len(items)})", ""] + (items or ["- none"])
-    if views is not None:
-        total = views["cards_with_views"] + views["cards_without_views"]
-        lines += ["", f"### Views ({views['cards_with_views']} of {total} cards)", ""]
-        lines.append(f"- {views['cards_with_views']} card(s) with the five GD images, cameras and preview under `views/`")
-        lines += [f"- {count} card(s) without views: {reason}" for reason, count in views["without"].items()]
-    if stereo is not None:
-        total = stereo["cards"] + stereo["cards_without"]
-        lines += ["", f"### Stereo files ({stereo['cards']} of {total} cards)", ""]
-        lines.append(f"- {stereo['cards']} card(s) with an anaglyph, two wiggles, side-by-side, JPS and MPO under `stereo/`")
-        lines += [f"- {count} card(s) without: {reason}" for reason, count in stereo["without"].items()]
+    lines += format_sections
     if excluded:
         lines += ["", f"### Accepted but not released ({len(excluded)})", ""]
         lines += [f"- card {key_of(e['card_id'])}: {e['reason']}" for e in excluded]
@@ -477,14 +432,14 @@ def dataset_card(
     date: str,
     cards: int,
     grades: dict[str, int],
-    fmt: tuple[str, ...],
+    formats: Sequence[ReleaseFormat],
+    summaries: dict[str, dict[str, Any]],
     notes: str,
     changes: Changes,
     min_grade: str,
-    views: dict[str, Any] | None = None,
-    stereo: dict[str, Any] | None = None,
 ) -> str:
-    """README.md in the Hugging Face dataset-card layout (YAML header, then the template's sections)."""
+    """README.md in the Hugging Face dataset-card layout (YAML header, then the template's sections);
+    each format adds its header lines and its items of "Dataset Structure"."""
     size = "n<1K" if cards < 1000 else "1K<n<10K" if cards < 10_000 else "10K<n<100K"
     header = [
         "---",
@@ -500,56 +455,10 @@ def dataset_card(
         "size_categories:",
         f"- {size}",
     ]
-    if "parquet" in fmt:
-        header += ["configs:", "- config_name: default", "  data_files:", "  - split: train", "    path: data/train-*.parquet"]
+    for fmt in formats:
+        header += fmt.readme_header()
     header.append("---")
-    layout = []
-    if "keystonedepth" in fmt:
-        layout += [
-            "- `cropped/cropped_full_LR/<id>L.png`, `<id>R.png`: the left and right views cropped from the scan "
-            "(KeystoneDepth's layout; loaders written for it work).",
-            "- `processed/rectified/disp_info_LR/<id>L.exr`, `<id>R.exr`: float32 disparity of the left and right "
-            "rectified views, channel `Y`, pixels; `x_right = x_left - d`; NaN = unknown.",
-            "- `processed/rectified/rectified_LR/<id>L.png`, `<id>R.png`: the rectified pair.",
-            "- `processed/rectified/rectification/<id>.json`: `H_l`, `H_r` (3 x 3, column vectors, `x' ~ H x`, "
-            "cropped view -> rectified view), `K`, `R`, `t`, crop boxes `[x0, y0, x1, y1]` in card pixels.",
-            "- `processed/depth_512/<id>.exr`: depth up to scale (focal_px * baseline / d, baseline 1), 512 x 512.",
-            "- `original/<id>.<ext>`: the scan as ingested (never modified).",
-        ]
-    if "parquet" in fmt:
-        layout.append(
-            "- `data/train-*.parquet`: one row per card; image columns (`original`, `cropped_left/right`, "
-            "`rectified_left/right`) load as images with `datasets.load_dataset('parquet', ...)` or "
-            "`load_dataset(<this folder>)`; maps are `list<list<float32>>`; typed metadata columns."
-        )
-    if "webdataset" in fmt:
-        layout.append(
-            "- `webdataset/keystone-*.tar`: WebDataset shards; keys are the dot-free card ids, members "
-            "`<id>.json`, `<id>.left.png`, `<id>.right.png`, `<id>.disparity_left.npy`, ..."
-        )
-    if views is not None:
-        layout.append(
-            f"- `views/<id>/`: the five GD images of the scene for {views['cards_with_views']} of "
-            f"{views['cards_with_views'] + views['cards_without_views']} cards (the others have no finished views: "
-            "graded failure, not run, or failed; `cards.jsonl` says why per card under `views`): `v0.png` (the "
-            "reference view) and `v1.png`..`v4.png` (the four quad-corner views), 8-bit grey, or 8-bit RGB where "
-            "the card's rectified view is in colour (`views.json` says `colour`); `v0_depth.exr`.."
-            "`v4_depth.exr`, float32 channel `Y`, depth along each view's -z axis in baseline units (up to scale), "
-            "finite and > 0 at every pixel (EXR as KeystoneDepth's maps); `views.json`, the five cameras (OpenGL "
-            "convention, `x_cam = R x_world + t`, world = v0's camera, focal length in px, principal point at the "
-            "image centre); `preview.webp`, an animated parallax preview. `views/views.jsonl` lists them."
-        )
-    if stereo is not None:
-        layout.append(
-            f"- `stereo/<id>/`: viewing files of the rectified pair for {stereo['cards']} cards: `anaglyph.jpg` "
-            "(red-cyan, Dubois least-squares matrices, red filter on the left eye), `wiggle.gif` and `wiggle.webp` "
-            "(a looping sweep from the left view to the right one and back, in-between views synthesised by warping "
-            "the left view by a fraction of the disparity), `sbs_full.jpg` and `sbs_half.jpg` (parallel side-by-side: "
-            "left view on the left; half = each view squeezed to half width, for 3D TVs and headsets), `cross.jps` "
-            "(JPS: cross-eyed, right view on the left) and `pair.mpo` (multi-picture JPEG, left view first, for 3D "
-            "displays and cameras). Each carries the card's title, date, accession and licence (EXIF and XMP; "
-            "the GIF's comment). `stereo/stereo.jsonl` lists them."
-        )
+    layout = [line for fmt in formats for line in fmt.readme_layout(summaries.get(fmt.name))]
     layout += [
         "- `cards.jsonl`: one JSON record per card (museum metadata and URL, boxes, transforms, grade, review "
         "decision, pipeline versions and parameter hashes).",

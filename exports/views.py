@@ -50,8 +50,9 @@ from wtforms.widgets import CheckboxInput, ListWidget
 from core.auth import add_nav_link, role_required
 from core.db import db, read_only
 
+from .formats import default_format_names, format_names
 from .models import Release
-from .records import DEFAULT_FORMATS, FORMATS, RELEASABLE_GRADES
+from .records import RELEASABLE_GRADES
 
 bp = Blueprint("exports", __name__, url_prefix="/releases", template_folder="templates")
 bp.record_once(lambda state: add_nav_link(state.app, "Releases", "exports.index", "exporter", order=70))
@@ -73,8 +74,8 @@ class ReleaseForm(FlaskForm):
     # form unless all of them are ticked. At least one is checked on the server instead.
     formats = SelectMultipleField(
         "Formats",
-        choices=list(FORMATS),
-        default=list(DEFAULT_FORMATS),
+        choices=list(format_names()),
+        default=list(default_format_names()),
         widget=ListWidget(prefix_label=False),
         option_widget=CheckboxInput(),
     )

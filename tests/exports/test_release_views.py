@@ -85,13 +85,14 @@ def three_cards(processed_cards, review_card, make_views, add_stage_result):  # 
 
 
 def test_views_are_released_for_cards_that_have_them(app, tmp_path, three_cards, data_dir) -> None:
-    from exports.writers import read_exr, view_files
+    from exports.formats.views import view_files
+    from exports.writers import read_exr
 
     ids, artifacts = three_cards
     report = _publish(app, tmp_path / "out")
     root = Path(report.path)
     assert report.cards == 3
-    assert report.views == {
+    assert report.summaries["views"] == {
         "cards_with_views": 1,
         "cards_without_views": 2,
         "without": {"views not run": 1, "views skipped: not needed: graded failure": 1},
@@ -199,19 +200,19 @@ def test_views_releases_are_byte_identical_and_a_changed_views_result_is_a_chang
     assert third.version == "2.0.0" and sorted(changed) == ids[:2]
     assert changed[ids[0]][0].startswith("views re-synthesised (views parameter hash, inputs or code version changed) (")
     assert changed[ids[1]][0].startswith("views added (views ")
-    assert third.views["cards_with_views"] == 2
+    assert third.summaries["views"]["cards_with_views"] == 2
     changelog = (Path(third.path) / "CHANGELOG.md").read_text()
     assert f"- card {ids[1]:05d}: views added" in changelog
 
     # A release without the views component: the same manifest digests as before views existed.
     plain = _publish(app, tmp_path / "d", formats=("keystonedepth",))
-    assert plain.views is None and not (Path(plain.path) / "views").exists()
+    assert "views" not in plain.summaries and not (Path(plain.path) / "views").exists()
     assert {entry["card_id"] for entry in plain.changes["changed"]} == set(ids[:2])
     assert all(why[0].startswith("views removed") for why in (entry["why"] for entry in plain.changes["changed"]))
 
 
 def test_views_is_an_optional_format(runner) -> None:
-    from exports.records import DEFAULT_FORMATS, parse_formats
+    from exports.formats import default_format_names, parse_formats
 
-    assert "views" not in DEFAULT_FORMATS
+    assert "views" not in default_format_names()
     assert parse_formats("views,keystonedepth") == ("keystonedepth", "views")

@@ -25,7 +25,8 @@ def _publish(app, out: Path, **options):  # type: ignore[no-untyped-def]
 
 @pytest.mark.both_databases
 def test_release_layouts_hold_the_pipeline_outputs(app, tmp_path, processed_cards, review_card, data_dir) -> None:
-    from exports.writers import parquet_schema, read_exr
+    from exports.formats.parquet import parquet_schema
+    from exports.writers import read_exr
 
     ids = processed_cards(3)
     review_card(ids[0], "few")
@@ -172,7 +173,7 @@ def test_same_inputs_give_byte_identical_releases(app, tmp_path, processed_cards
 
 def test_a_crash_mid_release_leaves_no_release_and_no_row(app, tmp_path, processed_cards, review_card, monkeypatch) -> None:
     from core.db import db
-    from exports import writers
+    from exports.formats import parquet
     from exports.models import Release
 
     ids = processed_cards(2)
@@ -186,8 +187,8 @@ def test_a_crash_mid_release_leaves_no_release_and_no_row(app, tmp_path, process
             raise OSError("disk full (simulated)")
         original_add(self, payload)
 
-    original_add = writers.ParquetWriter.add
-    monkeypatch.setattr(writers.ParquetWriter, "add", exploding_add)
+    original_add = parquet.ParquetWriter.add
+    monkeypatch.setattr(parquet.ParquetWriter, "add", exploding_add)
     with pytest.raises(OSError, match="disk full"):
         _publish(app, tmp_path / "out")
     assert calls == ids

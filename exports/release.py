@@ -105,7 +105,8 @@ class ReleaseReport:
             "release_id": self.release_id,
             "cards_per_second": round(self.cards / self.seconds, 2) if self.seconds > 0 and not self.dry_run else None,
             "leftovers_removed": self.leftovers_removed,
-            # Each reporting format under its name (None when not in this release).
+            # Each reporting format under its name (None when not in this release); a test holds
+            # their names apart from the keys above.
             **{fmt.name: self.summaries.get(fmt.name) for fmt in registered_formats() if fmt.reports},
         }
 
@@ -237,7 +238,7 @@ def publish_release(
                 "seconds": round(time.perf_counter() - clock, 3),
                 "date": report.date,
                 "excluded": report.excluded,
-                **report.summaries,
+                "summaries": report.summaries,  # format name -> its writer's summary
                 "manifest": report.manifest,
             },
             changes=report.changes,

@@ -81,7 +81,8 @@ class ReleaseFormat(ABC):
     with_views: ClassVar[bool] = False
     # File suffix -> MIME type of the files it writes that croissant.json's common table lacks.
     encodings: ClassVar[Mapping[str, str]] = {}
-    # Whether the release report (``keystone export --json``) carries its summary under its name.
+    # Whether the release report (``keystone export --json``) carries its summary under its name
+    # (which must then differ from the report's own keys: version, cards, ...).
     reports: ClassVar[bool] = False
 
     def __init__(self, options: Any = None) -> None:

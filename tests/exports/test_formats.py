@@ -100,6 +100,27 @@ def test_every_module_of_the_package_registers_one_format_in_the_canonical_order
     assert all(fmt.description and fmt.description == fmt.description.strip() for fmt in registered_formats())
 
 
+def test_a_reporting_format_does_not_shadow_a_key_of_the_release_report() -> None:
+    from exports.formats import registered_formats
+    from exports.release import ReleaseReport
+
+    report = ReleaseReport(
+        version="1.0.0",
+        path=None,
+        cards=0,
+        formats=[],
+        min_grade="some",
+        date="",
+        changes={},
+        grades={},
+        excluded=[],
+        seconds=0.0,
+    )
+    own_keys = set(report.as_json()) - {fmt.name for fmt in registered_formats() if fmt.reports}
+    assert {"version", "cards", "formats", "stereo"} - own_keys == {"stereo"}
+    assert not own_keys & {fmt.name for fmt in registered_formats()}
+
+
 def test_format_names_are_parsed_into_the_canonical_order() -> None:
     from exports.formats import chosen_formats, parse_formats
 

@@ -103,6 +103,23 @@ def set_security_headers(response: Response) -> Response:
     return response
 
 
+def safe_next(target: str | None) -> str | None:
+    """``target`` if it is a path on this site, else None: no open redirects through ``next``."""
+    if not target:
+        return None
+    target = target.strip()
+    # Browsers treat a backslash like a slash, so "/\evil.com" would mean "//evil.com".
+    if "\\" in target or any(ord(ch) < 32 for ch in target):
+        return None
+    try:
+        parts = urlsplit(target)
+    except ValueError:  # "http://[::1" and the like: not a URL, so not a place to send anyone
+        return None
+    if parts.scheme or parts.netloc or not target.startswith("/") or target.startswith("//"):
+        return None
+    return target
+
+
 def prefers_json() -> bool:
     return request.accept_mimetypes.best_match(["text/html", "application/json"]) == "application/json"
 
@@ -144,8 +161,6 @@ STALE_FORM = "This form was opened before you logged in."
 def page_to_return_to() -> str | None:
     """The page a failed form was on: the Referer when it is this site (browsers send it to the
     same origin under our Referrer-Policy), else this URL for a GET; None when unknown."""
-    from core.auth import safe_next  # core.auth imports this module
-
     referrer = request.referrer
     if referrer:
         parts = urlsplit(referrer)

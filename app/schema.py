@@ -32,6 +32,7 @@ def target_metadata() -> MetaData:
     import annotation.models  # noqa: F401
     import exports.models  # noqa: F401
     import review.models  # noqa: F401
+    import runs.claims  # noqa: F401  (stage_claims)
     from core import models  # noqa: F401
     from core.db import db
 

@@ -60,6 +60,13 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     app.register_blueprint(exports_bp)
     app.register_blueprint(viewer.bp)
     security.init_app(app)
+
+    # keystone run clears what killed exports left in the releases folder; the driver below the
+    # exports feature learns how from here, not by importing it.
+    from exports.staging import remove_stale_partials
+    from runs.leftovers import register_staging_cleaner
+
+    register_staging_cleaner(app, remove_stale_partials)
     return app
 
 

@@ -1,8 +1,9 @@
 """The module import graph of the product packages, counting imports inside functions, and the layer table.
 
 Reads the source with ``ast`` (nothing is imported), so a lazy ``import`` inside a function
-counts as an edge like a top-level one: what matters for layering is who may call whom, not
-when the import runs. :data:`LAYERS` is the one place the layers are declared: a module may
+counts as an edge like a top-level one, and so does one under ``if TYPE_CHECKING:`` (a type
+named is a dependency too): what matters for layering is who may call whom, not when the import
+runs. :data:`LAYERS` is the one place the layers are declared: a module may
 import its own package and the packages of lower layers, never a higher one, and no two modules
 may import each other, directly or round a loop (a strongly connected component of more than
 one module, Tarjan 1972). ``tests/benchmarks/test_import_graph.py`` counts both and wants zero.

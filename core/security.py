@@ -12,6 +12,9 @@ A form posted after the session has expired (or with cookies lost) fails Flask-W
 with "The CSRF session token is missing."; that one is answered as what it is, "Your session
 expired: log in again", with a link to log in and come back to the page the form was on.
 
+Redirects to a ``next`` page go only to a path on this site (:func:`safe_next`: no open
+redirects); the login form and the expired-session page both use it.
+
 Behind ``KEYSTONE_TRUSTED_PROXIES`` reverse proxies, Werkzeug's ProxyFix takes the client's
 address and scheme from the headers those proxies set (never more hops than configured, so a
 client cannot spoof its address by sending X-Forwarded-For itself).

@@ -1,7 +1,7 @@
 """Confirm grids, the pure part: what a tap means, the gold a grid hides, the vote over taps.
 
 A confirm card is shown as the pipeline would use it: the orientation flags it is shown with
-(``shown``, the card as scanned: ``upside_down``, ``inverted``, ``swapped``, DESIGN.md) are
+(``shown``, the card as scanned: ``upside_down``, ``inverted``, ``swapped``, :mod:`pipeline.orientation`) are
 applied to the scan before the picture is made. A worker taps only what looks wrong:
 "upside down", "negative" or "inside-out depth". Each tap flips one flag, independently of
 the others, because the three fixes commute where it matters: turning the whole card and

@@ -1,6 +1,6 @@
 """The picture of one card in a confirm grid: the card as the pipeline would use it, small.
 
-The orientation flags it is shown with (the card as scanned, DESIGN.md) are applied to the
+The orientation flags it is shown with (the card as scanned, :mod:`pipeline.orientation`) are applied to the
 scan's two photos, as rectification would: turned 180 deg when ``upside_down`` (which also
 moves each photo to the other side: the photo on the right of the scan becomes the left one),
 negated when ``inverted``, exchanged when ``swapped``. The picture is the fixed left photo

@@ -226,7 +226,7 @@ def _api_entry() -> tuple[SignedWorker, dict[str, Any]]:
 def _task_json(task: Any) -> dict[str, Any]:
     document = {**task.as_json(), "image_url": url_for("crowd.task_image", token=task.reservation_token)}
     if task.kind == "judge":
-        # The key keeps its old name: it is the task JSON's contract (DESIGN.md), now still pictures.
+        # The key keeps its old name: it is the task JSON's contract (docs/CROWD.md), now still pictures.
         document["wiggle_urls"] = {
             order: url_for("crowd.task_eye_order", token=task.reservation_token, order=order) for order in EYE_ORDERS
         }

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from flask import Flask
+from sqlalchemy.engine import Engine
 
 
 def create_app(test_config: dict[str, Any] | None = None, instance_path: str | os.PathLike[str] | None = None) -> Flask:
@@ -35,6 +36,10 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     csrf.init_app(app)
     login_manager.init_app(app)
 
+    from core.console import register_schema
+
+    register_schema(app, _ensure_schema)
+
     from catalogue import views as catalog
     from core import auth, security
 
@@ -55,4 +60,18 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     app.register_blueprint(exports_bp)
     app.register_blueprint(viewer.bp)
     security.init_app(app)
+
+    # keystone run clears what killed exports left in the releases folder; the driver below the
+    # exports feature learns how from here, not by importing it.
+    from exports.staging import remove_stale_partials
+    from runs.leftovers import register_staging_cleaner
+
+    register_staging_cleaner(app, remove_stale_partials)
     return app
+
+
+def _ensure_schema(engine: Engine) -> bool:
+    """:func:`app.schema.ensure_schema`, imported when a command first needs it (Alembic is slow to import)."""
+    from app.schema import ensure_schema
+
+    return ensure_schema(engine)

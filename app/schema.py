@@ -32,7 +32,8 @@ def target_metadata() -> MetaData:
     import annotation.models  # noqa: F401
     import exports.models  # noqa: F401
     import review.models  # noqa: F401
-    from core import models  # noqa: F401
+    import runs.claims  # noqa: F401  (stage_claims)
+    from core import audit, models  # noqa: F401
     from core.db import db
 
     return db.metadata

@@ -9,11 +9,8 @@ loses at most the file in flight: running the same command again skips what is s
 
 from __future__ import annotations
 
-import hashlib
 import os
-import shutil
 import stat
-import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +23,14 @@ from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
 from catalogue.metadata import MetadataFormatError, MetadataRow, card_keys, read_metadata, row_keys
+from catalogue.originals import (
+    card_with_hash,
+    database_reason,
+    discard_original,
+    duplicate_entry,
+    sha256_regular_file,
+    store_original,
+)
 from core.db import db
 from core.models import Card, Collection, MetadataRecord
 from pipeline.errors import ImageReadError
@@ -35,7 +40,6 @@ if TYPE_CHECKING:
     from catalogue.stereo_ingest import StereoOptions
 
 DEFAULT_COLLECTION = "default"
-HASH_CHUNK = 1 << 20
 
 
 @dataclass
@@ -54,54 +58,6 @@ class IngestReport:
             "duplicate_files": self.duplicates,
             "metadata": self.metadata,
         }
-
-
-def sha256_file(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for chunk in iter(lambda: handle.read(HASH_CHUNK), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-def _file_kind(mode: int) -> str:
-    for test, name in (
-        (stat.S_ISDIR, "a folder"),
-        (stat.S_ISFIFO, "a named pipe (FIFO)"),
-        (stat.S_ISSOCK, "a socket"),
-        (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device"),
-    ):
-        if test(mode):
-            return name
-    return "not a regular file"
-
-
-def sha256_regular_file(path: Path) -> str:
-    """The sha256 of ``path``, which must be a regular file.
-
-    Opened without blocking and checked on the open descriptor: reading a named pipe would wait
-    forever for a writer, and a device would never end. Raises :class:`ImageReadError` for a
-    broken link or anything but a regular file, ``OSError`` when it cannot be read."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
-    except FileNotFoundError:
-        if path.is_symlink():
-            raise ImageReadError("broken symbolic link") from None
-        raise
-    try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise ImageReadError(f"{_file_kind(mode)}, not an image file")
-        handle = os.fdopen(fd, "rb")
-    except BaseException:
-        os.close(fd)
-        raise
-    digest = hashlib.sha256()
-    with handle:
-        for chunk in iter(lambda: handle.read(HASH_CHUNK), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
 
 
 def _os_reason(exc: OSError) -> str:
@@ -181,36 +137,6 @@ def _walk_folder(root: Path, report: IngestReport) -> list[Path]:
             elif child.suffix.lower() in IMAGE_SUFFIXES:
                 found.append(child)
     return sorted(found)
-
-
-def store_original(source: Path, content_hash: str, data_dir: Path) -> Path:
-    """Copy ``source`` into the store atomically and make it read-only; returns the relative path."""
-    relative = Path("originals") / content_hash[:2] / f"{content_hash}{source.suffix.lower()}"
-    target = data_dir / relative
-    if target.exists():  # left by an interrupted run, or shared by name: same bytes by construction
-        return relative
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".ingest-", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as out, source.open("rb") as src:
-            shutil.copyfileobj(src, out, HASH_CHUNK)
-            out.flush()
-            os.fsync(out.fileno())
-        if sha256_file(Path(tmp)) != content_hash:
-            raise OSError("the file changed while it was being copied")
-        os.chmod(tmp, stat.S_IRUSR | stat.S_IRGRP | stat.S_IROTH)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return relative
-
-
-def database_reason(exc: SQLAlchemyError) -> str:
-    """The database's own words for a failed statement, without SQL, parameters or traceback."""
-    cause = getattr(exc, "orig", None) or exc
-    lines = str(cause).strip().splitlines()
-    return f"{type(cause).__name__}: {lines[0] if lines else 'no message'}"
 
 
 def get_or_create_collection(name: str) -> Collection:
@@ -406,7 +332,7 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         )
         return
     if existing is not None:
-        report.duplicates.append(_duplicate_entry(path, existing))
+        report.duplicates.append(duplicate_entry(path, existing))
         return
     try:
         info = probe_image(path, max_pixels=max_pixels)
@@ -446,11 +372,11 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         # Another ingest may have stored the same bytes between our check and our commit
         # (IntegrityError): then its card owns the original. Otherwise (a full disk, a lost
         # server) no card points at the file, so it goes: the store never keeps an orphan.
-        existing = _card_with_hash(content_hash)
+        existing = card_with_hash(content_hash)
         if existing is not None:
-            report.duplicates.append(_duplicate_entry(path, existing))
+            report.duplicates.append(duplicate_entry(path, existing))
             return
-        removed = _discard_original(data_dir / relative)
+        removed = discard_original(data_dir / relative)
         report.rejected.append(
             {
                 "path": str(path),
@@ -461,30 +387,6 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         )
         return
     report.ingested.append({"id": card.id, "path": str(path), "content_hash": content_hash})
-
-
-def _card_with_hash(content_hash: str) -> Card | None:
-    try:
-        return db.session.scalar(select(Card).where(Card.content_hash == content_hash))
-    except SQLAlchemyError:
-        db.session.rollback()
-        return None
-
-
-def _discard_original(stored: Path) -> bool:
-    try:
-        stored.unlink(missing_ok=True)
-    except OSError:
-        return False
-    return True
-
-
-def _duplicate_entry(path: Path, existing: Card) -> dict[str, Any]:
-    return {
-        "path": str(path),
-        "card_id": existing.id,
-        "reason": f"same content as card {existing.id} ({existing.source_name}); nothing to do",
-    }
 
 
 @click.command("ingest")

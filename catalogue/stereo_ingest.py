@@ -38,6 +38,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
+from catalogue.originals import card_with_hash, database_reason, discard_original, duplicate_entry, sha256_file, store_original
 from core.db import db
 from core.models import Card
 from pipeline.errors import ImageReadError
@@ -271,8 +272,6 @@ def _store_derived(payload: bytes, content_hash: str, data_dir: Path) -> Path:
 
 
 def _original_entry(role: str, path: Path, data_dir: Path) -> dict[str, Any]:
-    from catalogue.ingest import sha256_file, store_original
-
     content_hash = sha256_file(path)
     relative = store_original(path, content_hash, data_dir)
     return {
@@ -313,14 +312,12 @@ def _add_card(
 ) -> None:
     """Store the card image (derived PNG from ``image``, or an original ``stored`` as it is) and
     add the card; a duplicate by content is reported as one, like any ingest."""
-    from catalogue.ingest import _card_with_hash, _discard_original, _duplicate_entry, database_reason
-
     if image is not None:
         payload = _encode_png(image)
         content_hash = hashlib.sha256(payload).hexdigest()
         existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
         if existing is not None:
-            report.duplicates.append(_duplicate_entry(Path(report_path), existing))
+            report.duplicates.append(duplicate_entry(Path(report_path), existing))
             return
         relative = _store_derived(payload, content_hash, data_dir)
         width, height, image_format, byte_size = image.shape[1], image.shape[0], "PNG", len(payload)
@@ -329,7 +326,7 @@ def _add_card(
         content_hash, relative = stored["sha256"], Path(stored["stored_path"])
         existing = db.session.scalar(select(Card).where(Card.content_hash == content_hash))
         if existing is not None:
-            report.duplicates.append(_duplicate_entry(Path(report_path), existing))
+            report.duplicates.append(duplicate_entry(Path(report_path), existing))
             return
         width, height, image_format, byte_size = stored["width"], stored["height"], stored["format"], stored["bytes"]
     card = Card(
@@ -352,16 +349,16 @@ def _add_card(
         # As catalogue.ingest: a race on the same bytes (IntegrityError) makes this a duplicate; a
         # database that refuses the write (a full disk) rejects the card and its stored image goes.
         db.session.rollback()
-        existing = _card_with_hash(content_hash)
+        existing = card_with_hash(content_hash)
         if existing is not None:
-            report.duplicates.append(_duplicate_entry(Path(report_path), existing))
+            report.duplicates.append(duplicate_entry(Path(report_path), existing))
             return
         # The card image and the originals stored for it: no card points at them now (an
         # original that is some card's own image stays).
         stored_here = {str(relative)} | {
-            entry["stored_path"] for entry in stereo.get("originals", []) if _card_with_hash(entry["sha256"]) is None
+            entry["stored_path"] for entry in stereo.get("originals", []) if card_with_hash(entry["sha256"]) is None
         }
-        removed = all([_discard_original(data_dir / path) for path in sorted(stored_here)])
+        removed = all([discard_original(data_dir / path) for path in sorted(stored_here)])
         report.rejected.append(
             {
                 "path": report_path,

@@ -21,7 +21,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any, TypeVar
-from urllib.parse import urlsplit
 
 from flask import (
     Blueprint,
@@ -71,7 +70,7 @@ from core.people import (
     set_active,
     set_roles,
 )
-from core.security import prefers_json
+from core.security import prefers_json, safe_next
 
 bp = Blueprint("auth", __name__, url_prefix="/auth")
 
@@ -225,32 +224,11 @@ def nav_links() -> list[dict[str, Any]]:
 bp.record_once(lambda state: add_nav_link(state.app, "People", "auth.people", "admin", order=90))
 
 
-def safe_next(target: str | None) -> str | None:
-    """``target`` if it is a path on this site, else None: no open redirects through ``next``."""
-    if not target:
-        return None
-    target = target.strip()
-    # Browsers treat a backslash like a slash, so "/\evil.com" would mean "//evil.com".
-    if "\\" in target or any(ord(ch) < 32 for ch in target):
-        return None
-    try:
-        parts = urlsplit(target)
-    except ValueError:  # "http://[::1" and the like: not a URL, so not a place to send anyone
-        return None
-    if parts.scheme or parts.netloc or not target.startswith("/") or target.startswith("//"):
-        return None
-    return target
-
-
 class LoginForm(FlaskForm):
     username = StringField("Username", validators=[DataRequired(), Length(max=120)])
     password = PasswordField("Password", validators=[DataRequired()])
     next = HiddenField()
     submit = SubmitField("Log in")
-
-
-class LogoutForm(FlaskForm):
-    submit = SubmitField("Log out")
 
 
 class MultiCheckboxField(SelectMultipleField):

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import click
-from flask import current_app
+from flask import Flask, current_app
+
+if TYPE_CHECKING:
+    from sqlalchemy.engine import Engine
 
 
 def emit_json(document: Any) -> None:
@@ -22,13 +25,25 @@ def data_dir() -> Path:
     return Path(current_app.config["KEYSTONE_DATA_DIR"]).resolve()
 
 
+# The migrations belong to the composition root (app.schema), which the kernel must not import:
+# the app factory registers how to bring the schema to head, and commands ask for it here.
+SCHEMA_EXTENSION_KEY = "keystone.ensure_schema"
+
+
+def register_schema(app: Flask, ensure_schema: Callable[[Engine], bool]) -> None:
+    """Tell ``app`` how to bring a database to the head revision (True when migrations ran)."""
+    app.extensions[SCHEMA_EXTENSION_KEY] = ensure_schema
+
+
 def ensure_database() -> bool:
     """Make the data dir and bring the schema to head; True when migrations ran."""
-    from app.schema import ensure_schema
     from core.db import db
 
+    ensure_schema = current_app.extensions.get(SCHEMA_EXTENSION_KEY)
+    if ensure_schema is None:
+        raise RuntimeError("this app has no schema manager: build it with app.create_app, which registers app.schema's")
     data_dir().mkdir(parents=True, exist_ok=True)
-    return ensure_schema(db.engine)
+    return bool(ensure_schema(db.engine))
 
 
 class _Progress:

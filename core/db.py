@@ -1,6 +1,6 @@
 """Database binding: one Flask-SQLAlchemy instance, SQLite tuned for concurrent writers.
 
-SQLite facts measured on these machines (DESIGN.md): WAL + busy_timeout is not enough. A
+SQLite facts measured on the project's machines (also in README.md): WAL + busy_timeout is not enough. A
 deferred transaction that reads and then writes fails at once with "database is locked"
 under concurrency (2,352 of 2,400 writes in a 16-writer test), because SQLite cannot upgrade
 its read lock while another writer holds the database and busy_timeout does not apply to that

@@ -234,7 +234,7 @@ class PersonRole(db.Model):
 class AuthEvent(db.Model):
     """One sign-in event: who (or which name was tried), from where, what happened and why.
 
-    Append-only like ``review.models.AuditEvent``: the ORM refuses updates and deletes, and the
+    Append-only like ``core.audit.AuditEvent``: the ORM refuses updates and deletes, and the
     migration adds database triggers that refuse them too.
     """
 

@@ -1,7 +1,7 @@
 """People: creating them, and the admin's changes to them (deactivate, reactivate, reset a
 password, change roles), plus ``keystone users`` (the web page is /auth/people).
 
-Every admin change is written to the audit trail (``review.models.AuditEvent``, entity
+Every admin change is written to the audit trail (``core.audit.AuditEvent``, entity
 ``person``: who changed whom, before, after) in the same transaction as the change. An admin
 cannot deactivate themselves, and no change may leave the app without an active admin.
 """
@@ -64,7 +64,7 @@ def _other_active_admins(person_id: int) -> int:
 
 
 def _record(actor: Person, person: Person, action: str, before: dict[str, Any], why: str) -> None:
-    from review.models import record_event
+    from core.audit import record_event
 
     record_event(
         entity="person", action=action, entity_id=person.id, actor=actor, before=before, after=_person_snapshot(person), why=why
@@ -156,7 +156,7 @@ def set_roles(person_id: int, roles: list[str], *, actor: Person) -> Person:
 
 def person_history(person_id: int, limit: int = 20) -> list[Any]:
     """The newest admin changes to a person, newest first."""
-    from review.models import AuditEvent
+    from core.audit import AuditEvent
 
     return list(
         db.session.scalars(

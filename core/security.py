@@ -12,6 +12,9 @@ A form posted after the session has expired (or with cookies lost) fails Flask-W
 with "The CSRF session token is missing."; that one is answered as what it is, "Your session
 expired: log in again", with a link to log in and come back to the page the form was on.
 
+Redirects to a ``next`` page go only to a path on this site (:func:`safe_next`: no open
+redirects); the login form and the expired-session page both use it.
+
 Behind ``KEYSTONE_TRUSTED_PROXIES`` reverse proxies, Werkzeug's ProxyFix takes the client's
 address and scheme from the headers those proxies set (never more hops than configured, so a
 client cannot spoof its address by sending X-Forwarded-For itself).
@@ -103,6 +106,23 @@ def set_security_headers(response: Response) -> Response:
     return response
 
 
+def safe_next(target: str | None) -> str | None:
+    """``target`` if it is a path on this site, else None: no open redirects through ``next``."""
+    if not target:
+        return None
+    target = target.strip()
+    # Browsers treat a backslash like a slash, so "/\evil.com" would mean "//evil.com".
+    if "\\" in target or any(ord(ch) < 32 for ch in target):
+        return None
+    try:
+        parts = urlsplit(target)
+    except ValueError:  # "http://[::1" and the like: not a URL, so not a place to send anyone
+        return None
+    if parts.scheme or parts.netloc or not target.startswith("/") or target.startswith("//"):
+        return None
+    return target
+
+
 def prefers_json() -> bool:
     return request.accept_mimetypes.best_match(["text/html", "application/json"]) == "application/json"
 
@@ -144,8 +164,6 @@ STALE_FORM = "This form was opened before you logged in."
 def page_to_return_to() -> str | None:
     """The page a failed form was on: the Referer when it is this site (browsers send it to the
     same origin under our Referrer-Policy), else this URL for a GET; None when unknown."""
-    from core.auth import safe_next  # core.auth imports this module
-
     referrer = request.referrer
     if referrer:
         parts = urlsplit(referrer)

@@ -249,7 +249,7 @@ def publish_release(
         except IntegrityError as exc:
             db.session.rollback()
             raise ReleaseError(f"release {report.version} is already recorded in the catalogue") from exc
-        from review.models import record_event
+        from core.audit import record_event
 
         record_event(
             entity="release",

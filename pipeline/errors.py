@@ -26,9 +26,3 @@ class InvalidInputError(PipelineError):
     """An array that breaks a stage's contract (wrong shape, dtype, NaN, too small)."""
 
     code = "invalid_input"
-
-
-class SplitError(PipelineError):
-    """No plausible gutter between two photos was found."""
-
-    code = "no_split"

@@ -1,6 +1,6 @@
 """Which way up, positive or negative, and which eye: a card's orientation as scanned.
 
-Flags (the ``orientation`` field of /work/shared/DESIGN.md), in the order they are fixed:
+Flags (the ``orientation`` field of ``keystone cards --json``, README.md), in the order they are fixed:
 
 * ``upside_down``: the whole scan is turned 180 deg (fixed by turning the whole card, which also
   moves each photo to the other side);
@@ -474,7 +474,7 @@ class OrientationEstimate:
         return min(max(f.probability, 1.0 - f.probability) for f in self.flags)
 
     def orientation(self) -> dict[str, Any]:
-        """The DESIGN.md ``orientation`` field: a flag is null while undecided; ``decided_by`` is
+        """The ``orientation`` field of ``keystone cards --json`` (README.md): a flag is null while undecided; ``decided_by`` is
         ``"auto"`` when every flag is decided, else null (the card waits for people)."""
         values = {f.name: f.value if self.undecidable is None else None for f in self.flags}
         return {**values, "decided_by": "auto" if self.decided else None, "confidence": round(self.confidence, 4)}

@@ -12,9 +12,10 @@ from typing import Any
 
 from sqlalchemy import select
 
+from core.audit import record_event
 from core.db import db
 
-from .models import GRADES, CardReview, GradeModel, record_event
+from .models import GRADES, CardReview, GradeModel
 from .report import LABELLED_DECISIONS
 
 

@@ -1,10 +1,9 @@
-"""Curator review rows: one review per card, the fitted grade models, and the audit trail.
+"""Curator review rows: one review per card, orientation overrides, the fitted grade and upright models.
 
 A card's *automatic* grade is a ``grade`` stage result (``core.models.StageResult``); the
 curator's decision and the card's final grade live in :class:`CardReview`. Every change to a
-grade, a decision or a crowd annotation is also written to :class:`AuditEvent`, which is
-append-only: the ORM refuses updates and deletes, and the migration adds database triggers
-that refuse them too, so a trace survives a bug or a hand-written SQL statement.
+grade, a decision or a crowd annotation is also written to the append-only audit trail
+(:class:`core.audit.AuditEvent`), which the kernel keeps because the people admin writes to it too.
 """
 
 from __future__ import annotations
@@ -12,8 +11,8 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import CheckConstraint, DateTime, Float, ForeignKey, Index, Integer, String, Text, event
-from sqlalchemy.orm import Mapped, Session, mapped_column, relationship
+from sqlalchemy import CheckConstraint, DateTime, Float, ForeignKey, Index, Integer, String, Text
+from sqlalchemy.orm import Mapped, mapped_column, relationship
 
 from core.db import JSONType, db, utcnow
 from core.models import Card, Person
@@ -108,63 +107,6 @@ class GradeModel(db.Model):
     evaluation: Mapped[dict[str, Any]] = mapped_column(JSONType, default=dict)  # held-out agreement
     created_by: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
-
-
-class AuditEvent(db.Model):
-    """One change: who, when, to what, before, after and why. Never updated, never deleted."""
-
-    __tablename__ = "audit_events"
-
-    id: Mapped[int] = mapped_column(primary_key=True)
-    card_id: Mapped[int | None] = mapped_column(ForeignKey("cards.id"), index=True)
-    entity: Mapped[str] = mapped_column(String(30))  # review | grade | aggregate | gold | release
-    entity_id: Mapped[int | None] = mapped_column(Integer)
-    action: Mapped[str] = mapped_column(String(40))
-    actor_id: Mapped[int | None] = mapped_column(ForeignKey("people.id"))
-    actor: Mapped[str] = mapped_column(String(200))  # username, or "pipeline" / "crowd"
-    at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, index=True)
-    before: Mapped[dict[str, Any] | None] = mapped_column(JSONType)
-    after: Mapped[dict[str, Any] | None] = mapped_column(JSONType)
-    why: Mapped[str] = mapped_column(Text, default="")
-
-
-class AuditTamperError(RuntimeError):
-    """Raised when code tries to change or delete an audit event."""
-
-
-@event.listens_for(Session, "before_flush")
-def _refuse_audit_changes(session: Session, _context: Any, _instances: Any) -> None:
-    for instance in (*session.dirty, *session.deleted):
-        if isinstance(instance, AuditEvent) and (instance in session.deleted or session.is_modified(instance)):
-            raise AuditTamperError(f"audit event {instance.id} is append-only: it cannot be changed or deleted")
-
-
-def record_event(
-    *,
-    entity: str,
-    action: str,
-    card_id: int | None = None,
-    entity_id: int | None = None,
-    actor: Person | None = None,
-    actor_label: str | None = None,
-    before: dict[str, Any] | None = None,
-    after: dict[str, Any] | None = None,
-    why: str = "",
-) -> AuditEvent:
-    """Add an audit event to the current session (committed with the change it describes)."""
-    event_row = AuditEvent(
-        card_id=card_id,
-        entity=entity,
-        entity_id=entity_id,
-        action=action,
-        actor_id=actor.id if actor is not None else None,
-        actor=actor.username if actor is not None else (actor_label or "system"),
-        before=before,
-        after=after,
-        why=why or "",
-    )
-    db.session.add(event_row)
-    return event_row
 
 
 class UprightHeadFit(db.Model):

@@ -19,11 +19,12 @@ from typing import Any
 from sqlalchemy import func, or_, select
 from sqlalchemy.exc import IntegrityError
 
+from core.audit import record_event
 from core.db import db, utcnow
 from core.models import Card, Collection, CollectionOrientation, Person
 from runs.orientation import FLAGS, word_phrase
 
-from .models import OrientationOverride, record_event
+from .models import OrientationOverride
 from .tasks import MAX_NOTE_CHARS, ReviewError
 
 __all__ = ["collection_words", "set_collection_orientation"]

@@ -18,11 +18,12 @@ from typing import Any
 
 from sqlalchemy import select
 
+from core.audit import record_event
 from core.db import db
 from core.models import Card, Person
 from runs.orientation import FLAGS, is_decided, public_orientation
 
-from .models import OrientationOverride, record_event
+from .models import OrientationOverride
 from .tasks import MAX_NOTE_CHARS, ReviewError
 
 __all__ = ["current_orientation", "flow_blockers", "flow_blockers_for", "override_orientation"]

@@ -20,10 +20,11 @@ from sqlalchemy.orm import selectinload
 from sqlalchemy.orm.exc import StaleDataError
 
 from annotation.models import Aggregate, Answer, BatchItem, GoldAnswer
+from core.audit import AuditEvent, record_event
 from core.db import db, utcnow
 from core.models import Card, Person, StageResult
 
-from .models import GRADE_NAMES, GRADES, AuditEvent, CardReview, record_event
+from .models import GRADE_NAMES, GRADES, CardReview
 
 ACTIONS: tuple[str, ...] = ("accept", "change", "send_back", "reject")
 QUEUE_DECISIONS: tuple[str, ...] = ("pending", "accepted", "changed", "sent_back", "rejected", "all")

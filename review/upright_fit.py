@@ -29,10 +29,11 @@ import numpy as np
 from flask import current_app
 from sqlalchemy import func, select
 
+from core.audit import record_event
 from core.db import db
 from core.models import Card, Collection
 
-from .models import UprightHeadFit, record_event
+from .models import UprightHeadFit
 
 WIDE_MARGIN = 0.99  # an automatic decision this sure labels its card
 MIN_CARDS = 10

@@ -123,7 +123,7 @@ def _judged_not_stereo(work: dict[str, Any]) -> bool:
 
 
 def card_orientation_field(card: Card, work: dict[str, Any]) -> dict[str, Any]:
-    """The ``orientation`` of ``keystone cards --json`` (DESIGN.md): null flags while undecided."""
+    """The ``orientation`` of ``keystone cards --json`` (README.md): null flags while undecided."""
     return public_orientation(card_orientation(card, work.get("approved", {})))
 
 

@@ -17,7 +17,7 @@ Four sources, each flag taken from the strongest that speaks to it:
 
 ``decided_by`` names the strongest source used (``curator`` > ``operator`` > ``crowd`` >
 ``auto``); any flag still null means the card is undecided: it waits for people, and it is not
-rectified, graded, accepted or released (the flow rule of DESIGN.md).
+rectified, graded, accepted or released (the flow rule of docs/PIPELINE.md, Orientation).
 """
 
 from __future__ import annotations
@@ -162,5 +162,5 @@ def is_decided(orientation: dict[str, Any]) -> bool:
 
 
 def public_orientation(orientation: dict[str, Any]) -> dict[str, Any]:
-    """The five keys DESIGN.md fixes for ``keystone cards --json``."""
+    """The five keys of ``keystone cards --json``'s ``orientation`` (README.md)."""
     return {key: orientation.get(key) for key in (*FLAGS, "decided_by", "confidence")}

@@ -275,7 +275,7 @@ def fit_thresholds(
 class TrueErrorBands:
     """Which grade a measured true error calls for: ``true_bad2`` (percent of ground-truth pixels
     more than 2 px off) under ``few_below`` is few, above ``failure_above`` failure, between them
-    some. Defaults: the default backend on clean Middlebury pairs is 8-19 % bad-2 (DESIGN.md), so
+    some. Defaults: the default backend on clean Middlebury pairs is 8-19 % bad-2 (docs/BENCHMARKS.md, disparity), so
     under 25 % is as good as the matcher gets; over 50 % most of the depth map is wrong."""
 
     few_below: float = 25.0

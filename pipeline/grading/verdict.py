@@ -29,8 +29,8 @@ def paper_distribution() -> dict[str, float]:
     """The paper's hand-graded distribution: 23 % few artifacts, 49 % some, 28 % failure.
 
     Source: Luo, Kong, Lawrence, Martin-Brualla, Seitz, "KeystoneDepth: History in 3D"
-    (3DV 2020), the quality assessment of a random sample of 711 processed cards (also in
-    ``DESIGN.md``, flow step 8). Reports compare the automatic and curated grades with it.
+    (3DV 2020), the quality assessment of a random sample of 711 processed cards.
+    Reports compare the automatic and curated grades with it.
     """
     return {"few": 0.23, "some": 0.49, "failure": 0.28}
 
@@ -176,7 +176,7 @@ def _threshold_text(threshold: float, unit: str) -> str:
 class GradeThresholds:
     """The grade's thresholds, one :class:`Threshold` per graded measurement.
 
-    Defaults, and why (measured figures from this module's tests and ``DESIGN.md``):
+    Defaults, and why (measured figures from this module's tests and docs/BENCHMARKS.md):
 
     * ``good_match_fraction``: true pairs match 20-34 % of keypoints, unrelated images 0.25-0.45 %,
       the filter culls below 0.5 % and asks people between 0.5 and 1.5 %: under 3 % a pair is

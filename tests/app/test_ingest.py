@@ -129,7 +129,7 @@ def test_interrupted_ingest_resumes(app, runner, scans, monkeypatch):
 
 def test_store_file_without_row_is_completed_on_rerun(app, runner, scans):
     """A crash between copying the original and committing its row leaves a stored file; rerun adopts it."""
-    from catalogue.ingest import sha256_file, store_original
+    from catalogue.originals import sha256_file, store_original
 
     source = scans / "1996.0009.17827.jpg"
     store_original(source, sha256_file(source), Path(app.config["KEYSTONE_DATA_DIR"]))

@@ -118,7 +118,7 @@ def _invoke(runner, *args: str, code: int = 0) -> Any:  # type: ignore[no-untype
 
 
 def _events(app) -> list[Any]:  # type: ignore[no-untyped-def]
-    from review.models import AuditEvent
+    from core.audit import AuditEvent
 
     with app.app_context():
         rows = list(db.session.scalars(select(AuditEvent).where(AuditEvent.entity == "orientation").order_by(AuditEvent.id)))

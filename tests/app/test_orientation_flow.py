@@ -157,7 +157,7 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     assert negative["decided_by"] == "curator" and negative["inverted"] is True and negative["swapped"] is False
     assert cards["turned.png"]["stages"]["judge"]["status"] == "done"
     with app.app_context():
-        from review.models import AuditEvent
+        from core.audit import AuditEvent
 
         event = db.session.scalar(select(AuditEvent).where(AuditEvent.entity == "orientation").order_by(AuditEvent.id))
         assert event.card_id == ids["upright.png"] and event.actor == curator.username

@@ -18,8 +18,8 @@ def _person_id(app, username: str) -> int:  # type: ignore[no-untyped-def]
 
 
 def _trail(app, person_id: int) -> list[tuple[str, str, dict, dict]]:  # type: ignore[no-untyped-def]
+    from core.audit import AuditEvent
     from core.db import db
-    from review.models import AuditEvent
 
     with app.app_context():
         return [

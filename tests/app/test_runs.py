@@ -63,7 +63,7 @@ def test_filter_routes_cards_and_cards_json_has_the_documented_shape(app, runner
             "review",
             "views",
         }
-        # DESIGN.md: null flags while undecided (the orientation step has not run yet).
+        # keystone cards --json (README.md): null flags while undecided (the orientation step has not run yet).
         assert card["orientation"] == {
             "upside_down": None,
             "inverted": None,

@@ -103,9 +103,9 @@ def test_release_layouts_hold_the_pipeline_outputs(app, tmp_path, processed_card
     with app.app_context():
         from sqlalchemy import select
 
+        from core.audit import AuditEvent
         from core.db import db
         from exports.models import Release
-        from review.models import AuditEvent
 
         row = db.session.scalar(select(Release))
         assert row.version == "1.0.0" and row.card_count == 2

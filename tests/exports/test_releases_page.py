@@ -72,9 +72,9 @@ def test_preview_then_publish_from_the_page(app, client, login, csrf_token, proc
     with app.app_context():
         from sqlalchemy import select
 
+        from core.audit import AuditEvent
         from core.db import db
         from exports.models import Release
-        from review.models import AuditEvent
 
         row = db.session.scalar(select(Release))
         assert row.creator is not None and row.creator.username.startswith("exporter")

@@ -180,3 +180,22 @@ def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, dat
     if not kept:
         assert "removed 1 temporary file(s) and 0 export staging folder(s) (0.1 MB)" in result.stderr
     assert json.loads(result.stdout)["stages"][0]["processed"] == 1  # and the card ran
+
+
+def test_keystone_run_clears_killed_exports_in_the_releases_folder(app, runner, tmp_path, make_card) -> None:
+    """The driver does not import exports: the app factory registers the staging cleaner with
+    runs.leftovers, and ``keystone run`` clears a killed export's folder and keeps a running one's."""
+    make_card()
+    releases = tmp_path / "releases"
+    releases.mkdir()
+    app.config["KEYSTONE_RELEASES_DIR"] = str(releases)
+    dead, dead_folder = _exporter(releases, "1.0.0", "die")
+    assert _end(dead) == -signal.SIGKILL
+    live, live_folder = _exporter(releases, "1.0.1", "wait")
+    try:
+        result = runner.invoke(args=["run", "--stages", "filter", "--json"])
+        assert result.exit_code == 0, result.output
+        assert "0 temporary file(s) and 1 export staging folder(s) (1.0 MB)" in result.stderr
+        assert not dead_folder.exists() and live_folder.is_dir()
+    finally:
+        _end(live)

@@ -54,9 +54,10 @@ def labelled(app, make_card, add_stage_result, card_image):  # type: ignore[no-u
 
 
 def test_fit_stores_a_model_with_held_out_agreement_and_the_stage_uses_it(app, runner, labelled) -> None:  # type: ignore[no-untyped-def]
+    from core.audit import AuditEvent
     from core.db import db
     from pipeline.records import param_hash
-    from review.models import AuditEvent, GradeModel
+    from review.models import GradeModel
     from runs.specs import available_stages
 
     with app.app_context():
@@ -133,9 +134,10 @@ def _bench_document(n: int = 60) -> dict:
 
 
 def test_fit_from_bench_learns_the_true_error_and_the_stage_uses_it(app, runner, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from core.audit import AuditEvent
     from core.db import db
     from review.grading import active_grade_params
-    from review.models import AuditEvent, GradeModel
+    from review.models import GradeModel
 
     path = tmp_path / "bench.json"
     path.write_text(json.dumps(_bench_document()))

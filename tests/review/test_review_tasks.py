@@ -69,8 +69,8 @@ def review_of(card_id: int) -> Any:
 
 
 def events(card_id: int | None = None, entity: str | None = None) -> list[Any]:
+    from core.audit import AuditEvent
     from core.db import db
-    from review.models import AuditEvent
 
     query = select(AuditEvent).order_by(AuditEvent.id)
     if card_id is not None:
@@ -386,8 +386,8 @@ def test_bulk_decisions_go_on_past_a_conflict(app, synced, person) -> None:  # t
 
 @pytest.mark.both_databases
 def test_audit_events_cannot_be_changed_or_deleted(app, synced) -> None:  # type: ignore[no-untyped-def]
+    from core.audit import AuditEvent, AuditTamperError
     from core.db import db
-    from review.models import AuditEvent, AuditTamperError
 
     with app.app_context():
         event = db.session.scalar(select(AuditEvent).order_by(AuditEvent.id).limit(1))

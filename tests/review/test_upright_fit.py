@@ -79,8 +79,9 @@ def test_fit_reports_held_out_accuracy_saves_a_version_and_feeds_the_next_run(ap
     assert turn["after"]["accuracy"] >= 0.9 > turn["before"]["accuracy"]
     assert document["saved"] is True and document["head_after"].startswith("prints-")
 
+    from core.audit import AuditEvent
     from core.db import db
-    from review.models import AuditEvent, UprightHeadFit
+    from review.models import UprightHeadFit
     from review.upright_fit import upright_head_inputs
 
     with app.app_context():

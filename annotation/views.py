@@ -37,7 +37,7 @@ from core.json_body import load_json_body
 from core.models import Card
 from core.security import frameable_by
 
-from . import run_hooks
+from . import questions as question_table, run_hooks
 from .answers import submit, undo_last
 from .batches import preview_card
 from .crowd_settings import DEFAULT_MIN_BOX_PX, DEFAULT_RESERVATION_MINUTES
@@ -139,6 +139,7 @@ def _task_page(entry: Entry) -> str:
     here = url_for(
         request.endpoint or "crowd.invite", **(request.view_args or {}), **{k: v for k, v in request.args.items() if k != "kind"}
     )
+    page = "grid" if kind == "confirm" else "judge"
     return render_template(
         f"annotation/{kind}.html",
         entry=entry,
@@ -151,6 +152,9 @@ def _task_page(entry: Entry) -> str:
         next_kind_url=(here + ("&" if "?" in here else "?") + f"kind={later[0]}") if later else "",
         entry_url=here,
         examples=EXAMPLES,
+        # The page's questions: drawn by annotation/_questions.html, and as JSON for its script.
+        questions=question_table.grid_questions() if page == "grid" else question_table.judge_questions(),
+        question_table=question_table.page_table(page),
     )
 
 

@@ -81,7 +81,7 @@ class Question:
 
     def as_json(self) -> dict[str, Any]:
         """What a page's script needs: the key, the hotkey, the untouched answer, the widget."""
-        return {"key": self.key, "hotkey": self.hotkey, "default": self.default, "widget": self.widget, "name": self.name}
+        return {"key": self.key, "hotkey": self.hotkey, "default": self.default, "widget": self.widget}
 
 
 JUDGE: tuple[Question, ...] = (

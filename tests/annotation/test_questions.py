@@ -37,13 +37,7 @@ def test_the_table_holds_the_questions_stored_answers_and_keys_have_always_had()
     assert [q.key for q in JUDGE if q.gate] == ["is_stereo"]
     assert keys(GRID) == FLAGS  # the grid taps the orientation flags its pictures apply
     assert [q.hotkey for q in GRID] == ["u", "n", "d"]
-    assert page_table("judge")[0] == {
-        "key": "is_stereo",
-        "hotkey": "n",
-        "default": True,
-        "widget": "checkbox",
-        "name": "Not a stereo pair",
-    }
+    assert page_table("judge")[0] == {"key": "is_stereo", "hotkey": "n", "default": True, "widget": "checkbox"}
     assert [row["widget"] for row in page_table("judge")] == ["checkbox", "checkbox", "checkbox", "eye_order"]
     assert [row["key"] for row in page_table("grid")] == ["upside_down", "inverted", "swapped"]
 
@@ -99,7 +93,7 @@ def test_a_question_added_to_the_table_is_drawn_validated_simulated_and_aggregat
     assert block is not None
     table = json.loads(block.group(1))
     assert [row["key"] for row in table] == ["is_stereo", "upside_down", "inverted", "swapped", "faded"]
-    assert table[-1] == {"key": "faded", "hotkey": "w", "default": False, "widget": "checkbox", "name": "Faded"}
+    assert table[-1] == {"key": "faded", "hotkey": "w", "default": False, "widget": "checkbox"}
 
     # Validation asks for it (an optional one only where given) and stores it under its key.
     old_answer = {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": False}

@@ -12,8 +12,9 @@ from typing import Any
 def __getattr__(name: str) -> Any:
     # Lazy, so importing the pure modules (annotation.assignment, ...) never pulls in Flask.
     if name == "bp":
-        from . import grid_views  # noqa: F401 (the confirm grid's routes, on the same blueprint)
-        from .views import bp
+        # Each module adds its routes to the one blueprint (annotation.blueprint) when imported.
+        from . import grid_views, staff_views, views  # noqa: F401
+        from .blueprint import bp
 
         return bp
     raise AttributeError(name)

@@ -4,13 +4,14 @@ Pure functions over plain records and numpy arrays; no database, no Flask.
 
 Judgements
 ----------
-A judge answer is three binary questions about a card (:data:`QUESTIONS`). They are
+A judge answer is a few binary questions about a card (the table :data:`annotation.questions.JUDGE`:
+stereo pair, upside-down, inverted, photos in the wrong order). They are
 aggregated *separately*, one binary Dawid-Skene per question, not as one 8-class joint label:
-a joint confusion matrix has 8 x 7 = 56 free parameters per worker, far more than the few
+for three questions a joint confusion matrix has 8 x 7 = 56 free parameters per worker, far more than the few
 dozen answers a worker gives per batch, while per question it has 2. The questions' errors
 are also largely independent (misreading orientation says little about spotting a negative).
-What is lost is the dependency "not a stereo card => the other two are moot"; the caller
-handles that by ignoring orientation/inversion when ``is_stereo`` comes out false.
+What is lost is the dependency "not a stereo card => the others are moot"; the caller
+handles that by ignoring the other questions when a ``gate`` question (``is_stereo``) comes out false.
 
 Label convention: class indices ``0..K-1``; for the binary questions ``1`` means "yes"
 (is a stereo pair / is upside-down / is inverted).
@@ -31,6 +32,8 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from . import questions as question_table
 
 __all__ = [
     "ALL_QUESTIONS",
@@ -58,11 +61,11 @@ __all__ = [
     "validate_box",
 ]
 
-QUESTIONS: tuple[str, ...] = ("is_stereo", "upside_down", "inverted")
-# Asked only by newer task pages (answers stored before it have no such key): "are the left and
-# right photos in the wrong order?". Aggregated like the others, over the answers that have it.
-OPTIONAL_QUESTIONS: tuple[str, ...] = ("swapped",)
-ALL_QUESTIONS: tuple[str, ...] = QUESTIONS + OPTIONAL_QUESTIONS
+# The judge table's keys as they were at import, for callers that only read them (the demo's
+# gold, the simulations in tests); code that must follow the table reads annotation.questions.
+QUESTIONS: tuple[str, ...] = question_table.required_keys(question_table.JUDGE)
+OPTIONAL_QUESTIONS: tuple[str, ...] = tuple(q.key for q in question_table.JUDGE if q.optional)
+ALL_QUESTIONS: tuple[str, ...] = question_table.keys(question_table.JUDGE)
 # A crop answer: one box per half of the card.
 HALVES: tuple[str, ...] = ("left", "right")
 
@@ -76,14 +79,21 @@ class LabelAnswer:
     label: int
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class Judgement:
-    """The judge questions about one card; ``swapped`` is None where it was not asked."""
+    """One worker's (or gold's) answers to the judge questions about one card, by question key:
+    ``Judgement(is_stereo=True, upside_down=False, ...)`` or ``Judgement(payload)``. A question
+    not asked is absent (None counts as absent)."""
 
-    is_stereo: bool
-    upside_down: bool
-    inverted: bool
-    swapped: bool | None = None
+    answers: tuple[tuple[str, bool], ...]
+
+    def __init__(self, given: Mapping[str, bool | None] | None = None, /, **by_key: bool | None) -> None:
+        merged = {**(given or {}), **by_key}
+        object.__setattr__(self, "answers", tuple(sorted((k, bool(v)) for k, v in merged.items() if v is not None)))
+
+    def get(self, key: str) -> bool | None:
+        """The answer to question ``key``, None where it was not asked."""
+        return dict(self.answers).get(key)
 
 
 @dataclass(frozen=True)
@@ -299,23 +309,22 @@ def aggregate_judgements(
     smoothing: float = 1.0,
     tol: float = 1e-6,
     max_iter: int = 200,
+    questions: Sequence[question_table.Question] | None = None,
 ) -> dict[str, DawidSkeneResult]:
-    """One binary Dawid-Skene per question, keyed by the names in :data:`QUESTIONS`, plus
-    ``swapped`` when any answer has it (over the answers and gold that have it only).
+    """One binary Dawid-Skene per question of ``questions`` (default: the judge table), keyed by
+    its key; an optional question (``swapped``) only when any answer has it, over the answers and
+    gold that have it.
 
     See the module docstring for why not one joint label; parameters as in :func:`dawid_skene`.
     """
     gold = gold or {}
     out: dict[str, DawidSkeneResult] = {}
-    for q in ALL_QUESTIONS:
-        labelled = [
-            LabelAnswer(a.item_id, a.worker_id, int(getattr(a.judgement, q)))
-            for a in answers
-            if getattr(a.judgement, q) is not None
-        ]
-        if not labelled and q in OPTIONAL_QUESTIONS:
+    for question in question_table.judge_questions() if questions is None else questions:
+        q = question.key
+        labelled = [LabelAnswer(a.item_id, a.worker_id, int(said)) for a in answers if (said := a.judgement.get(q)) is not None]
+        if not labelled and question.optional:
             continue
-        gold_q = {it: int(getattr(j, q)) for it, j in gold.items() if getattr(j, q) is not None}
+        gold_q = {it: int(said) for it, j in gold.items() if (said := j.get(q)) is not None}
         out[q] = dawid_skene(labelled, 2, gold_q, smoothing=smoothing, tol=tol, max_iter=max_iter)
     return out
 

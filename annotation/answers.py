@@ -17,15 +17,8 @@ from sqlalchemy.exc import IntegrityError
 from core.db import db, one_writer, read_only, utcnow
 from core.models import Card
 
-from .aggregation import (
-    ALL_QUESTIONS,
-    HALVES,
-    OPTIONAL_QUESTIONS,
-    QUESTIONS,
-    InvalidBoxError,
-    validate_box,
-)
-from .confirm import FLAGS as CONFIRM_FLAGS
+from . import questions as question_table
+from .aggregation import HALVES, InvalidBoxError, validate_box
 from .crowd_settings import min_box_px, reservation_ttl
 from .models import Aggregate, Answer, Worker
 from .queries import (
@@ -61,6 +54,18 @@ def _as_bool(payload: Mapping[str, Any], key: str) -> bool:
     return value
 
 
+# How each answer type of the question table (annotation.questions) is checked and stored.
+ANSWER_CHECKS = {"yes_no": _as_bool}
+
+
+def _answers_to(questions: tuple[question_table.Question, ...], payload: Mapping[str, Any]) -> dict[str, Any]:
+    """The answer to each question of ``questions`` (an optional one only where given), or TaskError."""
+    extra = sorted(set(payload) - set(question_table.keys(questions)))
+    if extra:
+        raise TaskError(f"Unexpected fields in the answer: {', '.join(map(str, extra))[:200]}")
+    return {q.key: ANSWER_CHECKS[q.answer](payload, q.key) for q in questions if not q.optional or q.key in payload}
+
+
 def _as_box(value: Any, half: str, card: Card | CardSize) -> list[float]:
     if (
         not isinstance(value, list)
@@ -84,27 +89,23 @@ def _as_box(value: Any, half: str, card: Card | CardSize) -> list[float]:
 def validate_payload(kind: str, payload: Any, card: Card | CardSize) -> dict[str, Any]:
     """The canonical answer, or TaskError saying what is wrong with it.
 
-    judge: ``{"is_stereo", "upside_down", "inverted"}`` booleans, and ``swapped`` (the photos in
-    the wrong eye order) where the page asked it; stored only when given, so aggregation can tell
-    "not asked" from "no". crop: ``{"left", "right"}`` boxes ``[x0, y0, x1, y1]`` in original
-    image pixels, inside the card, at least the minimum size. confirm: ``{"upside_down",
-    "inverted", "swapped"}`` booleans, true where the worker tapped it (it looked wrong).
+    judge: one answer per question of :data:`annotation.questions.JUDGE` under its key
+    (``is_stereo``, ``upside_down``, ``inverted`` booleans, and ``swapped``, the photos in the
+    wrong eye order, where the page asked it: an optional question is stored only when given, so
+    aggregation can tell "not asked" from "no"). crop: ``{"left", "right"}`` boxes ``[x0, y0,
+    x1, y1]`` in original image pixels, inside the card, at least the minimum size. confirm: one
+    boolean per question of :data:`annotation.questions.GRID` (``upside_down``, ``inverted``,
+    ``swapped``), true where the worker tapped it (it looked wrong).
     """
     if not isinstance(payload, dict):
         raise TaskError(f"Expected a JSON object as the answer, got {type(payload).__name__}")
     if kind == "confirm":
-        extra = sorted(set(payload) - set(CONFIRM_FLAGS))
-        if extra:
-            raise TaskError(f"Unexpected fields in the answer: {', '.join(map(str, extra))[:200]}")
-        return {flag: _as_bool(payload, flag) for flag in CONFIRM_FLAGS}
-    expected = set(ALL_QUESTIONS) if kind == "judge" else set(HALVES)
-    extra = sorted(set(payload) - expected)
+        return _answers_to(question_table.grid_questions(), payload)
+    if kind == "judge":
+        return _answers_to(question_table.judge_questions(), payload)
+    extra = sorted(set(payload) - set(HALVES))
     if extra:
         raise TaskError(f"Unexpected fields in the answer: {', '.join(extra)}")
-    if kind == "judge":
-        answer = {q: _as_bool(payload, q) for q in QUESTIONS}
-        answer.update({q: _as_bool(payload, q) for q in OPTIONAL_QUESTIONS if q in payload})
-        return answer
     return {half: _as_box(payload.get(half), half, card) for half in HALVES}
 
 

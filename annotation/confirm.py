@@ -20,10 +20,11 @@ from collections.abc import Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from .aggregation import DawidSkeneResult, LabelAnswer, dawid_skene
+from .questions import GRID, keys
 
-FLAGS: tuple[str, ...] = ("upside_down", "inverted", "swapped")
-# The keys of a grid answer and what each one's button says.
-TAP_WORDS: dict[str, str] = {"upside_down": "Upside down", "inverted": "Negative", "swapped": "Inside-out depth"}
+# The keys of a grid answer: the grid's questions (annotation.questions.GRID, where each one's
+# button words, hotkey and help are), which are the orientation flags of runs.orientation.
+FLAGS: tuple[str, ...] = keys(GRID)
 # What gold shows wrong, in turn: one flag flipped, or none (a gold card shown right keeps a
 # worker who taps everything from passing).
 GOLD_FLIPS: tuple[tuple[str, ...], ...] = (("upside_down",), ("inverted",), ("swapped",), ())

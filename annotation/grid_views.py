@@ -20,11 +20,12 @@ from core.auth import role_required
 from core.db import read_only
 from core.extensions import csrf
 
+from .blueprint import bp
 from .grid_pictures import grid_picture, picture_key
 from .grids import card_photo_boxes, next_grid, submit_grid
 from .providers import PROVIDERS
 from .reservations import Task, reservation_by_token
-from .views import _api_entry, bp
+from .views import _api_entry
 from .workers import account_worker
 
 

@@ -12,11 +12,9 @@ from sqlalchemy import select
 
 from core.db import db
 
+from . import questions as question_table
 from .aggregation import (
-    ALL_QUESTIONS,
     HALVES,
-    OPTIONAL_QUESTIONS,
-    QUESTIONS,
     ConfidenceRules,
     Judgement,
     JudgementAnswer,
@@ -71,12 +69,8 @@ def batch_agreement(kind: str, answers: Sequence[Answer], items: Iterable[int]) 
         workers = sorted({a.worker_id for a in answers})
         column, row = {it: j for j, it in enumerate(item_ids)}, {w: i for i, w in enumerate(workers)}
         out: dict[str, dict[str, float | None]] = {}
-        asked = (
-            list(CONFIRM_FLAGS)
-            if kind == "confirm"
-            else [q for q in ALL_QUESTIONS if q in QUESTIONS or any(q in a.payload for a in answers)]
-        )
-        for q in asked:
+        table = question_table.grid_questions() if kind == "confirm" else question_table.judge_questions()
+        for q in question_table.keys(question_table.asked(table, (a.payload for a in answers))):
             R = np.full((len(workers), len(item_ids)), np.nan)
             for a in answers:
                 if a.item_id in column and q in a.payload:
@@ -99,9 +93,9 @@ def batch_agreement(kind: str, answers: Sequence[Answer], items: Iterable[int]) 
 
 
 def _judgement(payload: Mapping[str, Any]) -> Judgement:
-    """A stored judge answer (or gold answer) as a :class:`Judgement`; a question not asked is None."""
+    """A stored judge answer (or gold answer) as a :class:`Judgement`; a question not asked is absent."""
     return Judgement(
-        **{q: bool(payload[q]) for q in QUESTIONS}, **{q: bool(payload[q]) for q in OPTIONAL_QUESTIONS if q in payload}
+        {q.key: bool(payload[q.key]) for q in question_table.judge_questions() if not q.optional or q.key in payload}
     )
 
 
@@ -128,8 +122,9 @@ def _confirm_results(
 def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> AggregationReport:
     """Flag workers on gold, then aggregate every finished item and store approved / needs_curator.
 
-    Judge: one binary Dawid-Skene per question seeded with the batch's gold; when the crowd
-    says "not a stereo pair", orientation and inversion are moot and do not block approval.
+    Judge: one binary Dawid-Skene per question of :data:`annotation.questions.JUDGE` seeded with
+    the batch's gold; when the crowd says "not a stereo pair" (a ``gate`` question), the other
+    questions are moot and do not block approval.
     Crop: :func:`consensus_box` per half in original pixels. Confirm: one binary Dawid-Skene
     per flag over the taps (:func:`annotation.confirm.aggregate_taps`).
     """
@@ -149,14 +144,17 @@ def aggregate_batch(batch_id: int, rules: ConfidenceRules | None = None) -> Aggr
     if batch.kind == "judge" and finished:
         judged = [JudgementAnswer(a.item_id, a.worker_id, _judgement(a.payload)) for a in answers]
         gold = {it.id: _judgement(it.gold_answer) for it in items.values() if it.is_gold and it.gold_answer}
-        ds = aggregate_judgements(judged, gold)
+        table = question_table.judge_questions()
+        ds = aggregate_judgements(judged, gold, questions=table)
         for it in finished:
-            # swapped: only where this card's answers asked it (older pages did not).
-            here = [q for q in ALL_QUESTIONS if q in QUESTIONS or any(q in a.payload for a in by_item[it.id])]
-            label = {q: bool(ds[q].label_of(it.id)) for q in here}
-            posterior = {q: [round(float(p), 6) for p in ds[q].posterior(it.id)] for q in here}
-            asked = here if label["is_stereo"] else ["is_stereo"]
-            reasons = unconfident_reasons({q: float(ds[q].posterior(it.id)[int(label[q])]) for q in asked}, rules=rules)
+            # An optional question (swapped) only where this card's answers asked it (older pages did not).
+            here = question_table.asked(table, (a.payload for a in by_item[it.id]))
+            label = {q.key: bool(ds[q.key].label_of(it.id)) for q in here}
+            posterior = {q.key: [round(float(p), 6) for p in ds[q.key].posterior(it.id)] for q in here}
+            # A gate answered "no" (not a stereo pair) makes the other questions moot.
+            closed = [q for q in here if q.gate and not label[q.key]]
+            deciding = [q.key for q in (closed or here)]
+            reasons = unconfident_reasons({q: float(ds[q].posterior(it.id)[int(label[q])]) for q in deciding}, rules=rules)
             results[it.id] = (posterior, label, reasons)
     elif batch.kind == "confirm" and finished:
         results = _confirm_results(items, finished, answers, rules)

@@ -8,8 +8,8 @@ assignment, N, validation and idempotency applies), then :func:`annotation.resul
 
 Noise model (all draws from one seeded generator, so a seed gives one outcome):
 - honest workers have an accuracy ``a`` (0.93-0.98): a judgement is right with probability
-  ``a``, else one of its four questions (stereo, upside-down, inverted, swapped eyes) is
-  answered wrong; a crop box is the true box with
+  ``a``, else one of its questions (the judge table, :data:`annotation.questions.JUDGE`:
+  stereo, upside-down, inverted, swapped eyes) is answered wrong; a crop box is the true box with
   each coordinate jittered by a
   Gaussian of sigma 1.5 px, or, with probability ``1 - a``, a sloppy box off by up to 8 % of
   the box size;
@@ -34,16 +34,16 @@ from sqlalchemy import select
 from core.db import db, read_only
 from core.models import Card, StageResult
 
-from .aggregation import ALL_QUESTIONS, HALVES
+from .aggregation import HALVES
 from .answers import submit
 from .batches import create_batch
 from .crowd_settings import DEFAULT_MIN_BOX_PX
+from .questions import judge_questions, keys
 from .reservations import next_tasks
 from .results import aggregate_batch
 from .task_errors import TaskError
 from .workers import get_or_create_worker
 
-JUDGE_TRUTH: dict[str, bool] = {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": False}
 HONEST_ACCURACY = (0.98, 0.97, 0.96, 0.95, 0.93)
 BOX_SIGMA_PX = 1.5
 SLOPPY_FRACTION = 0.08  # of the box size, for a careless honest box
@@ -103,13 +103,14 @@ def simulated_answer(
 ) -> dict[str, Any]:
     """One worker's answer for one card, by the noise model in the module docstring."""
     if kind == "judge":
+        questions = keys(judge_questions())
         if worker.spammer:
-            return {q: bool(rng.random() < 0.5) for q in ALL_QUESTIONS}
-        answer = {q: bool(truth.get(q, False)) for q in ALL_QUESTIONS}
-        if hard:  # a faint, low-contrast scan: is it a negative? honest workers guess
+            return {q: bool(rng.random() < 0.5) for q in questions}
+        answer = {q.key: bool(truth.get(q.key, q.default)) for q in judge_questions()}
+        if hard and "inverted" in answer:  # a faint, low-contrast scan: is it a negative? honest workers guess
             answer["inverted"] = bool(rng.random() < 0.5)
         if rng.random() >= worker.accuracy:  # a slip: one question answered wrong
-            slip = ALL_QUESTIONS[int(rng.integers(len(ALL_QUESTIONS)))]
+            slip = questions[int(rng.integers(len(questions)))]
             answer[slip] = not answer[slip]
         return answer
     answer = {}
@@ -136,10 +137,11 @@ def _truths(
     skipped: list[dict[str, Any]] = []
     for card_id in dict.fromkeys(card_ids):
         if kind == "judge":
-            extra = set(given.get(card_id, {})) - set(ALL_QUESTIONS)
+            extra = set(given.get(card_id, {})) - set(keys(judge_questions()))
             if extra:
                 raise TaskError(f"Unexpected judgement fields in the truth of card {card_id}: {', '.join(sorted(extra))}")
-            truths[card_id] = {**JUDGE_TRUTH, **given.get(card_id, {})}
+            # Unless said otherwise, the answer of an untouched page: a stereo pair, upright, ...
+            truths[card_id] = {**{q.key: q.default for q in judge_questions()}, **given.get(card_id, {})}
         elif card_id in given:
             truths[card_id] = {h: [float(v) for v in given[card_id][h]] for h in HALVES}
         else:
@@ -172,8 +174,8 @@ def seed_simulated_crowd(
             (threshold 0.7, KEYSTONE_CROWD_MIN_GOLD 3), and the batch still needs N usable workers.
         seed: seeds the noise and names the workers (``sim-<seed>-<i>``, invite provider), so
             a rerun with the same seed reuses them.
-        truth: card id -> the true answer. Judge: defaults to a stereo pair, upright, not
-            inverted, per question overridable. Crop: defaults to the filter's split boxes
+        truth: card id -> the true answer. Judge: defaults to each question's ``default``
+            (a stereo pair, upright, not inverted, eyes in order), per question overridable. Crop: defaults to the filter's split boxes
             shrunk a little (:func:`crop_truth_from_filter`); cards with neither are skipped.
         n: answers per item; default 4 for judge, 3 for crop. Why more for judge: on a handful
             of cards, three binary answers per question rarely reach the 0.95 posterior that

@@ -21,12 +21,12 @@ from core.auth import role_required
 from core.db import db, read_only
 
 from .batches import confirm_gold, confirm_queue_card_ids, create_batch, review_queue_card_ids
+from .blueprint import bp
 from .cli import ANSWER_COLUMNS, answer_rows
 from .models import TASK_KINDS, Batch, CrowdSession, Worker
 from .progress import batch_progress, worker_progress
 from .providers import InviteProvider
 from .task_errors import TaskError
-from .views import bp
 from .workers import check_prolific_submissions, set_worker_flag
 
 MAX_CARD_IDS = 10_000

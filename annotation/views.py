@@ -1,4 +1,5 @@
-"""Crowd pages and their small JSON API (the confirm grid's routes are :mod:`annotation.grid_views`).
+"""Crowd pages and their small JSON API, on the blueprint of :mod:`annotation.blueprint` (the
+confirm grid's routes are :mod:`annotation.grid_views`, the curators' :mod:`annotation.staff_views`).
 
 Identity and anti-forgery: crowd routes do not use the session cookie. MTurk shows the page
 in an iframe on mturk.com, where browsers block third-party cookies, so a cookie-based login
@@ -18,7 +19,6 @@ from pathlib import Path
 from typing import Any
 
 from flask import (
-    Blueprint,
     abort,
     current_app,
     jsonify,
@@ -30,16 +30,17 @@ from flask import (
 from flask_login import current_user
 from werkzeug.wrappers import Response
 
-from core.auth import add_nav_link, role_required
+from core.auth import role_required
 from core.db import db, read_only
 from core.extensions import csrf
 from core.json_body import load_json_body
 from core.models import Card
 from core.security import frameable_by
 
-from . import run_hooks
+from . import questions as question_table
 from .answers import submit, undo_last
 from .batches import preview_card
+from .blueprint import bp
 from .crowd_settings import DEFAULT_MIN_BOX_PX, DEFAULT_RESERVATION_MINUTES
 from .models import TASK_KINDS, Worker
 from .pictures import (
@@ -63,11 +64,6 @@ from .reservations import any_unfinished_batch, next_tasks, open_kinds, renew_re
 from .sessions import complete_session
 from .task_errors import TaskError
 from .workers import account_worker
-
-bp = Blueprint("crowd", __name__, url_prefix="/crowd", template_folder="templates", static_folder="static")
-bp.record_once(lambda state: add_nav_link(state.app, "Crowd", "crowd.batches", "curator", order=40))
-bp.record_once(lambda state: run_hooks.register(state.app))
-bp.record_once(lambda state: add_nav_link(state.app, "My tasks", "crowd.mine", "annotator", order=35))
 
 TOKEN_HEADER = "X-Crowd-Token"
 # Curators' pages (annotation.staff_views): their errors render in the staff layout.
@@ -139,6 +135,7 @@ def _task_page(entry: Entry) -> str:
     here = url_for(
         request.endpoint or "crowd.invite", **(request.view_args or {}), **{k: v for k, v in request.args.items() if k != "kind"}
     )
+    page = "grid" if kind == "confirm" else "judge"
     return render_template(
         f"annotation/{kind}.html",
         entry=entry,
@@ -151,6 +148,9 @@ def _task_page(entry: Entry) -> str:
         next_kind_url=(here + ("&" if "?" in here else "?") + f"kind={later[0]}") if later else "",
         entry_url=here,
         examples=EXAMPLES,
+        # The page's questions: drawn by annotation/_questions.html, and as JSON for its script.
+        questions=question_table.grid_questions() if page == "grid" else question_table.judge_questions(),
+        question_table=question_table.page_table(page),
     )
 
 
@@ -374,11 +374,3 @@ def task_eye_order(token: str, order: str) -> Response:
     response = Response(data, mimetype="image/jpeg")
     response.headers["Cache-Control"] = "private, max-age=3600"
     return response
-
-
-# ---------------------------------------------------------------------------------------------
-# Staff
-
-
-# The staff pages (batches, invites, workers, submissions, exports) register on this blueprint.
-from . import staff_views  # noqa: E402, F401 (its routes need bp, defined above)

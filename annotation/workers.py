@@ -16,17 +16,16 @@ from sqlalchemy.exc import IntegrityError
 from core.db import db, one_writer, read_only
 
 from .aggregation import (
-    ALL_QUESTIONS,
     HALVES,
     LabelAnswer,
     box_iou,
     flag_workers,
     gold_accuracy,
 )
-from .confirm import FLAGS as CONFIRM_FLAGS
 from .crowd_settings import gold_threshold, min_gold
 from .models import Answer, Batch, BatchItem, CrowdSession, Reservation, Worker
 from .queries import LOCK_ITEMS, on_sqlite, recount_items, run_prebuilt
+from .questions import grid_questions, judge_questions, keys
 from .task_errors import TaskError
 
 
@@ -59,9 +58,9 @@ def gold_label(kind: str, answer: Mapping[str, Any], gold: Mapping[str, Any]) ->
     """1 when the answer matches gold: every judgement both have, every tap of a confirm card,
     or both boxes at IoU >= 0.5."""
     if kind == "confirm":
-        return int(all(bool(answer.get(flag)) == bool(gold.get(flag)) for flag in CONFIRM_FLAGS))
+        return int(all(bool(answer.get(flag)) == bool(gold.get(flag)) for flag in keys(grid_questions())))
     if kind == "judge":
-        return int(all(bool(answer[q]) == bool(gold[q]) for q in ALL_QUESTIONS if q in answer and q in gold))
+        return int(all(bool(answer[q]) == bool(gold[q]) for q in keys(judge_questions()) if q in answer and q in gold))
     return int(all(box_iou(answer[h], gold[h])[0, 0] >= 0.5 for h in HALVES))
 
 

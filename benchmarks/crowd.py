@@ -45,7 +45,6 @@ DEFAULT_RAMP_S = 2.0  # annotators arrive over two seconds, then all work at onc
 REPLAY_EVERY = 10  # every tenth submit is posted twice, as a retried POST would be
 ALL_RESERVED_RETRIES = 200  # bounded wait when every open slot is held by someone else
 _WORKER_TOKEN = re.compile(r'data-worker-token="([^"]*)"')
-JUDGE_TRUTH = {"is_stereo": True, "upside_down": False, "inverted": False}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -149,9 +148,16 @@ def build_instance(
     return CrowdInstance(root, config, batch_id, items, tokens)
 
 
+def _judge_truth() -> dict[str, bool]:
+    """An untouched judge page's answer to the questions every answer has (annotation.questions)."""
+    from annotation.questions import judge_questions
+
+    return {q.key: q.default for q in judge_questions() if not q.optional}
+
+
 def _truth(kind: str, card: Any) -> dict[str, Any]:
     if kind == "judge":
-        return dict(JUDGE_TRUTH)
+        return _judge_truth()
     half = (card.width - 8) // 2
     return {"left": [2, 2, half - 2, card.height - 2], "right": [half + 10, 2, card.width - 2, card.height - 2]}
 
@@ -324,7 +330,7 @@ class _Client:
 def _answer_for(kind: str, task: dict[str, Any], rng: random.Random) -> dict[str, Any]:
     """A plausible answer: the truth for judgements; boxes around each half jittered by a few pixels."""
     if kind == "judge":
-        return dict(JUDGE_TRUTH)
+        return _judge_truth()
     width, height = int(task["card_width"]), int(task["card_height"])
     half = (width - 8) // 2
 

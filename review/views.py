@@ -32,6 +32,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import selectinload
 from werkzeug.wrappers import Response
 
+from annotation import questions as question_table
 from annotation.models import Aggregate, Worker
 from core.auth import add_nav_link, role_required
 from core.db import db, read_only
@@ -238,10 +239,11 @@ def _crowd_boxes(view: Any) -> list[dict[str, Any]]:
 
 
 def _judgement_counts(answers: list[Any]) -> dict[str, tuple[int, int]]:
+    """Per judge question the answers asked (annotation.questions): how many said yes, of how many."""
     counts = {}
-    for question in ("is_stereo", "upside_down", "inverted"):
-        yes = sum(1 for a in answers if (a.payload or {}).get(question) is True)
-        counts[question] = (yes, len(answers))
+    for question in question_table.asked(question_table.judge_questions(), (a.payload for a in answers)):
+        said = [a for a in answers if not question.optional or question.key in (a.payload or {})]
+        counts[question.key] = (sum(1 for a in said if (a.payload or {}).get(question.key) is True), len(said))
     return counts
 
 
@@ -555,14 +557,21 @@ def anaglyph(card_id: int) -> Response:
 # ----------------------------------------------------------------------------- disputes
 
 
-JUDGE_QUESTIONS = {"is_stereo": "a stereo pair", "upside_down": "upside down", "inverted": "a negative (inverted)"}
 CONFIDENT_POSTERIOR = 0.9  # below this the crowd's label is not offered as the default answer
 
 
-def _label_from_form(kind: str, form: Any) -> dict[str, Any]:
+def judge_questions_asked(aggregate: Any, answers: list[Any]) -> dict[str, str]:
+    """The judge questions (annotation.questions) a disputed judgement was asked, key -> how a
+    curator reads it: the required ones, and an optional one (``swapped``) where an answer or
+    the crowd's label has it."""
+    payloads = [*(a.payload for a in answers), aggregate.label]
+    return {q.key: q.review for q in question_table.asked(question_table.judge_questions(), payloads)}
+
+
+def _label_from_form(kind: str, form: Any, questions: dict[str, str]) -> dict[str, Any]:
     if kind == "judge":
         label = {}
-        for question, words in JUDGE_QUESTIONS.items():
+        for question, words in questions.items():
             raw = (form.get(question) or "").strip().lower()
             if raw not in ("yes", "no"):
                 raise ReviewError(f"Choose yes or no for whether the card is {words}")
@@ -595,6 +604,7 @@ def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200
             abort(404, f"There is no crowd aggregate {aggregate_id}.")
         card = get_card_or_404(aggregate.card_id, with_results=False)
         answers = aggregate_answers(aggregate)
+        questions = judge_questions_asked(aggregate, answers) if aggregate.kind == "judge" else {}
         view = crowd_view(card.id)
         boxes = []
         if aggregate.kind == "crop":
@@ -614,8 +624,8 @@ def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200
             boxes=boxes,
             judgements=_judgement_counts(answers) if aggregate.kind == "judge" else {},
             workers={wid: worker_label(w) for wid, w in workers.items()},
-            questions=JUDGE_QUESTIONS,
-            defaults=judge_defaults(aggregate),
+            questions=questions,
+            defaults=judge_defaults(aggregate, questions),
             posterior=posterior_words(aggregate),
             error=error,
             form=request.form,
@@ -637,13 +647,13 @@ def _yes_probability(aggregate: Any, question: str) -> float | None:
     return None
 
 
-def judge_defaults(aggregate: Any) -> dict[str, str | None]:
-    """The answer to pre-select per question: the crowd's label only where its posterior is at
-    least :data:`CONFIDENT_POSTERIOR`; otherwise None, and the curator must choose."""
+def judge_defaults(aggregate: Any, questions: dict[str, str]) -> dict[str, str | None]:
+    """The answer to pre-select per question of ``questions``: the crowd's label only where its
+    posterior is at least :data:`CONFIDENT_POSTERIOR`; otherwise None, and the curator must choose."""
     if aggregate.kind != "judge":
         return {}
     defaults: dict[str, str | None] = {}
-    for question in JUDGE_QUESTIONS:
+    for question in questions:
         yes = _yes_probability(aggregate, question)
         label = (aggregate.label or {}).get(question)
         if yes is None or not isinstance(label, bool):
@@ -658,10 +668,10 @@ def posterior_words(aggregate: Any) -> list[str]:
     """The crowd model's belief in words: "upside down: 25 % likely yes"."""
     if aggregate.kind == "judge":
         words = []
-        for question, text in JUDGE_QUESTIONS.items():
-            yes = _yes_probability(aggregate, question)
+        for question in question_table.judge_questions():
+            yes = _yes_probability(aggregate, question.key)
             if yes is not None:
-                words.append(f"{text}: {100 * yes:.0f} % likely")
+                words.append(f"{question.review}: {100 * yes:.0f} % likely")
         return words
     words = []
     for half in ("left", "right"):
@@ -689,8 +699,9 @@ def dispute(aggregate_id: int) -> Any:
         if aggregate is None:
             abort(404, f"There is no crowd aggregate {aggregate_id}.")
         kind = aggregate.kind
+        questions = judge_questions_asked(aggregate, aggregate_answers(aggregate)) if kind == "judge" else {}
     try:
-        label = _label_from_form(kind, request.form)
+        label = _label_from_form(kind, request.form, questions)
         resolved = resolve_aggregate(
             aggregate_id,
             label,

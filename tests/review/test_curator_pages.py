@@ -182,45 +182,60 @@ def test_the_threshold_table_from_levels_and_from_a_recorded_nearest(app) -> Non
 
 
 @pytest.fixture
-def judge_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped-def]
+def make_judge_dispute(app, make_card, card_image):  # type: ignore[no-untyped-def]
+    """``make_judge_dispute(swapped=None)``: a judge aggregate waiting for a curator, four answers
+    (one by a person with an account, who says upside down); with ``swapped`` (one vote per answer),
+    the answers were asked the eye order too, and the label and posterior have it."""
     from annotation.batches import create_batch
     from annotation.models import Aggregate, Answer, BatchItem
     from annotation.workers import get_or_create_worker
     from core.db import db
     from core.models import Person
 
-    card_id = make_card(card_image(), state="review")
-    with app.app_context():
-        batch = create_batch([card_id], "judge", 4, 0.0)
-        item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
-        person = Person(username="maria", display_name="María Ortega")
-        db.session.add(person)
-        db.session.flush()
-        for n in range(4):
-            worker = get_or_create_worker("invite", f"friend{n}")
-            if n == 0:
-                worker.person_id = person.id
-            db.session.add(
-                Answer(
-                    item_id=item.id,
-                    worker_id=worker.id,
-                    idempotency_key=f"key-{n}-judge-abc",
-                    payload={"is_stereo": True, "upside_down": n == 0, "inverted": False},
+    def make(swapped: list[bool] | None = None) -> int:
+        card_id = make_card(card_image(), state="review")
+        with app.app_context():
+            batch = create_batch([card_id], "judge", 4, 0.0)
+            item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
+            person = db.session.scalar(select(Person).where(Person.username == "maria"))
+            if person is None:
+                person = Person(username="maria", display_name="María Ortega")
+                db.session.add(person)
+                db.session.flush()
+            for n in range(4):
+                worker = get_or_create_worker("invite", f"friend{n}")
+                if n == 0:
+                    worker.person_id = person.id
+                payload = {"is_stereo": True, "upside_down": n == 0, "inverted": False}
+                if swapped is not None:
+                    payload["swapped"] = swapped[n]
+                db.session.add(
+                    Answer(item_id=item.id, worker_id=worker.id, idempotency_key=f"key-{n}-judge-{batch.id}", payload=payload)
                 )
+            label = {"is_stereo": True, "upside_down": False, "inverted": False}
+            posterior = {"is_stereo": [0.02, 0.98], "upside_down": [0.75, 0.25], "inverted": [0.97, 0.03]}
+            if swapped is not None:
+                label["swapped"], posterior["swapped"] = True, [0.4, 0.6]
+            aggregate = Aggregate(
+                batch_id=batch.id,
+                card_id=card_id,
+                kind="judge",
+                state="needs_curator",
+                answers=4,
+                label=label,
+                posterior=posterior,
+                reasons="upside_down: posterior 0.75 < 0.9",
             )
-        aggregate = Aggregate(
-            batch_id=batch.id,
-            card_id=card_id,
-            kind="judge",
-            state="needs_curator",
-            answers=4,
-            label={"is_stereo": True, "upside_down": False, "inverted": False},
-            posterior={"is_stereo": [0.02, 0.98], "upside_down": [0.75, 0.25], "inverted": [0.97, 0.03]},
-            reasons="upside_down: posterior 0.75 < 0.9",
-        )
-        db.session.add(aggregate)
-        db.session.commit()
-        return aggregate.id
+            db.session.add(aggregate)
+            db.session.commit()
+            return aggregate.id
+
+    return make
+
+
+@pytest.fixture
+def judge_dispute(make_judge_dispute) -> int:  # type: ignore[no-untyped-def]
+    return make_judge_dispute()
 
 
 def test_the_judge_dispute_shows_votes_and_preselects_only_confident_answers(client, login, csrf_token, judge_dispute) -> None:  # type: ignore[no-untyped-def]
@@ -241,6 +256,40 @@ def test_the_judge_dispute_shows_votes_and_preselects_only_confident_answers(cli
     assert bad.status_code == 400
     done = client.post(url, data={"csrf_token": token, "is_stereo": "yes", "inverted": "no", "upside_down": "yes"})
     assert done.status_code == 303
+    # Answers from before the eye-order question: it is neither shown nor asked of the curator.
+    assert 'name="swapped"' not in html and "eye order" not in html
+
+
+def test_the_judge_dispute_shows_and_asks_the_eye_order_where_the_crowd_was_asked_it(  # type: ignore[no-untyped-def]
+    app, client, login, csrf_token, make_judge_dispute
+) -> None:
+    from annotation.models import Aggregate
+    from core.db import db
+
+    aggregate_id = make_judge_dispute(swapped=[True, True, False, True])
+    login("curator")
+    url = f"/review/disputes/{aggregate_id}"
+    html = client.get(url).get_data(as_text=True)
+    assert "in the wrong eye order (photos exchanged): 60 % likely" in html
+    votes = html[html.index('id="votes"') : html.index("</table>", html.index('id="votes"'))]
+    assert "<th>in the wrong eye order (photos exchanged)?</th>" in votes
+    assert votes.count('data-label="in the wrong eye order (photos exchanged)">yes</td>') == 3
+    assert re.search(r'data-label="in the wrong eye order \(photos exchanged\)">3 of 4</td>', votes)
+    assert "Is it in the wrong eye order (photos exchanged)?" in html
+    assert 'name="swapped" value="yes"' in html and not re.search(r'name="swapped" value="\w+"[^>]*checked', html)  # 60 %: unsure
+    token = csrf_token(url)
+    answers = {"csrf_token": token, "is_stereo": "yes", "inverted": "no", "upside_down": "no"}
+    unchosen = client.post(url, data=answers)
+    assert unchosen.status_code == 400
+    assert "Choose yes or no for whether the card is in the wrong eye order (photos exchanged)" in unchosen.get_data(as_text=True)
+    assert client.post(url, data={**answers, "swapped": "yes"}).status_code == 303
+    with app.app_context():
+        stored = db.session.get(Aggregate, aggregate_id)
+        assert stored.state == "approved"
+        assert stored.label == {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": True}
+    card_page = client.get(f"/review/cards/{stored.card_id}").get_data(as_text=True)
+    crowd = card_page[card_page.index("<h2>The crowd</h2>") :]
+    assert re.search(r"<td>swapped</td><td>[^<]*</td><td>3 of 4</td>", crowd), crowd[:1500]
 
 
 def test_a_card_without_a_review_says_where_it_stands(client, login, make_card, add_stage_result, card_image) -> None:  # type: ignore[no-untyped-def]

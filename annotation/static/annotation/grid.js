@@ -3,7 +3,8 @@
 // Submit (or Enter) sends the whole grid under one idempotency key, reused on retry, so a
 // double click or a lost reply never stores a card twice. Arrows move the focus between cards
 // (up and down by the number of columns the layout has now). No inline script (CSP
-// script-src 'self'); settings come from data-* attributes; the API is authenticated by the
+// script-src 'self'); settings come from data-* attributes, the questions (each tap's answer
+// key and hotkey, annotation/questions.py) from the page's JSON block; the API is authenticated by the
 // signed worker token, as the judge and crop pages (no cookies: MTurk frames this page).
 (function () {
   "use strict";
@@ -20,7 +21,9 @@
   const marked = document.getElementById("marked");
   const submitButton = document.getElementById("submit-answer");
   const help = document.getElementById("help");
-  const KEYS = { u: "upside_down", n: "inverted", d: "swapped" };
+  const questions = JSON.parse(document.getElementById("questions").textContent);
+  const KEYS = Object.fromEntries(questions.map(q => [q.hotkey, q.key]));
+  const untapped = () => Object.fromEntries(questions.map(q => [q.key, false]));
   const FINISHED = {
     batch_complete: ["All done, thank you!", "You have checked every card open to you. New cards may open later: keep this link, it brings you back to your place."],
     nothing_left_for_worker: ["All done, thank you!", "You have checked every card open to you. New cards may open later: keep this link, it brings you back to your place."],
@@ -75,7 +78,7 @@
       image.src = task.picture_url;
       image.alt = "Card " + (i + 1) + " of " + list.length + ": its left photo and, under it, its depth in colours";
       element.setAttribute("aria-label", "Card " + (i + 1));
-      const card = { token: task.token, element, taps: { upside_down: false, inverted: false, swapped: false } };
+      const card = { token: task.token, element, taps: untapped() };
       element.querySelectorAll(".tap").forEach(button => {
         button.addEventListener("click", () => { toggle(i, button.dataset.flag); focusCard(i, false); });
       });

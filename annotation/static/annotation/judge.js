@@ -1,17 +1,25 @@
 // The judge page: one key or one tap per judgement, Enter or the Submit button sends, U undoes,
 // H (or the Help button) helps. No inline script (CSP script-src 'self'); settings come from
-// data-* attributes.
+// data-* attributes, the questions from the page's JSON block (annotation/questions.py: each
+// one's answer key, hotkey, the answer of an untouched box, its widget).
 (function () {
   "use strict";
   const root = document.getElementById("crowd-task");
   if (!root) return;
   const form = document.getElementById("judge-form");
   const image = document.getElementById("card-image");
-  // The eye-order pictures (the task's wiggle_urls): tapping one picks it, the same answer as the S box.
+  const questions = JSON.parse(document.getElementById("questions").textContent);
+  const boxOf = (question) => form.querySelector('input[name="' + question.key + '"]');
+  const byHotkey = new Map(questions.map(q => [q.hotkey, q]));
+  // The eye-order pictures (the task's wiggle_urls): tapping one picks it, the same answer as
+  // its question's box (S).
+  const eyeQuestion = questions.find(q => q.widget === "eye_order");
+  const eyeBox = eyeQuestion ? boxOf(eyeQuestion) : null;
   const eyeOrders = { "as-is": document.getElementById("eye-order-as-is"), swapped: document.getElementById("eye-order-swapped") };
   const picks = form.querySelectorAll(".eye-order-pick");
   const showPick = () => {
-    picks.forEach(pick => { pick.setAttribute("aria-pressed", String((pick.dataset.swapped === "true") === form.elements.swapped.checked)); });
+    if (!eyeBox) return;
+    picks.forEach(pick => { pick.setAttribute("aria-pressed", String((pick.dataset.swapped === "true") === eyeBox.checked)); });
   };
 
   const client = window.KeystoneTasks.create(root, {
@@ -21,6 +29,7 @@
     show(task) {
       image.src = task.image_url; image.hidden = false; form.reset(); showPick();
       for (const order in eyeOrders) {
+        if (!eyeOrders[order]) continue;
         const url = task.wiggle_urls && task.wiggle_urls[order];
         eyeOrders[order].hidden = !url;
         if (url) eyeOrders[order].src = url;
@@ -33,22 +42,20 @@
       document.getElementById("status").textContent = "A card like the ones in this task. Accept the HIT to answer.";
       form.querySelectorAll("input, .eye-order-pick").forEach(input => { input.disabled = true; });
     },
-    hide() { image.hidden = true; for (const order in eyeOrders) eyeOrders[order].hidden = true; },
+    hide() { image.hidden = true; for (const order in eyeOrders) if (eyeOrders[order]) eyeOrders[order].hidden = true; },
     answer() {
-      return {
-        is_stereo: !form.elements.not_stereo.checked,
-        upside_down: form.elements.upside_down.checked,
-        inverted: form.elements.inverted.checked,
-        swapped: form.elements.swapped.checked,
-      };
+      // A ticked box gives the other answer than an untouched one ("Not a stereo pair": is_stereo false).
+      const answer = {};
+      questions.forEach(q => { answer[q.key] = boxOf(q).checked ? !q.default : q.default; });
+      return answer;
     },
   });
   const help = window.KeystoneTasks.instructions(document.getElementById("help"), "keystone-crowd-help-seen");
 
   form.addEventListener("submit", (event) => { event.preventDefault(); client.submit(); });
-  form.elements.swapped.addEventListener("change", showPick);
+  if (eyeBox) eyeBox.addEventListener("change", showPick);
   picks.forEach(pick => pick.addEventListener("click", () => {
-    form.elements.swapped.checked = pick.dataset.swapped === "true";
+    eyeBox.checked = pick.dataset.swapped === "true";
     showPick();
   }));
   document.getElementById("undo").addEventListener("click", client.undo);
@@ -56,7 +63,8 @@
   document.addEventListener("keydown", (event) => {
     if (event.ctrlKey || event.metaKey || event.altKey || help.isOpen()) return;
     const key = event.key.toLowerCase();
-    const box = form.querySelector('input[data-key="' + key + '"]');
+    const question = byHotkey.get(key);
+    const box = question ? boxOf(question) : null;
     if (box) { event.preventDefault(); if (!box.disabled) box.checked = !box.checked; showPick(); return; }
     if (key === "enter") { event.preventDefault(); client.submit(); }
     else if (key === "u") { event.preventDefault(); client.undo(); }

@@ -10,10 +10,10 @@ from sqlalchemy.orm import selectinload
 from core.db import db
 from core.hooks import people_work
 from core.models import Card, StageResult
+from pipeline.decided_orientation import card_orientation, is_decided, public_orientation
 from pipeline.records import STAGES
-from runs.orientation import is_decided, public_orientation
 from runs.planning import PLAN_CHUNK
-from runs.specs import approved_annotations, card_orientation
+from runs.specs import approved_annotations
 
 
 def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:

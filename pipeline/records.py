@@ -14,8 +14,6 @@ from typing import Any, Literal
 
 StageStatus = Literal["done", "skipped", "failed"]
 
-STAGES: tuple[str, ...] = ("filter", "orientation", "judge", "crop", "rectify", "disparity", "grade", "review", "views")
-
 
 def param_hash(params: Any) -> str:
     """Stable 16-hex-digit hash of a frozen parameters dataclass (its fields as sorted JSON).

@@ -11,7 +11,7 @@ from core.db import db
 from core.hooks import people_work
 from core.models import Card, StageResult
 from pipeline.decided_orientation import card_orientation, is_decided, public_orientation
-from pipeline.records import STAGES
+from pipeline.stages.spec import flow_stages
 from runs.planning import PLAN_CHUNK
 from runs.specs import approved_annotations
 
@@ -140,7 +140,7 @@ def card_stage_statuses(
         work = people_and_decisions([card.id]).get(card.id, {})
     statuses: dict[str, dict[str, Any]] = {}
     orientation = card_orientation(card, work.get("approved", {}))
-    for stage in STAGES if only_stage is None else (only_stage,):
+    for stage in flow_stages() if only_stage is None else (only_stage,):
         result = latest.get(stage)
         if (
             stage == "judge"

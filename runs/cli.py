@@ -13,8 +13,7 @@ from sqlalchemy.orm import selectinload
 
 from core.db import db
 from core.models import CARD_STATES, Card
-from pipeline.records import STAGES
-from pipeline.stages.spec import StageSpec, declared_stages
+from pipeline.stages.spec import StageSpec, declared_stages, flow_stages
 from runs.card_state import card_orientation_field, card_stage_statuses, people_and_decisions, waiting_for_people
 from runs.claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver
 from runs.executors import make_executor
@@ -256,7 +255,7 @@ def card_rows(
 
 
 @click.command("cards")
-@click.option("--stage", type=click.Choice(list(STAGES)), help="Show only this stage's status.")
+@click.option("--stage", type=click.Choice(list(flow_stages())), help="Show only this stage's status.")
 @click.option("--state", type=click.Choice(list(CARD_STATES)), help="Only cards in this state.")
 @click.option("--collection", "collection_name", help="Only cards of this collection.")
 @click.option("--json", "as_json", is_flag=True, help="Print the cards as one JSON document.")

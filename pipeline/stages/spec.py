@@ -31,8 +31,10 @@ __all__ = [
     "ReadyCheck",
     "StageDeclaration",
     "StageDeclarationError",
+    "PEOPLE_STAGES",
     "StageSpec",
     "declared_stages",
+    "flow_stages",
     "has_inputs",
 ]
 
@@ -46,6 +48,12 @@ InputsBuilder = Callable[[CardResults, Mapping[str, Any]], Mapping[str, Any]]
 ReadyCheck = Callable[[CardResults, dict[str, Any]], bool]
 # How ``keystone run`` treats a stage: in its default ``--stages``, only when named, or never.
 KeystoneRun = Literal["default", "on_request", "never"]
+
+
+# The stages that are people's work (the crowd's judge and crop tasks in annotation/, the curators'
+# review in review/): no module here declares them, and the driver never runs them, but a card's
+# status lists them in their place in the flow (``position``, as the declarations').
+PEOPLE_STAGES: dict[str, int] = {"judge": 22, "crop": 24, "review": 55}
 
 
 class StageDeclarationError(ValueError):
@@ -163,3 +171,10 @@ def declared_stages() -> dict[str, StageDeclaration[Any]]:
             )
         catalogue[declaration.name] = declaration
     return catalogue
+
+
+def flow_stages() -> tuple[str, ...]:
+    """Every stage of a card's flow, the declared ones and people's (:data:`PEOPLE_STAGES`), in
+    flow order: what ``keystone cards`` reports a status for."""
+    positions = {name: declaration.position for name, declaration in declared_stages().items()} | PEOPLE_STAGES
+    return tuple(sorted(positions, key=lambda name: (positions[name], name)))

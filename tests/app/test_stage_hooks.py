@@ -20,9 +20,15 @@ def _imported_packages(path: Path) -> set[str]:
     return names
 
 
+# runs/leftovers.py still reaches into exports.staging (one of issue 31's upward arrows, removed on its own).
+NOT_YET_CLEAN = {"leftovers.py"}
+
+
 def test_the_driver_and_the_registry_import_no_feature_package():
-    for module in ("runs/driver.py", "core/hooks.py", "runs/claims.py"):
-        assert not _imported_packages(ROOT / module) & {"annotation", "review", "exports"}, module
+    modules = [path for path in sorted((ROOT / "runs").glob("*.py")) if path.name not in NOT_YET_CLEAN]
+    assert {path.name for path in modules} >= {"specs.py", "planning.py", "loop.py", "writes.py", "claims.py", "cli.py"}
+    for path in [*modules, ROOT / "core" / "hooks.py"]:
+        assert not _imported_packages(path) & {"annotation", "review", "exports", "catalogue"}, path
 
 
 def test_features_register_what_a_run_needs(app):

@@ -193,7 +193,8 @@ def confirm_gold(exclude: Collection[int], count: int | None = None) -> tuple[di
 
     Curators' and the crowd's decisions come first: the step's own are right only as often as
     its confidence says."""
-    from runs.specs import approved_annotations, card_orientation
+    from pipeline.decided_orientation import card_orientation
+    from runs.specs import approved_annotations
 
     count = confirm_gold_needed(len(exclude)) if count is None else count
     excluded, known = set(exclude), []

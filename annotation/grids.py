@@ -159,7 +159,8 @@ def submit_grid(worker: Any, answers: Any, key: Any, session: int | None = None,
 def card_photo_boxes(card: Card) -> tuple[list[float], list[float]]:
     """The card's two photos in scan pixels: the orientation step's photo areas, else the
     filter's split, else the two halves (what rectification would cut, in that order)."""
-    from runs.specs import filter_boxes, photo_area_boxes
+    from pipeline.stages.filter import filter_boxes
+    from pipeline.stages.orientation import photo_area_boxes
 
     boxes = photo_area_boxes(card) or filter_boxes(card)
     if boxes.get("left_box") and boxes.get("right_box"):

@@ -113,10 +113,11 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     last stereo card (confirming what is known)."""
     from core.db import db
     from core.models import Card, Person
+    from pipeline.decided_orientation import card_orientation
     from review.models import OrientationOverride
     from review.orientation import override_orientation
     from runs.card_state import waiting_for_people
-    from runs.specs import approved_annotations, card_orientation
+    from runs.specs import approved_annotations
 
     if db.session.scalar(select(OrientationOverride.id).limit(1)) is not None:
         return {"note": "an orientation override exists already: not made again"}

@@ -12,7 +12,7 @@ Variants, side by side in one run (``--variant``, default ``full`` and ``work``)
 rectification and disparity at full resolution (``work_side=None``, the behaviour before the
 working resolution), ``work`` with the defaults (views stored and matched at
 ``RectifyParams.work_side``), both with the stages chained as ``keystone run`` chains them
-(:mod:`runs.chains`), and ``stage-by-stage`` the defaults with every stage over all cards before
+(:mod:`pipeline.chains`), and ``stage-by-stage`` the defaults with every stage over all cards before
 the next (``keystone run --stage-by-stage``). Each variant
 runs in its own fresh process (spawned), one after the other, so its ``peak_rss_mb`` is its own;
 CPU seconds (``time.process_time``) move less with other load on the machine than wall time.
@@ -197,7 +197,7 @@ def benchmark_pipeline(
     """Ingest ``cards`` into a throwaway instance and run ``stages`` inline; per-card CPU seconds.
     ``sbs_order`` is ``keystone ingest --sbs-order`` (None: JPS files are read cross-eyed);
     ``params``: stage name -> parameters replacing that stage's defaults; ``chain``: stages
-    chained as ``keystone run`` does by default (:mod:`runs.chains`), else stage by stage."""
+    chained as ``keystone run`` does by default (:mod:`pipeline.chains`), else stage by stage."""
     from dataclasses import replace
 
     from sqlalchemy import select
@@ -208,9 +208,10 @@ def benchmark_pipeline(
     from catalogue.stereo_ingest import StereoOptions
     from core.db import db
     from core.models import Card
+    from pipeline.stages.spec import StageSpec
     from runs.loop import run_stage, run_stages
     from runs.report import StageReport
-    from runs.specs import StageSpec, available_stages
+    from runs.specs import available_stages
 
     root = Path(tempfile.mkdtemp(prefix="keystone-bench-pipeline-"))
     data_dir = root / "data"

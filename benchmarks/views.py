@@ -210,8 +210,9 @@ def _rectified_scenes(cards: list[Path], root: Path, sbs_order: str | None) -> l
     from catalogue.stereo_ingest import StereoOptions
     from core.db import db
     from core.models import Card
+    from pipeline.stages.views import views_inputs
     from runs.loop import run_stage
-    from runs.specs import available_stages, views_inputs
+    from runs.specs import available_stages
 
     data_dir = root / "data"
     app = create_app(

@@ -251,8 +251,8 @@ def cards() -> Any:
 @bp.route("/cards/<int:card_id>")
 @role_required(*STAFF_ROLES)
 def card_page(card_id: int) -> Any:
+    from pipeline.decided_orientation import card_orientation
     from runs.card_state import card_stage_statuses, people_and_decisions
-    from runs.specs import card_orientation
 
     with read_only():
         card = get_card_or_404(card_id)

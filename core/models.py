@@ -57,7 +57,7 @@ class CollectionOrientation(db.Model):
     collection known to be prints (``inverted`` false), or known to be scanned in eye order
     (``swapped`` false). Null: not said; the step, the crowd and curators decide that flag card
     by card. One row per collection, replaced by the next word and removed when every flag is
-    cleared; a curator's override on one card wins over it (see :mod:`runs.orientation`). Every
+    cleared; a curator's override on one card wins over it (see :mod:`pipeline.decided_orientation`). Every
     change is also an audit event (entity ``orientation``, no card)."""
 
     __tablename__ = "collection_orientations"

@@ -126,13 +126,13 @@ class DisparityMetrics(TypedDict, total=False):
 
 
 class RectifyInputs(TypedDict, total=False):
-    """``CardTask.inputs`` of the rectify stage (``runs.specs.rectify_inputs``)."""
+    """``CardTask.inputs`` of the rectify stage (``pipeline.stages.rectify.rectify_inputs``)."""
 
     left_box: Box
     right_box: Box
     box_source: str
     is_stereo: bool
-    upside_down: bool | None  # runs.orientation: null while undecided (the card is then not ready)
+    upside_down: bool | None  # pipeline.decided_orientation: null while undecided (the card is then not ready)
     inverted: bool | None
     swapped: bool | None
     orientation_decided_by: str | None  # "auto" | "crowd" | "curator"
@@ -142,7 +142,7 @@ class RectifyInputs(TypedDict, total=False):
 
 
 class DisparityInputs(TypedDict, total=False):
-    """``CardTask.inputs`` of the disparity stage (``runs.specs.rectified_pair``); paths under the data dir."""
+    """``CardTask.inputs`` of the disparity stage (``pipeline.stages.disparity.rectified_pair``); paths under the data dir."""
 
     left: str | None
     right: str | None
@@ -160,7 +160,7 @@ class GradeInputMetrics(TypedDict, total=False):
 
 
 class GradeInputs(TypedDict, total=False):
-    """``CardTask.inputs`` of the grade stage (``runs.specs.grade_inputs``); paths under the data dir."""
+    """``CardTask.inputs`` of the grade stage (``pipeline.stages.grade.grade_inputs``); paths under the data dir."""
 
     left: str | None
     right: str | None
@@ -172,7 +172,7 @@ class GradeInputs(TypedDict, total=False):
 
 
 class ViewsInputs(TypedDict, total=False):
-    """``CardTask.inputs`` of the views stage (``runs.specs.views_inputs``); paths under the data dir."""
+    """``CardTask.inputs`` of the views stage (``pipeline.stages.views.views_inputs``); paths under the data dir."""
 
     left: str | None
     disparity_left: str | None

@@ -9,11 +9,10 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 StageStatus = Literal["done", "skipped", "failed"]
-
-STAGES: tuple[str, ...] = ("filter", "orientation", "judge", "crop", "rectify", "disparity", "grade", "review", "views")
 
 
 def param_hash(params: Any) -> str:
@@ -24,6 +23,17 @@ def param_hash(params: Any) -> str:
     """
     payload = json.dumps(asdict(params), sort_keys=True, default=str)
     return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+
+def inputs_digest(inputs: dict[str, Any]) -> str:
+    """Stable 16-hex-digit hash of a stage's inputs (sorted JSON), stored with each result: a
+    finished card runs again when the inputs its builder gives now hash otherwise."""
+    return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def card_work_dir(data_dir: Path, content_hash: str, stage: str, phash: str) -> Path:
+    """Artifacts are keyed by card content and stage parameters, never by database id."""
+    return data_dir / "derived" / content_hash[:2] / content_hash / stage / phash
 
 
 @dataclass(frozen=True)

@@ -235,7 +235,7 @@ class RectifyParams:
     coordinates, carried through rectification) is negative. Off in the pipeline: the eye
     order cannot be read from that sign (the horizontal offset between two photos on a card is
     arbitrary, and crop alignment puts far content at zero), so it is decided before
-    rectification by the orientation step, the crowd or a curator (``runs.orientation``) and
+    rectification by the orientation step, the crowd or a curator (``pipeline.decided_orientation``) and
     never overridden here. Kept for pairs known to be cropped views with content in front of
     infinity."""
     random_seed: int = 0

@@ -72,7 +72,7 @@ class CardReview(db.Model):
 class OrientationOverride(db.Model):
     """A curator's word on a card's orientation, flag by flag (null: not overridden, the step's
     or the crowd's value stands). One row per card, replaced by the next override; every
-    change is also an audit event (entity ``orientation``). See :mod:`runs.orientation`."""
+    change is also an audit event (entity ``orientation``). See :mod:`pipeline.decided_orientation`."""
 
     __tablename__ = "orientation_overrides"
 

@@ -3,7 +3,7 @@
 An operator who knows a collection (prints, never negatives; scanned in eye order) says so once
 for all its cards, flag by flag. Each card's orientation then takes the word for those flags
 over the crowd's and the step's, and a curator's override on one card still wins over it
-(:mod:`runs.orientation`). The orientation step is given the word as ``known_flags`` and decides
+(:mod:`pipeline.decided_orientation`). The orientation step is given the word as ``known_flags`` and decides
 the other flags itself where it can; the word is part of the step's inputs, so the next
 ``keystone run`` reruns the step on the collection's cards.
 
@@ -22,7 +22,7 @@ from sqlalchemy.exc import IntegrityError
 from core.audit import record_event
 from core.db import db, utcnow
 from core.models import Card, Collection, CollectionOrientation, Person
-from runs.orientation import FLAGS, word_phrase
+from pipeline.decided_orientation import FLAGS, word_phrase
 
 from .models import OrientationOverride
 from .tasks import MAX_NOTE_CHARS, ReviewError

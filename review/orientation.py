@@ -21,7 +21,7 @@ from sqlalchemy import select
 from core.audit import record_event
 from core.db import db
 from core.models import Card, Person
-from runs.orientation import FLAGS, is_decided, public_orientation
+from pipeline.decided_orientation import FLAGS, is_decided, public_orientation
 
 from .models import OrientationOverride
 from .tasks import MAX_NOTE_CHARS, ReviewError
@@ -30,8 +30,9 @@ __all__ = ["current_orientation", "flow_blockers", "flow_blockers_for", "overrid
 
 
 def current_orientation(card: Card) -> dict[str, Any]:
-    """The orientation the pipeline uses for ``card`` (see :mod:`runs.orientation`)."""
-    from runs.specs import approved_annotations, card_orientation
+    """The orientation the pipeline uses for ``card`` (see :mod:`pipeline.decided_orientation`)."""
+    from pipeline.decided_orientation import card_orientation
+    from runs.specs import approved_annotations
 
     return card_orientation(card, approved_annotations([card.id]).get(card.id, {}))
 
@@ -98,7 +99,8 @@ def flow_blockers(card: Card) -> list[str]:
 def flow_blockers_for(cards: list[Card]) -> dict[int, list[str]]:
     """:func:`flow_blockers` for many cards with three queries (cards' results loaded)."""
     from annotation.models import Aggregate
-    from runs.specs import approved_annotations, card_orientation
+    from pipeline.decided_orientation import card_orientation
+    from runs.specs import approved_annotations
 
     ids = [card.id for card in cards]
     approved = approved_annotations(ids)

@@ -29,7 +29,7 @@ def card_reviews(card_ids: list[int]) -> dict[int, dict[str, Any]]:
 
 def orientation_overrides(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     """A curator's orientation override per card: ``{card: {"orientation_override": row}}``
-    (runs.orientation resolves the orientation the pipeline uses from it)."""
+    (pipeline.decided_orientation resolves the orientation the pipeline uses from it)."""
     found: dict[int, dict[str, Any]] = {}
     for start in range(0, len(card_ids), CHUNK):
         rows = db.session.scalars(

@@ -101,8 +101,9 @@ def _current_head(collection_id: int | None) -> tuple[Any, str]:
 def labelled_cards(collection_id: int | None) -> list[dict[str, Any]]:
     """Cards whose orientation is decided by people or by the step with a wide margin, and whose
     step stored the network's readings: ``{"card", "orientation", "step", "differences"}``."""
+    from pipeline.decided_orientation import card_orientation
     from pipeline.upright import read_learned_differences
-    from runs.specs import approved_annotations, card_orientation
+    from runs.specs import approved_annotations
 
     data_dir = Path(current_app.config["KEYSTONE_DATA_DIR"])
     query = select(Card).where(Card.state.in_(("pass", "review"))).order_by(Card.id)

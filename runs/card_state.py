@@ -10,10 +10,10 @@ from sqlalchemy.orm import selectinload
 from core.db import db
 from core.hooks import people_work
 from core.models import Card, StageResult
-from pipeline.records import STAGES
-from runs.orientation import is_decided, public_orientation
+from pipeline.decided_orientation import card_orientation, is_decided, public_orientation
+from pipeline.stages.spec import flow_stages
 from runs.planning import PLAN_CHUNK
-from runs.specs import approved_annotations, card_orientation
+from runs.specs import approved_annotations
 
 
 def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:
@@ -140,7 +140,7 @@ def card_stage_statuses(
         work = people_and_decisions([card.id]).get(card.id, {})
     statuses: dict[str, dict[str, Any]] = {}
     orientation = card_orientation(card, work.get("approved", {}))
-    for stage in STAGES if only_stage is None else (only_stage,):
+    for stage in flow_stages() if only_stage is None else (only_stage,):
         result = latest.get(stage)
         if (
             stage == "judge"

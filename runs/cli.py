@@ -13,24 +13,37 @@ from sqlalchemy.orm import selectinload
 
 from core.db import db
 from core.models import CARD_STATES, Card
-from pipeline.records import STAGES
+from pipeline.stages.spec import StageSpec, declared_stages, flow_stages
 from runs.card_state import card_orientation_field, card_stage_statuses, people_and_decisions, waiting_for_people
 from runs.claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver
 from runs.executors import make_executor
 from runs.loop import EXIT_HELD, run_stage, run_stages
 from runs.report import StageReport
-from runs.specs import RUNNABLE_STAGES, StageSpec, available_stages
+from runs.specs import available_stages, default_run_stages, runnable_stages
 from runs.writes import decision_words
 
 
+def _stages_help() -> str:
+    """The ``--stages`` help, from the stage modules' declarations."""
+    declared = declared_stages()
+    on_request = [name for name, declaration in declared.items() if declaration.keystone_run == "on_request"]
+    optional = f" ({', '.join(on_request)}: only when named, not in the default)" if on_request else ""
+    return f"Comma-separated stages to run, in order: {', '.join(runnable_stages())}{optional}."
+
+
+def _chain_help() -> str:
+    """The ``--chain`` help, naming the stages whose declarations say they chain."""
+    chaining = [name for name, declaration in declared_stages().items() if declaration.chains]
+    return (
+        "Let a worker take a card on through the stages after one whose inputs are that card's "
+        f"own results ({', '.join(chaining)}: each right after the stage before it in the run), "
+        "decoding each file once, or run every stage over all cards before the next. The results "
+        "are the same."
+    )
+
+
 @click.command("run")
-@click.option(
-    "--stages",
-    default="filter,orientation,rectify,disparity,grade",
-    show_default=True,
-    help="Comma-separated stages to run, in order: filter, orientation, rectify, disparity, grade, "
-    "views (views is optional per scene and not in the default).",
-)
+@click.option("--stages", default=",".join(default_run_stages()), show_default=True, help=_stages_help())
 @click.option(
     "--workers", default=1, show_default=True, type=click.IntRange(1, 256), help="Worker processes (1 runs inline on one core)."
 )
@@ -72,10 +85,7 @@ from runs.writes import decision_words
     "chain",
     default=True,
     show_default=True,
-    help="Let a worker take a card on through the stages after one whose inputs are that card's "
-    "own results (orientation after the filter; disparity, grade and views after rectify), "
-    "decoding each file once, or run every stage over all cards before the next. The results "
-    "are the same.",
+    help=_chain_help(),
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the run report as one JSON document.")
 @with_appcontext
@@ -109,10 +119,11 @@ def run_command(
     from runs.leftovers import clear_leftovers
 
     names = [name.strip() for name in stages.split(",") if name.strip()]
-    unknown = [name for name in names if name not in RUNNABLE_STAGES]
+    runnable = runnable_stages()
+    unknown = [name for name in names if name not in runnable]
     if unknown or not names:
         raise click.BadParameter(
-            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(RUNNABLE_STAGES)}",
+            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(runnable)}",
             param_hint="--stages",
         )
     ensure_database()
@@ -244,7 +255,7 @@ def card_rows(
 
 
 @click.command("cards")
-@click.option("--stage", type=click.Choice(list(STAGES)), help="Show only this stage's status.")
+@click.option("--stage", type=click.Choice(list(flow_stages())), help="Show only this stage's status.")
 @click.option("--state", type=click.Choice(list(CARD_STATES)), help="Only cards in this state.")
 @click.option("--collection", "collection_name", help="Only cards of this collection.")
 @click.option("--json", "as_json", is_flag=True, help="Print the cards as one JSON document.")

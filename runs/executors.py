@@ -5,14 +5,8 @@ from __future__ import annotations
 from collections.abc import Iterator
 from concurrent.futures import Executor
 from contextlib import contextmanager
-from pathlib import Path
 
 from pipeline.runner import RestartingProcessPool, init_worker
-
-
-def card_work_dir(data_dir: Path, content_hash: str, stage: str, phash: str) -> Path:
-    """Artifacts are keyed by card content and stage parameters, never by database id."""
-    return data_dir / "derived" / content_hash[:2] / content_hash / stage / phash
 
 
 @contextmanager

@@ -15,14 +15,15 @@ from sqlalchemy import select
 from core.db import db, one_writer
 from core.hooks import after_write
 from core.models import Card, StageResult
-from pipeline.records import CardTask, StageRecord, param_hash
+from pipeline.chains import ChainOutcome, ChainTask, run_chain
+from pipeline.records import CardTask, StageRecord, card_work_dir, inputs_digest, param_hash
+from pipeline.results import ResultView
 from pipeline.runner import run_tasks
-from runs.chains import ChainOutcome, ChainTask, ResultView, run_chain
+from pipeline.stages.spec import StageSpec
 from runs.claims import DEFAULT_CLAIM_BATCH, Driver, result_fingerprint
-from runs.executors import card_work_dir
-from runs.planning import inputs_digest, pending_cards
+from runs.planning import pending_cards
 from runs.report import StageReport, count_record
-from runs.specs import StageSpec, approved_annotations, collection_decisions
+from runs.specs import approved_annotations
 from runs.writes import write_records
 
 WRITE_BATCH = 50
@@ -57,7 +58,7 @@ def run_stage(
     without one the stage runs under a fresh one of its own.
 
     ``followers``: stages (each with ``chains``) that a worker runs on each card straight after
-    this one where the card qualifies (:mod:`runs.chains`); their records are written here and
+    this one where the card qualifies (:mod:`pipeline.chains`); their records are written here and
     counted in ``report.followers``. Run each follower afterwards as usual, with
     ``leave_out={stage: cards this run computed for it}``: it picks up what the chains did not
     reach, and a card a chain failed is not retried in the same run.
@@ -169,7 +170,7 @@ def run_stage(
 
 
 class _Chain:
-    """The driver's side of chained stages (:mod:`runs.chains`) for one lead stage: claims the
+    """The driver's side of chained stages (:mod:`pipeline.chains`) for one lead stage: claims the
     followers with the lead, sends each card's snapshot along, writes what the chains made
     after the lead's records of the same batch, and frees the claims a chain did not use."""
 
@@ -180,9 +181,7 @@ class _Chain:
         self.pending: dict[str, list[tuple[StageRecord, str | None]]] = {follower.name: [] for follower in self.followers}
         self.unused: dict[str, set[int]] = {follower.name: set() for follower in self.followers}
         self.claimed: dict[int, tuple[str, ...]] = {}
-        self.function = functools.partial(
-            run_chain, lead=lead.task, steps=self.followers, digest=inputs_digest, work_dir=card_work_dir
-        )
+        self.function = functools.partial(run_chain, lead=lead.task, steps=self.followers)
 
     def tasks(self, leads: list[CardTask]) -> Iterator[ChainTask]:
         """The chains of a claimed batch: each card's state and latest results now, and the
@@ -202,6 +201,7 @@ class _Chain:
                 outcome=result.outcome,
                 metrics={k: v for k, v in (result.metrics or {}).items() if k != "inputs_digest"},
                 artifacts=dict(result.artifacts or {}),
+                reason=result.reason,
             )
             if self.hashes.get(result.stage) == result.param_hash:
                 own[result.stage][result.card_id] = result
@@ -217,7 +217,13 @@ class _Chain:
             name: {card_id: result_fingerprint(r.status, r.started_at) for card_id, r in results.items()}
             for name, results in own.items()
         }
-        collection_wide = {card_id: collection_decisions(kinds) for card_id, kinds in approved_annotations(ids).items()}
+        # The people's decisions the followers' builders read, as the plain values each declares.
+        plain = [follower.plain_decisions for follower in self.followers if follower.plain_decisions is not None]
+        decided = approved_annotations(ids) if plain else {}
+        collection_wide = {
+            card_id: {key: value for decisions in plain for key, value in decisions(kinds).items()}
+            for card_id, kinds in decided.items()
+        }
         db.session.commit()  # no read transaction open while the cards compute
         claimed_by: dict[str, set[int]] = {}
         for name, h in self.hashes.items():
@@ -284,7 +290,7 @@ def run_stages(
     :func:`run_stage` with those two), and yield each stage's report as it finishes.
 
     With ``chain``, a stage with ``chains`` runs as a follower of the stage before it in the run
-    (:mod:`runs.chains`), then on its own turn over what the chains did not reach; its report
+    (:mod:`pipeline.chains`), then on its own turn over what the chains did not reach; its report
     counts both."""
     followers_of: dict[str, list[StageSpec]] = {}
     lead: StageSpec | None = None

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass
 from typing import Any
 
@@ -13,13 +11,9 @@ from sqlalchemy.orm import selectinload
 from core.db import db
 from core.hooks import approved_decisions
 from core.models import Card, StageResult
+from pipeline.records import inputs_digest
+from pipeline.stages.spec import StageSpec
 from runs.claims import result_fingerprint
-from runs.specs import StageSpec
-
-
-def inputs_digest(inputs: dict[str, Any]) -> str:
-    return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
 
 PLAN_CHUNK = 500  # cards read and planned per step (and ids per IN list, under SQLite's bound-parameter
 # limit): memory stays flat at any catalogue size

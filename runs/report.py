@@ -28,7 +28,7 @@ class StageReport:
     taken_over: int = 0
     held_by: set[str] = field(default_factory=set)
     # Of ``processed``, the cards a worker ran through this stage straight after the stage
-    # before it (runs.chains); and the reports of the stages chained after this one.
+    # before it (pipeline.chains); and the reports of the stages chained after this one.
     chained: int = 0
     chained_cards: list[int] = field(default_factory=list)
     followers: dict[str, StageReport] = field(default_factory=dict)

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from ..contracts import DisparityInputs
 from ..disparity import (
     DEFAULT_BACKEND,
     DisparityParams,
@@ -19,9 +22,19 @@ from ..errors import InvalidInputError
 from ..io import read_image, write_jpeg, write_npy
 from ..records import CardTask
 from ..rectify import photograph_mask, stored_view_scale
+from ..results import CardResults
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
+from .spec import StageDeclaration
 
-__all__ = ["DisparityStageParams", "colour_disparity", "disparity_at_work_side", "disparity_task", "upsample_map"]
+__all__ = [
+    "STAGE",
+    "DisparityStageParams",
+    "colour_disparity",
+    "disparity_at_work_side",
+    "disparity_task",
+    "rectified_pair",
+    "upsample_map",
+]
 
 
 @dataclass(frozen=True)
@@ -202,3 +215,32 @@ def disparity_task(task: CardTask, params: DisparityStageParams) -> StageOutput:
         "convention": "x_right = x_left - d; depth = focal_px * baseline / d with baseline 1 (up to scale)",
     }
     return StageOutput(status="done", metrics=metrics, artifacts=artifacts)
+
+
+def rectified_pair(card: CardResults, approved: Mapping[str, Any]) -> DisparityInputs:
+    """The rectified views, measured disparity range and focal length of the latest rectify result."""
+    result = card.latest_results().get("rectify")
+    if result is None or result.status not in ("done", "skipped"):
+        return {}
+    metrics = result.metrics
+    camera = metrics.get("K") or [[None]]
+    return {
+        "left": result.artifacts.get("left"),
+        "right": result.artifacts.get("right"),
+        "disparity_range": [metrics.get("disparity_min"), metrics.get("disparity_max")],
+        "focal_px": camera[0][0],
+        "rectify_param_hash": result.param_hash,
+    }
+
+
+# Cards whose rectification is done (or was not needed); a failed one gets no run.
+STAGE = StageDeclaration(
+    name="disparity",
+    position=40,
+    params=DisparityStageParams,
+    task=disparity_task,
+    eligible_states=("pass", "review"),
+    inputs=rectified_pair,
+    requires="rectify",
+    chains=True,
+)

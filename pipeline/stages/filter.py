@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..filter import FilterParams, decode_width, filter_card
 from ..io import read_image_reduced, write_jpeg, write_npy
 from ..records import CardTask
+from ..results import CardResults
 from ..split import crop_halves, scale_split
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
+from .spec import StageDeclaration
 
-__all__ = ["filter_task"]
+__all__ = ["STAGE", "filter_boxes", "filter_task"]
 
 
 @stage_task("filter")
@@ -54,3 +57,29 @@ def filter_task(task: CardTask, params: FilterParams) -> StageOutput:
         "card_size": list(decoded.full_size),
     }
     return StageOutput(outcome=result.outcome, reason=result.reason, metrics=metrics, artifacts=artifacts)
+
+
+def filter_boxes(card: CardResults) -> dict[str, Any]:
+    """The split boxes of the card's latest filter result (what the orientation step and
+    rectification start from)."""
+    result = card.latest_results().get("filter")
+    if result is None or result.status != "done":
+        return {}
+    return {
+        "left_box": result.metrics.get("left_box"),
+        "right_box": result.metrics.get("right_box"),
+        "box_source": f"filter split ({result.param_hash})",
+        # The filter's SIFT matches, reused by rectification (card px, and card px per SIFT px).
+        "filter_matches": result.artifacts.get("matches"),
+        "filter_match_scale": result.metrics.get("match_scale"),
+    }
+
+
+# Every card, whatever the filter decided before: a rerun with new parameters may route it anew.
+STAGE = StageDeclaration(
+    name="filter",
+    position=10,
+    params=FilterParams,
+    task=filter_task,
+    eligible_states=("ingested", "pass", "review", "culled", "failed"),
+)

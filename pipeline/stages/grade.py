@@ -2,17 +2,22 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
+from ..contracts import GradeInputs
 from ..errors import PipelineError
 from ..grading import GradeParams, grade, measure_card
 from ..io import read_image, to_grey
 from ..records import CardTask, param_hash
+from ..results import CardResults
 from .base import StageOutput, stage_task
+from .spec import StageDeclaration, has_inputs
 
-__all__ = ["TASK_INPUTS", "grade_task", "load_map"]
+__all__ = ["STAGE", "TASK_INPUTS", "grade_inputs", "grade_task", "load_map"]
 
 TASK_INPUTS = ("left", "right", "disparity_left", "disparity_right", "confidence")
 
@@ -66,3 +71,43 @@ def grade_task(task: CardTask, params: GradeParams) -> StageOutput:
         "thresholds_hash": param_hash(params.thresholds),
     }
     return StageOutput(status="done", outcome=result.grade, reason="; ".join(result.reasons), metrics=metrics)
+
+
+def grade_inputs(card: CardResults, approved: Mapping[str, Any]) -> GradeInputs:
+    """What the grader measures: the rectified views, both disparity maps and their confidence
+    (paths under the data dir), and the metrics of the filter, rectify and disparity results."""
+    latest = card.latest_results()
+    rectify, disparity = latest.get("rectify"), latest.get("disparity")
+    if rectify is None or disparity is None or disparity.status != "done" or rectify.status == "failed":
+        return {}
+    return cast(
+        GradeInputs,
+        {
+            "left": rectify.artifacts.get("left"),
+            "right": rectify.artifacts.get("right"),
+            "disparity_left": disparity.artifacts.get("disparity_left"),
+            "disparity_right": disparity.artifacts.get("disparity_right"),
+            "confidence": disparity.artifacts.get("confidence"),
+            "metrics": {
+                name: {k: v for k, v in result.metrics.items() if k != "inputs_digest"}
+                for name, result in latest.items()
+                if name in ("filter", "rectify", "disparity")
+            },
+            "disparity_param_hash": disparity.param_hash,
+        },
+    )
+
+
+# Cards with a disparity: few / some artifacts / failure, with reasons in words. The thresholds
+# are the newest fitted grade model's where review provides them (core.hooks.stage_params).
+STAGE = StageDeclaration(
+    name="grade",
+    position=50,
+    params=GradeParams,
+    task=grade_task,
+    eligible_states=("pass", "review"),
+    inputs=grade_inputs,
+    requires="disparity",
+    ready=has_inputs,
+    chains=True,
+)

@@ -5,8 +5,8 @@ card as scanned (:func:`pipeline.orientation.estimate_orientation` on the filter
 and finds each photo inside its mount (:func:`pipeline.photo_area.find_photo_areas`). The
 record's ``outcome`` is the decision: ``auto`` when the most probable combination of the three
 flags is confident (the flow applies it to derived images), ``ask`` when people must look (the
-card waits in the crowd's judge queue). The driver (``runs.loop``) turns that, the crowd's
-judgement and any curator override into the orientation the pipeline uses.
+card waits in the crowd's judge queue). :mod:`pipeline.decided_orientation` turns that, the
+crowd's judgement and any curator override into the orientation the pipeline uses.
 
 Metrics (all JSON):
 
@@ -30,10 +30,12 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from ..decided_orientation import said_flags
 from ..errors import PipelineError
 from ..io import read_image_reduced
 from ..orientation import (
@@ -44,10 +46,21 @@ from ..orientation import (
 )
 from ..photo_area import PhotoAreaParams, PhotoAreas, find_photo_areas
 from ..records import CardTask
+from ..results import CardResults
 from ..upright import write_learned_differences
 from .base import StageOutput, stage_task
+from .filter import filter_boxes
+from .spec import StageDeclaration, has_inputs
 
-__all__ = ["OrientationStageParams", "orientation_metrics", "orientation_task"]
+__all__ = [
+    "STAGE",
+    "OrientationStageParams",
+    "collection_decisions",
+    "orientation_inputs",
+    "orientation_metrics",
+    "orientation_task",
+    "photo_area_boxes",
+]
 
 
 @dataclass(frozen=True)
@@ -210,3 +223,62 @@ def orientation_task(task: CardTask, params: OrientationStageParams) -> StageOut
         path = write_learned_differences(Path(task.work_dir) / "upright_differences.npz", estimate.learned_differences)
         artifacts["upright_differences"] = str(path.relative_to(task.data_dir))
     return StageOutput(outcome=metrics["decision"], reason=_reason(metrics), metrics=metrics, artifacts=artifacts)
+
+
+def collection_decisions(approved: Mapping[str, Any]) -> dict[str, Any]:
+    """The plain-JSON decisions about a card's whole collection that the orientation step reads:
+    ``known_flags`` from an operator's word (``approved["operator_orientation"]``, a row) and
+    ``upright_head`` (the refit in force, :mod:`review.upright_fit`). A chained worker has no
+    database, so the driver sends it this with the card (:class:`pipeline.chains.ChainTask`); the
+    function reads its own output back unchanged."""
+    found: dict[str, Any] = {}
+    known = said_flags(approved.get("operator_orientation")) or dict(approved.get("known_flags") or {})
+    if known:
+        found["known_flags"] = known
+    if approved.get("upright_head"):
+        found["upright_head"] = dict(approved["upright_head"])
+    return found
+
+
+def orientation_inputs(card: CardResults, approved: Mapping[str, Any]) -> dict[str, Any]:
+    """What the orientation step reads: the filter's split boxes (card pixels) and what is
+    known of the card's whole collection (:func:`collection_decisions`): an operator's word as
+    ``known_flags`` (flag -> value) for the step to take as given, and the learned head the
+    collection refitted. Without either the keys are absent, so the inputs digest of such cards
+    stays what it was; a new word or refit changes it, and the step reruns."""
+    boxes = filter_boxes(card)
+    if not boxes:
+        return {}
+    return {"left_box": boxes["left_box"], "right_box": boxes["right_box"], **collection_decisions(approved)}
+
+
+def photo_area_boxes(card: CardResults) -> dict[str, Any]:
+    """The orientation step's photo-area boxes (original card pixels), unless the finder fell
+    back to the split."""
+    result = card.latest_results().get("orientation")
+    if result is None or result.status != "done":
+        return {}
+    metrics = result.metrics
+    if metrics.get("photo_area_fallback") or not metrics.get("photo_left_box") or not metrics.get("photo_right_box"):
+        return {}
+    return {
+        "left_box": metrics["photo_left_box"],
+        "right_box": metrics["photo_right_box"],
+        "box_source": f"photo area ({result.param_hash}, confidence {metrics.get('photo_area_confidence')})",
+    }
+
+
+# Every card the filter passed or sent to review: which way up, positive or negative, which eye,
+# and the photo area. A doubtful card waits for people (pipeline.decided_orientation).
+STAGE = StageDeclaration(
+    name="orientation",
+    position=20,
+    params=OrientationStageParams,
+    task=orientation_task,
+    eligible_states=("pass", "review"),
+    inputs=orientation_inputs,
+    requires="filter",
+    ready=has_inputs,
+    chains=True,
+    plain_decisions=collection_decisions,
+)

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
+from ..contracts import RectifyInputs
 from ..crop_align import Box, CropAlignParams, align_crops, matches_in_boxes
+from ..decided_orientation import card_orientation, is_decided
 from ..errors import PipelineError
 from ..io import read_image, write_jpeg, write_json, write_png
 from ..records import CardTask, StageStatus
@@ -22,10 +24,14 @@ from ..rectify import (
     stored_view_scale,
     warp_pair,
 )
+from ..results import CardResults
 from ..split import CardSplit, crop_halves
 from .base import PREVIEW_MAX_SIDE, StageOutput, stage_task
+from .filter import filter_boxes
+from .orientation import photo_area_boxes
+from .spec import StageDeclaration
 
-__all__ = ["filter_matches", "orient_card", "oriented_boxes", "rectify_task"]
+__all__ = ["STAGE", "filter_matches", "orient_card", "oriented_boxes", "rectify_inputs", "rectify_ready", "rectify_task"]
 
 
 def orient_card(card: np.ndarray, inputs: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any]]:
@@ -233,3 +239,54 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     }
     metrics["box_source"] = task.inputs.get("box_source", "filter split")
     return StageOutput(status=status, reason=reason, metrics=metrics, artifacts=artifacts)
+
+
+def rectify_inputs(card: CardResults, approved: Mapping[str, Any]) -> RectifyInputs:
+    """What rectification consumes (boxes in the original card's pixels): the crowd's consensus
+    boxes where approved, else the orientation step's photo areas, else the filter's split; and
+    the decided orientation (:func:`pipeline.decided_orientation.card_orientation`; null flags
+    while undecided)."""
+    inputs = filter_boxes(card)
+    inputs.update(photo_area_boxes(card))
+    crop = approved.get("crop")
+    if crop is not None and crop.label.get("left") and crop.label.get("right"):
+        inputs.update(
+            left_box=[int(round(v)) for v in crop.label["left"]],
+            right_box=[int(round(v)) for v in crop.label["right"]],
+            box_source=f"crowd consensus (batch {crop.batch_id})",
+        )
+    judge = approved.get("judge")
+    if judge is not None:
+        inputs["is_stereo"] = bool(judge.label.get("is_stereo", True))
+    orientation = card_orientation(card, approved)
+    inputs.update(
+        {flag: orientation[flag] for flag in ("upside_down", "inverted", "swapped")},
+        orientation_decided_by=orientation["decided_by"],
+        orientation_source=orientation["source"] or "undecided",
+    )
+    return cast(RectifyInputs, inputs)
+
+
+def rectify_ready(card: CardResults, inputs: dict[str, Any]) -> bool:
+    """Passed cards unless the crowd judged them no stereo pair; review cards once judged one;
+    either only once its orientation is decided (by the step, the crowd or a curator)."""
+    if not inputs.get("left_box"):
+        return False
+    if not is_decided(inputs):
+        return False
+    if card.state == "review":
+        return inputs.get("is_stereo") is True
+    return inputs.get("is_stereo", True) is not False
+
+
+# Cards the filter passed whose orientation is decided; cards in review wait for the crowd's
+# judgement too, and a culled card gets nothing. Not chained: its inputs are people's decisions.
+STAGE = StageDeclaration(
+    name="rectify",
+    position=30,
+    params=RectifyParams,
+    task=rectify_task,
+    eligible_states=("pass", "review"),
+    inputs=rectify_inputs,
+    ready=rectify_ready,
+)

@@ -9,14 +9,17 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ..contracts import ViewsInputs
 from ..errors import InvalidInputError
 from ..io import atomic_write, encode_jpeg, read_image, to_grey, write_json, write_npy
 from ..records import CardTask
+from ..results import CardResults
 from ..view_synthesis import (
     DEFAULT_VERTICAL_FOV_FOCAL,
     VIEW_NAMES,
@@ -29,8 +32,10 @@ from ..view_synthesis import (
 )
 from ..views import MAX_RELATIVE_DEPTH_STEP
 from .base import StageOutput, stage_task
+from .spec import StageDeclaration, has_inputs
 
 __all__ = [
+    "STAGE",
     "MESH_MAX_VERTICES",
     "encode_view_png",
     "WEB_JPEG_QUALITY",
@@ -39,6 +44,7 @@ __all__ = [
     "read_map",
     "scene_document",
     "viewer_mesh_png",
+    "views_inputs",
     "views_task",
 ]
 
@@ -274,3 +280,36 @@ def views_task(task: CardTask, params: ViewsStageParams) -> StageOutput:
     }
     json.dumps(metrics, allow_nan=False)  # a NaN in the record is a bug: fail here, typed, not later
     return StageOutput(status="done", metrics=metrics, artifacts=artifacts)
+
+
+def views_inputs(card: CardResults, approved: Mapping[str, Any]) -> ViewsInputs:
+    """What view synthesis needs: the rectified left view, its disparity, the focal length, and
+    the grade (a card graded failure gets no views)."""
+    latest = card.latest_results()
+    rectify, disparity, grade = latest.get("rectify"), latest.get("disparity"), latest.get("grade")
+    if rectify is None or disparity is None or disparity.status != "done" or grade is None:
+        return {}
+    return {
+        "left": rectify.artifacts.get("left"),
+        "disparity_left": disparity.artifacts.get("disparity_left"),
+        "focal_px": disparity.metrics.get("focal_px"),
+        "grade": grade.outcome if grade.status == "done" else None,
+        "grade_param_hash": grade.param_hash,
+    }
+
+
+# Optional per scene (not in `keystone run`'s default stages): the five GD images and a parallax
+# preview; a failure gets none. A trained inpainting checkpoint comes from the app's config.
+STAGE = StageDeclaration(
+    name="views",
+    position=60,
+    params=ViewsStageParams,
+    task=views_task,
+    eligible_states=("pass", "review"),
+    inputs=views_inputs,
+    requires="grade",
+    ready=has_inputs,
+    chains=True,
+    keystone_run="on_request",
+    params_from_config={"checkpoint": "KEYSTONE_INPAINT_CHECKPOINT"},
+)

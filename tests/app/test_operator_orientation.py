@@ -15,7 +15,7 @@ from PIL import Image
 from sqlalchemy import select
 
 from core.db import db
-from runs.orientation import resolve_orientation
+from pipeline.decided_orientation import resolve_orientation
 
 SAID_AT = datetime(2026, 11, 27, 9, 30, tzinfo=UTC)
 
@@ -238,7 +238,8 @@ def _card(runner) -> dict[str, Any]:  # type: ignore[no-untyped-def]
 
 def _step_inputs(app) -> dict[str, Any]:  # type: ignore[no-untyped-def]
     from core.models import Card
-    from runs.specs import approved_annotations, orientation_inputs
+    from pipeline.stages.orientation import orientation_inputs
+    from runs.specs import approved_annotations
 
     with app.app_context():
         card = db.session.scalar(select(Card))
@@ -247,7 +248,7 @@ def _step_inputs(app) -> dict[str, Any]:  # type: ignore[no-untyped-def]
 
 @pytest.mark.both_databases
 def test_a_new_word_changes_the_step_inputs_and_the_step_reruns(app, runner, prints_card) -> None:  # type: ignore[no-untyped-def]
-    from runs.planning import inputs_digest
+    from pipeline.records import inputs_digest
 
     first = _run(runner, "filter", "orientation")
     assert first["orientation"]["processed"] == 1 and first["orientation"]["chained"] == 1
@@ -275,8 +276,8 @@ def test_a_new_word_changes_the_step_inputs_and_the_step_reruns(app, runner, pri
 @pytest.mark.both_databases
 def test_a_word_before_the_first_run_reaches_a_chained_step(app, runner, prints_card) -> None:  # type: ignore[no-untyped-def]
     """The chain's worker has no database: the driver sends the collection's word with the card
-    (runs.chains.ChainTask.approved), so the chained step runs with it and is not redone."""
-    from runs.planning import inputs_digest
+    (pipeline.chains.ChainTask.approved), so the chained step runs with it and is not redone."""
+    from pipeline.records import inputs_digest
 
     _invoke(runner, "set", "--collection", "prints", "--inverted", "no")
     first = _run(runner, "filter", "orientation")

@@ -3,6 +3,7 @@ rule (undecided cards are not rectified, graded, accepted or released)."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 from pathlib import Path
@@ -72,11 +73,14 @@ def test_orientation_decided_by_crowd_and_curator_and_undecided_cards_wait(
     # The step decides these three Motorcycle cards itself (the learned upright cue); a threshold
     # no card reaches, with no proposals for a grid, makes every one wait for a one-card judge
     # task, which is the path under test.
+    import pipeline.stages.orientation as orientation_stage
     from pipeline.orientation import OrientationParams
     from pipeline.stages.orientation import OrientationStageParams
 
     strict = OrientationParams(auto_probability=0.99999, confirm_probability=0.99999)
-    monkeypatch.setattr("runs.specs.OrientationStageParams", lambda: OrientationStageParams(orientation=strict))
+    # The driver takes a stage's default parameters from the stage module's declaration.
+    lenient_stage = dataclasses.replace(orientation_stage.STAGE, params=lambda: OrientationStageParams(orientation=strict))
+    monkeypatch.setattr(orientation_stage, "STAGE", lenient_stage)
     first = _run(runner)
     stages = {s["stage"]: s for s in first["stages"]}
     assert [s["stage"] for s in first["stages"]] == ["filter", "orientation", "rectify", "disparity", "grade"]
@@ -234,7 +238,8 @@ def test_a_confident_step_decides_and_its_correction_is_applied(app, runner, flo
     import runs.cli
     from pipeline.orientation import OrientationParams
     from pipeline.stages.orientation import OrientationStageParams, orientation_task
-    from runs.specs import StageSpec, available_stages
+    from pipeline.stages.spec import StageSpec
+    from runs.specs import available_stages
 
     original = available_stages
 

@@ -100,7 +100,8 @@ def test_rerun_skips_finished_cards_and_changed_parameters_rerun(app, runner, ca
 
     import runs.cli
     from pipeline.filter import FilterParams
-    from runs.specs import StageSpec, available_stages
+    from pipeline.stages.spec import StageSpec
+    from runs.specs import available_stages
 
     original = available_stages
 

@@ -1,6 +1,7 @@
 """The typed stage records (pipeline.contracts) name exactly what the stages write and what the
 run driver builds: filter, rectify and disparity run on a real pair (Middlebury's Motorcycle,
-scaled down), the driver's input builders turn their records into the next stage's inputs."""
+scaled down), the input builders the stage modules declare turn their records into the next
+stage's inputs."""
 
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from pipeline.rectify import RectifyParams
 from pipeline.stages.disparity import DisparityStageParams, disparity_task
 from pipeline.stages.filter import filter_task
 from pipeline.stages.rectify import rectify_task
+from pipeline.stages.spec import declared_stages
 
 
 def _keys(contract: Any) -> set[str]:
@@ -61,7 +63,7 @@ def records(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         task("rectify", {k: found["filter"].metrics[k] for k in ("left_box", "right_box")}), RectifyParams()
     )
     assert found["rectify"].status in ("done", "skipped"), found["rectify"].reason
-    found["disparity"] = disparity_task(task("disparity", _runs_input("rectified_pair", found)), DisparityStageParams())
+    found["disparity"] = disparity_task(task("disparity", _stage_inputs("disparity", found)), DisparityStageParams())
     assert found["disparity"].status == "done", found["disparity"].reason
     return found
 
@@ -77,11 +79,11 @@ def _card(found: dict[str, Any]) -> Any:
     return SimpleNamespace(state="pass", latest_results=lambda: results)
 
 
-def _runs_input(builder: str, found: dict[str, Any]) -> dict[str, Any]:
-    from runs import specs as runs
-
-    inputs: dict[str, Any] = getattr(runs, builder)(_card(found), {})
-    return inputs
+def _stage_inputs(stage: str, found: dict[str, Any]) -> dict[str, Any]:
+    """The inputs the stage's declared builder makes from these records (no people's decisions)."""
+    builder = declared_stages()[stage].inputs
+    assert builder is not None
+    return dict(builder(_card(found), {}))
 
 
 def test_the_metrics_contracts_name_every_key_the_stages_write(records: dict[str, Any]) -> None:
@@ -91,10 +93,10 @@ def test_the_metrics_contracts_name_every_key_the_stages_write(records: dict[str
 
 
 def test_the_input_contracts_name_every_key_the_driver_builds(records: dict[str, Any]) -> None:
-    rectify = _runs_input("rectify_inputs", records)
+    rectify = _stage_inputs("rectify", records)
     assert set(rectify) <= _keys(RectifyInputs) and {"left_box", "right_box", "box_source"} <= set(rectify)
-    assert set(_runs_input("rectified_pair", records)) == _keys(DisparityInputs)
-    grade = _runs_input("grade_inputs", records)
+    assert set(_stage_inputs("disparity", records)) == _keys(DisparityInputs)
+    grade = _stage_inputs("grade", records)
     assert set(grade) == _keys(GradeInputs) and set(grade["metrics"]) == {"filter", "rectify", "disparity"}
     graded = {**records, "grade": SimpleNamespace(status="done", outcome="few", metrics={}, artifacts={}, param_hash="g")}
-    assert set(_runs_input("views_inputs", graded)) == _keys(ViewsInputs) - {"depth"}
+    assert set(_stage_inputs("views", graded)) == _keys(ViewsInputs) - {"depth"}

@@ -26,10 +26,9 @@ def make_views(app, data_dir, add_stage_result):  # type: ignore[no-untyped-def]
 
         from core.db import db
         from core.models import Card
-        from pipeline.records import CardTask, param_hash
+        from pipeline.records import CardTask, card_work_dir, param_hash
         from pipeline.stages.views import views_task
         from pipeline.view_synthesis import ViewsStageParams
-        from runs.executors import card_work_dir
 
         settings = ViewsStageParams(**{**VIEWS_PARAMS, **params})
         with app.app_context():

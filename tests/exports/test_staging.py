@@ -153,8 +153,7 @@ def test_keystone_run_removes_temporary_files_of_killed_writers(app, runner, dat
     """A writer killed inside atomic_write leaves its .tmp: the next ``keystone run`` removes it
     from the card's work folder before the card runs again (and a killed ingest's from the store)
     once older than ten minutes, and leaves a fresh one (a concurrent writer's) alone."""
-    from pipeline.records import param_hash
-    from runs.executors import card_work_dir
+    from pipeline.records import card_work_dir, param_hash
     from runs.specs import available_stages
 
     card_id = make_card()

@@ -259,7 +259,7 @@ def test_loop_zhang_beats_hartley_on_distortion_with_equal_dy(keystoned_cases) -
 
 def test_swapped_halves_are_detected_only_when_asked(moto) -> None:
     left, right, _ = moto
-    # Off by default: the eye order is decided before rectification (runs.orientation); the
+    # Off by default: the eye order is decided before rectification (pipeline.decided_orientation); the
     # pair goes through as given and is translated so that no disparity is negative.
     given = rectify_pair(right, left)
     assert not given.swapped and given.disparity_range[0] >= 0

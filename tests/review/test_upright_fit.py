@@ -98,7 +98,8 @@ def test_fit_reports_held_out_accuracy_saves_a_version_and_feeds_the_next_run(ap
         # the orientation step's inputs now carry the head, so its inputs digest changes and
         # the next run recomputes it
         from core.models import Card
-        from runs.specs import approved_annotations, orientation_inputs
+        from pipeline.stages.orientation import orientation_inputs
+        from runs.specs import approved_annotations
 
         card = db.session.get(Card, ids[0])
         step_inputs = orientation_inputs(card, approved_annotations([ids[0]])[ids[0]])

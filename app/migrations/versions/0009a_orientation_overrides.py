@@ -1,7 +1,7 @@
 """orientation overrides: a curator's word on a card's upside_down / inverted / swapped flags
 
 One row per card; a null flag leaves the orientation step's or the crowd's value in force
-(see runs.orientation). Every change is also written to the audit trail.
+(see pipeline.decided_orientation). Every change is also written to the audit trail.
 
 Revision ID: 0009a
 Revises: 0008

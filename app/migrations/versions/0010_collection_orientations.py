@@ -2,7 +2,7 @@
 
 One row per collection; a null flag is not said (the orientation step, the crowd and curators
 decide it card by card), and a curator's override on one card wins over it (see
-runs.orientation). Every change is also written to the audit trail.
+pipeline.decided_orientation). Every change is also written to the audit trail.
 
 Revision ID: 0010
 Revises: 0009a

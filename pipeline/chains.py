@@ -8,11 +8,14 @@ filter and orientation step decode its scan twice, and the disparity, grade and 
 read back the views the rectify stage has just written.
 
 A stage whose inputs come from the card's own stage results alone (no people's decisions:
-:attr:`runs.specs.StageSpec.chains`) can run in the same worker right after the stage before it,
-on the same card, inside :func:`pipeline.io.shared_decodes`: a second read of a file gets the
-first one's decode. The worker computes the follower's inputs with the same builder the
-driver uses (:mod:`runs.loop`), from a snapshot of the card's results the driver sends along and
-the records the chain has just made, so the records are those a stage-by-stage run writes.
+:attr:`pipeline.stages.spec.StageSpec.chains`) can run in the same worker right after the stage
+before it, on the same card, inside :func:`pipeline.io.shared_decodes`: a second read of a file
+gets the first one's decode. The worker computes the follower's inputs with the same builder the
+driver plans with (the stage module's, over :class:`pipeline.results.CardResults`), from a
+snapshot of the card's results the driver sends along and the records the chain has just made, so
+the records are those a stage-by-stage run writes. Everything here is what a pool or dask worker
+runs, so it lives in ``pipeline/`` and loads no web or database layer (``runs.loop`` is the
+driver's side).
 The driver still writes every record, claims every card for every stage it computes, and runs
 each follower stage by stage afterwards for whatever a chain did not reach (a card another run
 holds, a follower already done with the same inputs, a chain cut short by a failure).
@@ -23,45 +26,29 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from pipeline.io import shared_decodes
-from pipeline.records import CardTask, StageRecord, param_hash
-from pipeline.runner import clear_stale_temp_files
+from .io import shared_decodes
+from .records import CardTask, StageRecord, card_work_dir, inputs_digest, param_hash
+from .results import FINISHED, ResultView, StageResultLike
+from .runner import clear_stale_temp_files
+from .stages.spec import StageSpec
 
-if TYPE_CHECKING:  # runs.loop imports this module
-    from runs.specs import StageSpec
-
-__all__ = ["ChainCard", "ChainOutcome", "ChainTask", "ResultView", "run_chain"]
-
-# The statuses a stage's ``requires`` must have reached (as runs.planning.pending_cards).
-FINISHED = ("done", "skipped")
-
-
-@dataclass(frozen=True)
-class ResultView:
-    """A stage result as the input builders read it (the fields of ``core.models.StageResult``
-    and :class:`pipeline.records.StageRecord` they use), as plain values a worker can receive."""
-
-    stage: str
-    param_hash: str
-    status: str
-    outcome: str | None
-    metrics: dict[str, Any]
-    artifacts: dict[str, str]
+__all__ = ["ChainCard", "ChainOutcome", "ChainTask", "run_chain"]
 
 
 @dataclass
 class ChainCard:
-    """The card as the input builders of :mod:`runs.loop` see it: its state and its latest result
-    per stage. Starts from the driver's snapshot; each record the chain makes becomes that
-    stage's latest, and a filter record sets the state as the driver will when it writes it."""
+    """The card as the input builders see it (:class:`pipeline.results.CardResults`): its state
+    and its latest result per stage. Starts from the driver's snapshot; each record the chain
+    makes becomes that stage's latest, and a filter record sets the state as the driver will when
+    it writes it."""
 
     id: int
     state: str
-    results: dict[str, ResultView | StageRecord] = field(default_factory=dict)
+    results: dict[str, StageResultLike] = field(default_factory=dict)
 
-    def latest_results(self) -> dict[str, ResultView | StageRecord]:
+    def latest_results(self) -> dict[str, StageResultLike]:
         return dict(self.results)
 
     def record(self, record: StageRecord) -> None:
@@ -82,8 +69,9 @@ class ChainTask:
     # follower stage -> inputs digest of its finished result with these parameters (when there
     # is one): the chain stops there, as the stage would find it already done
     finished: Mapping[str, str] = field(default_factory=dict)
-    # the plain-JSON decisions about the card's collection that follower inputs read (the
-    # learned head in force, an operator's word), looked up by the driver: a worker has no database
+    # people's decisions the followers' inputs read, as the plain values each follower declares
+    # (StageSpec.plain_decisions: the orientation step's learned head in force and operator's
+    # word), looked up by the driver: a worker has no database
     approved: Mapping[str, Any] = field(default_factory=dict)
 
     @property
@@ -103,19 +91,10 @@ class ChainOutcome:
     records: tuple[tuple[StageRecord, str | None], ...]
 
 
-def run_chain(
-    chain: ChainTask,
-    lead: Callable[[CardTask], StageRecord],
-    steps: Sequence[StageSpec],
-    digest: Callable[[dict[str, Any]], str],
-    work_dir: Callable[[Path, str, str, str], Path],
-) -> ChainOutcome:
+def run_chain(chain: ChainTask, lead: Callable[[CardTask], StageRecord], steps: Sequence[StageSpec]) -> ChainOutcome:
     """Run ``lead`` on the card, then each stage of ``steps`` while the card qualifies for it (as
     ``runs.planning.pending_cards`` would plan it), all inside one
-    :func:`pipeline.io.shared_decodes` block. Runs in a worker; returns plain records.
-
-    ``digest`` and ``work_dir`` are ``runs.planning.inputs_digest`` and ``runs.executors.card_work_dir``
-    (passed in: this module is imported by runs.loop)."""
+    :func:`pipeline.io.shared_decodes` block. Runs in a worker; returns plain records."""
     with shared_decodes():
         first = lead(chain.lead)
         made: list[tuple[StageRecord, str | None]] = [(first, None)]
@@ -132,19 +111,21 @@ def run_chain(
             inputs = dict(step.inputs(card, dict(chain.approved))) if step.inputs is not None else {}
             if step.ready is not None and not step.ready(card, inputs):
                 break
-            inputs_digest = digest(inputs)
-            if chain.finished.get(step.name) == inputs_digest:
+            digest = inputs_digest(inputs)
+            if chain.finished.get(step.name) == digest:
                 break  # already done with these inputs: the stage's own pass counts it
             task = CardTask(
                 card_id=chain.card_id,
                 content_hash=chain.lead.content_hash,
                 image_path=chain.lead.image_path,
-                work_dir=str(work_dir(Path(chain.lead.data_dir), chain.lead.content_hash, step.name, param_hash(step.params))),
+                work_dir=str(
+                    card_work_dir(Path(chain.lead.data_dir), chain.lead.content_hash, step.name, param_hash(step.params))
+                ),
                 data_dir=chain.lead.data_dir,
                 inputs=inputs,
             )
             clear_stale_temp_files(task)
             record = step.task(task)
-            made.append((record, inputs_digest))
+            made.append((record, digest))
             card.record(record)
     return ChainOutcome(records=tuple(made))

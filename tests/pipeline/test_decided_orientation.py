@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-from runs.orientation import resolve_orientation
+from pipeline.decided_orientation import resolve_orientation
 
 FLAGS = ("upside_down", "inverted", "swapped")
 PROPOSED = {"upside_down": True, "inverted": False, "swapped": False}

@@ -22,7 +22,26 @@ rectified, graded, accepted or released (the flow rule of docs/PIPELINE.md, Orie
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Mapping
+from datetime import datetime
+from typing import Any, Protocol
+
+from .results import CardResults, StageResultLike
+
+__all__ = [
+    "FLAGS",
+    "ApprovedAggregate",
+    "CuratorOverride",
+    "OperatorWord",
+    "card_orientation",
+    "is_decided",
+    "public_orientation",
+    "resolve_orientation",
+    "said_flags",
+    "word_phrase",
+    "word_sentence",
+    "word_source",
+]
 
 FLAGS: tuple[str, ...] = ("upside_down", "inverted", "swapped")
 # What an operator's word on one flag says of a collection, in words (flag -> value -> phrase).
@@ -33,34 +52,92 @@ WORD_PHRASES: dict[str, dict[bool, str]] = {
 }
 
 
+class ApprovedAggregate(Protocol):
+    """The crowd's approved aggregate of one task kind for a card (``annotation.models.Aggregate``):
+    the answer (``label``), how sure the aggregation is (``posterior``) and the batch it came from."""
+
+    @property
+    def label(self) -> Mapping[str, Any] | None: ...
+
+    @property
+    def posterior(self) -> Any: ...
+
+    @property
+    def batch_id(self) -> int: ...
+
+
+class CuratorOverride(Protocol):
+    """A curator's orientation override for one card (``review.models.OrientationOverride``):
+    each flag set, or None where the curator left it to the other sources."""
+
+    @property
+    def upside_down(self) -> bool | None: ...
+
+    @property
+    def inverted(self) -> bool | None: ...
+
+    @property
+    def swapped(self) -> bool | None: ...
+
+    @property
+    def curator_name(self) -> str | None: ...
+
+
+class OperatorWord(Protocol):
+    """An operator's word for a whole collection (``core.models.CollectionOrientation``)."""
+
+    @property
+    def upside_down(self) -> bool | None: ...
+
+    @property
+    def inverted(self) -> bool | None: ...
+
+    @property
+    def swapped(self) -> bool | None: ...
+
+    @property
+    def collection_name(self) -> str: ...
+
+    @property
+    def set_by_name(self) -> str: ...
+
+    @property
+    def set_at(self) -> datetime: ...
+
+
 def _as_flag(value: Any) -> bool | None:
     return None if value is None else bool(value)
 
 
-def said_flags(word: Any | None) -> dict[str, bool]:
+def said_flags(word: OperatorWord | None) -> dict[str, bool]:
     """The flags an operator's word (a CollectionOrientation row, or None) sets: flag -> value."""
     if word is None:
         return {}
     return {flag: bool(value) for flag in FLAGS if (value := getattr(word, flag)) is not None}
 
 
-def word_phrase(word: Any) -> str:
+def word_phrase(word: OperatorWord) -> str:
     """What the word says, e.g. ``known prints, scanned in eye order``."""
     return ", ".join(WORD_PHRASES[flag][value] for flag, value in said_flags(word).items())
 
 
-def word_source(word: Any) -> str:
+def word_source(word: OperatorWord) -> str:
     """The word as a source of a card's orientation, in words."""
     return f"operator's word for collection {word.collection_name} (by {word.set_by_name}, {word.set_at:%Y-%m-%d})"
 
 
-def word_sentence(word: Any) -> str:
+def word_sentence(word: OperatorWord) -> str:
     """The word as a card page shows it: ``Collection X: known prints, said by NAME on DATE``."""
     return f"Collection {word.collection_name}: {word_phrase(word)}, said by {word.set_by_name} on {word.set_at:%Y-%m-%d}"
 
 
 def resolve_orientation(
-    step: Any | None, judge: Any | None, override: Any | None, operator: Any | None = None, *, confirm: Any | None = None
+    step: StageResultLike | None,
+    judge: ApprovedAggregate | None,
+    override: CuratorOverride | None,
+    operator: OperatorWord | None = None,
+    *,
+    confirm: ApprovedAggregate | None = None,
 ) -> dict[str, Any]:
     """The ``orientation`` field of ``keystone cards --json`` plus ``source`` (in words),
     ``waiting_for`` (why it is undecided, or null), ``operator_word`` (the collection's word as
@@ -76,12 +153,12 @@ def resolve_orientation(
     sources: list[str] = []
     decided_by: str | None = None
     confidence: float | None = None
-    step_ok = step is not None and step.status == "done"
-    step_flags = (step.metrics.get("flags") or {}) if step_ok else {}
-    if step_ok and step.outcome == "auto":
+    done_step = step if step is not None and step.status == "done" else None
+    step_flags = (done_step.metrics.get("flags") or {}) if done_step is not None else {}
+    if done_step is not None and done_step.outcome == "auto":
         flags = {flag: _as_flag((step_flags.get(flag) or {}).get("value")) for flag in FLAGS}
-        decided_by, confidence = "auto", step.metrics.get("confidence")
-        sources.append(f"orientation step ({step.param_hash})")
+        decided_by, confidence = "auto", done_step.metrics.get("confidence")
+        sources.append(f"orientation step ({done_step.param_hash})")
     if confirm is not None:
         # The label's flags are what the grid showed with the crowd's taps applied: the shown
         # flags are kept on the batch item, so a rerun of the step that proposes something
@@ -110,7 +187,7 @@ def resolve_orientation(
         confidence = min(sure) if sure else 1.0
         sources.append(f"crowd judgement (batch {judge.batch_id})")
     said = said_flags(operator)
-    if said:
+    if said and operator is not None:
         flags.update(said)
         decided_by = "operator"
         # The operator is sure of what was said; the flags left to the step or the crowd keep
@@ -152,15 +229,29 @@ def resolve_orientation(
         "confidence": None if confidence is None else round(float(confidence), 4),
         "source": "; ".join(sources) or None,
         "waiting_for": waiting_for,
-        "operator_word": word_sentence(operator) if said else None,
+        "operator_word": word_sentence(operator) if said and operator is not None else None,
         "operator_overridden": overridden,
     }
 
 
-def is_decided(orientation: dict[str, Any]) -> bool:
+def card_orientation(card: CardResults, approved: Mapping[str, Any]) -> dict[str, Any]:
+    """The orientation the pipeline uses for ``card`` (:func:`resolve_orientation`) from its latest
+    orientation result and people's approved decisions about it (``approved``: ``judge``,
+    ``confirm``, ``orientation_override``, ``operator_orientation``, as the driver gathers them
+    through ``core.hooks.approved_decisions``; absent kinds are None)."""
+    return resolve_orientation(
+        card.latest_results().get("orientation"),
+        approved.get("judge"),
+        approved.get("orientation_override"),
+        approved.get("operator_orientation"),
+        confirm=approved.get("confirm"),
+    )
+
+
+def is_decided(orientation: Mapping[str, Any]) -> bool:
     return all(orientation.get(flag) is not None for flag in FLAGS)
 
 
-def public_orientation(orientation: dict[str, Any]) -> dict[str, Any]:
+def public_orientation(orientation: Mapping[str, Any]) -> dict[str, Any]:
     """The five keys of ``keystone cards --json``'s ``orientation`` (README.md)."""
     return {key: orientation.get(key) for key in (*FLAGS, "decided_by", "confidence")}

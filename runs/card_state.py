@@ -7,10 +7,12 @@ with :attr:`CardState.blockers` is not accepted) and the release plan (nor relea
 
 A result is *stale* when the card's inputs moved on after it was computed: its recorded
 ``metrics.inputs_digest`` is not the digest of the inputs its stage would build now (a curator
-changed the eye order or the crop after rectification ran), or it is older than the result of
-the stage it was computed from (``StageSpec.requires``: the rectification was redone after the
-disparity was measured), or it was computed from a stale result. :func:`older_than_source` is
-also the planner's rule, so ``keystone run`` redoes what this module calls stale.
+changed the eye order or the crop after rectification ran), or it was computed from a stale
+result, or, recording no digest, it is older than the result of the stage it was computed from
+(``StageSpec.requires``: the rectification was redone after the disparity was measured). Where
+a digest is recorded it decides, as it does for the planner (``runs.planning.pending_cards``):
+a rectification redone in place on the same flags and boxes leaves the disparity's inputs as
+they were, and the run does not redo it, so neither is it called stale here.
 
 Entry points take cards in batches (:func:`card_states`: people's work, their decisions and the
 stage catalogue are read once per batch; the cards' ``stage_results`` should be loaded with
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from typing import Any, Literal
 
 from sqlalchemy import select
@@ -31,7 +34,7 @@ from core.hooks import approved_decisions, people_work
 from core.models import Card, StageResult
 from pipeline.records import STAGES
 from runs.orientation import FLAGS, is_decided
-from runs.planning import PLAN_CHUNK, inputs_digest, older_than_source
+from runs.planning import PLAN_CHUNK, inputs_digest
 from runs.specs import StageSpec, available_stages, card_orientation
 
 __all__ = [
@@ -41,7 +44,6 @@ __all__ = [
     "Waiting",
     "card_state",
     "card_states",
-    "older_than_source",
     "waiting_for_people",
 ]
 
@@ -90,17 +92,19 @@ class CardState:
     @property
     def blockers(self) -> list[str]:
         """Why the card may not be accepted or released now (empty: nothing holds it back):
-        an undecided orientation, a crowd dispute, a stale result."""
+        an undecided orientation, a crowd dispute, a stale result its grade rests on (stale
+        views, which are optional, are shown but hold nothing back)."""
         found = []
         if not is_decided(self.orientation):
             # whether or not the step has run: nothing is accepted or released undecided
             found.append(f"its orientation is undecided (waiting for {self.orientation['waiting_for']})")
         found += [wait.reason for wait in self.disputes]
-        if self.stale:
-            first = next(iter(self.stale))
-            after = [stage for stage in self.stale if stage != first]
+        reasons = self.stale or {}
+        stale = [stage for stage in reasons if stage in GRADED_BY]
+        if stale:
+            first, after = stale[0], stale[1:]
             found.append(
-                f"its {first} result is out of date ({self.stale[first]})"
+                f"its {first} result is out of date ({reasons[first]})"
                 + (f", and so is its {', '.join(after)} computed from it" if after else "")
                 + "; run the pipeline again"
             )
@@ -144,9 +148,9 @@ def card_states(
 def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:
     """Cards whose next step is the crowd's, by why: ``orientation`` (the orientation step
     asked, or failed, and no crowd or curator has decided it yet) and ``filter_review`` (the
-    filter sent it to review and no judgement has come back). A card with a dispute waits for
-    a curator, not the crowd, and is not counted; nor a card whose orientation step has not
-    run."""
+    filter sent it to review and no judgement has come back). A card whose judgement is
+    disputed waits for a curator, not the crowd, and is not counted; nor a card whose
+    orientation step has not run."""
     waiting: dict[str, list[int]] = {"orientation": [], "filter_review": []}
     after = 0
     while True:
@@ -163,8 +167,6 @@ def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:
             return waiting
         for card_id, state in card_states(cards, check_stale=False).items():
             subjects = {(wait.kind, wait.subject) for wait in state.waiting_for}
-            if ("curator", "dispute") in subjects:
-                continue
             if ("decision", "orientation") in subjects:
                 waiting["orientation"].append(card_id)
             elif ("crowd", "judge") in subjects:
@@ -226,20 +228,22 @@ def _waiting_for(
             )
     if not _in_flow(card, work):
         return tuple(found)
-    undecided = not is_decided(orientation)
-    if undecided and "orientation" in latest:
+    # A disputed judgement (and the orientation it decides) is with a curator, not the crowd.
+    judge = work.get("judge")
+    with_people = judge is None or judge.state != "needs_curator"
+    if with_people and not is_decided(orientation) and "orientation" in latest:
         found.append(
             Waiting("decision", "orientation", f"its orientation is undecided (waiting for {orientation['waiting_for']})")
         )
-    elif card.state == "review" and "judge" not in work.get("approved", {}):
+    elif with_people and card.state == "review" and "judge" not in work.get("approved", {}):
         found.append(Waiting("crowd", "judge", "the crowd's judgement of whether it is a stereo pair"))
     review = work.get("review")
     if review is not None and review.decision == "sent_back":
         found.append(Waiting("crowd", "review", "the crowd's new answers (a curator sent it back)"))
     elif review is not None and review.decision == "pending":
         found.append(Waiting("curator", "review", "a curator's review of its grade"))
-    if any(wait.kind in ("crowd", "decision") for wait in found) or review is not None:
-        return tuple(found)
+    if found or review is not None:
+        return tuple(found)  # people hold it: the next stage is not what it waits for
     for stage in GRADED_BY:
         result = latest.get(stage)
         if result is None or result.status not in FINISHED:
@@ -272,11 +276,23 @@ def _stale(
         source = latest.get(spec.requires) if spec.requires else None
         if reason is None and spec.requires in stale:
             reason = f"computed from its {spec.requires} result, which is out of date"
-        if reason is None and older_than_source(result, source):
+        if reason is None and recorded is None and _older_than_source(result, source):
             reason = f"computed before its latest {spec.requires} result"
         if reason is not None:
             stale[name] = reason
     return stale
+
+
+def _utc(moment: datetime) -> datetime:
+    return moment.astimezone(UTC) if moment.tzinfo is not None else moment.replace(tzinfo=UTC)
+
+
+def _older_than_source(result: StageResult, source: StageResult | None) -> bool:
+    """Whether ``result`` started before the latest finished result of the stage it was computed
+    from; results without a start time (written by hand) are never older."""
+    if source is None or source.status not in FINISHED or result.started_at is None or source.started_at is None:
+        return False
+    return _utc(source.started_at) > _utc(result.started_at)
 
 
 def _flags_words(flags: Mapping[str, Any]) -> str:
@@ -428,9 +444,9 @@ def _sentence(
         )
     if first is not None and first.kind == "crowd" and first.subject == "judge":
         return f"The filter sent this card to review: it is waiting for {first.reason}."
-    if stale:
-        stage = next(iter(stale))
-        return f"This card's {stage} result is out of date ({stale[stage]}): the next pipeline run redoes it."
+    outdated = next((name for name in stale if name in GRADED_BY), None)
+    if outdated is not None:
+        return f"This card's {outdated} result is out of date ({stale[outdated]}): the next pipeline run redoes it."
     review = work.get("review")
     if review is not None and review.decision != "pending":
         if review.decision == "sent_back":
@@ -443,5 +459,5 @@ def _sentence(
     grade = latest.get("grade")
     if grade is not None and grade.status == "done":
         return "This card is graded but not yet in the review queue: sync the queue with the grader."
-    stage = next((wait.subject for wait in waiting if wait.kind == "stage"), "grade")
-    return f"This card is not graded yet: it is waiting for its {stage} stage."
+    next_stage = next((wait.subject for wait in waiting if wait.kind == "stage"), "grade")
+    return f"This card is not graded yet: it is waiting for its {next_stage} stage."

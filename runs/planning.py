@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import dataclass
-from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import exists, func, select
@@ -20,23 +19,6 @@ from runs.specs import StageSpec
 
 def inputs_digest(inputs: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(inputs, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def _utc_naive(moment: datetime) -> datetime:
-    return moment.astimezone(UTC).replace(tzinfo=None) if moment.tzinfo is not None else moment
-
-
-def older_than_source(result: StageResult | None, source: StageResult | None) -> bool:
-    """Whether ``result`` was computed before the latest finished result of the stage it was
-    computed from (``source``, its ``StageSpec.requires``): that stage was redone since, in place,
-    so the paths in ``result``'s inputs may be the same while the files behind them are not.
-    Results without a start time (written by hand) are never older. The planner reruns such a
-    result, and :mod:`runs.card_state` calls it stale."""
-    if result is None or source is None or source.status not in ("done", "skipped"):
-        return False
-    if result.started_at is None or source.started_at is None:
-        return False
-    return _utc_naive(source.started_at) > _utc_naive(result.started_at)
 
 
 PLAN_CHUNK = 500  # cards read and planned per step (and ids per IN list, under SQLite's bound-parameter
@@ -123,7 +105,6 @@ def pending_cards(spec: StageSpec, phash: str, chunk: int = PLAN_CHUNK) -> tuple
                 own is not None
                 and own.status in ("done", "skipped")
                 and (spec.inputs is None or own.metrics.get("inputs_digest") == inputs_digest(inputs))
-                and not (spec.requires and older_than_source(own, card.latest_results().get(spec.requires)))
             ):
                 already += 1
                 continue

@@ -70,18 +70,18 @@ def _graded(app, make_card, add_stage_result, image) -> int:  # type: ignore[no-
     return card
 
 
-def _judge_aggregate(app, card_id: int, *, state: str, label: dict[str, Any] | None = None) -> tuple[int, int]:  # type: ignore[no-untyped-def]
+def _aggregate(app, card_id: int, *, state: str, label: dict[str, Any] | None = None, kind: str = "judge") -> tuple[int, int]:  # type: ignore[no-untyped-def]
     from annotation.models import Aggregate, Batch
     from core.db import db
 
     with app.app_context():
-        batch = Batch(kind="judge")
+        batch = Batch(kind=kind)
         db.session.add(batch)
         db.session.flush()
         row = Aggregate(
             batch_id=batch.id,
             card_id=card_id,
-            kind="judge",
+            kind=kind,
             label=label or {"is_stereo": True, "upside_down": False, "inverted": False, "swapped": False},
             state=state,
             reasons="upside_down posterior 0.55 < 0.9" if state == "needs_curator" else "",
@@ -133,8 +133,12 @@ def test_filter_review_waits_for_the_crowd_and_a_dispute_for_a_curator(app, make
     review = _passed(make_card, add_stage_result, image[:, 1:], state="review")
     disputed = _passed(make_card, add_stage_result, image[:, 2:], state="review")
     asked = _passed(make_card, add_stage_result, image[:, 3:], decided=False)
-    batch, dispute = _judge_aggregate(app, disputed, state="needs_curator")
-    states = _states(app, review, disputed, asked)
+    crop_disputed = _passed(make_card, add_stage_result, image[:, 4:], decided=False)
+    batch, dispute = _aggregate(app, disputed, state="needs_curator")
+    crop_batch, crop_dispute = _aggregate(
+        app, crop_disputed, state="needs_curator", kind="crop", label={"left": [0, 0, 280, 190], "right": [300, 0, 580, 190]}
+    )
+    states = _states(app, review, disputed, asked, crop_disputed)
 
     assert [(w.kind, w.subject) for w in states[review].waiting_for] == [("crowd", "judge")]
     assert states[review].sentence == (
@@ -144,15 +148,22 @@ def test_filter_review_waits_for_the_crowd_and_a_dispute_for_a_curator(app, make
     assert states[review].statuses["judge"]["status"] == "pending"
 
     wait = f"the crowd disagrees on its judgement (batch {batch}, dispute {dispute})"
-    assert [(w.kind, w.subject, w.reason) for w in states[disputed].waiting_for][0] == ("curator", "dispute", wait)
+    assert [(w.kind, w.subject, w.reason) for w in states[disputed].waiting_for] == [("curator", "dispute", wait)]
     assert states[disputed].blockers == [wait]
     assert states[disputed].sentence == f"This card waits for a curator: {wait}; resolve it under Disputed crowd answers."
     assert states[disputed].statuses["judge"]["reason"] == "waiting for a curator: upside_down posterior 0.55 < 0.9"
 
+    # a disputed crop leaves the orientation to the crowd; both hold the card back
+    assert [(w.kind, w.subject) for w in states[crop_disputed].waiting_for] == [
+        ("curator", "dispute"),
+        ("decision", "orientation"),
+    ]
+    assert states[crop_disputed].blockers[1] == f"the crowd disagrees on its crop (batch {crop_batch}, dispute {crop_dispute})"
+
     with app.app_context():
-        # the crowd's work, not the curators': the dispute is left out
-        assert waiting_for_people() == {"orientation": [asked], "filter_review": [review]}
-        assert waiting_for_people(chunk=1) == {"orientation": [asked], "filter_review": [review]}
+        # the crowd's work, not the curators': the disputed judgement is left out
+        expected = {"orientation": [asked, crop_disputed], "filter_review": [review]}
+        assert waiting_for_people() == expected and waiting_for_people(chunk=1) == expected
         db.session.remove()
 
 
@@ -293,21 +304,20 @@ def test_a_new_crop_decision_makes_the_rectification_stale(app, make_card, add_s
     assert list(state.stale) == ["rectify", "disparity", "grade"]
 
 
-def test_a_result_older_than_the_one_it_was_computed_from_is_stale_and_planned_again(
+def test_without_a_digest_a_result_older_than_its_source_is_stale_and_with_one_the_digest_decides(
     app, make_card, add_stage_result, card_image
 ) -> None:  # type: ignore[no-untyped-def]
     from core.db import db
-    from core.models import StageResult
+    from core.models import Card, StageResult
     from pipeline.records import param_hash
-    from runs.planning import pending_cards
+    from runs.planning import inputs_digest, pending_cards
     from runs.specs import available_stages
 
     card = _passed(make_card, add_stage_result, card_image())
     rectify = _with_current_inputs(app, add_stage_result, card, "rectify", artifacts={"left": "l.png", "right": "r.png"})
     with app.app_context():
-        spec = available_stages()["disparity"]
-        phash = param_hash(spec.params)
-    disparity = _with_current_inputs(app, add_stage_result, card, "disparity", param_hash=phash)
+        phash = param_hash(available_stages()["disparity"].params)
+    disparity = add_stage_result(card, "disparity", outcome=None, param_hash=phash)  # no digest recorded
     start = datetime(2026, 11, 1, 12, 0, tzinfo=UTC)
 
     def started(rectify_at: datetime, disparity_at: datetime) -> None:
@@ -323,13 +333,24 @@ def test_a_result_older_than_the_one_it_was_computed_from_is_stale_and_planned_a
             return [row.card_id for row in todo]
 
     started(start, start + timedelta(seconds=5))
-    assert _states(app, card)[card].stale == {} and planned() == []
-    # rectification redone in place (same parameters, same paths) after the disparity was measured
+    assert _states(app, card)[card].stale == {}
+    # rectification redone after the disparity was measured
     started(start + timedelta(seconds=9), start + timedelta(seconds=5))
     state = _states(app, card)[card]
     assert state.stale == {"disparity": "computed before its latest rectify result"}
     assert state.statuses["disparity"]["stale"] is True
-    assert planned() == [card]
+    assert planned() == [card]  # without a digest the planner reruns it too
+
+    # With the digest of the inputs disparity would build now (the rectification, redone in
+    # place on the same flags and boxes, left them as they were), the planner does not rerun
+    # it, and it is not stale: the two agree.
+    with app.app_context():
+        card_row = db.session.get(Card, card)
+        inputs = available_stages()["disparity"].inputs(card_row, {})
+        db.session.get(StageResult, disparity).metrics = {"inputs_digest": inputs_digest(dict(inputs))}
+        db.session.commit()
+    assert planned() == []
+    assert _states(app, card)[card].stale == {}
 
 
 # ----------------------------------------------------------------------------- batches
@@ -362,3 +383,12 @@ def test_card_states_reads_a_batch_with_a_fixed_number_of_queries(app, make_card
             return len(seen)
 
     assert queries(ids[:2]) == queries(ids)
+
+
+def test_stale_views_are_shown_but_hold_nothing_back(app, make_card, add_stage_result, card_image) -> None:  # type: ignore[no-untyped-def]
+    card = _graded(app, make_card, add_stage_result, card_image())
+    add_stage_result(card, "views", outcome=None, metrics={"inputs_digest": "computed-from-another-grade"})
+    state = _states(app, card)[card]
+    assert state.stale == {"views": "its inputs changed since the views stage ran"}
+    assert state.statuses["views"]["stale"] is True and state.blockers == []
+    assert state.sentence == "This card is graded but not yet in the review queue: sync the queue with the grader."

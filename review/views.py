@@ -286,6 +286,7 @@ def card(card_id: int) -> Any:
             anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
             table=threshold_table(grade_result.metrics) if grade_result is not None else None,
             state_sentence=state.sentence if review is None else "",
+            blockers=state.blockers if review is not None and review.decision == "pending" else [],
             orientation_panel=orientation_panel,
         )
 

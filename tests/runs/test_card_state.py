@@ -252,10 +252,13 @@ def test_a_curators_eye_order_makes_the_rectification_stale_everywhere(
     page = client.get(f"/cards/{card}").get_data(as_text=True)
     assert "Out of date: rectified with another orientation" in page
 
-    # the review gate refuses to accept it, with the same words
-    curator = make_person("curator", username="carol")
+    # the curator's page says why it cannot be accepted; the review gate refuses, with the same words
     with app.app_context():
         sync_reviews([card, fresh])
+    assert f"Not accepted now: {blocker}." in client.get(f"/review/cards/{card}").get_data(as_text=True)
+    assert 'id="card-blockers"' not in client.get(f"/review/cards/{fresh}").get_data(as_text=True)
+    curator = make_person("curator", username="carol")
+    with app.app_context():
         person = db.session.get(Person, curator.id)
         review = db.session.scalar(select(CardReview).where(CardReview.card_id == card))
         with pytest.raises(ReviewError) as refused:

@@ -23,7 +23,7 @@ from .aggregation import DawidSkeneResult, LabelAnswer, dawid_skene
 from .questions import GRID, keys
 
 # The keys of a grid answer: the grid's questions (annotation.questions.GRID, where each one's
-# button words, hotkey and help are), which are the orientation flags of runs.orientation.
+# button words, hotkey and help are), which are the orientation flags of pipeline.decided_orientation.
 FLAGS: tuple[str, ...] = keys(GRID)
 # What gold shows wrong, in turn: one flag flipped, or none (a gold card shown right keeps a
 # worker who taps everything from passing).

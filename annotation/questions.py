@@ -8,7 +8,7 @@ Two task kinds ask yes/no questions about a card:
 * the confirm grid (:data:`GRID`), 24-48 cards at once: each question is a tap on a card that
   looks wrong; the answer is ``{key: tapped}`` and what it says about the card is ``shown XOR
   tapped`` (:mod:`annotation.confirm`). The grid's keys are the orientation flags of
-  :mod:`runs.orientation` (``upside_down``, ``inverted``, ``swapped``), which the grid's pictures
+  :mod:`pipeline.decided_orientation` (``upside_down``, ``inverted``, ``swapped``), which the grid's pictures
   apply (:mod:`annotation.grid_pictures`): a grid question other than those needs a picture that
   shows it, and is not a table row alone.
 

@@ -195,8 +195,8 @@ def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     from core.db import db
     from core.models import Person
     from review.models import CardReview
-    from review.orientation import flow_blockers
-    from review.tasks import decide, open_disputes, sync_reviews
+    from review.tasks import decide, sync_reviews
+    from runs.card_state import card_states
 
     sync_reviews()
     curator = db.session.scalar(select(Person).where(Person.username == "curator"))
@@ -212,7 +212,8 @@ def curate_demo(echo=click.echo) -> dict:  # type: ignore[no-untyped-def]
     if already is None:
         # A card whose crowd judgement or crop is disputed, or whose orientation is undecided,
         # cannot be accepted: it waits for you.
-        undisputed = [review for review in pending if not open_disputes(review.card_id) and not flow_blockers(review.card)]
+        states = card_states([review.card for review in pending])
+        undisputed = [review for review in pending if not states[review.card_id].blockers]
         for review in undisputed[: max(1, len(pending) // 2)]:
             decide(
                 review.id, "accept", expected_version=review.version, curator=curator, note="demo: accepted by the demo script"

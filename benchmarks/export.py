@@ -178,7 +178,7 @@ def build_synthetic_catalogue(
                     "status": "done",
                     "metrics": {
                         "orientation": {"applied": []},
-                        "inputs_digest": "bench",
+                        # no inputs_digest: a made-up one would make every card stale (runs.card_state)
                         "orientation_used": {"upside_down": False, "inverted": False, "swapped": False},
                     },
                     "artifacts": {

@@ -148,7 +148,7 @@ def parse_filters(args: Any) -> CardFilters:
 def stage_status_condition(stage: str, status: str) -> ColumnElement[bool]:
     """SQL for "the card's latest ``stage`` result has ``status``", as ``keystone cards`` reports it.
 
-    No result means pending, except where ``runs.card_state.card_stage_statuses`` derives a skip: stages
+    No result means pending, except where ``runs.card_state`` derives a skip: stages
     after the filter for a culled card, stages after a failed rectification, and views for a card
     graded failure. (Judge, crop and review are people's work, not stage results; the review
     queue and the crowd pages filter those.)
@@ -251,12 +251,11 @@ def cards() -> Any:
 @bp.route("/cards/<int:card_id>")
 @role_required(*STAFF_ROLES)
 def card_page(card_id: int) -> Any:
-    from pipeline.decided_orientation import card_orientation
-    from runs.card_state import card_stage_statuses, people_and_decisions
+    from runs.card_state import card_state
 
     with read_only():
         card = get_card_or_404(card_id)
-        work = people_and_decisions([card.id]).get(card.id, {})
+        state = card_state(card)
         latest = card.latest_results()
         filter_result = latest.get("filter")
         rectify_result = latest.get("rectify")
@@ -274,8 +273,9 @@ def card_page(card_id: int) -> Any:
             views_result=latest.get("views"),
             stereo_downloads=stereo_downloads(card, rectify_result, disparity_result),
             filter_view=FilterView.of(card, filter_result) if filter_result is not None else None,
-            statuses=card_stage_statuses(card, work=work),
-            orientation=card_orientation(card, work.get("approved", {})),
+            statuses=state.statuses,
+            orientation=state.orientation,
+            state_sentence=state.sentence,
             history=list(reversed(card.stage_results)),
             records=records,
         )

@@ -21,7 +21,7 @@ from sqlalchemy.orm import selectinload
 from core.db import db
 from core.models import Card
 from review.models import CardReview
-from review.orientation import flow_blockers_for
+from runs.card_state import card_states
 
 from .models import Release
 from .records import RELEASED_DECISIONS, VIEW_ARTIFACTS, ReleaseCard, grades_at_or_above
@@ -79,7 +79,9 @@ def stream_release_cards(
     finished rectification or disparity, a missing file) is skipped and noted in ``exclusions``.
     ``with_views``: also collect each card's views (see :func:`card_views`)."""
     from annotation.models import Aggregate
+    from runs.specs import available_stages
 
+    specs = available_stages()  # once per release: the stale check builds each stage's inputs
     for start in range(0, len(card_ids), CHUNK):
         chunk = card_ids[start : start + CHUNK]
         cards = db.session.scalars(
@@ -94,14 +96,15 @@ def stream_release_cards(
             select(Aggregate).where(Aggregate.card_id.in_(chunk), Aggregate.state == "approved").order_by(Aggregate.id)
         ):
             crowd.setdefault(row.card_id, {})[row.kind] = {"batch": row.batch_id, "answers": row.answers}
-        # The flow rule: an undecided orientation, an open crowd dispute or a grade made from an
-        # orientation that changed since keeps an accepted card out of the release.
-        blockers = flow_blockers_for(list(cards))
+        # The flow rule, as the review gate asks it: an undecided orientation, an open crowd
+        # dispute or a stale result keeps an accepted card out of the release.
+        states = card_states(cards, specs=specs)
         ready: list[ReleaseCard] = []
         for card in cards:
-            if blockers[card.id]:
+            blockers = states[card.id].blockers
+            if blockers:
                 if exclusions is not None:
-                    exclusions.append(Exclusion(card.id, "; ".join(blockers[card.id])))
+                    exclusions.append(Exclusion(card.id, "; ".join(blockers)))
                 continue
             try:
                 ready.append(release_card(card, reviews[card.id], crowd.get(card.id, {}), data_dir, with_views))

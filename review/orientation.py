@@ -6,9 +6,8 @@ flag, giving it back to the orientation step and the crowd); the override and an
 together. The card's rectification inputs change with it, so the next ``keystone run`` redoes
 rectification, disparity and grade with the new orientation.
 
-:func:`flow_blockers` says, in sentences, why a card may not be accepted or released now: its
-orientation is undecided, the crowd's judgement or crop waits for a curator, or the grade was
-computed from an orientation that has changed since.
+Why a card may not be accepted or released now (an undecided orientation among it) is
+:attr:`runs.card_state.CardState.blockers`.
 """
 
 from __future__ import annotations
@@ -21,12 +20,12 @@ from sqlalchemy import select
 from core.audit import record_event
 from core.db import db
 from core.models import Card, Person
-from pipeline.decided_orientation import FLAGS, is_decided, public_orientation
+from pipeline.decided_orientation import FLAGS, public_orientation
 
 from .models import OrientationOverride
 from .tasks import MAX_NOTE_CHARS, ReviewError
 
-__all__ = ["current_orientation", "flow_blockers", "flow_blockers_for", "override_orientation"]
+__all__ = ["current_orientation", "override_orientation"]
 
 
 def current_orientation(card: Card) -> dict[str, Any]:
@@ -89,43 +88,3 @@ def override_orientation(card_id: int, flags: Mapping[str, Any], *, curator: Per
     )
     db.session.commit()
     return after
-
-
-def flow_blockers(card: Card) -> list[str]:
-    """Why ``card`` may not be accepted or released now (empty: nothing holds it back)."""
-    return flow_blockers_for([card])[card.id]
-
-
-def flow_blockers_for(cards: list[Card]) -> dict[int, list[str]]:
-    """:func:`flow_blockers` for many cards with three queries (cards' results loaded)."""
-    from annotation.models import Aggregate
-    from pipeline.decided_orientation import card_orientation
-    from runs.specs import approved_annotations
-
-    ids = [card.id for card in cards]
-    approved = approved_annotations(ids)
-    latest: dict[int, dict[str, Aggregate]] = {}
-    for start in range(0, len(ids), 500):
-        for row in db.session.scalars(
-            select(Aggregate).where(Aggregate.card_id.in_(ids[start : start + 500])).order_by(Aggregate.id)
-        ):
-            latest.setdefault(row.card_id, {})[row.kind] = row
-    blockers: dict[int, list[str]] = {}
-    for card in cards:
-        found = blockers[card.id] = []
-        orientation = card_orientation(card, approved.get(card.id, {}))
-        if not is_decided(orientation):
-            found.append(f"its orientation is undecided (waiting for {orientation['waiting_for']})")
-        for kind, row in sorted(latest.get(card.id, {}).items()):
-            if row.state == "needs_curator":
-                what = "judgement" if kind == "judge" else "crop"
-                found.append(f"the crowd disagrees on its {what} (batch {row.batch_id}, dispute {row.id})")
-        rectify = card.latest_results().get("rectify")
-        if rectify is not None and is_decided(orientation):
-            used = rectify.metrics.get("orientation_used")
-            if used is not None and any(used.get(flag) != orientation[flag] for flag in FLAGS):
-                found.append(
-                    "it was rectified and graded with another orientation "
-                    f"({', '.join(f'{f}={used.get(f)}' for f in FLAGS)}); run the pipeline again"
-                )
-    return blockers

@@ -576,28 +576,7 @@ def decide(
         db.session.rollback()
         raise ReviewError(f"Card {review.card_id} has no automatic grade to accept; choose a grade instead")
     if action in ("accept", "change"):
-        disputes = open_disputes(review.card_id)
-        if disputes:
-            db.session.rollback()
-            what = " and ".join(
-                f"its {'judgement' if row.kind == 'judge' else 'crop'} (batch {row.batch_id}, dispute {row.id})"
-                for row in disputes
-            )
-            raise ReviewError(
-                f"Card {review.card_id} cannot be accepted while the crowd disagrees on {what}: "
-                "resolve it under Disputed crowd answers first",
-                409,
-            )
-        from .orientation import flow_blockers
-
-        blockers = flow_blockers(review.card)
-        if blockers:
-            db.session.rollback()
-            raise ReviewError(
-                f"Card {review.card_id} cannot be accepted: {'; '.join(blockers)}. Decide its "
-                "orientation on the card's page (or wait for the crowd) first",
-                409,
-            )
+        _refuse_a_card_held_back(review)
     before = review_snapshot(review)
     decision, final = {
         "accept": ("accepted", review.auto_grade),
@@ -626,6 +605,32 @@ def decide(
         db.session.commit()
         return outcome
     return _send_back(outcome, kind, curator, note)
+
+
+def _refuse_a_card_held_back(review: CardReview) -> None:
+    """The review gate: a card :mod:`runs.card_state` says is held back (a crowd dispute, an
+    undecided orientation, a stale result) is not accepted; the same answer keeps it out of a
+    release."""
+    from pipeline.decided_orientation import is_decided
+    from runs.card_state import card_state
+
+    state = card_state(review.card)
+    if state.disputes:
+        db.session.rollback()
+        what = " and ".join(wait.reason.removeprefix("the crowd disagrees on ") for wait in state.disputes)
+        raise ReviewError(
+            f"Card {review.card_id} cannot be accepted while the crowd disagrees on {what}: "
+            "resolve it under Disputed crowd answers first",
+            409,
+        )
+    if state.blockers:
+        db.session.rollback()
+        then = (
+            "Decide its orientation on the card's page (or wait for the crowd) first"
+            if not is_decided(state.orientation)
+            else "Run the pipeline again first"
+        )
+        raise ReviewError(f"Card {review.card_id} cannot be accepted: {'; '.join(state.blockers)}. {then}", 409)
 
 
 def _send_back(outcome: Decided, kind: str, curator: Person, note: str) -> Decided:
@@ -784,17 +789,6 @@ def bulk_decide(
 
 # ---------------------------------------------------------------------------------------------
 # Disputed crowd answers
-
-
-def open_disputes(card_id: int) -> list[Aggregate]:
-    """The card's crowd aggregates (judge, crop) whose latest word waits for a curator.
-
-    A card with one is not accepted: its orientation or crop, which the grade was computed
-    from, is still in question."""
-    latest: dict[str, Aggregate] = {}
-    for row in db.session.scalars(select(Aggregate).where(Aggregate.card_id == card_id).order_by(Aggregate.id)):
-        latest[row.kind] = row
-    return [row for kind, row in sorted(latest.items()) if row.state == "needs_curator"]
 
 
 def disputed_aggregates(limit: int = 50, offset: int = 0) -> tuple[list[Aggregate], int]:

@@ -247,45 +247,16 @@ def _judgement_counts(answers: list[Any]) -> dict[str, tuple[int, int]]:
     return counts
 
 
-def card_state_sentence(card: Any, latest: dict[str, Any]) -> str:
-    """Why a card without a review has nothing to decide, in terms of where it stands: culled by
-    the filter, a stage that failed, or the stage it is waiting for."""
-    filtered = latest.get("filter")
-    if card.state == "culled" or (filtered is not None and filtered.outcome == "culled"):
-        why = f" ({filtered.reason})" if filtered is not None and filtered.reason else ""
-        return (
-            f"The filter culled this card{why}: it is not a usable stereo pair, so it is not graded and "
-            "there is nothing to review."
-        )
-    for stage in ("filter", "rectify", "disparity", "grade"):
-        result = latest.get(stage)
-        if result is not None and result.status == "failed":
-            return (
-                f"The {stage} stage failed on this card ({result.reason or 'no reason recorded'}), so it has no "
-                "automatic grade to review."
-            )
-    grade = latest.get("grade")
-    if grade is not None and grade.status == "done":
-        return "This card is graded but not yet in the review queue: sync the queue with the grader."
-    waiting = next(
-        (
-            stage
-            for stage in ("filter", "rectify", "disparity", "grade")
-            if latest.get(stage) is None or latest[stage].status not in ("done", "skipped")
-        ),
-        "grade",
-    )
-    return f"This card is not graded yet: it is waiting for its {waiting} stage."
-
-
 @bp.route("/cards/<int:card_id>")
 @role_required("curator")
 def card(card_id: int) -> Any:
     from catalogue.views import get_card_or_404
+    from runs.card_state import card_state
 
     filters = _filters(request.args)
     with read_only():
         card = get_card_or_404(card_id)
+        state = card_state(card)
         review = db.session.scalar(select(CardReview).where(CardReview.card_id == card_id))
         latest = card.latest_results()
         grade_result = None
@@ -295,7 +266,7 @@ def card(card_id: int) -> Any:
             )
         previous, following = queue_neighbours(card_id, filters)
         view = crowd_view(card_id)
-        orientation_panel = _orientation_panel(card)
+        orientation_panel = _orientation_panel(card, state.orientation)
         return render_template(
             "review/card.html",
             card=card,
@@ -316,21 +287,22 @@ def card(card_id: int) -> Any:
             kinds=SEND_BACK_KINDS,
             anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
             table=threshold_table(grade_result.metrics) if grade_result is not None else None,
-            state_sentence=card_state_sentence(card, latest) if review is None else "",
+            state_sentence=state.sentence if review is None else "",
+            blockers=state.blockers if review is not None and review.decision == "pending" else [],
             orientation_panel=orientation_panel,
         )
 
 
-def _orientation_panel(card: Any) -> dict[str, Any]:
-    """What the card page's orientation form shows: the orientation in use, the step's
-    probabilities and evidence, and the curator's current override."""
+def _orientation_panel(card: Any, orientation: dict[str, Any]) -> dict[str, Any]:
+    """What the card page's orientation form shows: the orientation in use (``orientation``,
+    from :mod:`runs.card_state`), the step's probabilities and evidence, and the curator's
+    current override."""
     from .models import OrientationOverride
-    from .orientation import current_orientation
 
     step = card.latest_results().get("orientation")
     override = db.session.scalar(select(OrientationOverride).where(OrientationOverride.card_id == card.id))
     return {
-        "orientation": current_orientation(card),
+        "orientation": orientation,
         "step": step.metrics.get("flags") if step is not None and step.status == "done" else None,
         "step_reason": step.reason if step is not None else None,
         "override": {flag: getattr(override, flag) for flag in ("upside_down", "inverted", "swapped")}

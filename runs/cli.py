@@ -13,8 +13,9 @@ from sqlalchemy.orm import selectinload
 
 from core.db import db
 from core.models import CARD_STATES, Card
+from pipeline.decided_orientation import public_orientation
 from pipeline.stages.spec import StageSpec, declared_stages, flow_stages
-from runs.card_state import card_orientation_field, card_stage_statuses, people_and_decisions, waiting_for_people
+from runs.card_state import card_states, waiting_for_people
 from runs.claims import DEFAULT_CLAIM_BATCH, DEFAULT_CLAIM_TTL_S, Driver
 from runs.executors import make_executor
 from runs.loop import EXIT_HELD, run_stage, run_stages
@@ -230,6 +231,7 @@ def card_rows(
     the catalogue. Call inside :func:`core.db.read_only`."""
     from core.models import Collection
 
+    specs = available_stages()  # the stage catalogue once: staleness builds each stage's inputs
     after = 0
     while True:
         query = select(Card).where(Card.id > after).order_by(Card.id).limit(chunk).options(selectinload(Card.stage_results))
@@ -240,15 +242,16 @@ def card_rows(
         cards = list(db.session.scalars(query))
         if not cards:
             return
-        work = people_and_decisions([card.id for card in cards])
+        states = card_states(cards, stage, specs=specs)
         for card in cards:
+            state_now = states[card.id]
             yield {
                 "id": card.id,
                 "source": card.source_name,
                 "accession": card.accession,
                 "state": card.state,
-                "orientation": card_orientation_field(card, work.get(card.id, {})),
-                "stages": card_stage_statuses(card, stage, work.get(card.id, {})),
+                "orientation": public_orientation(state_now.orientation),
+                "stages": state_now.statuses,
             }
         after = cards[-1].id
         db.session.expunge_all()  # this chunk's cards and results are written out: let them go

@@ -28,7 +28,7 @@ PROLIFIC_JUDGE_PAGE = "/crowd/prolific?PROLIFIC_PID=p&STUDY_ID=s&SESSION_ID=x&ki
 
 
 def test_the_table_holds_the_questions_stored_answers_and_keys_have_always_had() -> None:
-    from runs.orientation import FLAGS
+    from pipeline.decided_orientation import FLAGS
 
     assert keys(JUDGE) == ("is_stereo", "upside_down", "inverted", "swapped")
     assert required_keys(JUDGE) == ("is_stereo", "upside_down", "inverted")  # older pages did not ask swapped

@@ -303,6 +303,6 @@ def test_a_card_without_a_review_says_where_it_stands(client, login, make_card, 
     login("curator")
     pages = {card: client.get(f"/review/cards/{card}").get_data(as_text=True) for card in (culled, waiting, failed)}
     assert "The filter culled this card (0.3 % good matches)" in pages[culled]
-    assert "waiting for its rectify stage" in pages[waiting]
+    assert "waiting for its orientation stage" in pages[waiting]  # the filter passed it; the orientation step is next
     assert "The rectify stage failed on this card (epipole inside the image)" in pages[failed]
     assert not any("Run the grade stage" in page or "Why the grader said so" in page for page in pages.values())

@@ -324,7 +324,8 @@ def test_disputes_are_listed_shown_with_boxes_and_resolved_as_gold(app, client, 
     again = client.post(f"/review/disputes/{aggregate_id}", data=form)
     assert again.status_code == 409 and "already resolved by curator-" in again.get_data(as_text=True)
     card_page = client.get(f"/review/cards/{card_id}").get_data(as_text=True)
-    assert "not graded yet" in card_page and "crowd-aggregate" in card_page
+    # the resolved crop is in; the card the filter sent to review still waits for a judgement
+    assert "it is waiting for the crowd" in card_page and "crowd-aggregate" in card_page
 
 
 def test_card_page_shows_the_parallax_preview_when_views_exist(

@@ -19,7 +19,7 @@ from pipeline.records import CardTask, StageRecord, param_hash
 from pipeline.runner import run_tasks
 from runs.chains import ChainOutcome, ChainTask, ResultView, run_chain
 from runs.claims import DEFAULT_CLAIM_BATCH, Driver, result_fingerprint
-from runs.executors import card_work_dir
+from runs.executors import card_work_dir, dispatch_window
 from runs.planning import inputs_digest, pending_cards
 from runs.report import StageReport, count_record
 from runs.specs import StageSpec, approved_annotations, collection_decisions
@@ -109,6 +109,9 @@ def run_stage(
     if chain is not None:
         report.followers = chain.reports
     function: Callable[[Any], Any] = spec.task if chain is None else chain.function
+    # As many cards in flight as the executor has threads to compute them, times a small
+    # multiple (pipeline.runner.WINDOW_PER_THREAD); a dask cluster's is re-read as workers join.
+    window = dispatch_window(executor)
 
     def claimed_tasks(card_ids: list[int]) -> Iterator[CardTask | ChainTask]:
         # Claimed a batch at a time, just before the executor wants them, so a second run
@@ -130,7 +133,9 @@ def run_stage(
     def compute(card_ids: list[int]) -> None:
         batch: list[StageRecord] = []
         last_write = time.monotonic()
-        for item in run_tasks(function, claimed_tasks(card_ids), executor, stage=spec.name, param_hash=phash):
+        for item in run_tasks(
+            function, claimed_tasks(card_ids), executor, stage=spec.name, param_hash=phash, window=window, flight=report.flight
+        ):
             record = item if chain is None else chain.take(item)
             batch.append(record)
             computed.append(record.card_id)

@@ -20,7 +20,7 @@ from pipeline.runner import run_tasks
 from runs.chains import ChainOutcome, ChainTask, ResultView, run_chain
 from runs.claims import DEFAULT_CLAIM_BATCH, Driver, result_fingerprint
 from runs.executors import card_work_dir, dispatch_window
-from runs.planning import inputs_digest, pending_cards
+from runs.planning import PlannedCard, inputs_digest, pending_cards
 from runs.report import StageReport, count_record
 from runs.specs import StageSpec, approved_annotations, collection_decisions
 from runs.writes import write_records
@@ -83,24 +83,25 @@ def run_stage(
     report = StageReport(stage=spec.name, param_hash=phash)
     cards, report.skipped_existing = pending_cards(spec, phash)
     skip = (leave_out or {}).get(spec.name, set())
-    cards = [card for card in cards if card.card_id not in skip]
-    seen = {card.card_id: card.fingerprint for card in cards}
-    tasks = {
-        card.card_id: CardTask(
+    planned = {card.card_id: card for card in cards if card.card_id not in skip}
+    del cards
+    digests = {card_id: inputs_digest(card.inputs) for card_id, card in planned.items() if spec.inputs is not None}
+    db.session.commit()  # release the read transaction while workers compute
+    if on_start is not None:
+        on_start(len(planned))
+    root = str(data_dir)
+
+    def card_task(card: PlannedCard) -> CardTask:
+        # A card's work order is made when it is claimed, not at planning: a 250,000-card run
+        # holds its planned rows, not three paths for every card besides.
+        return CardTask(
             card_id=card.card_id,
             content_hash=card.content_hash,
             image_path=str(data_dir / card.stored_path),
             work_dir=str(card_work_dir(data_dir, card.content_hash, spec.name, phash)),
-            data_dir=str(data_dir),
+            data_dir=root,
             inputs=card.inputs,
         )
-        for card in cards
-    }
-    del cards
-    digests = {task.card_id: inputs_digest(task.inputs) for task in tasks.values() if spec.inputs is not None}
-    db.session.commit()  # release the read transaction while workers compute
-    if on_start is not None:
-        on_start(len(tasks))
 
     clock = time.perf_counter()
     computed: list[int] = []
@@ -118,7 +119,7 @@ def run_stage(
         # finds the cards this one has not reached yet.
         for start in range(0, len(card_ids), claim_batch):
             batch_ids = card_ids[start : start + claim_batch]
-            claim = driver.claim(spec.name, phash, batch_ids, seen)
+            claim = driver.claim(spec.name, phash, batch_ids, {card_id: planned[card_id].fingerprint for card_id in batch_ids})
             report.taken_over += len(claim.taken_over)
             report.done_by_other_run += len(claim.finished_elsewhere)
             for card_id in batch_ids:
@@ -126,9 +127,9 @@ def run_stage(
             held.update(claim.held)
             if chain is None:
                 for card_id in claim.claimed:
-                    yield tasks[card_id]
+                    yield card_task(planned[card_id])
             else:
-                yield from chain.tasks([tasks[card_id] for card_id in claim.claimed])
+                yield from chain.tasks([card_task(planned[card_id]) for card_id in claim.claimed])
 
     def compute(card_ids: list[int]) -> None:
         batch: list[StageRecord] = []
@@ -152,7 +153,7 @@ def run_stage(
         if chain is not None:
             chain.write()
 
-    compute(list(tasks))
+    compute(list(planned))
     report.held_by_other_run = len(held)
     report.held_by = set(held.values())
     poll_s = min(WAIT_POLL_S, driver.ttl_s / 4)

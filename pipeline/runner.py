@@ -128,9 +128,10 @@ class RestartingProcessPool(Executor):
 
 # Cards in flight per worker thread. Two: the card a thread computes and the next one, already
 # sent, so a thread that finishes starts again without waiting for the driver. The driver is
-# away from the executor while it writes a batch of results (runs.loop: 50 records or 2 s,
-# ~0.1 s on SQLite) or claims the next cards; a card costs 0.3-1 CPU-s, so one card ready per
-# thread covers that pause several times over. It is also what a dask scheduler hands a
+# away from the executor while it writes a batch of results (runs.loop: 50 records or 2 s; its
+# whole cost is 1.5-2.8 ms of CPU a record in `keystone bench driver`, so ~0.1 s a batch) or
+# claims the next cards; a card costs 0.3-1 CPU-s, so one card ready per thread covers that
+# pause several times over, and eight a thread ran no faster than two (docs/SCALE.md). It is also what a dask scheduler hands a
 # single-threaded worker on its own (worker-saturation 1.1: ceil(1.1 x 1) = 2 tasks), so a
 # larger window would only queue futures at the scheduler: cards claimed but not started, that
 # another run cannot take and that a dead driver leaves held until the claims lapse. The window

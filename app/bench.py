@@ -16,6 +16,7 @@ LAZY_BENCHMARKS = {
     "confirm-grid": "benchmarks.confirm_grid:bench_confirm_grid_command",
     "crowd": "benchmarks.crowd:bench_crowd_command",
     "disparity": "benchmarks.disparity:bench_disparity_command",
+    "driver": "benchmarks.driver:bench_driver_command",
     "export": "benchmarks.export:bench_export_command",
     "filter": "benchmarks.filter:bench_filter_command",
     "grade": "benchmarks.grade:bench_grade_command",

@@ -1,9 +1,10 @@
 """Run a per-card task over many cards through any ``concurrent.futures.Executor``.
 
-The executor is a seam: a local process pool today, a distributed engine's executor (e.g.
-``dask.distributed.Client.get_executor()``) tomorrow. Tasks are submitted through a bounded
-window so a 250,000-card run holds only a few futures at a time, and results are yielded as
-they complete for the driver to write in batches.
+The executor is a seam: a local process pool or a dask cluster's executor
+(``dask.distributed.Client.get_executor()``). Tasks are submitted through a bounded window that
+follows the executor's capacity (:func:`in_flight_window`), so a 250,000-card run holds a few
+futures per worker thread, never one per card, and results are yielded as they complete for
+the driver to write in batches.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
 from typing import Any
 
 from . import CODE_VERSION
@@ -103,6 +105,11 @@ class RestartingProcessPool(Executor):
         self._pool = self._new_pool()
         self.restarts = 0
 
+    @property
+    def max_workers(self) -> int:
+        """Worker processes, one card at a time each."""
+        return self._max_workers
+
     def _new_pool(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(self._max_workers, mp_context=self._context, initializer=init_worker)
 
@@ -119,6 +126,47 @@ class RestartingProcessPool(Executor):
         self._pool.shutdown(wait=wait, cancel_futures=cancel_futures)
 
 
+# Cards in flight per worker thread. Two: the card a thread computes and the next one, already
+# sent, so a thread that finishes starts again without waiting for the driver. The driver is
+# away from the executor while it writes a batch of results (runs.loop: 50 records or 2 s; its
+# whole cost is 1.5-2.8 ms of CPU a record in `keystone bench driver`, so ~0.1 s a batch) or
+# claims the next cards; a card costs 0.3-1 CPU-s, so one card ready per thread covers that
+# pause several times over, and eight a thread ran no faster than two (docs/SCALE.md). It is also what a dask scheduler hands a
+# single-threaded worker on its own (worker-saturation 1.1: ceil(1.1 x 1) = 2 tasks), so a
+# larger window would only queue futures at the scheduler: cards claimed but not started, that
+# another run cannot take and that a dead driver leaves held until the claims lapse. The window
+# grows with the threads, never with the cards: a 250,000-card run holds as many futures as a
+# 25-card one.
+WINDOW_PER_THREAD = 2
+
+
+def in_flight_window(worker_threads: int, per_thread: int = WINDOW_PER_THREAD) -> int:
+    """How many cards to keep in flight for an executor with ``worker_threads`` threads that
+    compute cards (``per_thread`` each, :data:`WINDOW_PER_THREAD`). A cluster with no worker
+    yet still gets ``per_thread`` cards, which wait at its scheduler for the first worker."""
+    if per_thread < 1:
+        raise ValueError(f"per_thread must be at least 1, got {per_thread}")
+    return max(1, worker_threads) * per_thread
+
+
+@dataclass
+class InFlight:
+    """What :func:`run_tasks` did with its window, for the run's report and the driver bench:
+    the window it last used, the most cards it held in flight at once, how many it submitted,
+    and when it submitted the first and the last (``time.perf_counter``)."""
+
+    window: int = 0
+    most: int = 0
+    submitted: int = 0
+    first_submit: float = 0.0
+    last_submit: float = 0.0
+
+
+# Seconds a run waits on its cards in flight before it looks at a window that can change (a
+# dask cluster's workers joining) again.
+WINDOW_RECHECK_S = 2.0
+
+
 def run_tasks(
     function: TaskFunction,
     tasks: Iterable[CardTask],
@@ -126,13 +174,20 @@ def run_tasks(
     *,
     stage: str,
     param_hash: str,
-    window: int = 16,
+    window: int | Callable[[], int] = WINDOW_PER_THREAD,
+    flight: InFlight | None = None,
 ) -> Iterator[StageRecord]:
     """Yield one :class:`StageRecord` per task, in completion order.
 
-    With no executor the tasks run inline (one core, easiest to debug). A worker that dies
-    (a segfault in native code, the OOM killer) fails only its in-flight cards, recorded with
-    reason ``worker_crashed``; the caller may rerun them.
+    With no executor the tasks run inline (one core, easiest to debug). Otherwise at most
+    ``window`` cards are in flight: a number, or a function giving it, asked again before each
+    refill and at least every :data:`WINDOW_RECHECK_S` while the run waits (it must be cheap:
+    ``runs.executors.dispatch_window`` reads a dask cluster's threads at most that often). The
+    default suits a single worker; a driver sizes it with :func:`in_flight_window`. ``flight``,
+    when given, is filled in as the run goes.
+
+    A worker that dies (a segfault in native code, the OOM killer) fails only its in-flight
+    cards, recorded with reason ``worker_crashed``; the caller may rerun them.
     """
     if executor is None:
         for inline_task in tasks:
@@ -140,11 +195,13 @@ def run_tasks(
             yield function(inline_task)
         return
 
+    flight = flight if flight is not None else InFlight()
     pending: dict[Future[StageRecord], CardTask] = {}
     source = iter(tasks)
     exhausted = False
     while True:
-        while not exhausted and len(pending) < window:
+        flight.window = window() if callable(window) else window
+        while not exhausted and len(pending) < flight.window:
             task = next(source, None)
             if task is None:
                 exhausted = True
@@ -154,9 +211,16 @@ def run_tasks(
                 pending[executor.submit(function, task)] = task
             except BrokenProcessPool:
                 yield _crashed(task, stage, param_hash)
+                continue
+            flight.last_submit = time.perf_counter()
+            if not flight.submitted:
+                flight.first_submit = flight.last_submit
+            flight.submitted += 1
+        flight.most = max(flight.most, len(pending))
         if not pending:
             return
-        done, _ = wait(pending, return_when=FIRST_COMPLETED)
+        recheck = WINDOW_RECHECK_S if callable(window) and not exhausted else None
+        done, _ = wait(pending, timeout=recheck, return_when=FIRST_COMPLETED)
         for future in done:
             task = pending.pop(future)
             try:

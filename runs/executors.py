@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
 from contextlib import contextmanager
+from typing import Any
 
-from pipeline.runner import RestartingProcessPool, init_worker
+from pipeline.runner import WINDOW_RECHECK_S, RestartingProcessPool, in_flight_window, init_worker
 
 
 @contextmanager
@@ -38,3 +40,47 @@ def make_executor(kind: str, workers: int, scheduler: str | None) -> Iterator[Ex
             yield pool
     else:
         raise ValueError(f"unknown executor {kind!r}; expected local or dask")
+
+
+def _dask_client(executor: Executor) -> Any | None:
+    """The client behind a dask ``Client.get_executor()`` (distributed's ClientExecutor keeps it
+    as ``_client``), or None for any other executor; dask is not imported for the check."""
+    if type(executor).__module__.split(".")[0] != "distributed":
+        return None
+    return getattr(executor, "_client", None)
+
+
+def worker_threads(executor: Executor | None) -> int:
+    """Threads that compute cards at once: 1 inline, a process or thread pool's workers, a dask
+    cluster's threads (every worker's ``nthreads`` summed, as its scheduler counts them now: one
+    round trip)."""
+    if executor is None:
+        return 1
+    client = _dask_client(executor)
+    if client is not None:
+        return sum(client.nthreads().values())
+    if isinstance(executor, RestartingProcessPool):
+        return executor.max_workers
+    workers = getattr(executor, "_max_workers", None)  # concurrent.futures' own pools
+    if isinstance(workers, int):
+        return workers
+    raise TypeError(f"cannot tell how many workers {type(executor).__name__} has; give run_tasks a window")
+
+
+def dispatch_window(executor: Executor | None, recheck_s: float = WINDOW_RECHECK_S) -> int | Callable[[], int]:
+    """The in-flight window of a run on ``executor`` (:func:`pipeline.runner.in_flight_window`
+    of its :func:`worker_threads`). A pool's is a number; a dask cluster's is a function that
+    asks the scheduler again at most every ``recheck_s`` seconds, so workers that join a
+    running cluster get cards (and the window shrinks when workers leave)."""
+    client = None if executor is None else _dask_client(executor)
+    if client is None:
+        return in_flight_window(worker_threads(executor))
+    state = {"window": in_flight_window(worker_threads(executor)), "read_at": time.monotonic()}
+
+    def window() -> int:
+        now = time.monotonic()
+        if now - state["read_at"] >= recheck_s:
+            state["window"], state["read_at"] = in_flight_window(worker_threads(executor)), now
+        return int(state["window"])
+
+    return window

@@ -21,7 +21,8 @@ from pipeline.results import ResultView
 from pipeline.runner import run_tasks
 from pipeline.stages.spec import StageSpec
 from runs.claims import DEFAULT_CLAIM_BATCH, Driver, result_fingerprint
-from runs.planning import pending_cards
+from runs.executors import dispatch_window
+from runs.planning import PlannedCard, pending_cards
 from runs.report import StageReport, count_record
 from runs.specs import approved_annotations
 from runs.writes import write_records
@@ -84,24 +85,25 @@ def run_stage(
     report = StageReport(stage=spec.name, param_hash=phash)
     cards, report.skipped_existing = pending_cards(spec, phash)
     skip = (leave_out or {}).get(spec.name, set())
-    cards = [card for card in cards if card.card_id not in skip]
-    seen = {card.card_id: card.fingerprint for card in cards}
-    tasks = {
-        card.card_id: CardTask(
+    planned = {card.card_id: card for card in cards if card.card_id not in skip}
+    del cards
+    digests = {card_id: inputs_digest(card.inputs) for card_id, card in planned.items() if spec.inputs is not None}
+    db.session.commit()  # release the read transaction while workers compute
+    if on_start is not None:
+        on_start(len(planned))
+    root = str(data_dir)
+
+    def card_task(card: PlannedCard) -> CardTask:
+        # A card's work order is made when it is claimed, not at planning: a 250,000-card run
+        # holds its planned rows, not three paths for every card besides.
+        return CardTask(
             card_id=card.card_id,
             content_hash=card.content_hash,
             image_path=str(data_dir / card.stored_path),
             work_dir=str(card_work_dir(data_dir, card.content_hash, spec.name, phash)),
-            data_dir=str(data_dir),
+            data_dir=root,
             inputs=card.inputs,
         )
-        for card in cards
-    }
-    del cards
-    digests = {task.card_id: inputs_digest(task.inputs) for task in tasks.values() if spec.inputs is not None}
-    db.session.commit()  # release the read transaction while workers compute
-    if on_start is not None:
-        on_start(len(tasks))
 
     clock = time.perf_counter()
     computed: list[int] = []
@@ -110,13 +112,16 @@ def run_stage(
     if chain is not None:
         report.followers = chain.reports
     function: Callable[[Any], Any] = spec.task if chain is None else chain.function
+    # As many cards in flight as the executor has threads to compute them, times a small
+    # multiple (pipeline.runner.WINDOW_PER_THREAD); a dask cluster's is re-read as workers join.
+    window = dispatch_window(executor)
 
     def claimed_tasks(card_ids: list[int]) -> Iterator[CardTask | ChainTask]:
         # Claimed a batch at a time, just before the executor wants them, so a second run
         # finds the cards this one has not reached yet.
         for start in range(0, len(card_ids), claim_batch):
             batch_ids = card_ids[start : start + claim_batch]
-            claim = driver.claim(spec.name, phash, batch_ids, seen)
+            claim = driver.claim(spec.name, phash, batch_ids, {card_id: planned[card_id].fingerprint for card_id in batch_ids})
             report.taken_over += len(claim.taken_over)
             report.done_by_other_run += len(claim.finished_elsewhere)
             for card_id in batch_ids:
@@ -124,14 +129,16 @@ def run_stage(
             held.update(claim.held)
             if chain is None:
                 for card_id in claim.claimed:
-                    yield tasks[card_id]
+                    yield card_task(planned[card_id])
             else:
-                yield from chain.tasks([tasks[card_id] for card_id in claim.claimed])
+                yield from chain.tasks([card_task(planned[card_id]) for card_id in claim.claimed])
 
     def compute(card_ids: list[int]) -> None:
         batch: list[StageRecord] = []
         last_write = time.monotonic()
-        for item in run_tasks(function, claimed_tasks(card_ids), executor, stage=spec.name, param_hash=phash):
+        for item in run_tasks(
+            function, claimed_tasks(card_ids), executor, stage=spec.name, param_hash=phash, window=window, flight=report.flight
+        ):
             record = item if chain is None else chain.take(item)
             batch.append(record)
             computed.append(record.card_id)
@@ -148,7 +155,7 @@ def run_stage(
         if chain is not None:
             chain.write()
 
-    compute(list(tasks))
+    compute(list(planned))
     report.held_by_other_run = len(held)
     report.held_by = set(held.values())
     poll_s = min(WAIT_POLL_S, driver.ttl_s / 4)

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pipeline.records import StageRecord
+from pipeline.runner import InFlight
 
 
 @dataclass
@@ -35,6 +36,9 @@ class StageReport:
     # The orientation step's decisions this run changed on cards it had decided before (a
     # collection's refitted head, an operator's word): card, before, after (decided_changes).
     changed_decisions: list[dict[str, Any]] = field(default_factory=list)
+    # The in-flight window the executor's threads gave (pipeline.runner.in_flight_window; 0
+    # inline), the most cards this stage had in flight at once, and when it sent them.
+    flight: InFlight = field(default_factory=InFlight)
 
     def absorb(self, chained: StageReport) -> None:
         """Count what a chain led by an earlier stage computed for this stage: those cards were
@@ -68,6 +72,8 @@ class StageReport:
             "still_held": self.still_held,
             "taken_over": self.taken_over,
             "chained": self.chained,
+            "window": self.flight.window,
+            "most_in_flight": self.flight.most,
             "seconds": round(self.seconds, 3),
             "cards_per_second": round(self.processed / self.seconds, 3) if self.seconds > 0 else None,
         }

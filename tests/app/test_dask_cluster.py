@@ -248,3 +248,107 @@ def test_every_worker_runs_one_opencv_and_one_blas_thread_those_joining_later_to
         blas = client.run(threadpoolctl.threadpool_info)
     assert len(opencv) == 3 and set(opencv.values()) == {1}, (before, opencv)
     assert all(_blas_threads(info) == {1} for info in blas.values()), blas
+
+
+def test_the_window_follows_the_cluster_as_workers_join(cluster):
+    """Two single-threaded workers give four cards in flight; a third joining gives six, read
+    again from the scheduler (at most every WINDOW_RECHECK_S in a run)."""
+    from distributed import Client
+
+    from runs.executors import dispatch_window, worker_threads
+
+    with Client(cluster.address, timeout=30) as client:
+        executor = client.get_executor()
+        assert worker_threads(executor) == 2
+        window = dispatch_window(executor, recheck_s=0)
+        assert callable(window) and window() == 4
+        cluster.add_worker()
+        cluster.wait_for_workers(3)
+        assert window() == 6
+
+
+WIDE_WORKERS = 24  # more than the old fixed window of 16
+SLEEP_S = 2.0
+
+
+def sleep_and_say_where(task, *, param_hash: str):  # type: ignore[no-untyped-def]
+    """A card that sleeps and records the worker it ran on and when (wall clock: one machine)."""
+    from distributed import get_worker
+
+    from pipeline.records import StageRecord
+
+    start = time.time()
+    time.sleep(SLEEP_S)
+    return StageRecord(
+        card_id=task.card_id,
+        stage="filter",
+        param_hash=param_hash,
+        status="done",
+        outcome="pass",
+        metrics={"worker": get_worker().address, "start": start, "end": time.time()},
+    )
+
+
+def _most_busy_at_once(records) -> int:  # type: ignore[no-untyped-def]
+    """The most distinct workers running a card at one instant (checked at every card's start)."""
+    spans = [(r.metrics["worker"], r.metrics["start"], r.metrics["end"]) for r in records]
+    return max(len({worker for worker, start, end in spans if start <= t < end}) for _, t, _ in spans)
+
+
+@pytest.fixture(scope="module")
+def wide_cluster() -> Iterator[tuple[object, float]]:
+    """24 single-threaded worker processes (each with its nanny) on loopback, and the seconds they took to start."""
+    from distributed import LocalCluster
+
+    clock = time.monotonic()
+    cluster = LocalCluster(n_workers=WIDE_WORKERS, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None)
+    try:
+        from distributed import Client
+
+        with Client(cluster.scheduler_address, timeout=30) as client:
+            client.wait_for_workers(WIDE_WORKERS, timeout=240)
+        yield cluster, time.monotonic() - clock
+    finally:
+        cluster.close()
+
+
+def test_the_driver_keeps_24_workers_busy_at_once(app, data_dir, wide_cluster):
+    """`keystone run`'s loop on a cluster wider than the old window: 72 cards that sleep 2 s,
+    through run_stage (planning, claims, writes) on 24 workers. Every worker gets a card, all
+    24 run one at the same instant, and the driver holds 48 in flight (two per thread). The
+    same cards through the old fixed window of 16 keep at most 16 busy."""
+    import dataclasses
+    import functools
+
+    from benchmarks.driver import NoOpParams, fill_catalogue
+    from pipeline.records import CardTask, param_hash
+    from pipeline.runner import run_tasks
+    from runs.executors import make_executor
+    from runs.loop import run_stage
+    from runs.specs import available_stages
+
+    cluster, start_s = wide_cluster
+    print(f"{WIDE_WORKERS}-worker LocalCluster started in {start_s:.1f} s")
+    params = NoOpParams(bench="wide-cluster")
+    task = functools.partial(sleep_and_say_where, param_hash=param_hash(params))
+    with app.app_context():
+        spec = dataclasses.replace(available_stages()["filter"], params=params, task=task)
+        fill_catalogue(3 * WIDE_WORKERS)
+        records = []
+        with make_executor("dask", 0, cluster.scheduler_address) as executor:
+            report = run_stage(spec, data_dir=data_dir, executor=executor, on_record=records.append)
+            old = list(
+                run_tasks(
+                    task,
+                    [CardTask(card_id=i, content_hash="0" * 64, image_path="", work_dir="", data_dir="") for i in range(32)],
+                    executor,
+                    stage="filter",
+                    param_hash="old-window",
+                    window=16,
+                )
+            )
+    assert report.processed == 3 * WIDE_WORKERS and report.failed == 0, report.failures
+    assert report.flight.window == 2 * WIDE_WORKERS and report.flight.most == 2 * WIDE_WORKERS
+    assert len({r.metrics["worker"] for r in records}) == WIDE_WORKERS
+    assert _most_busy_at_once(records) == WIDE_WORKERS
+    assert _most_busy_at_once(old) == 16

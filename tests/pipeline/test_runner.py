@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import pytest
 
 from pipeline.records import CardTask, StageRecord, param_hash
-from pipeline.runner import RestartingProcessPool, run_tasks
+from pipeline.runner import InFlight, RestartingProcessPool, in_flight_window, run_tasks
 
 
 def _square_task(task: CardTask) -> StageRecord:
@@ -43,6 +43,96 @@ def test_inline_and_pools_agree():
             (r.card_id, r.metrics["square"]) for r in run_tasks(_square_task, _tasks(20), pool, stage="test", param_hash="p")
         )
     assert inline == threaded == pooled == [(i, i * i) for i in range(20)]
+
+
+def test_the_window_is_two_cards_per_worker_thread():
+    """The card a thread computes and the next one, already sent (pipeline.runner.WINDOW_PER_THREAD)."""
+    assert [in_flight_window(threads) for threads in (1, 2, 24, 32)] == [2, 4, 48, 64]
+    assert in_flight_window(0) == 2  # a cluster with no worker yet: cards wait at its scheduler
+    assert in_flight_window(8, per_thread=3) == 24
+    with pytest.raises(ValueError, match="per_thread"):
+        in_flight_window(8, per_thread=0)
+
+
+def _held_task(task: CardTask, state: dict) -> StageRecord:
+    """Counts the tasks running at once in a thread pool and holds each until ``state["release"]``
+    is set (or for ``state["hold_s"]``)."""
+    with state["lock"]:
+        state["running"] += 1
+        state["most"] = max(state["most"], state["running"])
+        if state["running"] >= state["release_at"]:
+            state["release"].set()
+    state["release"].wait(state["hold_s"])
+    with state["lock"]:
+        state["running"] -= 1
+    return _square_task(task)
+
+
+def _hold_state(release_at: int, hold_s: float) -> dict:
+    import threading
+
+    return {
+        "lock": threading.Lock(),
+        "running": 0,
+        "most": 0,
+        "release": threading.Event(),
+        "release_at": release_at,
+        "hold_s": hold_s,
+    }
+
+
+def test_run_tasks_keeps_the_window_full_and_no_fuller():
+    state = _hold_state(release_at=5, hold_s=5.0)
+    flight = InFlight()
+    with ThreadPoolExecutor(12) as threads:
+        records = list(
+            run_tasks(
+                functools.partial(_held_task, state=state),
+                _tasks(40),
+                threads,
+                stage="test",
+                param_hash="p",
+                window=5,
+                flight=flight,
+            )
+        )
+    assert sorted(r.card_id for r in records) == list(range(40))
+    # Twelve threads could run twelve at once; the window lets five out, and keeps five out.
+    assert state["most"] == 5 and flight.most == 5 and flight.window == 5
+    assert flight.submitted == 40 and flight.first_submit <= flight.last_submit
+
+
+def test_a_window_that_grows_is_read_again_while_the_run_waits(monkeypatch):
+    """A dask cluster's window grows as workers join (runs.executors.dispatch_window): the run
+    asks again every WINDOW_RECHECK_S even when no card finishes. Here the first cards finish
+    only once six run at once, which they can only do after the window has grown to six."""
+    import time
+
+    import pipeline.runner
+
+    monkeypatch.setattr(pipeline.runner, "WINDOW_RECHECK_S", 0.05)
+    state = _hold_state(release_at=6, hold_s=10.0)
+    began = time.monotonic()
+
+    def window() -> int:
+        return 2 if time.monotonic() - began < 0.2 else 6
+
+    flight = InFlight()
+    with ThreadPoolExecutor(12) as threads:
+        records = list(
+            run_tasks(
+                functools.partial(_held_task, state=state),
+                _tasks(12),
+                threads,
+                stage="test",
+                param_hash="p",
+                window=window,
+                flight=flight,
+            )
+        )
+    assert len(records) == 12
+    assert state["release"].is_set() and time.monotonic() - began < 5
+    assert flight.window == 6 and flight.most == 6
 
 
 _POOL_WORKER_THREADS = """

@@ -33,3 +33,16 @@ def test_mypy_finds_nothing() -> None:
     result = _run("mypy")
     assert result.returncode == 0, result.stdout + result.stderr
     assert "Success: no issues found" in result.stdout
+
+
+def test_tests_mirror_the_packages() -> None:
+    """Every folder of tests/ is a package's, so a module's tests are found where the module is
+    (tests/<package>/test_<module>.py); and test file names are unique across folders, as
+    pytest's default import mode needs (tests/ is not a package)."""
+    from benchmarks.import_graph import LAYERS
+
+    packages = {layer.package for layer in LAYERS}
+    folders = {path.name for path in (ROOT / "tests").iterdir() if path.is_dir() and not path.name.startswith((".", "_"))}
+    assert folders - packages == set(), f"test folders that are no package's: {sorted(folders - packages)}"
+    names = [path.name for path in (ROOT / "tests").rglob("test_*.py")]
+    assert len(names) == len(set(names)), sorted({name for name in names if names.count(name) > 1})

@@ -1,5 +1,5 @@
 """The executors a run computes on, and the in-flight window each gives: two cards per worker
-thread (a dask cluster's, read from its scheduler, in tests/app/test_dask_cluster.py)."""
+thread (a dask cluster's, read from its scheduler, in tests/runs/test_dask_cluster.py)."""
 
 from __future__ import annotations
 

@@ -193,8 +193,8 @@ def confirm_gold(exclude: Collection[int], count: int | None = None) -> tuple[di
 
     Curators' and the crowd's decisions come first: the step's own are right only as often as
     its confidence says."""
+    from core.hooks import approved_decisions
     from pipeline.decided_orientation import card_orientation
-    from runs.specs import approved_annotations
 
     count = confirm_gold_needed(len(exclude)) if count is None else count
     excluded, known = set(exclude), []
@@ -211,7 +211,7 @@ def confirm_gold(exclude: Collection[int], count: int | None = None) -> tuple[di
         )
         if not cards:
             break
-        approved = approved_annotations([card.id for card in cards])
+        approved = approved_decisions([card.id for card in cards])
         for card in cards:
             if card.id in excluded or "orientation" not in card.latest_results():
                 continue

@@ -112,12 +112,12 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     step and the crowd left undecided (a disputed judgement is left for you to try), else the
     last stereo card (confirming what is known)."""
     from core.db import db
+    from core.hooks import approved_decisions
     from core.models import Card, Person
     from pipeline.decided_orientation import card_orientation
     from review.models import OrientationOverride
     from review.orientation import override_orientation
     from runs.card_state import waiting_for_people
-    from runs.specs import approved_annotations
 
     if db.session.scalar(select(OrientationOverride.id).limit(1)) is not None:
         return {"note": "an orientation override exists already: not made again"}
@@ -125,7 +125,7 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     by_id = {ids[c.name]: c for c in cards if c.name in ids}
     stereo = [card_id for card_id, c in by_id.items() if c.kind in ("stereo", "upside_down", "inverted")]
     undecided = [card_id for card_id in waiting_for_people()["orientation"] if card_id in stereo]
-    approved = approved_annotations(stereo)
+    approved = approved_decisions(stereo)
     wrong = []
     for candidate in sorted(stereo):
         used = card_orientation(db.session.get(Card, candidate), approved.get(candidate, {}))
@@ -159,7 +159,7 @@ def override_demo_orientation(cards: list, echo=click.echo) -> dict:  # type: ig
     for candidate in sorted(stereo):
         if candidate == card_id:
             continue
-        used = card_orientation(db.session.get(Card, candidate), approved_annotations([candidate]).get(candidate, {}))
+        used = card_orientation(db.session.get(Card, candidate), approved_decisions([candidate]).get(candidate, {}))
         # Only the flags nobody decided (one the crowd's answers left undecided; all three on a card
         # whose judgement the crowd disputes): the curator's answer is the demo's truth.
         missing = {flag: value for flag, value in _true_orientation(by_id[candidate]).items() if used[flag] is None}

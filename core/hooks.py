@@ -58,6 +58,10 @@ def merged(providers: list[CardProvider], card_ids: list[int]) -> dict[int, dict
 
 
 def approved_decisions(card_ids: list[int]) -> dict[int, dict[str, Any]]:
+    """People's approved decisions per card, as the features registered them: the crowd's
+    approved judge, confirm and crop aggregates, a curator's orientation override and the
+    operator's word for the card's collection, ``{card: {"judge": .., "crop": .., "confirm": ..,
+    "orientation_override": .., "operator_orientation": ..}}``."""
     return merged(stage_hooks().decisions, card_ids)
 
 

@@ -30,10 +30,10 @@ __all__ = ["current_orientation", "override_orientation"]
 
 def current_orientation(card: Card) -> dict[str, Any]:
     """The orientation the pipeline uses for ``card`` (see :mod:`pipeline.decided_orientation`)."""
+    from core.hooks import approved_decisions
     from pipeline.decided_orientation import card_orientation
-    from runs.specs import approved_annotations
 
-    return card_orientation(card, approved_annotations([card.id]).get(card.id, {}))
+    return card_orientation(card, approved_decisions([card.id]).get(card.id, {}))
 
 
 def _flag_value(name: str, value: Any) -> bool | None:

@@ -101,9 +101,9 @@ def _current_head(collection_id: int | None) -> tuple[Any, str]:
 def labelled_cards(collection_id: int | None) -> list[dict[str, Any]]:
     """Cards whose orientation is decided by people or by the step with a wide margin, and whose
     step stored the network's readings: ``{"card", "orientation", "step", "differences"}``."""
+    from core.hooks import approved_decisions
     from pipeline.decided_orientation import card_orientation
     from pipeline.upright import read_learned_differences
-    from runs.specs import approved_annotations
 
     data_dir = Path(current_app.config["KEYSTONE_DATA_DIR"])
     query = select(Card).where(Card.state.in_(("pass", "review"))).order_by(Card.id)
@@ -113,7 +113,7 @@ def labelled_cards(collection_id: int | None) -> list[dict[str, Any]]:
     found = []
     for start in range(0, len(cards), CHUNK):
         chunk = cards[start : start + CHUNK]
-        approved = approved_annotations([card.id for card in chunk])
+        approved = approved_decisions([card.id for card in chunk])
         for card in chunk:
             step = card.latest_results().get("orientation")
             if step is None or step.status != "done" or "upright_differences" not in (step.artifacts or {}):

@@ -13,7 +13,7 @@ from typing import Any
 from sqlalchemy import select
 
 from core.db import db, one_writer
-from core.hooks import after_write
+from core.hooks import after_write, approved_decisions
 from core.models import Card, StageResult
 from pipeline.chains import ChainOutcome, ChainTask, run_chain
 from pipeline.records import CardTask, StageRecord, card_work_dir, inputs_digest, param_hash
@@ -24,7 +24,6 @@ from runs.claims import DEFAULT_CLAIM_BATCH, Driver, result_fingerprint
 from runs.executors import dispatch_window
 from runs.planning import PlannedCard, pending_cards
 from runs.report import StageReport, count_record
-from runs.specs import approved_annotations
 from runs.writes import write_records
 
 WRITE_BATCH = 50
@@ -226,7 +225,7 @@ class _Chain:
         }
         # The people's decisions the followers' builders read, as the plain values each declares.
         plain = [follower.plain_decisions for follower in self.followers if follower.plain_decisions is not None]
-        decided = approved_annotations(ids) if plain else {}
+        decided = approved_decisions(ids) if plain else {}
         collection_wide = {
             card_id: {key: value for decisions in plain for key, value in decisions(kinds).items()}
             for card_id, kinds in decided.items()

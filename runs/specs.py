@@ -14,16 +14,8 @@ from typing import Any
 
 from flask import current_app
 
-from core.hooks import approved_decisions, stage_params
+from core.hooks import stage_params
 from pipeline.stages.spec import StageDeclaration, StageSpec, declared_stages
-
-
-def approved_annotations(card_ids: list[int]) -> dict[int, dict[str, Any]]:
-    """People's approved decisions per card (the features register them, see
-    :mod:`core.hooks`): the crowd's approved judge, confirm and crop aggregates, a
-    curator's orientation override and the operator's word for the card's collection,
-    ``{card: {"judge": .., "crop": .., "confirm": .., "orientation_override": .., "operator_orientation": ..}}``."""
-    return approved_decisions(card_ids)
 
 
 def runnable_stages() -> tuple[str, ...]:

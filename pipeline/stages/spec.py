@@ -41,7 +41,7 @@ __all__ = [
 ParamsT = TypeVar("ParamsT")
 
 # (card, people's approved decisions about it) -> the stage's inputs (plain JSON values). The
-# decisions are a mapping of kind -> value (see ``runs.specs.approved_annotations``); a worker
+# decisions are a mapping of kind -> value (see ``core.hooks.approved_decisions``); a worker
 # running a chained stage gets only the plain collection-wide ones (:class:`pipeline.chains.ChainTask`).
 InputsBuilder = Callable[[CardResults, Mapping[str, Any]], Mapping[str, Any]]
 # (card, its inputs) -> whether the stage can run on it now.

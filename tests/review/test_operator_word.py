@@ -237,13 +237,13 @@ def _card(runner) -> dict[str, Any]:  # type: ignore[no-untyped-def]
 
 
 def _step_inputs(app) -> dict[str, Any]:  # type: ignore[no-untyped-def]
+    from core.hooks import approved_decisions
     from core.models import Card
     from pipeline.stages.orientation import orientation_inputs
-    from runs.specs import approved_annotations
 
     with app.app_context():
         card = db.session.scalar(select(Card))
-        return orientation_inputs(card, approved_annotations([card.id]).get(card.id, {}))
+        return orientation_inputs(card, approved_decisions([card.id]).get(card.id, {}))
 
 
 @pytest.mark.both_databases

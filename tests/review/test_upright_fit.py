@@ -97,12 +97,12 @@ def test_fit_reports_held_out_accuracy_saves_a_version_and_feeds_the_next_run(ap
 
         # the orientation step's inputs now carry the head, so its inputs digest changes and
         # the next run recomputes it
+        from core.hooks import approved_decisions
         from core.models import Card
         from pipeline.stages.orientation import orientation_inputs
-        from runs.specs import approved_annotations
 
         card = db.session.get(Card, ids[0])
-        step_inputs = orientation_inputs(card, approved_annotations([ids[0]])[ids[0]])
+        step_inputs = orientation_inputs(card, approved_decisions([ids[0]])[ids[0]])
         assert step_inputs["upright_head"]["version"] == fit.version
 
 

@@ -54,6 +54,7 @@ COMMAND_TREE = {
     "bench confirm-grid",
     "bench crowd",
     "bench disparity",
+    "bench driver",
     "bench export",
     "bench filter",
     "bench grade",

@@ -872,3 +872,56 @@ def test_the_token_lifetime_has_a_default_of_hours(app):
 
     with app.app_context():
         assert 1 <= DEFAULT_TOKEN_HOURS <= 24 and token_lifetime_s() == DEFAULT_TOKEN_HOURS * 3600
+
+
+# ---------------------------------------------------------------------------------------------
+# Creating a batch from the staff form is idempotent: the form's one-time key makes one batch
+
+
+def _new_batch_form(client) -> dict[str, str]:  # type: ignore[no-untyped-def]
+    html = client.get("/crowd/batches").get_data(as_text=True)
+    form = html[html.index('id="new-batch"') :]
+    fields = dict(re.findall(r'name="(csrf_token|request_key)" value="([^"]*)"', form))
+    return {"csrf_token": fields["csrf_token"], "request_key": fields.get("request_key", "")}
+
+
+@pytest.mark.both_databases
+def test_four_identical_create_batch_submits_make_one_batch(app, client, cards, login):
+    import threading
+
+    ids = cards(3)
+    login("curator")
+    form = {**_new_batch_form(client), "cards": ",".join(map(str, ids)), "kind": "judge", "answers_per_item": "2"}
+    cookie = client.get_cookie("session")
+    barrier, answers = threading.Barrier(4), []
+
+    def post() -> None:
+        own = app.test_client()
+        own.set_cookie(cookie.key, cookie.value)
+        barrier.wait()
+        answers.append(own.post("/crowd/batches/new", data=form))
+
+    threads = [threading.Thread(target=post) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(r.status_code for r in answers) == [303] * 4
+    assert count(app, Batch) == 1
+    with app.app_context():
+        batch = db.session.scalar(select(Batch.id))
+    again = client.post("/crowd/batches/new", data=form, follow_redirects=True)  # a resubmit later on
+    assert again.status_code == 200 and count(app, Batch) == 1
+    assert f"This form was already submitted: it made batch {batch}, so no new batch was created" in again.get_data(as_text=True)
+    assert any(r.headers["Location"].endswith(f"#batch-{batch}") for r in answers)
+
+    fresh = {**form, **_new_batch_form(client)}  # the form filled in again: a new key, a new batch
+    assert client.post("/crowd/batches/new", data=fresh).status_code == 303 and count(app, Batch) == 2
+
+
+def test_create_batch_from_the_cli_is_not_deduplicated(app, runner, cards):
+    ids = ",".join(map(str, cards(2)))
+    for _ in range(2):
+        result = runner.invoke(args=["crowd", "create-batch", "--cards", ids, "--n", "1", "--gold-rate", "0"])
+        assert result.exit_code == 0, result.output
+    assert count(app, Batch) == 2

@@ -27,12 +27,12 @@ import secrets
 from datetime import UTC, datetime, timedelta
 
 from flask import current_app, request
-from sqlalchemy import func, select, text
+from sqlalchemy import func, select, text, update
 from sqlalchemy.exc import IntegrityError
 
 from core.db import db, utcnow
 
-from .models import CrowdSession, Worker
+from .models import CrowdSession, Reservation, Worker
 from .task_errors import TaskError
 
 DEFAULT_SESSIONS_PER_ADDRESS = 20
@@ -253,8 +253,21 @@ def invite_session(worker: Worker) -> CrowdSession:
 
 
 def complete_session(session_id: int) -> None:
-    """Record the first time the session reached its provider's completion step (kept for payouts)."""
+    """Record the first time the session reached its provider's completion step (kept for payouts),
+    and let its open holds lapse now: its token takes no more answers, so the cards it held go
+    back to the pool at the next fetch (whose sweep releases and recounts them)."""
     session = db.session.get(CrowdSession, session_id)
     if session is not None and session.completed_at is None:
-        session.completed_at = utcnow()
+        now = utcnow()
+        session.completed_at = now
+        db.session.execute(
+            update(Reservation)
+            .where(
+                Reservation.session_id == session_id,
+                Reservation.answered_at.is_(None),
+                Reservation.released_at.is_(None),
+                Reservation.expires_at > now,
+            )
+            .values(expires_at=now)
+        )
         db.session.commit()

@@ -835,6 +835,20 @@ def test_a_finished_session_takes_no_more_calls_and_the_invite_link_starts_a_new
     _refused(api(client, "undo", t, {}), 410, "session is finished")  # the old page stays refused
 
 
+@pytest.mark.both_databases
+def test_finishing_a_session_gives_its_held_cards_back_at_once(app, client, cards):
+    app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C1A2B3"
+    new_batch(app, cards(2), n=1)
+    url = "/crowd/prolific?PROLIFIC_PID=pid-7&STUDY_ID=study-7&SESSION_ID=sess-7"
+    t = TOKEN.search(client.get(url).get_data(as_text=True)).group(1)
+    held = fetch(client, t)["tasks"]
+    assert len(held) == 2
+    other = invite(app, client, "next-in-line")
+    assert fetch(client, other)["tasks"] == []  # both cards are held
+    assert client.get(f"/crowd/finish?t={t}").status_code == 303
+    assert len(fetch(client, other)["tasks"]) == 2  # given back by the finish
+
+
 def test_a_finished_prolific_session_says_so_when_its_link_is_opened_again(app, client, cards):
     app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C1A2B3"
     new_batch(app, cards(2), n=1)

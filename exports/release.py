@@ -7,9 +7,9 @@ records nothing, and the folders of exports killed outright are removed by the n
 the release's date is the newest review decision among its cards, not the clock.
 
 Publishing into one folder is one at a time (:class:`exports.staging.PublishLock`, held from the
-plan to the record): a second publish meanwhile is refused, and one that waited for nothing plans
-after the first one recorded, so a caller's ``check`` of the plan (the web's "exactly what was
-previewed") sees the release the first one made. A kill between moving a release into place and
+plan to the record): a second publish meanwhile is refused, and one that starts after another
+finished plans from the release it recorded, so a caller's ``check`` of the plan (the web's
+"exactly what was previewed") sees that release. A kill between moving a release into place and
 committing its row leaves a marker; the next publish into the folder removes that unrecorded
 release rather than adopt it: it was never served (the pages serve recorded releases only), and
 the next publish writes the same content again from the catalogue, byte for byte, under a version
@@ -222,13 +222,18 @@ def publish_release(
     before anything is written; it raises to refuse."""
     fmt = parse_formats(default_format_names() if formats is None else formats)
     out = Path(out_dir).resolve()
-    out.mkdir(parents=True, exist_ok=True)
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)  # the lock is on the folder itself
     try:
         lock = PublishLock(out)
     except PublishBusy as exc:
         raise ReleaseError(str(exc)) from None
     try:
         return _publish_locked(out, min_grade, fmt, notes, actor, actor_label, progress, data_dir or _data_dir(), check)
+    except BaseException:
+        if made and not any(out.iterdir()):
+            out.rmdir()  # a refused first publish leaves no empty folder behind
+        raise
     finally:
         lock.close()
 

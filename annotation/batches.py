@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Collection, Mapping, Sequence
+from datetime import timedelta
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import select, text
 from sqlalchemy.orm import selectinload
 
-from core.db import db
-from core.models import Card, StageResult
+from core.audit import AuditEvent, record_event
+from core.db import db, utcnow
+from core.models import Card, Person, StageResult
 
 from . import assignment as strategy, confirm as confirm_flags
 from .answers import validate_payload
@@ -20,6 +22,38 @@ from .models import TASK_KINDS, Aggregate, Batch, BatchItem
 from .task_errors import TaskError
 
 GOLD_AUTO_CONFIDENCE = 0.99  # the step's own decisions good enough to be gold
+# How long a form's request key is remembered: a resubmit (a double click, a retried POST, the
+# browser's back button and submit) within it gives the batch the first submit made.
+REQUEST_KEY_DAYS = 7
+
+
+class AlreadyCreated(Exception):
+    """This request key already made a batch: nothing new was created."""
+
+    def __init__(self, batch_id: int) -> None:
+        super().__init__(f"batch {batch_id} was already created from this form")
+        self.batch_id = batch_id
+
+
+def _batch_made_for(request_key: str) -> int | None:
+    """The batch a staff form with ``request_key`` made (its audit event), if any.
+
+    Runs first in the creating transaction, so it is serialised with the creations: SQLite's write
+    transactions begin IMMEDIATE (one at a time); on PostgreSQL an advisory lock on the key holds
+    a second submit of the same form until the first one committed.
+    """
+    if db.session.get_bind().dialect.name == "postgresql":
+        db.session.execute(text("SELECT pg_advisory_xact_lock(hashtext(:key))"), {"key": f"crowd-new-batch:{request_key}"})
+    return db.session.scalar(
+        select(AuditEvent.entity_id)
+        .where(
+            AuditEvent.entity == "crowd_batch",
+            AuditEvent.action == "create",
+            AuditEvent.at > utcnow() - timedelta(days=REQUEST_KEY_DAYS),
+            AuditEvent.after["request_key"].as_string() == request_key,
+        )
+        .limit(1)
+    )
 
 
 def create_batch(
@@ -31,12 +65,20 @@ def create_batch(
     gold: Mapping[int, dict[str, Any]] | None = None,
     shown: Mapping[int, dict[str, bool]] | None = None,
     created_by: int | None = None,
+    request_key: str | None = None,
 ) -> Batch:
     """A batch over ``card_ids`` plus the gold cards in ``gold`` (card id -> known answer).
 
     confirm batches: ``shown`` gives each card's orientation flags the grid shows it with
     (:func:`confirm_shown` for cards the step proposed; a gold card's deliberately wrong ones).
+    ``request_key``: the staff form's one-time key; a second call with it raises
+    :class:`AlreadyCreated` naming the first call's batch, and the creation is audited with it.
     """
+    if request_key is not None:
+        earlier = _batch_made_for(request_key)
+        if earlier is not None:
+            db.session.rollback()
+            raise AlreadyCreated(earlier)
     if kind not in TASK_KINDS:
         raise TaskError(f"Expected kind {', '.join(TASK_KINDS)}, got {kind!r}")
     if n < 1:
@@ -64,6 +106,16 @@ def create_batch(
     db.session.flush()  # ids: the shuffle is keyed on them
     for item in batch.items:
         item.rank = strategy.item_rank(batch.id, item.id)
+    if request_key is not None:
+        record_event(
+            entity="crowd_batch",
+            action="create",
+            entity_id=batch.id,
+            actor=db.session.get(Person, created_by) if created_by is not None else None,
+            actor_label="web",
+            after={"request_key": request_key, "kind": kind, "items": len(wanted), "answers_per_item": n},
+            why=f"batch {batch.id} from the batches page",
+        )
     db.session.commit()
     return batch
 

@@ -16,6 +16,9 @@ DEFAULT_MIN_GOLD = 3
 DEFAULT_GRID_SIZE = 30  # cards a confirm grid shows, gold included (24 to 48 fit a screen or two)
 DEFAULT_GRID_GOLD = 3  # gold cards hidden in each grid
 MAX_GRID = 48
+# How long a task page's signed worker token is good for (a working day of one open tab); then
+# the page must be opened again from the worker's link, which signs a fresh one.
+DEFAULT_TOKEN_HOURS = 8.0
 
 
 def reservation_ttl() -> timedelta:
@@ -46,3 +49,11 @@ def grid_size() -> tuple[int, int]:
     gold = int(current_app.config.get("KEYSTONE_CROWD_GRID_GOLD", DEFAULT_GRID_GOLD))
     size = max(1, min(size, MAX_GRID))
     return size, max(0, min(gold, size - 1))
+
+
+def token_lifetime_s() -> float:
+    """Seconds a signed worker token is accepted after it was signed (``KEYSTONE_CROWD_TOKEN_HOURS``)."""
+    hours = float(current_app.config.get("KEYSTONE_CROWD_TOKEN_HOURS", DEFAULT_TOKEN_HOURS))
+    if not hours > 0:
+        raise ValueError(f"Expected KEYSTONE_CROWD_TOKEN_HOURS > 0, got {hours}")
+    return hours * 3600.0

@@ -4,12 +4,17 @@ A provider turns the entry URL's parameters into a worker and says what happens 
 worker is done. The page then carries the worker's identity and session as a *signed token*
 (never a session cookie): crowd pages live in third-party iframes (MTurk) where browsers drop
 cookies. The session (:mod:`annotation.sessions`), not the participant id, bounds what the token
-may touch.
+may touch, and the token ends with it: once the session is finished (``/crowd/finish``) or the
+token is older than ``KEYSTONE_CROWD_TOKEN_HOURS`` (:func:`annotation.crowd_settings.token_lifetime_s`),
+every API call with it is refused (410 finished, 401 expired). Opening the worker's link again
+signs a fresh token: an invite link then starts a new session, a Prolific or MTurk link of a
+finished session says it is finished (their session is one submission).
 """
 
 from __future__ import annotations
 
 import secrets
+import time
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Protocol
 from urllib.parse import urlencode, urlsplit
@@ -20,6 +25,7 @@ from sqlalchemy import bindparam, func, select
 
 from core.db import db
 
+from .crowd_settings import token_lifetime_s
 from .models import Answer, CrowdSession, Worker
 from .sessions import invite_session, open_session
 from .task_errors import TaskError
@@ -96,6 +102,7 @@ class ProlificProvider:
     def enter(self, args: dict[str, str]) -> Entry:
         pid, study, session_key = _required(args, "PROLIFIC_PID", "STUDY_ID", "SESSION_ID")
         session = open_session(self.name, pid, session_key, study)
+        refuse_finished(session)
         return Entry(self.name, session.worker, {"study": study, "session": session_key}, session)
 
     def finish(self, context: dict[str, str]) -> dict[str, Any]:
@@ -128,6 +135,7 @@ class MTurkProvider:
         assignment, hit, worker_id, submit_to = _required(args, "assignmentId", "hitId", "workerId", "turkSubmitTo")
         submit_url = mturk_submit_url(submit_to)
         session = open_session(self.name, worker_id, assignment, hit)
+        refuse_finished(session)
         return Entry(self.name, session.worker, {"assignment": assignment, "hit": hit, "submit_url": submit_url}, session)
 
     def finish(self, context: dict[str, str]) -> dict[str, Any]:
@@ -135,6 +143,17 @@ class MTurkProvider:
 
 
 PROVIDERS: dict[str, CrowdProvider] = {p.name: p for p in (InviteProvider(), ProlificProvider(), MTurkProvider())}
+
+FINISHED_SESSION = (
+    "You finished this session and your answers are saved, so this page takes no more answers. "
+    "To answer more, start a new session from the study page."
+)
+
+
+def refuse_finished(session: CrowdSession) -> None:
+    """TaskError 410 when a Prolific or MTurk session is finished (an invite starts a new one instead)."""
+    if session.completed_at is not None:
+        raise TaskError(FINISHED_SESSION, 410)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -153,8 +172,19 @@ def sign_entry(entry: Entry) -> str:
     """
     assert entry.worker is not None and entry.session is not None
     return _serializer().dumps(
-        {"w": entry.worker.id, "s": entry.session.id, "p": entry.provider, "c": entry.context, "n": secrets.token_hex(4)}
+        {
+            "w": entry.worker.id,
+            "s": entry.session.id,
+            "p": entry.provider,
+            "c": entry.context,
+            "n": secrets.token_hex(4),
+            "t": int(_now()),  # signed at: the token expires token_lifetime_s() later
+        }
     )
+
+
+def _now() -> float:
+    return time.time()
 
 
 @dataclass(frozen=True)
@@ -177,13 +207,16 @@ _SESSION_STATE = (
         .where(Answer.worker_id == CrowdSession.worker_id, Answer.session_id == CrowdSession.id)
         .scalar_subquery(),
     )
+    .add_columns(CrowdSession.completed_at)
     .join(Worker, Worker.id == CrowdSession.worker_id)
     .where(CrowdSession.id == bindparam("session_id"))
 )
 
 
-def load_signed_worker(token: str | None) -> SignedWorker:
-    """Check the token's signature and that its session exists, of its worker, under its provider (one query, no ORM).
+def load_signed_worker(token: str | None, *, finished_ok: bool = False) -> SignedWorker:
+    """Check the token's signature, age, and that its session exists, of its worker, under its
+    provider and not finished (one query, no ORM). ``finished_ok``: the finish page itself, which
+    a participant may load again (its redirect failed, a reload).
 
     Runs on every API call, so it is one prebuilt statement: the ORM's identity-map load of
     the worker and a second count query cost as much as the rest of a fetch.
@@ -194,11 +227,24 @@ def load_signed_worker(token: str | None) -> SignedWorker:
         data = _serializer().loads(token)
     except BadSignature as exc:
         raise TaskError("Invalid worker token: reload the task page", 403) from exc
-    if not isinstance(data, dict) or "s" not in data:
-        # Tokens signed before sessions existed name no session: the page must be opened again.
+    if not isinstance(data, dict) or "s" not in data or "t" not in data:
+        # Tokens signed before sessions (or their lifetime) existed: the page must be opened again.
         raise TaskError("This task page is out of date: reload it", 403)
+    lifetime = token_lifetime_s()
+    if not isinstance(data["t"], int) or _now() - data["t"] > lifetime:
+        raise TaskError(
+            f"This task page was opened more than {lifetime / 3600:g} hours ago and has expired: open your link "
+            "again to go on (your answers are saved)",
+            401,
+        )
     worker_id, session_id = int(data["w"]), int(data["s"])
     row = db.session.connection().execute(_SESSION_STATE, {"session_id": session_id}).first()
     if row is None or row.worker_id != worker_id or row.provider != data["p"]:
         raise TaskError("Unknown worker: reload the task page", 403)
+    if row.completed_at is not None and not finished_ok:
+        raise TaskError(
+            "This session is finished, so it takes no more answers: open your link again to start a new one "
+            "(your answers are saved)",
+            410,
+        )
     return SignedWorker(worker_id, session_id, data["p"], dict(data.get("c") or {}), int(row[2] or 0))

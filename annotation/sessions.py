@@ -27,12 +27,12 @@ import secrets
 from datetime import UTC, datetime, timedelta
 
 from flask import current_app, request
-from sqlalchemy import func, select, text
+from sqlalchemy import func, select, text, update
 from sqlalchemy.exc import IntegrityError
 
 from core.db import db, utcnow
 
-from .models import CrowdSession, Worker
+from .models import CrowdSession, Reservation, Worker
 from .task_errors import TaskError
 
 DEFAULT_SESSIONS_PER_ADDRESS = 20
@@ -224,29 +224,50 @@ def open_session(provider: str, participant: str, session_key: str, study: str, 
 
 
 def invite_session(worker: Worker) -> CrowdSession:
-    """An invited annotator's one session: their link is their credential, so every visit is it.
+    """An invited annotator's open session: their link is their credential, so every visit is it,
+    until they finish it (``/crowd/finish``); the next visit then starts a new one.
 
-    Invites are made by staff (``keystone crowd invite``), so no limit applies.
+    The first is ``invite-worker-<id>`` (the key migration 0005 gave existing annotators), later
+    ones ``invite-worker-<id>-<n>``. Invites are made by staff (``keystone crowd invite``), so no
+    limit applies.
     """
-    key = f"{INVITE_SESSION_PREFIX}{worker.id}"
-    query = select(CrowdSession).where(CrowdSession.provider == "invite", CrowdSession.external_id == key)
-    session = db.session.scalar(query)
-    if session is not None:
-        return session
-    session = CrowdSession(worker_id=worker.id, provider="invite", external_id=key, study="", address="", flagged=False)
-    db.session.add(session)
-    try:
-        db.session.commit()
-    except IntegrityError:
-        db.session.rollback()
-        session = db.session.scalar(query)
-        assert session is not None
-    return session
+    first = f"{INVITE_SESSION_PREFIX}{worker.id}"
+    mine = (CrowdSession.provider == "invite") & (CrowdSession.worker_id == worker.id)
+    for _attempt in range(3):
+        session = db.session.scalar(
+            select(CrowdSession).where(mine, CrowdSession.completed_at.is_(None)).order_by(CrowdSession.id.desc()).limit(1)
+        )
+        if session is not None:
+            return session
+        made = db.session.scalar(select(func.count()).select_from(CrowdSession).where(mine)) or 0
+        key = first if made == 0 else f"{first}-{made + 1}"
+        session = CrowdSession(worker_id=worker.id, provider="invite", external_id=key, study="", address="", flagged=False)
+        db.session.add(session)
+        try:
+            db.session.commit()
+            return session
+        except IntegrityError:
+            # Two visits made it at once: the first one wins and this one reads it.
+            db.session.rollback()
+    raise TaskError("Could not open your session; reload the page", 503)
 
 
 def complete_session(session_id: int) -> None:
-    """Record the first time the session reached its provider's completion step (kept for payouts)."""
+    """Record the first time the session reached its provider's completion step (kept for payouts),
+    and let its open holds lapse now: its token takes no more answers, so the cards it held go
+    back to the pool at the next fetch (whose sweep releases and recounts them)."""
     session = db.session.get(CrowdSession, session_id)
     if session is not None and session.completed_at is None:
-        session.completed_at = utcnow()
+        now = utcnow()
+        session.completed_at = now
+        db.session.execute(
+            update(Reservation)
+            .where(
+                Reservation.session_id == session_id,
+                Reservation.answered_at.is_(None),
+                Reservation.released_at.is_(None),
+                Reservation.expires_at > now,
+            )
+            .values(expires_at=now)
+        )
         db.session.commit()

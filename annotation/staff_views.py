@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import csv
 import io
+import re
+import secrets
 from typing import Any
 
 from flask import abort, current_app, flash, redirect, render_template, request, url_for
@@ -20,7 +22,7 @@ from werkzeug.wrappers import Response
 from core.auth import role_required
 from core.db import db, read_only
 
-from .batches import confirm_gold, confirm_queue_card_ids, create_batch, review_queue_card_ids
+from .batches import AlreadyCreated, confirm_gold, confirm_queue_card_ids, create_batch, review_queue_card_ids
 from .blueprint import bp
 from .cli import ANSWER_COLUMNS, answer_rows
 from .models import TASK_KINDS, Batch, CrowdSession, Worker
@@ -30,6 +32,9 @@ from .task_errors import TaskError
 from .workers import check_prolific_submissions, set_worker_flag
 
 MAX_CARD_IDS = 10_000
+# The new-batch form's one-time key (a hidden field made with each batches page): what makes a
+# repeated submit of the same form land on the batch the first one made.
+REQUEST_KEY = re.compile(r"[A-Za-z0-9_-]{16,64}")
 
 
 def _back() -> Response:
@@ -81,6 +86,7 @@ def batches() -> str:
             kinds=TASK_KINDS,
             configured=bool(current_app.config.get("KEYSTONE_PROLIFIC_COMPLETION_CODE")),
             submission_checks=None,
+            batch_request_key=secrets.token_urlsafe(18),
         )
 
 
@@ -102,7 +108,18 @@ def new_batch() -> Response:
             gold, shown = confirm_gold(exclude=ids)  # every grid hides gold
     if not ids:
         raise TaskError("No cards: tick 'the review queue' (it must not be empty) or list card ids")
-    batch = create_batch(ids, kind, n, gold_rate, gold=gold, shown=shown, created_by=current_user.id)
+    key = request.form.get("request_key") or None
+    if key is not None and not REQUEST_KEY.fullmatch(key):
+        raise TaskError("This form is out of date: reload the batches page and submit it again")
+    try:
+        batch = create_batch(ids, kind, n, gold_rate, gold=gold, shown=shown, created_by=current_user.id, request_key=key)
+    except AlreadyCreated as done:
+        flash(
+            f"This form was already submitted: it made batch {done.batch_id}, so no new batch was created. "
+            "To make another batch, fill in the form again.",
+            "info",
+        )
+        return redirect(url_for("crowd.batches", _anchor=f"batch-{done.batch_id}"), code=303)
     progress = batch_progress(batch)
     flash(
         f"Batch {batch.id} created: {progress['items']} {kind} cards, {n} answers each "

@@ -5,6 +5,15 @@ A release is written into ``<out>/.<version>.partial-XXXX`` (locked while this e
 the Croissant metadata and ``SHA256SUMS`` are complete; any error removes the partial folder and
 records nothing, and the folders of exports killed outright are removed by the next export. The same inputs give byte-identical files:
 the release's date is the newest review decision among its cards, not the clock.
+
+Publishing into one folder is one at a time (:class:`exports.staging.PublishLock`, held from the
+plan to the record): a second publish meanwhile is refused, and one that starts after another
+finished plans from the release it recorded, so a caller's ``check`` of the plan (the web's
+"exactly what was previewed") sees that release. A kill between moving a release into place and
+committing its row leaves a marker; the next publish into the folder removes that unrecorded
+release rather than adopt it: it was never served (the pages serve recorded releases only), and
+the next publish writes the same content again from the catalogue, byte for byte, under a version
+planned from what the catalogue does record.
 """
 
 from __future__ import annotations
@@ -14,12 +23,13 @@ import os
 import shutil
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
 
 from core.db import db, read_only
@@ -44,7 +54,17 @@ from .formats import (
 )
 from .models import Release
 from .records import Changes, compare_manifests, grades_at_or_above, next_version
-from .staging import ReleaseStaging, make_world_readable, remove_stale_partials
+from .staging import (
+    Leftover,
+    PublishBusy,
+    PublishLock,
+    ReleaseStaging,
+    clear_unrecorded,
+    make_world_readable,
+    publishing_markers,
+    remove_stale_partials,
+    write_publishing_marker,
+)
 from .writers import CardPayload, FileLedger, build_payload
 
 MANIFEST_FILES = ("croissant.json", "SHA256SUMS")
@@ -193,15 +213,71 @@ def publish_release(
     actor_label: str = "cli",
     progress: Progress | None = None,
     data_dir: Path | None = None,
+    check: Callable[[ReleaseReport], None] | None = None,
 ) -> ReleaseReport:
     """Write a release of the accepted cards into ``<out_dir>/<version>``, record a Release row
-    and an audit event. Raises :class:`ReleaseError` when there is nothing to release or the
-    version's folder or row already exists; nothing is left behind on any error."""
-    clock = time.perf_counter()
+    and an audit event. Raises :class:`ReleaseError` when there is nothing to release, another
+    publish into ``out_dir`` is under way, or the version's folder or row already exists; nothing
+    is left behind on any error. ``check(plan)``: called with the plan under the publish lock,
+    before anything is written; it raises to refuse."""
     fmt = parse_formats(default_format_names() if formats is None else formats)
-    data_dir = data_dir or _data_dir()
     out = Path(out_dir).resolve()
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)  # the lock is on the folder itself
+    try:
+        lock = PublishLock(out)
+    except PublishBusy as exc:
+        raise ReleaseError(str(exc)) from None
+    try:
+        return _publish_locked(out, min_grade, fmt, notes, actor, actor_label, progress, data_dir or _data_dir(), check)
+    except BaseException:
+        if made and not any(out.iterdir()):
+            out.rmdir()  # a refused first publish leaves no empty folder behind
+        raise
+    finally:
+        lock.close()
+
+
+def _clear_unrecorded(out: Path) -> list[Leftover]:
+    """Under the publish lock: each marker a dead publish left names a release it may have moved
+    into place; recorded (the commit went through), only the marker goes, else the folder too."""
+    cleared = []
+    for version, marker in publishing_markers(out):
+        with read_only():
+            recorded = db.session.scalar(select(Release.id).where(Release.version == version, Release.path == str(out / version)))
+        if recorded is not None:
+            marker.unlink(missing_ok=True)
+        elif (leftover := clear_unrecorded(out, version, marker)) is not None:
+            cleared.append(leftover)
+    return cleared
+
+
+def _pause_for_tests(point: str) -> None:
+    """``KEYSTONE_TEST_PAUSE=<point>:<file>``: create ``file`` and sleep at ``point``, so a test can
+    kill the publish exactly there. Unset in real use."""
+    wanted = os.environ.get("KEYSTONE_TEST_PAUSE", "")
+    name, _, signal_file = wanted.partition(":")
+    if name == point and signal_file:
+        Path(signal_file).write_text(str(os.getpid()))
+        time.sleep(600)
+
+
+def _publish_locked(
+    out: Path,
+    min_grade: str,
+    fmt: tuple[str, ...],
+    notes: str,
+    actor: Person | None,
+    actor_label: str,
+    progress: Progress | None,
+    data_dir: Path,
+    check: Callable[[ReleaseReport], None] | None,
+) -> ReleaseReport:
+    clock = time.perf_counter()
+    unrecorded = _clear_unrecorded(out)
     plan = plan_release(min_grade=min_grade, formats=fmt, notes=notes, data_dir=data_dir)
+    if check is not None:
+        check(plan)
     if plan.cards == 0:
         raise ReleaseError(
             f"no curator-accepted cards at grade {' or '.join(grades_at_or_above(min_grade))} with finished "
@@ -213,8 +289,7 @@ def publish_release(
                 else ""
             )
         )
-    out.mkdir(parents=True, exist_ok=True)
-    leftovers = remove_stale_partials(out)  # of exports killed before they could clean up
+    leftovers = unrecorded + remove_stale_partials(out)  # of exports killed before they could clean up
     holder = ReleaseStaging(out, plan.version)
     staging = holder.path
     try:
@@ -267,12 +342,16 @@ def publish_release(
             why=notes or f"release {report.version}",
         )
         make_world_readable(staging)
+        marker = write_publishing_marker(out, report.version)
         os.replace(staging, target)
+        _pause_for_tests("after-move")
         try:
             db.session.commit()
         except BaseException:
             shutil.rmtree(target, ignore_errors=True)
+            marker.unlink(missing_ok=True)
             raise
+        marker.unlink(missing_ok=True)
     except BaseException:
         db.session.rollback()
         shutil.rmtree(staging, ignore_errors=True)

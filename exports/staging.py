@@ -10,6 +10,13 @@ cleared only when nothing in them has changed for :data:`UNLOCKED_STALE_SECONDS`
 
 Releases are made world-readable (directories 0755, files 0644) with explicit modes just before
 they move into place, whatever the umask: a release is meant to be published.
+
+Publishing into ``<out>`` is one at a time: :class:`PublishLock` is an ``flock`` on the folder
+itself, held from planning to recording, and a second publish meanwhile is refused at once
+(:class:`PublishBusy`). Just before a finished release moves into place, the publish writes
+``<out>/.<version>.publishing``, and removes it once the release is recorded; a marker found by
+the next publish (under the lock, so its writer is dead) names a release folder that may be in
+place but unrecorded, which :func:`clear_unrecorded` removes (:mod:`exports.release` says why).
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from pathlib import Path
 
 PARTIAL_MARK = ".partial-"
 LOCK_SUFFIX = ".lock"
+PUBLISHING_SUFFIX = ".publishing"
 UNLOCKED_STALE_SECONDS = 15 * 60
 RELEASE_DIR_MODE = 0o755
 RELEASE_FILE_MODE = 0o644
@@ -156,3 +164,67 @@ def _clear_locked(lock_path: Path) -> Leftover | None:
         return Leftover(str(folder), size, "its export is no longer running (its lock was free)")
     finally:
         os.close(fd)
+
+
+class PublishBusy(RuntimeError):
+    """Another publish into the same folder is under way."""
+
+
+class PublishLock:
+    """An exclusive ``flock`` on the releases folder ``out`` for one publish, taken without waiting.
+
+    On the folder itself (no lock file to leave behind or to race on); the kernel drops it when
+    the process ends, however it ends."""
+
+    def __init__(self, out: Path) -> None:
+        fd = os.open(out, os.O_RDONLY | os.O_DIRECTORY | getattr(os, "O_CLOEXEC", 0))
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise PublishBusy(
+                f"another release is being published into {out} right now; nothing was published. "
+                "Wait until it is done, then preview again"
+            ) from None
+        self._fd: int | None = fd
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+def publishing_marker(out: Path, version: str) -> Path:
+    """``<out>/.<version>.publishing``: written before a release moves into place, removed once recorded."""
+    return out / f".{version}{PUBLISHING_SUFFIX}"
+
+
+def write_publishing_marker(out: Path, version: str) -> Path:
+    marker = publishing_marker(out, version)
+    marker.write_text(f"pid {os.getpid()}\n")
+    return marker
+
+
+def publishing_markers(out: Path) -> list[tuple[str, Path]]:
+    """(version, marker) of every publish marker in ``out``; call it holding the :class:`PublishLock`."""
+    found = []
+    for entry in sorted(out.glob(f".*{PUBLISHING_SUFFIX}")):
+        if entry.is_file():
+            found.append((entry.name[1 : -len(PUBLISHING_SUFFIX)], entry))
+    return found
+
+
+def clear_unrecorded(out: Path, version: str, marker: Path) -> Leftover | None:
+    """Remove ``<out>/<version>`` (a release a killed publish moved into place but never recorded)
+    and its marker. The folder is first renamed to a staging name, so it stops being a release at
+    once even if this is killed too (the next export then clears it as a lockless partial)."""
+    folder = out / version
+    leftover = None
+    if folder.is_dir() and not folder.is_symlink():
+        size, _ = _tree_size_and_newest(folder)
+        hidden = out / f".{version}{PARTIAL_MARK}unrecorded-{os.getpid()}-{time.time_ns()}"
+        os.replace(folder, hidden)
+        shutil.rmtree(hidden, ignore_errors=True)
+        leftover = Leftover(str(folder), size, "a publish was killed after moving it into place, before recording it")
+    marker.unlink(missing_ok=True)
+    return leftover

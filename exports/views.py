@@ -190,6 +190,14 @@ def _card_ids(text: str) -> set[int]:
     return {int(part) for part in (text or "").split(",") if part.strip().isdigit()}
 
 
+class _NotAsPreviewed(Exception):
+    """A publish refused because its plan is not the previewed one (or repeats the last release)."""
+
+    def __init__(self, plan: Any, message: str, changed: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.plan, self.message, self.changed = plan, message, changed
+
+
 @bp.route("/publish", methods=["POST"])
 @role_required("exporter")
 def publish() -> Any:
@@ -201,34 +209,42 @@ def publish() -> Any:
     if not form.plan_digest.data:
         flash("Preview the release first: publishing publishes exactly what the preview showed.", "error")
         return render_template("exports/index.html", releases=_releases(), form=form, preview=None), 400
-    plan = plan_release(min_grade=form.min_grade.data, formats=tuple(form.formats.data), notes=form.notes.data or "")
-    if plan_digest(plan) != form.plan_digest.data:
-        before, now = _card_ids(form.planned_cards.data), {int(key) for key in plan.manifest}
-        changed = {
-            "version_before": form.planned_version.data or "?",
-            "version_now": plan.version,
-            "added": sorted(now - before),
-            "removed": sorted(before - now),
-            "same_cards": before == now,
-        }
-        flash(
-            "Nothing was published: the release changed since your preview (see below). "
-            "Check the new preview and publish it if it is what you want.",
-            "error",
-        )
-        return _preview_page(form, plan, changed=changed, status=409)
-    identical = same_as_last_release(plan)
-    if identical:
-        flash(
-            f"Nothing was published: this release would hold exactly the same cards, files and formats as "
-            f"release {identical}. Accept or change cards in review, or choose other formats, first.",
-            "error",
-        )
-        return _preview_page(form, plan, status=409)
+
+    def exactly_as_previewed(plan: Any) -> None:
+        # Called under the publish lock (exports.release): a publish that raced this one has
+        # recorded its release by now, so this plan is checked against the catalogue as it is.
+        if plan_digest(plan) != form.plan_digest.data:
+            before, now = _card_ids(form.planned_cards.data), {int(key) for key in plan.manifest}
+            changed = {
+                "version_before": form.planned_version.data or "?",
+                "version_now": plan.version,
+                "added": sorted(now - before),
+                "removed": sorted(before - now),
+                "same_cards": before == now,
+            }
+            raise _NotAsPreviewed(
+                plan,
+                "Nothing was published: the release changed since your preview (see below). "
+                "Check the new preview and publish it if it is what you want.",
+                changed,
+            )
+        identical = same_as_last_release(plan)
+        if identical:
+            raise _NotAsPreviewed(
+                plan,
+                f"Nothing was published: this release would hold exactly the same cards, files and formats as "
+                f"release {identical}. Accept or change cards in review, or choose other formats, first.",
+            )
+
     # The logged-in person is already loaded and detached (core.auth): using it opens no
     # transaction, so the export's reads do not hold SQLite's write lock for minutes.
     actor = current_user._get_current_object()
     try:
+        # Checked first outside the lock too, so a stale form is refused before anything on disk
+        # is touched (planning is a read; publish_release plans again under its lock).
+        exactly_as_previewed(
+            plan_release(min_grade=form.min_grade.data, formats=tuple(form.formats.data), notes=form.notes.data or "")
+        )
         report = publish_release(
             releases_dir(),
             min_grade=form.min_grade.data,
@@ -236,7 +252,12 @@ def publish() -> Any:
             notes=form.notes.data or "",
             actor=actor,
             actor_label="web",
+            check=exactly_as_previewed,
         )
+    except _NotAsPreviewed as refused:
+        db.session.rollback()
+        flash(refused.message, "error")
+        return _preview_page(form, refused.plan, changed=refused.changed, status=409)
     except ReleaseError as exc:
         db.session.rollback()
         flash(str(exc), "error")

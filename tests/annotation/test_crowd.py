@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import func, select
 
-from annotation.models import Aggregate, Answer, Batch, BatchItem, Reservation, Worker
+from annotation.models import Aggregate, Answer, Batch, BatchItem, CrowdSession, Reservation, Worker
 from core.db import db, utcnow
 
 TOKEN = re.compile(r'data-worker-token="([^"]*)"')
@@ -789,3 +789,153 @@ def test_invited_annotators_keep_their_work_across_the_sessions_migration(app, c
     after = TOKEN.search(page).group(1)
     undone = api(client, "undo", after, {})
     assert undone.status_code == 200 and undone.get_json()["task"]["token"] == task["token"]
+
+
+# ---------------------------------------------------------------------------------------------
+# A token ends with its session (/crowd/finish) and after KEYSTONE_CROWD_TOKEN_HOURS; the worker's
+# link then leads back in (invite: a new session) or says the session is finished.
+
+
+def _refused(response, status: int, words: str) -> None:  # type: ignore[no-untyped-def]
+    assert response.status_code == status, response.get_data(as_text=True)
+    error = response.get_json()["error"]
+    assert error["code"] == status and words in error["message"]
+
+
+def _reopen(app, client, name: str) -> str:  # type: ignore[no-untyped-def]
+    """Open the invited annotator NAME's link again; the fresh token its page carries."""
+    with app.app_context():
+        link = db.session.query(Worker).filter_by(external_id=name).one().token
+    page = client.get(f"/crowd/invite/{link}")
+    assert page.status_code == 200
+    return TOKEN.search(page.get_data(as_text=True)).group(1)
+
+
+@pytest.mark.both_databases
+def test_a_finished_session_takes_no_more_calls_and_the_invite_link_starts_a_new_one(app, client, cards):
+    new_batch(app, cards(4), n=1)
+    t = invite(app, client, "finisher")
+    first, second = fetch(client, t)["tasks"][:2]
+    assert answer(client, t, first["token"], JUDGE_OK, "finish-key-1").status_code == 201
+    assert client.get(f"/crowd/finish?t={t}").status_code == 200
+    assert client.get(f"/crowd/finish?t={t}").status_code == 200  # a reload of the finish page
+
+    _refused(api(client, "next", t, {"kind": "judge"}), 410, "session is finished")
+    _refused(answer(client, t, second["token"], JUDGE_OK, "finish-key-2"), 410, "session is finished")
+    _refused(api(client, "undo", t, {}), 410, "session is finished")
+    _refused(api(client, "renew", t, {"token": second["token"]}), 410, "session is finished")
+
+    fresh = _reopen(app, client, "finisher")
+    assert fetch(client, fresh)["tasks"]
+    with app.app_context():
+        sessions = db.session.query(CrowdSession).filter_by(provider="invite").order_by(CrowdSession.id).all()
+        mine = [s for s in sessions if s.worker.external_id == "finisher"]
+        assert [s.completed_at is not None for s in mine] == [True, False]
+        assert mine[1].external_id == f"{mine[0].external_id}-2"
+    _refused(api(client, "undo", t, {}), 410, "session is finished")  # the old page stays refused
+
+
+@pytest.mark.both_databases
+def test_finishing_a_session_gives_its_held_cards_back_at_once(app, client, cards):
+    app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C1A2B3"
+    new_batch(app, cards(2), n=1)
+    url = "/crowd/prolific?PROLIFIC_PID=pid-7&STUDY_ID=study-7&SESSION_ID=sess-7"
+    t = TOKEN.search(client.get(url).get_data(as_text=True)).group(1)
+    held = fetch(client, t)["tasks"]
+    assert len(held) == 2
+    other = invite(app, client, "next-in-line")
+    assert fetch(client, other)["tasks"] == []  # both cards are held
+    assert client.get(f"/crowd/finish?t={t}").status_code == 303
+    assert len(fetch(client, other)["tasks"]) == 2  # given back by the finish
+
+
+def test_a_finished_prolific_session_says_so_when_its_link_is_opened_again(app, client, cards):
+    app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "C1A2B3"
+    new_batch(app, cards(2), n=1)
+    url = "/crowd/prolific?PROLIFIC_PID=pid-9&STUDY_ID=study-9&SESSION_ID=sess-9"
+    t = TOKEN.search(client.get(url).get_data(as_text=True)).group(1)
+    assert client.get(f"/crowd/finish?t={t}").status_code == 303
+    _refused(api(client, "next", t, {"kind": "judge"}), 410, "session is finished")
+    back = client.get(url)
+    assert back.status_code == 410 and "start a new session from the study page" in back.get_data(as_text=True)
+    other = client.get("/crowd/prolific?PROLIFIC_PID=pid-9&STUDY_ID=study-9&SESSION_ID=sess-10")
+    assert other.status_code == 200 and TOKEN.search(other.get_data(as_text=True)).group(1)
+
+
+def test_tokens_expire_after_the_configured_lifetime_and_the_link_signs_a_fresh_one(app, client, cards, monkeypatch):
+    import annotation.providers as providers
+
+    app.config["KEYSTONE_CROWD_TOKEN_HOURS"] = 2
+    new_batch(app, cards(2), n=1)
+    clock = [1_000_000.0]
+    monkeypatch.setattr(providers, "_now", lambda: clock[0])
+    t = invite(app, client, "sleeper")
+    task = fetch(client, t)["tasks"][0]
+    clock[0] += 2 * 3600 - 5
+    assert fetch(client, t)["tasks"]  # still within its lifetime
+    clock[0] += 10
+    _refused(api(client, "next", t, {"kind": "judge"}), 401, "has expired")
+    _refused(answer(client, t, task["token"], JUDGE_OK, "late-key-1"), 401, "open your link again")
+    _refused(api(client, "undo", t, {}), 401, "has expired")
+    _refused(api(client, "renew", t, {"token": task["token"]}), 401, "has expired")
+    assert fetch(client, _reopen(app, client, "sleeper"))["tasks"]
+
+
+def test_the_token_lifetime_has_a_default_of_hours(app):
+    from annotation.crowd_settings import DEFAULT_TOKEN_HOURS, token_lifetime_s
+
+    with app.app_context():
+        assert 1 <= DEFAULT_TOKEN_HOURS <= 24 and token_lifetime_s() == DEFAULT_TOKEN_HOURS * 3600
+
+
+# ---------------------------------------------------------------------------------------------
+# Creating a batch from the staff form is idempotent: the form's one-time key makes one batch
+
+
+def _new_batch_form(client) -> dict[str, str]:  # type: ignore[no-untyped-def]
+    html = client.get("/crowd/batches").get_data(as_text=True)
+    form = html[html.index('id="new-batch"') :]
+    fields = dict(re.findall(r'name="(csrf_token|request_key)" value="([^"]*)"', form))
+    return {"csrf_token": fields["csrf_token"], "request_key": fields.get("request_key", "")}
+
+
+@pytest.mark.both_databases
+def test_four_identical_create_batch_submits_make_one_batch(app, client, cards, login):
+    import threading
+
+    ids = cards(3)
+    login("curator")
+    form = {**_new_batch_form(client), "cards": ",".join(map(str, ids)), "kind": "judge", "answers_per_item": "2"}
+    cookie = client.get_cookie("session")
+    barrier, answers = threading.Barrier(4), []
+
+    def post() -> None:
+        own = app.test_client()
+        own.set_cookie(cookie.key, cookie.value)
+        barrier.wait()
+        answers.append(own.post("/crowd/batches/new", data=form))
+
+    threads = [threading.Thread(target=post) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(r.status_code for r in answers) == [303] * 4
+    assert count(app, Batch) == 1
+    with app.app_context():
+        batch = db.session.scalar(select(Batch.id))
+    again = client.post("/crowd/batches/new", data=form, follow_redirects=True)  # a resubmit later on
+    assert again.status_code == 200 and count(app, Batch) == 1
+    assert f"This form was already submitted: it made batch {batch}, so no new batch was created" in again.get_data(as_text=True)
+    assert any(r.headers["Location"].endswith(f"#batch-{batch}") for r in answers)
+
+    fresh = {**form, **_new_batch_form(client)}  # the form filled in again: a new key, a new batch
+    assert client.post("/crowd/batches/new", data=fresh).status_code == 303 and count(app, Batch) == 2
+
+
+def test_create_batch_from_the_cli_is_not_deduplicated(app, runner, cards):
+    ids = ",".join(map(str, cards(2)))
+    for _ in range(2):
+        result = runner.invoke(args=["crowd", "create-batch", "--cards", ids, "--n", "1", "--gold-rate", "0"])
+        assert result.exit_code == 0, result.output
+    assert count(app, Batch) == 2

@@ -13,6 +13,7 @@ from flask.cli import with_appcontext
 from sqlalchemy import select
 
 from core.db import db
+from core.limits import parse_positive_int
 
 from .batches import (
     confirm_gold,
@@ -53,9 +54,9 @@ def _emit(document: Any, as_json: bool, human: str) -> None:
 
 def _card_ids(text: str) -> list[int]:
     try:
-        return [int(part) for part in text.replace(",", " ").split()]
+        return [parse_positive_int(part, "a card id") for part in text.replace(",", " ").split()]
     except ValueError as exc:
-        raise click.BadParameter(f"expected card ids like 1,2,3, got {text!r}", param_hint="--cards") from exc
+        raise click.BadParameter(f"expected card ids like 1,2,3: {exc}", param_hint="--cards") from exc
 
 
 @click.group("crowd")
@@ -112,7 +113,7 @@ def create_batch_command(
         gold, shown = confirm_gold(exclude=ids)
     if gold_file is not None:
         try:
-            gold = {int(k): v for k, v in json.loads(gold_file.read_text()).items()}
+            gold = {parse_positive_int(k, "a card id"): v for k, v in json.loads(gold_file.read_text()).items()}
         except (ValueError, AttributeError) as exc:
             raise click.BadParameter(f"expected a JSON object of card id -> answer: {exc}", param_hint="--gold") from exc
     if not ids and not gold:

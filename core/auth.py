@@ -53,6 +53,7 @@ from wtforms.widgets import CheckboxInput, ListWidget
 
 from core.db import db, one_writer, read_only
 from core.extensions import login_manager
+from core.limits import parse_positive_int
 from core.login_throttle import (
     Lockout,
     ThrottlePolicy,
@@ -120,7 +121,7 @@ def record_auth_event(
 @login_manager.user_loader
 def load_person(person_id: str) -> Person | None:
     try:
-        key = int(person_id)
+        key = parse_positive_int(person_id, "person")  # from the signed session, read as strictly as any id
     except ValueError:
         return None
     in_transaction = db.session().in_transaction()

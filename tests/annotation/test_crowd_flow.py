@@ -372,6 +372,18 @@ def test_curators_check_prolific_submissions(app, client, cards, login, csrf_tok
         ({"cards": "1", "kind": "paint"}, 400, "judge, crop, confirm"),
         ({"cards": "1", "answers_per_item": "0"}, 400, "answers per item"),
         ({"cards": "1", "gold_rate": "lots"}, 400, "gold rate to be a number"),
+        # Ids and numbers are read strictly: ASCII digits within the database's range, nothing
+        # int() or float() would also take (issue 32: a 64-bit overflow was a 500).
+        ({"cards": "9223372036854775808"}, 400, "positive whole number (at most 2147483647)"),
+        ({"cards": "2147483648"}, 400, "positive whole number"),
+        ({"cards": "1" * 5000}, 400, "positive whole number"),
+        ({"cards": "1_0"}, 400, "positive whole number"),
+        ({"cards": "\uff11"}, 400, "positive whole number"),
+        ({"cards": "+1"}, 400, "positive whole number"),
+        ({"cards": "1", "answers_per_item": "1_0"}, 400, "answers per item to be a positive whole number (at most 50)"),
+        ({"cards": "1", "answers_per_item": "\uff13"}, 400, "answers per item"),
+        ({"cards": "1", "gold_rate": "\uff10.5"}, 400, "gold rate to be a number"),
+        ({"cards": "1", "gold_rate": "0_5"}, 400, "gold rate to be a number"),
     ],
 )
 def test_bad_batch_forms_get_a_reason_never_a_500(app, client, cards, login, csrf_token, form, status, words):

@@ -19,7 +19,7 @@ MIGRATIONS_DIR = Path(__file__).with_name("migrations")
 
 # Indexes on expressions (sort order, NULLS LAST) that Alembic's autogenerate cannot compare:
 # the migrations create them, autogenerate leaves them alone, and a test checks they exist.
-EXPRESSION_INDEXES = frozenset({"ix_card_reviews_queue"})
+EXPRESSION_INDEXES = frozenset({"ix_card_reviews_queue", "uq_people_username_lower"})
 
 
 def include_object(obj: object, name: str | None, type_: str, reflected: bool, compare_to: object) -> bool:

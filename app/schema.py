@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import click
 from alembic import command
 from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
@@ -16,6 +17,12 @@ from sqlalchemy import MetaData
 from sqlalchemy.engine import Engine
 
 MIGRATIONS_DIR = Path(__file__).with_name("migrations")
+
+
+class MigrationRefused(click.ClickException):
+    """A migration that stopped before changing anything, with a sentence for the operator
+    (``keystone init`` and every command that upgrades print it without a traceback)."""
+
 
 # Indexes on expressions (sort order, NULLS LAST) that Alembic's autogenerate cannot compare:
 # the migrations create them, autogenerate leaves them alone, and a test checks they exist.

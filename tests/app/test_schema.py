@@ -9,6 +9,7 @@ from sqlalchemy import inspect, text
 
 from app.schema import (
     EXPRESSION_INDEXES,
+    MigrationRefused,
     current_revision,
     ensure_schema,
     head_revision,
@@ -84,9 +85,9 @@ def test_usernames_differing_only_in_case_stop_migration_0013_by_name(app):
                     ),
                     {"n": name},
                 )
-        with pytest.raises(RuntimeError) as refused:
+        with pytest.raises(MigrationRefused) as refused:
             migrate(command.upgrade, "0013")
-        message = str(refused.value)
+        message = refused.value.message
         assert "1 group(s)" in message and "'ADMIN' and 'Admin' and 'admin'" in message and "'ada'" not in message
         assert current_revision(db.engine) == "0012"
         with db.engine.begin() as connection:

@@ -6,7 +6,7 @@ one person per lower-cased name.
 
 If existing people already collide, the upgrade stops and names them: which account to keep,
 rename or merge (its reviews, audit trail, roles) is an admin's decision, never the migration's.
-``keystone users list`` shows them; rename one in the database and run ``keystone init`` again.
+Rename all but one of each group in the database and run ``keystone init`` again.
 
 ``lower()`` is the database's own: PostgreSQL folds every letter its collation knows, SQLite
 only A-Z. The app refuses case-variants of any alphabet before they reach the database
@@ -18,6 +18,8 @@ Create Date: 2026-11-27
 """
 
 from alembic import op
+
+from app.schema import MigrationRefused
 
 revision = "0013"
 down_revision = "0012"
@@ -40,10 +42,10 @@ def upgrade() -> None:
     collisions = _collisions()
     if collisions:
         listed = "; ".join(" and ".join(repr(name) for name in names) for names in collisions)
-        raise RuntimeError(
+        raise MigrationRefused(
             f"Cannot make usernames unique ignoring case: {len(collisions)} group(s) of people differ only in case "
-            f"({listed}). Nobody was changed. Rename or remove all but one in each group (keystone users list shows "
-            "them), then run the upgrade again."
+            f"({listed}). Nothing was changed. Rename all but one in each group in the database "
+            "(UPDATE people SET username = 'new name' WHERE username = 'old name'), then run keystone init again."
         )
     # Plain SQL: both SQLite (3.9+) and PostgreSQL index an expression with the same statement.
     op.execute(f"CREATE UNIQUE INDEX {INDEX} ON people (lower(username))")

@@ -81,7 +81,7 @@ def parse_whole_number(value: object, name: str, *, minimum: int = 1, maximum: i
     """
     if isinstance(value, int) and not isinstance(value, bool):
         number: int | None = value
-        shown = str(value)[:40]
+        shown = str(value)[:40] if value.bit_length() < 10_000 else "a number of thousands of digits"  # str() stops at 4,300
     elif isinstance(value, str):
         text = value.strip()
         shown = repr(text[:40])

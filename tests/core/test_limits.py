@@ -124,6 +124,11 @@ def test_parse_positive_int_refuses_json_values_that_are_no_id(value):
         parse_positive_int(value, "version")
 
 
+def test_parse_whole_number_refuses_an_int_too_long_to_print():
+    with pytest.raises(ValueError, match="thousands of digits"):
+        parse_positive_int(10**5000, "version")
+
+
 def test_parse_whole_number_keeps_to_its_range():
     assert parse_whole_number("0", "answers", minimum=0, maximum=50) == 0
     assert parse_whole_number(50, "answers", minimum=0, maximum=50) == 50

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 from typing import Any
@@ -13,6 +12,8 @@ from flask.cli import with_appcontext
 from sqlalchemy import select
 
 from core.db import db
+from core.limits import parse_positive_int
+from core.spreadsheet_csv import write_spreadsheet_csv
 
 from .batches import (
     confirm_gold,
@@ -53,9 +54,9 @@ def _emit(document: Any, as_json: bool, human: str) -> None:
 
 def _card_ids(text: str) -> list[int]:
     try:
-        return [int(part) for part in text.replace(",", " ").split()]
+        return [parse_positive_int(part, "a card id") for part in text.replace(",", " ").split()]
     except ValueError as exc:
-        raise click.BadParameter(f"expected card ids like 1,2,3, got {text!r}", param_hint="--cards") from exc
+        raise click.BadParameter(f"expected card ids like 1,2,3: {exc}", param_hint="--cards") from exc
 
 
 @click.group("crowd")
@@ -112,7 +113,7 @@ def create_batch_command(
         gold, shown = confirm_gold(exclude=ids)
     if gold_file is not None:
         try:
-            gold = {int(k): v for k, v in json.loads(gold_file.read_text()).items()}
+            gold = {parse_positive_int(k, "a card id"): v for k, v in json.loads(gold_file.read_text()).items()}
         except (ValueError, AttributeError) as exc:
             raise click.BadParameter(f"expected a JSON object of card id -> answer: {exc}", param_hint="--gold") from exc
     if not ids and not gold:
@@ -241,9 +242,7 @@ def _write_table(rows: list[dict[str, Any]], columns: list[str], out: Path, stem
     import pyarrow.parquet as pq
 
     with (out / f"{stem}.csv").open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns)
-        writer.writeheader()
-        writer.writerows(rows)
+        write_spreadsheet_csv(handle, columns, rows)  # for people: formula-like cells neutralised
     pq.write_table(
         pa.Table.from_pylist(rows, schema=None) if rows else pa.table({c: pa.array([], pa.string()) for c in columns}),
         out / f"{stem}.parquet",

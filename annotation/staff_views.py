@@ -8,7 +8,6 @@ nothing did: a TaskError's sentence, 4xx when the request itself was bad).
 
 from __future__ import annotations
 
-import csv
 import io
 import re
 import secrets
@@ -21,6 +20,8 @@ from werkzeug.wrappers import Response
 
 from core.auth import role_required
 from core.db import db, read_only
+from core.limits import parse_positive_int, parse_whole_number
+from core.spreadsheet_csv import write_spreadsheet_csv
 
 from .batches import AlreadyCreated, confirm_gold, confirm_queue_card_ids, create_batch, review_queue_card_ids
 from .blueprint import bp
@@ -46,19 +47,25 @@ def _card_ids(text: str) -> list[int]:
     if len(parts) > MAX_CARD_IDS:
         raise TaskError(f"Expected at most {MAX_CARD_IDS} card ids, got {len(parts)}")
     try:
-        return [int(p) for p in parts]
-    except ValueError:
-        raise TaskError(f"Expected card ids as whole numbers separated by commas or spaces, got {text[:80]!r}") from None
+        return [parse_positive_int(p, "a card id") for p in parts]
+    except ValueError as exc:
+        raise TaskError(f"Card ids are whole numbers separated by commas or spaces. {exc}") from None
 
 
 def _number(name: str, default: str, kind: type, low: float, high: float) -> Any:
     raw = request.form.get(name, default).strip() or default
-    try:
-        value = kind(raw)
-    except ValueError:
-        raise TaskError(f"Expected {name.replace('_', ' ')} to be a number, got {raw[:20]!r}") from None
+    label = name.replace("_", " ")
+    if kind is int:
+        try:
+            return parse_whole_number(raw, label, minimum=int(low), maximum=int(high))
+        except ValueError as exc:
+            raise TaskError(str(exc)) from None
+    # float() also reads "1_0", fullwidth digits, "nan" and "1e999": only plain ASCII decimals here.
+    if not (raw.isascii() and len(raw) <= 20 and raw.replace(".", "", 1).isdigit()):
+        raise TaskError(f"Expected {label} to be a number like 0.25, got {raw[:20]!r}")
+    value = kind(raw)
     if not low <= value <= high:
-        raise TaskError(f"Expected {low:g} <= {name.replace('_', ' ')} <= {high:g}, got {value}")
+        raise TaskError(f"Expected {low:g} <= {label} <= {high:g}, got {value}")
     return value
 
 
@@ -189,9 +196,7 @@ def answers_csv(batch_id: int) -> Response:
             abort(404, f"No batch {batch_id}.")
         rows = answer_rows(batch)
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=list(ANSWER_COLUMNS))
-    writer.writeheader()
-    writer.writerows(rows)
+    write_spreadsheet_csv(buffer, ANSWER_COLUMNS, rows)  # opened in spreadsheets: formula-like cells neutralised
     response = Response(buffer.getvalue(), mimetype="text/csv")
     response.headers["Content-Disposition"] = f'attachment; filename="batch-{batch_id}-answers.csv"'
     return response

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import click
 from alembic import command
 from alembic.config import Config
 from alembic.runtime.migration import MigrationContext
@@ -17,9 +18,15 @@ from sqlalchemy.engine import Engine
 
 MIGRATIONS_DIR = Path(__file__).with_name("migrations")
 
+
+class MigrationRefused(click.ClickException):
+    """A migration that stopped before changing anything, with a sentence for the operator
+    (``keystone init`` and every command that upgrades print it without a traceback)."""
+
+
 # Indexes on expressions (sort order, NULLS LAST) that Alembic's autogenerate cannot compare:
 # the migrations create them, autogenerate leaves them alone, and a test checks they exist.
-EXPRESSION_INDEXES = frozenset({"ix_card_reviews_queue"})
+EXPRESSION_INDEXES = frozenset({"ix_card_reviews_queue", "uq_people_username_lower"})
 
 
 def include_object(obj: object, name: str | None, type_: str, reflected: bool, compare_to: object) -> bool:

@@ -37,8 +37,7 @@ from flask import (
 )
 from flask_login import current_user, login_user, logout_user
 from flask_wtf import FlaskForm
-from sqlalchemy import select, update
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import func, select, update
 from werkzeug.security import check_password_hash, generate_password_hash
 from werkzeug.wrappers import Response
 from wtforms import (
@@ -53,6 +52,7 @@ from wtforms.widgets import CheckboxInput, ListWidget
 
 from core.db import db, one_writer, read_only
 from core.extensions import login_manager
+from core.limits import parse_positive_int
 from core.login_throttle import (
     Lockout,
     ThrottlePolicy,
@@ -120,7 +120,7 @@ def record_auth_event(
 @login_manager.user_loader
 def load_person(person_id: str) -> Person | None:
     try:
-        key = int(person_id)
+        key = parse_positive_int(person_id, "person")  # from the signed session, read as strictly as any id
     except ValueError:
         return None
     in_transaction = db.session().in_transaction()
@@ -306,7 +306,11 @@ def login() -> Any:
     if lockout is not None:
         return _locked_out(form, lockout)
     with read_only():
-        person = db.session.scalar(select(Person).where(Person.username == username))
+        # Usernames are unique ignoring case (migration 0013), so "Admin" finds admin; an exact
+        # match first keeps the common case on the plain unique index.
+        person = db.session.scalar(select(Person).where(Person.username == username)) or db.session.scalar(
+            select(Person).where(func.lower(Person.username) == func.lower(username))
+        )
         if person is not None:
             db.session.expunge(person)
     if person is None:
@@ -359,10 +363,9 @@ def people() -> Any:
             person = create_person(
                 form.username.data.strip(), form.password.data, list(form.roles.data), (form.display_name.data or "").strip()
             )
-        except IntegrityError:
-            db.session.rollback()
-            form.username.errors.append(f"A person called {form.username.data.strip()!r} already exists.")
-            status = 409
+        except PeopleError as exc:
+            form.username.errors.append(exc.message)
+            status = exc.status
         else:
             flash(f"Added {person.username} ({', '.join(sorted(person.roles))}).", "success")
             return redirect(url_for("auth.people"))

@@ -11,8 +11,8 @@ input gets a 4xx that says what is allowed, never a 500:
 - Ids: every ``<int:...>`` in a route is :class:`DatabaseIdConverter`, registered in place of
   Werkzeug's ``int`` before any blueprint, so ``/cards/9223372036854775808`` is a 404 like any
   other missing card instead of an overflow in SQLite (64-bit) or PostgreSQL (``INTEGER`` is
-  32-bit, and SQLAlchemy casts bound parameters to the column's type). Query-string ids and page
-  numbers go through :func:`parse_positive_int`.
+  32-bit, and SQLAlchemy casts bound parameters to the column's type). Ids and numbers in query
+  strings, forms and JSON bodies go through :func:`parse_whole_number` (ASCII digits only, in range).
 - Text: no NUL characters in paths, query strings or forms (PostgreSQL cannot store them).
 """
 
@@ -42,6 +42,9 @@ class DatabaseIdConverter(IntegerConverter):
     Explicit ``min``/``max`` arguments may narrow the range, never widen it.
     """
 
+    # Werkzeug's pattern is \d+, which in Python matches any Unicode digit ("５", "٣").
+    regex = r"[0-9]+"
+
     def __init__(
         self, map: Map, fixed_digits: int = 0, min: int | None = None, max: int | None = None, signed: bool = False
     ) -> None:
@@ -55,21 +58,46 @@ class DatabaseIdConverter(IntegerConverter):
         )
 
     def to_python(self, value: str) -> Any:
-        if len(value.lstrip("0")) > DATABASE_ID_DIGITS:
+        try:
+            number = parse_whole_number(value, "id", minimum=self.min or 1, maximum=self.max or DATABASE_ID_MAX)
+        except ValueError:
+            raise ValidationError() from None
+        if self.fixed_digits and len(value) != self.fixed_digits:
             raise ValidationError()
-        return super().to_python(value)
+        return number
 
 
-def parse_positive_int(value: str, name: str, *, maximum: int = DATABASE_ID_MAX) -> int:
-    """``value`` (a query-string or form field called ``name``) as a whole number in 1 .. ``maximum``.
+def parse_whole_number(value: object, name: str, *, minimum: int = 1, maximum: int = DATABASE_ID_MAX) -> int:
+    """``value`` (a URL part, query-string, form or JSON field called ``name``) as a whole number
+    in ``minimum`` .. ``maximum``: the one strict reading of numbers at every door.
 
-    Raises ValueError with a sentence for the user. ``str.isdigit`` alone is not enough: it is
-    true for "²", which ``int()`` refuses, so only ASCII digits are accepted.
+    Text must be ASCII digits only (surrounding whitespace aside): Python's ``int()`` also takes
+    ``"1_0"`` (10), a fullwidth ``"５"``, Arabic-Indic ``"٣"`` and a sign, and ``str.isdigit`` is
+    true for ``"²"``, which ``int()`` then refuses. A JSON integer is taken as it is (``True`` is
+    not a number). The length is checked before ``int()``: Python refuses strings of more than
+    4,300 digits with a ValueError, and a long one costs time for nothing.
+
+    Raises ValueError with a sentence for the user (views turn it into a 400).
     """
-    text = value.strip()
-    if not (text.isascii() and text.isdigit()) or len(text.lstrip("0")) > len(str(maximum)) or not 1 <= int(text) <= maximum:
-        raise ValueError(f"Expected {name} to be a positive whole number (at most {maximum}), got {text[:40]!r}.")
-    return int(text)
+    if isinstance(value, int) and not isinstance(value, bool):
+        number: int | None = value
+        shown = str(value)[:40] if value.bit_length() < 10_000 else "a number of thousands of digits"  # str() stops at 4,300
+    elif isinstance(value, str):
+        text = value.strip()
+        shown = repr(text[:40])
+        ascii_digits = text.isascii() and text.isdigit()
+        number = int(text) if ascii_digits and len(text.lstrip("0")) <= len(str(maximum)) else None
+    else:
+        number, shown = None, type(value).__name__
+    if number is None or not minimum <= number <= maximum:
+        wanted = f"a positive whole number (at most {maximum})" if minimum == 1 else f"a whole number from {minimum} to {maximum}"
+        raise ValueError(f"Expected {name} to be {wanted}, got {shown}.")
+    return number
+
+
+def parse_positive_int(value: object, name: str, *, maximum: int = DATABASE_ID_MAX) -> int:
+    """``value`` as a database id or page number (1 .. ``maximum``); see :func:`parse_whole_number`."""
+    return parse_whole_number(value, name, minimum=1, maximum=maximum)
 
 
 def request_body_limit() -> int | None:

@@ -123,7 +123,9 @@ def client_address() -> str:
 
 def _keys(username: str, address: str) -> list[tuple[str, str]]:
     # Sorted, so two transactions lock the same rows in the same order and cannot deadlock.
-    return sorted([("account", username), ("address", address)])
+    # Usernames are unique ignoring case and log-in finds them ignoring case, so "Admin" and
+    # "ADMIN" are guesses against one account and count against one budget.
+    return sorted([("account", username.lower()[:120]), ("address", address)])
 
 
 def _locked_rows(session: Session, keys: list[tuple[str, str]], now: datetime) -> list[LoginThrottle]:

@@ -174,6 +174,9 @@ class Person(UserMixin, db.Model):
     """Anyone who uses the app. Crowd workers from invite links may have no password."""
 
     __tablename__ = "people"
+    # Unique ignoring case (migration 0013): "ADMIN" cannot be added beside "admin". An
+    # expression index, so Alembic's autogenerate leaves it to the migration (app.schema).
+    __table_args__ = (Index("uq_people_username_lower", db.text("lower(username)"), unique=True),)
 
     id: Mapped[int] = mapped_column(primary_key=True)
     username: Mapped[str] = mapped_column(String(120), unique=True)

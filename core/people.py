@@ -20,17 +20,6 @@ from core.db import db
 from core.models import ROLES, Person
 
 
-def create_person(username: str, password: str | None, roles: list[str], display_name: str = "") -> Person:
-    person = Person(username=username, display_name=display_name or username)
-    if password:
-        person.set_password(password)
-    for role in roles:
-        person.grant(role)
-    db.session.add(person)
-    db.session.commit()
-    return person
-
-
 class PeopleError(Exception):
     """An admin change that cannot be made; ``status`` for the HTTP reply."""
 
@@ -38,6 +27,43 @@ class PeopleError(Exception):
         super().__init__(message)
         self.message = message
         self.status = status
+
+
+def same_username(username: str) -> str | None:
+    """The existing username equal to ``username`` ignoring case, if any.
+
+    Compared with Python's ``casefold`` over every person (a few dozen staff accounts; crowd
+    workers are not people): the database's unique index on ``lower(username)`` folds only
+    A-Z on SQLite, so "ÄDMIN" beside "ädmin" is refused here on either database.
+    """
+    wanted = username.casefold()
+    return next((name for name in db.session.scalars(select(Person.username)) if name.casefold() == wanted), None)
+
+
+def _taken(username: str, existing: str) -> PeopleError:
+    same = "" if existing == username else f" (usernames are the same whatever their case, so {username!r} is taken)"
+    return PeopleError(f"A person called {existing!r} already exists{same}.", 409)
+
+
+def create_person(username: str, password: str | None, roles: list[str], display_name: str = "") -> Person:
+    """Add a person; PeopleError (409) when the username is taken, whatever its case."""
+    existing = same_username(username)
+    if existing is not None:
+        db.session.rollback()
+        raise _taken(username, existing)
+    person = Person(username=username, display_name=display_name or username)
+    if password:
+        person.set_password(password)
+    for role in roles:
+        person.grant(role)
+    db.session.add(person)
+    try:
+        db.session.commit()
+    except IntegrityError:
+        # Someone added the same name (or a case-variant) between the check and the commit.
+        db.session.rollback()
+        raise _taken(username, same_username(username) or username) from None
+    return person
 
 
 ONE_TIME_PASSWORD_BYTES = 12  # 16 URL-safe characters
@@ -188,9 +214,8 @@ def add_user(username: str, roles: tuple[str, ...], password: str, display_name:
         raise click.BadParameter("use at least 8 characters", param_hint="--password")
     try:
         person = create_person(username, password, list(roles), display_name)
-    except IntegrityError as exc:
-        db.session.rollback()
-        raise click.ClickException(f"a person called {username!r} already exists") from exc
+    except PeopleError as exc:
+        raise click.ClickException(exc.message) from exc
     click.echo(f"added {person.username} ({', '.join(sorted(person.roles))})")
 
 

@@ -49,6 +49,7 @@ from wtforms.widgets import CheckboxInput, ListWidget
 
 from core.auth import add_nav_link, role_required
 from core.db import db, read_only
+from core.limits import parse_positive_int
 
 from .formats import default_format_names, format_names
 from .models import Release
@@ -187,7 +188,11 @@ def _preview_page(form: ReleaseForm, plan: Any, *, changed: dict[str, Any] | Non
 
 
 def _card_ids(text: str) -> set[int]:
-    return {int(part) for part in (text or "").split(",") if part.strip().isdigit()}
+    """The preview's card ids (its hidden field): 400 for anything but ids within the database's range."""
+    try:
+        return {parse_positive_int(part, "a previewed card id") for part in (text or "").split(",") if part.strip()}
+    except ValueError as exc:
+        abort(400, f"The preview's list of cards is not a list of card ids ({exc}) Preview the release again.")
 
 
 class _NotAsPreviewed(Exception):

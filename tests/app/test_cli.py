@@ -110,7 +110,7 @@ def test_init_reports_json_and_is_idempotent(app, runner):
     result = runner.invoke(cli, ["init", "--json"])
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
-    assert document["revision"] == "0012" and document["migrated"] is False
+    assert document["revision"] == "0013" and document["migrated"] is False
     assert "password" not in document["database"]
 
 
@@ -121,6 +121,8 @@ def test_users_add_and_list(runner):
     assert result.exit_code == 0, result.output
     again = runner.invoke(cli, ["users", "add", "ada", "--role", "curator", "--password", "long enough pw"])
     assert again.exit_code == 1 and "already exists" in again.output
+    shouting = runner.invoke(cli, ["users", "add", "ADA", "--role", "curator", "--password", "long enough pw"])
+    assert shouting.exit_code == 1 and "A person called 'ada' already exists" in shouting.output
     short = runner.invoke(cli, ["users", "add", "bob", "--role", "admin", "--password", "short"])
     assert short.exit_code == 2
     listing = json.loads(runner.invoke(cli, ["users", "list", "--json"]).stdout)
@@ -150,6 +152,6 @@ def test_database_url_from_the_environment(database, tmp_path, monkeypatch):
         db.engine.dispose()  # close pooled connections now, not at garbage collection
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
-    assert document["migrated"] is True and document["revision"] == "0012"
+    assert document["migrated"] is True and document["revision"] == "0013"
     assert document["database"].split(":")[0] == ("postgresql+psycopg" if "postgresql" in url else "sqlite")
     assert document["data_dir"] == str(tmp_path / "store")

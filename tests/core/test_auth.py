@@ -239,6 +239,53 @@ def test_adding_a_duplicate_username_is_a_form_error_not_a_500(app, client, logi
         assert db.session.scalar(select(func.count()).select_from(Person).where(Person.username == "dup")) == 1
 
 
+@pytest.mark.both_databases
+@pytest.mark.parametrize("username", ["DUP", "Dup", "dUP"])
+def test_usernames_are_unique_ignoring_case_on_the_people_page(app, client, login, csrf_token, make_person, username):
+    # Issue 32: "ADMIN" and "Admin" could be added beside "admin".
+    login("admin")
+    make_person("annotator", username="dup")
+    form = {"username": username, "password": "longenough1", "roles": ["curator"], "csrf_token": csrf_token("/auth/people")}
+    response = client.post("/auth/people", data=form)
+    assert response.status_code == 409
+    text = response.get_data(as_text=True)
+    assert "A person called &#39;dup&#39; already exists" in text and "whatever their case" in text
+    with app.app_context():
+        assert db.session.scalar(select(func.count()).select_from(Person).where(func.lower(Person.username) == "dup")) == 1
+
+
+@pytest.mark.both_databases
+def test_the_database_refuses_a_username_differing_only_in_case(app, make_person):
+    from sqlalchemy.exc import IntegrityError
+
+    make_person("annotator", username="admin")
+    with app.app_context():
+        db.session.add(Person(username="ADMIN", display_name="x"))
+        with pytest.raises(IntegrityError):
+            db.session.commit()
+        db.session.rollback()
+
+
+def test_create_person_refuses_case_variants_in_any_alphabet(app, make_person):
+    from core.people import PeopleError, create_person
+
+    make_person("annotator", username="Ädmin")
+    with app.app_context():
+        with pytest.raises(PeopleError, match="'Ädmin' already exists") as refused:
+            create_person("äDMIN", "longenough1", ["curator"])
+        assert refused.value.status == 409
+        assert create_person("ädmin-2", "longenough1", ["curator"]).username == "ädmin-2"
+
+
+@pytest.mark.both_databases
+def test_log_in_finds_the_username_ignoring_case(app, client, make_person, csrf_token):
+    grace = make_person("curator", username="Grace")
+    response = client.post(
+        "/auth/login", data={"username": "gRACE", "password": grace.password, "csrf_token": csrf_token("/auth/login")}
+    )
+    assert response.status_code == 302 and logged_in_as(client) == str(grace.id)
+
+
 @pytest.mark.parametrize(
     "form, message",
     [

@@ -14,7 +14,7 @@ import pytest
 from sqlalchemy import func, select
 from werkzeug.routing import IntegerConverter
 
-from core.limits import DATABASE_ID_MAX, DatabaseIdConverter, parse_positive_int
+from core.limits import DATABASE_ID_MAX, DatabaseIdConverter, parse_positive_int, parse_whole_number
 
 # Past PostgreSQL's INTEGER, past SQLite's 64-bit INTEGER, past a float, past Python's
 # 4,300-digit int() limit; and 0, which no id is.
@@ -109,10 +109,40 @@ def test_a_database_id_converter_may_narrow_its_range_but_not_widen_it(app):
         Map([Rule("/c/<int(signed=True):n>", endpoint="c")], converters={"int": DatabaseIdConverter})
 
 
-@pytest.mark.parametrize("value", ["0", "-1", "abc", "1.5", "²", "٣", " ", "1e3", str(DATABASE_ID_MAX + 1), "9" * 5000])
+@pytest.mark.parametrize(
+    "value",
+    ["0", "-1", "+1", "abc", "1.5", "1_0", "\uff15", "²", "٣", " ", "1e3", str(DATABASE_ID_MAX + 1), "9" * 5000],
+)
 def test_parse_positive_int_refuses_what_is_no_id(value):
     with pytest.raises(ValueError, match="positive whole number"):
         parse_positive_int(value, "page")
+
+
+@pytest.mark.parametrize("value", [True, 0, -1, DATABASE_ID_MAX + 1, 2**63, 1.0, None, [1], {"id": 1}])
+def test_parse_positive_int_refuses_json_values_that_are_no_id(value):
+    with pytest.raises(ValueError, match="positive whole number"):
+        parse_positive_int(value, "version")
+
+
+def test_parse_whole_number_refuses_an_int_too_long_to_print():
+    with pytest.raises(ValueError, match="thousands of digits"):
+        parse_positive_int(10**5000, "version")
+
+
+def test_parse_whole_number_keeps_to_its_range():
+    assert parse_whole_number("0", "answers", minimum=0, maximum=50) == 0
+    assert parse_whole_number(50, "answers", minimum=0, maximum=50) == 50
+    for value in ("51", "-1", "1_0", "\uff13"):
+        with pytest.raises(ValueError, match="answers to be a whole number from 0 to 50"):
+            parse_whole_number(value, "answers", minimum=0, maximum=50)
+
+
+def test_ids_in_urls_are_ascii_digits_only(app):
+    urls = app.url_map.bind("localhost")
+    assert urls.match("/cards/7")[1] == {"card_id": 7}
+    for url in ("/cards/\uff15", "/cards/\u0663", "/cards/1_0", "/cards/+1", "/review/cards/\uff11"):
+        with pytest.raises(Exception, match="404"):
+            urls.match(url)
 
 
 def test_parse_positive_int_reads_ids_in_range():
@@ -184,9 +214,14 @@ def test_review_decisions_with_absurd_versions_and_selections(client, hostile_wo
     for version in ("²", "9" * 5000, "-1", "1.0", ""):
         response = client.post(url, data={"choice": "accept", "version": version, "csrf_token": hostile_world.csrf})
         assert response.status_code == 400 and "version of the review you saw" in response.get_data(as_text=True)
-    for version in (2**53, -(2**53), 0):
+    for version in (2**53, -(2**53), 0, True, "1_0", "\uff11"):  # outside the database's range, or no id at all
         response = client.post(url, json={"action": "accept", "version": version}, headers={"X-CSRFToken": hostile_world.csrf})
-        assert response.status_code == 409, response.get_data(as_text=True)  # a version nobody saw
+        assert response.status_code == 400, response.get_data(as_text=True)
+        assert "version of the review you saw" in response.get_json()["error"]["message"]
+    response = client.post(
+        url, json={"action": "accept", "version": DATABASE_ID_MAX}, headers={"X-CSRFToken": hostile_world.csrf}
+    )
+    assert response.status_code == 409, response.get_data(as_text=True)  # a version nobody saw
     for item in ("9" * 30 + ":1", "1:" + "9" * 5000, "²:1", "1"):
         response = client.post("/review/bulk", data={"item": item, "action": "accept", "csrf_token": hostile_world.csrf})
         assert response.status_code == 400 and "review:version" in response.get_data(as_text=True)

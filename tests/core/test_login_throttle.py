@@ -548,3 +548,10 @@ def test_people_from_before_the_migration_get_version_one_and_can_log_in(app, cl
     assert attempt(client, "ada", "longenough1").status_code == 302
     assert logged_in_as(client) is not None
     assert "Ada" in client.get("/").get_data(as_text=True)  # the loader accepts the session
+
+
+def test_case_variants_of_a_username_share_one_budget():
+    # Log-in finds usernames ignoring case, so "ADMIN" must not be a fresh budget of guesses at admin.
+    from core.login_throttle import _keys
+
+    assert _keys("ADMIN", "203.0.113.9") == _keys("admin", "203.0.113.9") == [("account", "admin"), ("address", "203.0.113.9")]

@@ -92,3 +92,17 @@ def test_reloading_the_preview_or_publish_address_goes_back_to_the_form(client, 
     for address in ("/releases/preview", "/releases/publish"):
         response = client.get(address)
         assert response.status_code == 302 and response.headers["Location"].endswith("/releases/"), address
+
+
+@pytest.mark.both_databases
+@pytest.mark.parametrize("planned_cards", ["²", "1" * 5000, "1,1_0", "\uff15", "9223372036854775808", "1,,x"])
+def test_a_stale_plan_with_absurd_card_ids_is_400_not_500(app, client, login, csrf_token, tmp_path, planned_cards) -> None:
+    # Issue 32: int() of "²" or of 5,000 digits raised inside the stale-plan comparison (a 500).
+    app.config["KEYSTONE_RELEASES_DIR"] = str(tmp_path / "releases")
+    login("exporter")
+    form = {"csrf_token": csrf_token("/releases/"), "min_grade": "some", "formats": ["parquet"], "notes": ""}
+    stale = {"plan_digest": "0" * 64, "planned_version": "1.0.0", "planned_cards": planned_cards}
+    response = client.post("/releases/publish", data={**form, **stale})
+    assert response.status_code == 400, response.status_code
+    assert "Preview the release again" in response.get_data(as_text=True)
+    assert not (tmp_path / "releases").exists()

@@ -666,3 +666,29 @@ def hostile_world(app, client, login, csrf_token, make_card, add_stage_result, c
     worker_token = re.search(r'data-worker-token="([^"]*)"', page).group(1)  # type: ignore[union-attr]
     login("admin")
     return World(card_id, review_id, version, crop_card_id, aggregate_id, worker_token, csrf_token("/cards"))
+
+
+@pytest.fixture
+def post_at_once(app, client) -> Callable[..., list[Any]]:  # type: ignore[no-untyped-def]
+    """POST the same form ``times`` times at the same moment, each from its own test client
+    holding ``client``'s session (a double click, two exporters on one preview); the responses."""
+    import threading
+
+    def post(url: str, form: dict[str, Any], times: int) -> list[Any]:
+        cookie = client.get_cookie("session")
+        barrier, answers = threading.Barrier(times), []
+
+        def one() -> None:
+            own = app.test_client()
+            own.set_cookie(cookie.key, cookie.value)
+            barrier.wait()
+            answers.append(own.post(url, data=form))
+
+        threads = [threading.Thread(target=one) for _ in range(times)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        return answers
+
+    return post

@@ -900,26 +900,12 @@ def _new_batch_form(client) -> dict[str, str]:  # type: ignore[no-untyped-def]
 
 
 @pytest.mark.both_databases
-def test_four_identical_create_batch_submits_make_one_batch(app, client, cards, login):
-    import threading
+def test_four_identical_create_batch_submits_make_one_batch(app, client, cards, login, post_at_once):
 
     ids = cards(3)
     login("curator")
     form = {**_new_batch_form(client), "cards": ",".join(map(str, ids)), "kind": "judge", "answers_per_item": "2"}
-    cookie = client.get_cookie("session")
-    barrier, answers = threading.Barrier(4), []
-
-    def post() -> None:
-        own = app.test_client()
-        own.set_cookie(cookie.key, cookie.value)
-        barrier.wait()
-        answers.append(own.post("/crowd/batches/new", data=form))
-
-    threads = [threading.Thread(target=post) for _ in range(4)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
+    answers = post_at_once("/crowd/batches/new", form, 4)
     assert sorted(r.status_code for r in answers) == [303] * 4
     assert count(app, Batch) == 1
     with app.app_context():

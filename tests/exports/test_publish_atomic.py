@@ -10,7 +10,6 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -30,7 +29,7 @@ def _releases(app) -> list[tuple[str, str]]:  # type: ignore[no-untyped-def]
 
 @pytest.mark.both_databases
 def test_two_simultaneous_publishes_of_one_preview_give_one_release_and_one_refusal(
-    app, client, login, csrf_token, processed_cards, review_card, tmp_path
+    app, client, login, csrf_token, processed_cards, review_card, tmp_path, post_at_once
 ) -> None:
     app.config["KEYSTONE_RELEASES_DIR"] = str(tmp_path / "releases")
     ids = processed_cards(2)
@@ -43,20 +42,7 @@ def test_two_simultaneous_publishes_of_one_preview_give_one_release_and_one_refu
     form["plan_digest"] = re.search(r'name="plan_digest"[^>]*value="([0-9a-f]{64})"', html).group(1)
     form["planned_cards"] = re.search(r'name="planned_cards"[^>]*value="([0-9,]*)"', html).group(1)
     form["planned_version"] = "1.0.0"
-    cookie = client.get_cookie("session")
-    barrier, answers = threading.Barrier(2), []
-
-    def publish() -> None:
-        own = app.test_client()
-        own.set_cookie(cookie.key, cookie.value)
-        barrier.wait()
-        answers.append(own.post("/releases/publish", data=form))
-
-    threads = [threading.Thread(target=publish) for _ in range(2)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
+    answers = post_at_once("/releases/publish", form, 2)
     assert sorted(r.status_code for r in answers) == [303, 409]
     refused = next(r for r in answers if r.status_code == 409).get_data(as_text=True)
     assert "Nothing was published" in refused or "nothing was published" in refused

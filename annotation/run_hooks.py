@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from flask import Flask
-from sqlalchemy import select
+from sqlalchemy import func, select
 
 from core.db import db
 from core.hooks import stage_hooks
@@ -37,7 +37,17 @@ def latest_aggregates(card_ids: list[int]) -> dict[int, dict[str, Any]]:
     return _aggregates(card_ids, approved_only=False)
 
 
+def aggregates_mark() -> tuple[Any, ...]:
+    """What moves when the crowd's aggregates do (a new one, or one approved or resolved): the
+    background worker's cue that crowd work arrived (runs.worker.change_mark)."""
+    count, newest, changed = db.session.execute(
+        select(func.count(Aggregate.id), func.max(Aggregate.id), func.max(Aggregate.updated_at))
+    ).one()
+    return (count, newest, str(changed))
+
+
 def register(app: Flask) -> None:
     hooks = stage_hooks(app)
     hooks.decisions.append(approved_aggregates)
     hooks.people_work.append(latest_aggregates)
+    hooks.change_marks.append(aggregates_mark)

@@ -1,5 +1,5 @@
 """The commands the app package owns (``init``, ``serve``, and those defined beside the code they
-drive: ``ingest``, ``run``, ``cards``, ``demo``, ``users``, ``check-homographies``,
+drive: ``ingest``, ``run``, ``worker``, ``cards``, ``demo``, ``users``, ``check-homographies``,
 ``train-inpainting``), added to ``keystone`` by :func:`register_cli`."""
 
 from __future__ import annotations
@@ -48,9 +48,18 @@ def init_command(as_json: bool) -> None:
     default=None,
     help="Threads per process [default: 1 with several processes, 8 with one].",
 )
+@click.option(
+    "--worker/--no-worker",
+    "with_worker",
+    default=True,
+    show_default=True,
+    help="Run the background worker beside the server: it recomputes pending and stale work as "
+    "people decide (keystone worker). --no-worker where workers run elsewhere.",
+)
 @with_appcontext
-def serve_command(host: str, port: int, threads: int | None, processes: int | None) -> None:
-    """Serve the web app with a production WSGI server: gunicorn's pre-forked workers, or waitress."""
+def serve_command(host: str, port: int, threads: int | None, processes: int | None, with_worker: bool) -> None:
+    """Serve the web app with a production WSGI server (gunicorn's pre-forked workers, or
+    waitress) and, unless --no-worker, the background worker that closes the loop."""
     from app.serving import serve
 
     ensure_database()
@@ -60,6 +69,7 @@ def serve_command(host: str, port: int, threads: int | None, processes: int | No
         port=port,
         threads=threads,  # type: ignore[attr-defined]
         processes=processes,
+        with_worker=with_worker,
     )
 
 
@@ -70,13 +80,14 @@ def register_cli(group: click.Group) -> None:
     from catalogue.geometry import check_homographies_command
     from catalogue.ingest import ingest_command
     from core.people import users_group
-    from runs.cli import cards_command, run_command
+    from runs.cli import cards_command, run_command, worker_command
 
     for command in (
         init_command,
         serve_command,
         ingest_command,
         run_command,
+        worker_command,
         cards_command,
         demo_command,
         users_group,

@@ -357,7 +357,14 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
 @click.option("--host", default="127.0.0.1", show_default=True)
 @click.option("--port", default=5000, show_default=True, type=int)
 @click.option("--workers", default=2, show_default=True, type=click.IntRange(1, 64))
-def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: int) -> None:
+@click.option(
+    "--worker/--no-worker",
+    "with_worker",
+    default=True,
+    show_default=True,
+    help="Serve with the background worker that recomputes as people decide (as keystone serve).",
+)
+def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: int, with_worker: bool) -> None:
     """Build the demo collection end to end (embedded SQLite in --dir), then serve the app."""
     from app import create_app
     from app.serving import serve
@@ -380,4 +387,4 @@ def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: in
     if unexpected:
         click.echo(f"warning: {len(unexpected)} card(s) routed unexpectedly: {', '.join(unexpected)}", err=True)
     if not no_serve:
-        serve(app, host=host, port=port)
+        serve(app, host=host, port=port, with_worker=with_worker)

@@ -40,6 +40,7 @@ def target_metadata() -> MetaData:
     import exports.models  # noqa: F401
     import review.models  # noqa: F401
     import runs.claims  # noqa: F401  (stage_claims)
+    import runs.worker  # noqa: F401  (pipeline_workers)
     from core import audit, models  # noqa: F401
     from core.db import db
 

@@ -14,6 +14,13 @@ The app is created once in the parent; database connections are dropped before t
 (SQLite and psycopg connections must not cross one). SQLite writers of all the processes queue
 at :func:`core.db.one_writer`.
 
+Beside the server runs the background worker (:mod:`runs.worker`), a child process started
+before the server listens and stopped after it stops, so people's decisions are recomputed with
+no terminal: ``with_worker=False`` (``keystone serve --no-worker``) leaves it out, for an
+operator who runs ``keystone worker`` elsewhere (on the cluster's machines). The worker gets the
+app's database, data and releases folders in its environment, and exits by itself if the server
+is killed (it watches its parent).
+
 Every request runs in a fresh :class:`contextvars.Context` (:func:`one_context_per_request`).
 ``keystone serve`` is a click command, and Flask's CLI pushes an app context for it; a sync
 worker forked from that process serves requests on the thread that holds it, and Flask reuses
@@ -27,6 +34,7 @@ from __future__ import annotations
 
 import contextvars
 import os
+import signal
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -70,12 +78,40 @@ def one_context_per_request(app: WSGIApp) -> WSGIApp:
     return isolated
 
 
+def worker_environment(app: WSGIApp) -> dict[str, str]:
+    """This process's environment, with the app's database, data, releases and instance folders
+    spelled out, so a ``keystone worker`` child works on what the server serves (``keystone
+    demo`` configures its app in code, not in the environment)."""
+    env = dict(os.environ)
+    target = getattr(app, "keystone_app", app)
+    config = getattr(target, "config", None) or {}
+    for name, key in (
+        ("KEYSTONE_DATABASE_URL", "SQLALCHEMY_DATABASE_URI"),
+        ("KEYSTONE_DATA_DIR", "KEYSTONE_DATA_DIR"),
+        ("KEYSTONE_RELEASES_DIR", "KEYSTONE_RELEASES_DIR"),
+        ("KEYSTONE_INPAINT_CHECKPOINT", "KEYSTONE_INPAINT_CHECKPOINT"),
+    ):
+        if config.get(key):
+            env[name] = str(config[key])
+    instance = getattr(target, "instance_path", None)
+    if instance:
+        env["KEYSTONE_INSTANCE_PATH"] = str(instance)
+    return env
+
+
 def serve(
-    app: WSGIApp, host: str, port: int, threads: int | None = None, processes: int | None = None, on_ready: Ready | None = None
+    app: WSGIApp,
+    host: str,
+    port: int,
+    threads: int | None = None,
+    processes: int | None = None,
+    on_ready: Ready | None = None,
+    with_worker: bool = True,
 ) -> None:
     """Serve until interrupted; ``on_ready(port)`` is called once listening (port 0 picks a free one).
 
     ``processes`` and ``threads`` default to :func:`default_processes` and :func:`default_threads`.
+    ``with_worker``: run the background worker beside the server (see the module docstring).
     """
     processes = default_processes() if processes is None else processes
     threads = default_threads(processes) if threads is None else threads
@@ -87,10 +123,31 @@ def serve(
             f"Keystone is serving on http://{host}:{bound}/ ({describe(processes, threads)}; Ctrl+C to stop)", err=True
         )
     )
+    worker = None
+    if with_worker:
+        from runs.worker import start_server_worker
+
+        worker = start_server_worker(worker_environment(app))
+    previous = signal.getsignal(signal.SIGTERM)
     if processes == 1:
-        _serve_waitress(wsgi, host, port, threads, on_ready)
-    else:
-        _serve_gunicorn(app, wsgi, host, port, threads, processes, on_ready)
+        # waitress leaves SIGTERM to Python's default, which ends the process at once: unwind
+        # instead, so the worker is stopped below (gunicorn handles SIGTERM itself, then exits).
+        signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    try:
+        if processes == 1:
+            _serve_waitress(wsgi, host, port, threads, on_ready)
+        else:
+            _serve_gunicorn(app, wsgi, host, port, threads, processes, on_ready)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        if worker is not None:
+            from runs.worker import stop_server_worker
+
+            stop_server_worker(worker)
+
+
+def _exit_on_sigterm(signum: int, frame: Any) -> None:
+    raise SystemExit(0)
 
 
 def max_body_bytes(app: WSGIApp) -> int | None:

@@ -11,7 +11,10 @@ what a run needs from it:
 * ``stage_params``: parameters a stage takes from a feature's data (the grade thresholds of
   the newest fitted grade model): ``provider() -> params``;
 * ``after_write``: what must follow the driver's write of a stage's results (review's sync of
-  new grades into the curators' queue): ``hook(card_ids) -> None``.
+  new grades into the curators' queue): ``hook(card_ids) -> None``;
+* ``change_marks``: a cheap value that moves when a feature's people decide something the
+  audit trail does not record (the crowd's aggregates), so the background worker
+  (:mod:`runs.worker`) knows to run again: ``mark() -> hashable``.
 
 Providers merge in registration order; a later provider's kind overrides an earlier one's.
 """
@@ -35,6 +38,7 @@ class StageHooks:
     people_work: list[CardProvider] = field(default_factory=list)
     stage_params: dict[str, Callable[[], Any]] = field(default_factory=dict)
     after_write: dict[str, list[Callable[[list[int]], None]]] = field(default_factory=dict)
+    change_marks: list[Callable[[], Any]] = field(default_factory=list)
 
 
 def stage_hooks(app: Flask | None = None) -> StageHooks:

@@ -97,17 +97,20 @@ def stream_release_cards(
         ):
             crowd.setdefault(row.card_id, {})[row.kind] = {"batch": row.batch_id, "answers": row.answers}
         # The flow rule, as the review gate asks it: an undecided orientation, an open crowd
-        # dispute or a stale result keeps an accepted card out of the release.
+        # dispute, a stale result, a ruling "not a stereo pair", or an acceptance given other
+        # results than the card has now keeps an accepted card out of the release.
         states = card_states(cards, specs=specs)
         ready: list[ReleaseCard] = []
         for card in cards:
-            blockers = states[card.id].blockers
+            blockers = states[card.id].release_blockers
             if blockers:
                 if exclusions is not None:
                     exclusions.append(Exclusion(card.id, "; ".join(blockers)))
                 continue
             try:
-                ready.append(release_card(card, reviews[card.id], crowd.get(card.id, {}), data_dir, with_views))
+                ready.append(
+                    release_card(card, reviews[card.id], crowd.get(card.id, {}), data_dir, with_views, states[card.id].inputs_now)
+                )
             except ReleaseInputError as exc:
                 if exclusions is not None:
                     exclusions.append(Exclusion(card.id, str(exc)))
@@ -139,8 +142,17 @@ def card_views(result: Any, data_dir: Path) -> tuple[dict[str, Path], str]:
 
 
 def release_card(
-    card: Card, review: CardReview, crowd: dict[str, dict[str, Any]], data_dir: Path, with_views: bool = False
+    card: Card,
+    review: CardReview,
+    crowd: dict[str, dict[str, Any]],
+    data_dir: Path,
+    with_views: bool = False,
+    inputs_now: dict[str, str] | None = None,
 ) -> ReleaseCard:
+    """One accepted card as released. ``inputs_now``: the inputs digest each stage would be given
+    from people's decisions at release time (:attr:`runs.card_state.CardState.inputs_now`),
+    recorded beside the digest each released result was computed from, with the acceptance, so
+    ``keystone verify`` can tell from the release alone that nothing in it was stale."""
     latest = card.latest_results()
     rectify, disparity, grade = latest.get("rectify"), latest.get("disparity"), latest.get("grade")
     if rectify is None or rectify.status not in ("done", "skipped"):
@@ -173,6 +185,7 @@ def release_card(
             "code_version": result.code_version,
             "status": result.status,
             "inputs_digest": result.metrics.get("inputs_digest"),
+            "computed_at": None if result.started_at is None else _utc(result.started_at).isoformat(),
         }
         for result in (rectify, disparity, grade)
         if result is not None
@@ -217,4 +230,9 @@ def release_card(
         views=views,
         views_note=views_note,
         stereo_source=card.stereo_source,
+        acceptance={
+            "decided_at": None if review.decided_at is None else _utc(review.decided_at).isoformat(),
+            "accepted_results": review.accepted_results,
+            "inputs_now": {stage: digest for stage, digest in (inputs_now or {}).items() if stage in stages},
+        },
     )

@@ -58,7 +58,13 @@ def export_command(out_dir: Path, min_grade: str, formats: str, dry_run: bool, n
         if dry_run:
             report = plan_release(min_grade=min_grade, formats=chosen, notes=notes)
             if report.cards == 0:
-                raise ReleaseError(f"no curator-accepted cards at or above grade {min_grade!r} are ready to release")
+                # Say why each accepted card was left out: that is what the operator must act on.
+                left_out = "; ".join(f"card {row['card_id']}: {row['reason']}" for row in report.excluded[:20])
+                more = f" (and {len(report.excluded) - 20} more)" if len(report.excluded) > 20 else ""
+                raise ReleaseError(
+                    f"no curator-accepted cards at or above grade {min_grade!r} are ready to release"
+                    + (f"; left out: {left_out}{more}" if left_out else "")
+                )
         else:
             with progress_bar("export", enabled=not as_json) as progress:
                 report = publish_release(out_dir, min_grade=min_grade, formats=chosen, notes=notes, progress=progress)

@@ -98,6 +98,9 @@ class ReleaseCard:
     # How the card image was made from stereo inputs (an MPO, a left/right pair, a JPS): the
     # originals with their sha256, the eye order and its check; None for an ordinary scan.
     stereo_source: dict[str, Any] | None = None
+    # What the curator's acceptance was given and when, and the inputs digest each released
+    # stage would be given at release time (keystone verify checks the release against them).
+    acceptance: dict[str, Any] | None = None
 
     @property
     def key(self) -> str:
@@ -154,6 +157,7 @@ class ReleaseCard:
             "digest": self.manifest_entry()["digest"],
             **({} if self.views_note is None else {"views": self.views_record()}),
             **({} if self.stereo_source is None else {"stereo_source": released_stereo_source(self.stereo_source)}),
+            **({} if self.acceptance is None else {"acceptance": self.acceptance}),
         }
 
     def views_record(self) -> dict[str, Any]:

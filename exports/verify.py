@@ -6,7 +6,10 @@ parses, conforms to Croissant 1.1, lists each file with the same sha256 as ``SHA
 (when ``mlcroissant`` is installed) passes its validation; then every registered format checks
 the files of its own it finds (:meth:`exports.formats.ReleaseFormat.verify`: e.g. every Parquet
 shard has the release schema, every ``views/<key>/`` folder is complete and indexed, every MPO
-has two frames).
+has two frames). Last, from ``cards.jsonl``, that nothing released was stale
+(:func:`check_released_cards`): each card's released results were computed from the inputs its
+people's decisions gave at release time, and its acceptance was given exactly those results, after
+they were computed.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import os
 import re
 import warnings
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -93,7 +97,68 @@ def verify_release(path: str | os.PathLike[str], *, validate_croissant: bool = T
     _check_croissant(root, listed, report, validate_croissant)
     for fmt in registered_formats():
         fmt.verify(root, listed, report)
+    if "cards.jsonl" in listed and (root / "cards.jsonl").is_file():
+        check_released_cards(root / "cards.jsonl", report)
     return report
+
+
+def check_released_cards(cards_file: Path, report: VerifyReport) -> None:
+    """Check each card record's ``acceptance`` against its ``pipeline``: a released result whose
+    inputs digest is not the one the card's decisions gave at release time is stale; an
+    acceptance given other results (``accepted_results``) or decided before a result it covers
+    was computed does not apply to what was released. Records without an ``acceptance`` (releases
+    made before it was recorded) are not checked."""
+    for number, line in enumerate(cards_file.read_bytes().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except ValueError:
+            report.problem("cards.jsonl", f"line {number} is not JSON")
+            continue
+        if not isinstance(record, dict) or not isinstance(record.get("acceptance"), dict):
+            continue
+        key = str(record.get("key") or f"line {number}")
+        pipeline = record.get("pipeline") if isinstance(record.get("pipeline"), dict) else {}
+        acceptance = record["acceptance"]
+        for stage, digest in sorted((acceptance.get("inputs_now") or {}).items()):
+            released = (pipeline.get(stage) or {}).get("inputs_digest")
+            if released is not None and released != digest:
+                report.problem(
+                    "cards.jsonl",
+                    f"card {key}: its released {stage} was computed from other decisions than the card had at release "
+                    f"(inputs {released}, decisions gave {digest}): a stale result was released",
+                )
+        given = acceptance.get("accepted_results")
+        if isinstance(given, dict):
+            for stage, accepted in sorted(given.items()):
+                now = pipeline.get(stage) or {}
+                if any(now.get(field) != accepted.get(field) for field in ("param_hash", "inputs_digest", "computed_at")):
+                    report.problem(
+                        "cards.jsonl",
+                        f"card {key}: its acceptance was given another {stage} result (computed at "
+                        f"{accepted.get('computed_at')}) than the one released (computed at {now.get('computed_at')})",
+                    )
+        decided = _moment(acceptance.get("decided_at"))
+        if decided is not None:
+            for stage in ("rectify", "disparity"):
+                computed = _moment((pipeline.get(stage) or {}).get("computed_at"))
+                if computed is not None and computed > decided:
+                    report.problem(
+                        "cards.jsonl",
+                        f"card {key}: its acceptance ({acceptance.get('decided_at')}) predates its released {stage} "
+                        f"result ({(pipeline.get(stage) or {}).get('computed_at')})",
+                    )
+
+
+def _moment(value: Any) -> datetime | None:
+    if not isinstance(value, str):
+        return None
+    try:
+        moment = datetime.fromisoformat(value)
+    except ValueError:
+        return None
+    return moment if moment.tzinfo is not None else moment.replace(tzinfo=UTC)
 
 
 def _check_croissant(root: Path, listed: dict[str, str], report: VerifyReport, validate: bool) -> None:

@@ -61,6 +61,10 @@ class CardReview(db.Model):
     decided_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True))
     version: Mapped[int] = mapped_column(Integer, default=1)
     updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)
+    # The results an accept or grade change was given (runs.card_state.results_fingerprint): a
+    # result recomputed since outdates the decision. None: pending, sent back, rejected, or
+    # decided before revision 0014 (then compared by time).
+    accepted_results: Mapped[dict[str, Any] | None] = mapped_column(JSONType)
 
     card: Mapped[Card] = relationship()
     reviewer: Mapped[Person | None] = relationship()

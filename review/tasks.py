@@ -154,7 +154,7 @@ def _grade_reasons_of(grade: _Grade) -> str:
 class SyncReport:
     created: int = 0
     updated: int = 0  # pending reviews whose automatic grade changed
-    reopened: int = 0  # sent-back cards graded again: back in the queue
+    reopened: int = 0  # sent-back cards graded again, accepted ones recomputed: back in the queue
     decided_changed: int = 0  # decided cards whose automatic grade changed (final grade kept)
     unchanged: int = 0
 
@@ -209,8 +209,44 @@ def sync_reviews(card_ids: Iterable[int] | None = None) -> SyncReport:
                 after=_auto_snapshot(review),
                 why=_grade_reasons_of(grade),
             )
+        _reopen_outdated_acceptances([r for r in reviews.values() if r.decision in ("accepted", "changed")], report)
         db.session.commit()
     return report
+
+
+def _reopen_outdated_acceptances(decided: list[CardReview], report: SyncReport) -> None:
+    """Send back to the queue every accepted card whose results were recomputed after the
+    acceptance (:func:`runs.card_state.acceptance_outdated`): the curator looks again at what
+    will be released. The trail says why (entity ``review``, action ``reopened_after_recompute``)."""
+    from runs.card_state import acceptance_outdated
+
+    if not decided:
+        return
+    cards = {
+        card.id: card
+        for card in db.session.scalars(
+            select(Card).where(Card.id.in_([r.card_id for r in decided])).options(selectinload(Card.stage_results))
+        )
+    }
+    for review in decided:
+        card = cards.get(review.card_id)
+        why = acceptance_outdated(review, card.latest_results()) if card is not None else None
+        if why is None:
+            continue
+        before = review_snapshot(review)
+        review.decision, review.grade, review.decided_at, review.accepted_results = "pending", None, None, None
+        db.session.flush()
+        record_event(
+            entity="review",
+            action="reopened_after_recompute",
+            card_id=review.card_id,
+            entity_id=review.id,
+            actor_label="pipeline",
+            before=before,
+            after=review_snapshot(review),
+            why=f"{why}: the acceptance applied to the results it was given; a curator looks again",
+        )
+        report.reopened += 1
 
 
 def _sync_one(
@@ -448,6 +484,7 @@ def review_snapshot(review: CardReview) -> dict[str, Any]:
         "note": review.note,
         "reviewer_id": review.reviewer_id,
         "version": review.version,
+        "accepted_results": review.accepted_results,
     }
 
 
@@ -551,8 +588,14 @@ def decide(
     grade: str | None = None,
     note: str = "",
     kind: str = "crop",
+    shown_results: str | None = None,
 ) -> Decided:
     """Apply a curator's decision to one review, refusing it if the review moved on meanwhile.
+
+    An accept or a grade change is given the card's results as they are (recorded on the
+    review: an acceptance applies to those only); with ``shown_results`` (the digest the
+    curator's page showed, :func:`card_results_digest`) it is refused if they were recomputed
+    since the page was loaded.
 
     accept: the automatic grade becomes the final grade. change: ``grade`` does (a change to
     the automatic grade itself is recorded as an accept). send_back: the card goes into a new
@@ -575,8 +618,10 @@ def decide(
     if action == "accept" and review.auto_grade is None:
         db.session.rollback()
         raise ReviewError(f"Card {review.card_id} has no automatic grade to accept; choose a grade instead")
+    given = None
     if action in ("accept", "change"):
         _refuse_a_card_held_back(review)
+        given = _results_given(review, shown_results)
     before = review_snapshot(review)
     decision, final = {
         "accept": ("accepted", review.auto_grade),
@@ -586,6 +631,8 @@ def decide(
     }[action]
     review.decision, review.grade, review.note = decision, final, note
     review.reviewer_id, review.decided_at = curator.id, utcnow()
+    # The acceptance applies to these results only: recomputed ones go back to a curator.
+    review.accepted_results = given
     _flush_or_conflict(review_id, expected_version)
     after = review_snapshot(review)
     if action == "send_back":
@@ -607,6 +654,39 @@ def decide(
     return _send_back(outcome, kind, curator, note)
 
 
+def _results_given(review: CardReview, shown_results: str | None) -> dict[str, Any]:
+    """The results an accept or grade change is given (runs.card_state.results_fingerprint).
+    ``shown_results``: the digest of those the curator's page showed (:func:`results_digest`);
+    if the card's results were recomputed since, the decision is refused rather than applied
+    to results nobody looked at."""
+    from runs.card_state import results_fingerprint
+
+    given = results_fingerprint(review.card.latest_results())
+    if shown_results is not None and shown_results != results_digest(given):
+        db.session.rollback()
+        raise ReviewError(
+            f"Card {review.card_id}'s results were recomputed since you opened it: nothing was saved. "
+            "Reload the card and look at its new results before deciding.",
+            409,
+        )
+    return given
+
+
+def results_digest(fingerprint: dict[str, Any]) -> str:
+    """A short digest of a results fingerprint, for a page to send back with a decision."""
+    import hashlib
+    import json
+
+    return hashlib.sha256(json.dumps(fingerprint, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def card_results_digest(card: Card) -> str:
+    """:func:`results_digest` of the results ``card`` has now (what its review page shows)."""
+    from runs.card_state import results_fingerprint
+
+    return results_digest(results_fingerprint(card.latest_results()))
+
+
 def _refuse_a_card_held_back(review: CardReview) -> None:
     """The review gate: a card :mod:`runs.card_state` says is held back (a crowd dispute, an
     undecided orientation, a stale result) is not accepted; the same answer keeps it out of a
@@ -626,9 +706,11 @@ def _refuse_a_card_held_back(review: CardReview) -> None:
     if state.blockers:
         db.session.rollback()
         then = (
-            "Decide its orientation on the card's page (or wait for the crowd) first"
+            "Nothing of it is accepted or released"
+            if state.withdrawn is not None
+            else "Decide its orientation on the card's page (or wait for the crowd) first"
             if not is_decided(state.orientation)
-            else "Run the pipeline again first"
+            else "It comes back to the queue once it is recomputed (the background worker does it, or keystone run)"
         )
         raise ReviewError(f"Card {review.card_id} cannot be accepted: {'; '.join(state.blockers)}. {then}", 409)
 
@@ -713,6 +795,7 @@ def undo_decision(review_id: int, *, expected_version: int, curator: Person) -> 
     review.grade = previous.get("grade")
     review.note = previous.get("note") or ""
     review.reviewer_id = previous.get("reviewer_id")
+    review.accepted_results = previous.get("accepted_results")
     if review.decision == "pending":
         review.decided_at = None
     _flush_or_conflict(review_id, expected_version)
@@ -906,8 +989,34 @@ def resolve_aggregate(aggregate_id: int, label: Any, *, curator: Person, make_go
             why=note,
         )
         gold_id = gold.id
+    if aggregate.kind == "judge" and canonical.get("is_stereo") is False:
+        _withdraw_review(card.id, aggregate.id, curator)
     db.session.commit()
     return Resolved(aggregate.id, card.id, canonical, gold_id)
+
+
+def _withdraw_review(card_id: int, aggregate_id: int, curator: Person) -> None:
+    """A ruling "not a stereo pair" takes the card out of the flow: its review, pending or
+    decided, becomes rejected (so it leaves the queue and no release holds it), in the same
+    transaction as the ruling, and the trail says why."""
+    review = db.session.scalar(select(CardReview).where(CardReview.card_id == card_id))
+    if review is None or review.decision == "rejected":
+        return
+    before = review_snapshot(review)
+    review.decision, review.grade, review.accepted_results = "rejected", None, None
+    review.note = f"withdrawn: ruled not a stereo pair on dispute {aggregate_id}"
+    review.reviewer_id, review.decided_at = curator.id, utcnow()
+    db.session.flush()
+    record_event(
+        entity="review",
+        action="withdrawn_not_stereo",
+        card_id=card_id,
+        entity_id=review.id,
+        actor=curator,
+        before=before,
+        after=review_snapshot(review),
+        why=f"ruled not a stereo pair on dispute {aggregate_id}: its earlier rectify, disparity and grade are withdrawn",
+    )
 
 
 # ---------------------------------------------------------------------------------------------

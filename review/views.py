@@ -52,6 +52,7 @@ from .tasks import (
     aggregate_answers,
     bulk_decide,
     card_history,
+    card_results_digest,
     crowd_view,
     decide,
     disputed_aggregates,
@@ -290,6 +291,7 @@ def card(card_id: int) -> Any:
             state_sentence=state.sentence if review is None else "",
             blockers=state.blockers if review is not None and review.decision == "pending" else [],
             orientation_panel=orientation_panel,
+            results_digest=card_results_digest(card),
         )
 
 
@@ -367,6 +369,8 @@ def decide_card(card_id: int) -> Any:
         grade=grade,
         note=str(source.get("note") or ""),
         kind=str(source.get("kind") or "crop"),
+        # the digest of the results the page showed: a decision is given those, not newer ones
+        shown_results=str(source.get("results")) if source.get("results") else None,
     )
     next_url = _next_url(card_id, _filters(request.args))
     _offer_undo(decided)

@@ -14,6 +14,16 @@ a digest is recorded it decides, as it does for the planner (``runs.planning.pen
 a rectification redone in place on the same flags and boxes leaves the disparity's inputs as
 they were, and the run does not redo it, so neither is it called stale here.
 
+An *acceptance* applies to the results it was given (:func:`results_fingerprint`, recorded on the
+review when a curator accepts or changes a grade): once the rectification or disparity is
+recomputed, the acceptance is outdated, the card is not released under it, and the review sync
+sends it back to the curator. A card judged not a stereo pair leaves the flow: its earlier
+rectify, disparity and grade are marked withdrawn, and nothing of it is accepted or released.
+
+A stage a pipeline driver holds a live claim on is being computed now (``recomputing``), and a
+stale result is recomputed without anyone at a terminal when a background worker is running
+(:mod:`runs.worker`); the sentence says which.
+
 Entry points take cards in batches (:func:`card_states`: people's work, their decisions and the
 stage catalogue are read once per batch; the cards' ``stage_results`` should be loaded with
 them), so a caller that pages through the catalogue ``PLAN_CHUNK`` cards at a time stays linear.
@@ -22,7 +32,7 @@ them), so a caller that pages through the catalogue ``PLAN_CHUNK`` cards at a ti
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any, Literal
 
@@ -39,12 +49,14 @@ from runs.planning import PLAN_CHUNK
 from runs.specs import available_stages
 
 __all__ = [
+    "ACCEPTED_STAGES",
     "DOWNSTREAM_OF_CULL",
     "DOWNSTREAM_OF_RECTIFY",
     "CardState",
     "Waiting",
     "card_state",
     "card_states",
+    "results_fingerprint",
     "waiting_for_people",
 ]
 
@@ -53,6 +65,12 @@ DOWNSTREAM_OF_RECTIFY = ("disparity", "grade", "views")
 # The stages a card goes through before a curator sees it, in flow order (views is opt-in).
 GRADED_BY = ("filter", "orientation", "rectify", "disparity", "grade")
 FINISHED = ("done", "skipped")
+# The results an acceptance is given: the released images and disparity come from these. The
+# orientation step and the grade are not among them: the rectification's inputs carry the
+# orientation it used, and a regraded card keeps the curator's final grade (review.tasks).
+ACCEPTED_STAGES = ("rectify", "disparity")
+# Results a ruling "not a stereo pair" withdraws.
+WITHDRAWN_BY_NOT_STEREO = ("rectify", "disparity", "grade", "views")
 CROWD_WORK = {"judge": "judgement", "crop": "crop", "confirm": "confirmation"}
 
 WaitKind = Literal["crowd", "curator", "decision", "stage"]
@@ -89,13 +107,25 @@ class CardState:
     stale: dict[str, str] | None
     # the one sentence the pages show
     sentence: str
+    # the stages a pipeline driver is computing for this card now (a live claim)
+    recomputing: tuple[str, ...] = ()
+    # why its curator's acceptance no longer applies (results recomputed since); None if it does
+    outdated_acceptance: str | None = None
+    # why it left the flow (judged not a stereo pair, and by whom); None while in it
+    withdrawn: str | None = None
+    # stage -> the inputs digest it would be given now, from people's current decisions (the
+    # release records it beside the digest each result was computed from; keystone verify compares)
+    inputs_now: dict[str, str] = field(default_factory=dict)
 
     @property
     def blockers(self) -> list[str]:
-        """Why the card may not be accepted or released now (empty: nothing holds it back):
-        an undecided orientation, a crowd dispute, a stale result its grade rests on (stale
-        views, which are optional, are shown but hold nothing back)."""
+        """Why the card may not be accepted now (empty: nothing holds it back): judged not a
+        stereo pair, an undecided orientation, a crowd dispute, a stale result its grade rests
+        on (stale views, which are optional, are shown but hold nothing back)."""
         found = []
+        if self.withdrawn is not None:
+            found.append(self.withdrawn)
+            return found
         if not is_decided(self.orientation):
             # whether or not the step has run: nothing is accepted or released undecided
             found.append(f"its orientation is undecided (waiting for {self.orientation['waiting_for']})")
@@ -107,8 +137,17 @@ class CardState:
             found.append(
                 f"its {first} result is out of date ({reasons[first]})"
                 + (f", and so is its {', '.join(after)} computed from it" if after else "")
-                + "; run the pipeline again"
+                + ("; it is being recomputed now" if self.recomputing else "; the next pipeline run recomputes it")
             )
+        return found
+
+    @property
+    def release_blockers(self) -> list[str]:
+        """Why the card may not be released now: :attr:`blockers`, and an acceptance given
+        other results than the card has now."""
+        found = self.blockers
+        if self.outdated_acceptance is not None and self.withdrawn is None:
+            found.append(self.outdated_acceptance)
         return found
 
     @property
@@ -142,8 +181,14 @@ def card_states(
         return {}
     if check_stale and specs is None:
         specs = available_stages()
-    work = _people_and_decisions([card.id for card in cards])
-    return {card.id: _state(card, work.get(card.id, {}), specs or {}, only_stage, check_stale) for card in cards}
+    card_ids = [card.id for card in cards]
+    work = _people_and_decisions(card_ids)
+    claimed = claimed_stages(card_ids)
+    worker = live_worker() is not None if check_stale else False
+    return {
+        card.id: _state(card, work.get(card.id, {}), specs or {}, only_stage, check_stale, claimed.get(card.id, ()), worker)
+        for card in cards
+    }
 
 
 def waiting_for_people(chunk: int = PLAN_CHUNK) -> dict[str, list[int]]:
@@ -190,18 +235,127 @@ def _people_and_decisions(card_ids: list[int]) -> dict[int, dict[str, Any]]:
 
 
 def _state(
-    card: Card, work: dict[str, Any], specs: Mapping[str, StageSpec], only_stage: str | None, check_stale: bool
+    card: Card,
+    work: dict[str, Any],
+    specs: Mapping[str, StageSpec],
+    only_stage: str | None,
+    check_stale: bool,
+    recomputing: tuple[str, ...] = (),
+    worker_alive: bool = False,
 ) -> CardState:
     latest = card.latest_results()
     approved = work.get("approved", {})
     orientation = card_orientation(card, approved)
     statuses = _statuses(card, latest, work, orientation, only_stage)
-    stale = _stale(card, latest, approved, specs) if check_stale else None
+    withdrawn = _withdrawn(work)
+    digests: dict[str, str] = {}
+    stale = _stale(card, latest, approved, specs, digests) if check_stale else None
+    if withdrawn is not None and stale is not None:
+        # Its earlier results are not redone: they are withdrawn, and say so.
+        for stage in WITHDRAWN_BY_NOT_STEREO:
+            result = latest.get(stage)
+            if result is not None and result.status in FINISHED:
+                stale[stage] = f"withdrawn: {withdrawn}"
     for stage, reason in (stale or {}).items():
         if stage in statuses:
             statuses[stage] = {**statuses[stage], "stale": True, "stale_reason": reason}
+    for stage in recomputing:
+        if stage in statuses:
+            statuses[stage] = {**statuses[stage], "recomputing": True}
     waiting = _waiting_for(card, latest, work, orientation)
-    return CardState(card.id, statuses, orientation, waiting, stale, _sentence(card, latest, work, waiting, stale or {}))
+    outdated = acceptance_outdated(work.get("review"), latest)
+    sentence = _sentence(card, latest, work, waiting, stale or {}, recomputing, worker_alive, outdated)
+    return CardState(card.id, statuses, orientation, waiting, stale, sentence, recomputing, outdated, withdrawn, digests)
+
+
+def _withdrawn(work: dict[str, Any]) -> str | None:
+    """Why the card left the flow, if people judged it not a stereo pair."""
+    if not _judged_not_stereo(work):
+        return None
+    judge = work["approved"]["judge"]
+    who = (
+        f"a curator's ruling on dispute {judge.id}"
+        if getattr(judge, "resolved_by", None)
+        else f"the crowd (batch {judge.batch_id})"
+    )
+    return f"it was judged not a stereo pair by {who}"
+
+
+def results_fingerprint(latest: Mapping[str, StageResult]) -> dict[str, dict[str, Any]]:
+    """What an acceptance is given: per stage of :data:`ACCEPTED_STAGES` with a finished result,
+    its parameter hash, inputs digest and start time (ISO 8601, UTC). JSON-safe; recorded on the
+    review by an accept or a grade change, and in the release's card records."""
+    found: dict[str, dict[str, Any]] = {}
+    for stage in ACCEPTED_STAGES:
+        result = latest.get(stage)
+        if result is None or result.status not in FINISHED:
+            continue
+        found[stage] = {
+            "param_hash": result.param_hash,
+            "inputs_digest": (result.metrics or {}).get("inputs_digest"),
+            "computed_at": None if result.started_at is None else _utc(result.started_at).isoformat(),
+        }
+    return found
+
+
+def acceptance_outdated(review: Any, latest: Mapping[str, StageResult]) -> str | None:
+    """Why a curator's accept or grade change no longer applies to the card's results (one of
+    :data:`ACCEPTED_STAGES` was recomputed or is gone since), or None. A review decided before
+    the results were recorded on it (``accepted_results`` None) is compared by time."""
+    if review is None or review.decision not in ("accepted", "changed"):
+        return None
+    decided = review.decided_at
+    when = f"the acceptance on {_when(decided)}" if decided is not None else "the acceptance"
+    given = getattr(review, "accepted_results", None)
+    if given is None:
+        if decided is None:
+            return None
+        for stage in ACCEPTED_STAGES:
+            result = latest.get(stage)
+            if result is not None and result.started_at is not None and _utc(result.started_at) > _utc(decided):
+                return f"its {stage} result was recomputed on {_when(result.started_at)}, after {when}"
+        return None
+    now = results_fingerprint(latest)
+    for stage in ACCEPTED_STAGES:
+        if given.get(stage) == now.get(stage):
+            continue
+        if stage not in now:
+            return f"its {stage} result, which {when} was given, is gone"
+        computed = now[stage].get("computed_at")
+        moment = _when(datetime.fromisoformat(computed)) if computed else "since"
+        return f"its {stage} result was recomputed on {moment}, after {when}"
+    return None
+
+
+def _when(moment: datetime) -> str:
+    return _utc(moment).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def claimed_stages(card_ids: Sequence[int]) -> dict[int, tuple[str, ...]]:
+    """The stages a live pipeline driver holds a claim on, per card (a claim past its expiry
+    belongs to a driver that died: not counted)."""
+    from runs.claims import StageClaim
+
+    found: dict[int, list[str]] = {}
+    now = datetime.now(UTC)
+    for start in range(0, len(card_ids), PLAN_CHUNK):
+        rows = db.session.execute(
+            select(StageClaim.card_id, StageClaim.stage, StageClaim.expires_at).where(
+                StageClaim.card_id.in_(list(card_ids[start : start + PLAN_CHUNK]))
+            )
+        )
+        for card_id, stage, expires_at in rows:
+            if _utc(expires_at) > now:
+                found.setdefault(card_id, []).append(stage)
+    return {card_id: tuple(stages) for card_id, stages in found.items()}
+
+
+def live_worker() -> Any:
+    """A background worker (:mod:`runs.worker`) that is alive now, or None."""
+    from runs.worker import live_workers
+
+    workers = live_workers()
+    return workers[0] if workers else None
 
 
 def _judged_not_stereo(work: dict[str, Any]) -> bool:
@@ -260,9 +414,14 @@ def _waiting_for(
 
 
 def _stale(
-    card: Card, latest: dict[str, StageResult], approved: dict[str, Any], specs: Mapping[str, StageSpec]
+    card: Card,
+    latest: dict[str, StageResult],
+    approved: dict[str, Any],
+    specs: Mapping[str, StageSpec],
+    digests: dict[str, str] | None = None,
 ) -> dict[str, str]:
-    """Stage -> why its latest finished result is out of date, in flow order."""
+    """Stage -> why its latest finished result is out of date, in flow order. ``digests``, if
+    given, collects the inputs digest each stage would be given now (for the release records)."""
     stale: dict[str, str] = {}
     for name, spec in specs.items():
         result = latest.get(name)
@@ -272,7 +431,10 @@ def _stale(
         recorded = (result.metrics or {}).get("inputs_digest")
         if spec.inputs is not None and recorded is not None:
             inputs = dict(spec.inputs(card, approved))
-            if inputs_digest(inputs) != recorded:
+            digest = inputs_digest(inputs)
+            if digests is not None:
+                digests[name] = digest
+            if digest != recorded:
                 reason = _what_changed(name, result, inputs)
         source = latest.get(spec.requires) if spec.requires else None
         if reason is None and spec.requires in stale:
@@ -412,7 +574,14 @@ GRADE_WORDS = {"few": "few artifacts", "some": "some artifacts", "failure": "fai
 
 
 def _sentence(
-    card: Card, latest: dict[str, StageResult], work: dict[str, Any], waiting: tuple[Waiting, ...], stale: dict[str, str]
+    card: Card,
+    latest: dict[str, StageResult],
+    work: dict[str, Any],
+    waiting: tuple[Waiting, ...],
+    stale: dict[str, str],
+    recomputing: tuple[str, ...] = (),
+    worker_alive: bool = False,
+    outdated: str | None = None,
 ) -> str:
     """Where the card stands, in one sentence: culled, judged no pair, a failed stage, what it
     waits for, a stale result, the curator's decision, or the stage it waits for."""
@@ -430,11 +599,11 @@ def _sentence(
                 f"The {stage} stage failed on this card ({result.reason or 'no reason recorded'}), so it has no "
                 "automatic grade to review."
             )
-    if _judged_not_stereo(work):
-        judge = work["approved"]["judge"]
-        return (
-            f"The crowd judged this card not a stereo pair (batch {judge.batch_id}), so it is not rectified, graded or released."
-        )
+    withdrawn = _withdrawn(work)
+    if withdrawn is not None:
+        earlier = [stage for stage in WITHDRAWN_BY_NOT_STEREO if stage in latest and latest[stage].status in FINISHED]
+        also = f"; its earlier {', '.join(earlier)} {'is' if len(earlier) == 1 else 'are'} withdrawn" if earlier else ""
+        return f"This card has left the flow: {withdrawn}, so it is not rectified, graded, accepted or released{also}."
     first = waiting[0] if waiting else None
     if first is not None and first.subject == "dispute":
         return f"This card waits for a curator: {first.reason}; resolve it under Disputed crowd answers."
@@ -445,9 +614,19 @@ def _sentence(
         )
     if first is not None and first.kind == "crowd" and first.subject == "judge":
         return f"The filter sent this card to review: it is waiting for {first.reason}."
-    outdated = next((name for name in stale if name in GRADED_BY), None)
+    out_of_date = next((name for name in stale if name in GRADED_BY), None)
+    if out_of_date is not None:
+        if recomputing:
+            then = f"a pipeline worker is recomputing its {', '.join(recomputing)} now"
+        elif worker_alive:
+            then = "the background worker recomputes it shortly, and the card comes back to the review queue"
+        else:
+            then = "no background worker is running: `keystone worker` or `keystone run` recomputes it"
+        return f"This card's {out_of_date} result is out of date ({stale[out_of_date]}): {then}."
+    if recomputing:
+        return f"A pipeline worker is computing this card's {', '.join(recomputing)} now."
     if outdated is not None:
-        return f"This card's {outdated} result is out of date ({stale[outdated]}): the next pipeline run redoes it."
+        return f"This card's acceptance no longer applies: {outdated}. It goes back to the review queue."
     review = work.get("review")
     if review is not None and review.decision != "pending":
         if review.decision == "sent_back":

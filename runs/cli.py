@@ -1,4 +1,4 @@
-"""`keystone run` and `keystone cards`."""
+"""`keystone run`, `keystone worker` and `keystone cards`."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ from runs.executors import make_executor
 from runs.loop import EXIT_HELD, run_stage, run_stages
 from runs.report import StageReport
 from runs.specs import available_stages, default_run_stages, runnable_stages
+from runs.worker import DEFAULT_FULL_EVERY_S, DEFAULT_POLL_S
 from runs.writes import decision_words
 
 
@@ -293,3 +294,111 @@ def cards_command(stage: str | None, state: str | None, collection_name: str | N
             click.echo(f"{row['id']:>6}  {row['state']:<8}  {row['source']:<48}  {summary}")
             count += 1
     click.echo(f"{count} card(s)")
+
+
+@click.command("worker")
+@click.option("--once", is_flag=True, help="Run one round over the catalogue, then exit (0 done, 1 if any card failed).")
+@click.option("--stages", default=",".join(default_run_stages()), show_default=True, help=_stages_help())
+@click.option(
+    "--workers", default=1, show_default=True, type=click.IntRange(1, 256), help="Worker processes (1 runs inline on one core)."
+)
+@click.option(
+    "--executor",
+    "executor_kind",
+    type=click.Choice(["local", "dask"]),
+    default="local",
+    show_default=True,
+    help="Where per-card work runs: a local process pool or a dask cluster (--scheduler).",
+)
+@click.option("--scheduler", help="dask scheduler address (with --executor dask); default a local cluster.")
+@click.option(
+    "--poll-s",
+    type=click.FloatRange(min=0.1),
+    default=DEFAULT_POLL_S,
+    show_default=True,
+    help="Seconds between looks for new decisions (one small query each).",
+)
+@click.option(
+    "--full-every-s",
+    type=click.FloatRange(min=1.0),
+    default=DEFAULT_FULL_EVERY_S,
+    show_default=True,
+    help="Run a round at least this often even when nothing was decided (new failures' retries).",
+)
+@click.option(
+    "--parent-pid", type=click.IntRange(min=1), hidden=True, help="Exit when this process is gone (set by keystone serve)."
+)
+@click.option("--json", "as_json", is_flag=True, help="Print each round as one JSON line.")
+@with_appcontext
+def worker_command(
+    once: bool,
+    stages: str,
+    workers: int,
+    executor_kind: str,
+    scheduler: str | None,
+    poll_s: float,
+    full_every_s: float,
+    parent_pid: int | None,
+    as_json: bool,
+) -> None:
+    """Recompute pending and stale work as people's decisions arrive, until stopped.
+
+    The loop's other half: a curator's new eye order, a settled dispute or the crowd's boxes
+    make a card's results stale or its next stage due, and the worker recomputes it (a new grade
+    returns the card to the review queue). It runs a round at start, whenever people decide
+    something, and every --full-every-s. Safe beside `keystone run` and other workers: it
+    computes through the same claims and leaves cards another run holds. `keystone serve` starts
+    one unless --no-worker. Ctrl+C or SIGTERM stops it and frees its claims.
+    """
+    import signal
+
+    from core.console import data_dir, ensure_database, say
+    from runs.leftovers import clear_leftovers
+    from runs.worker import BackgroundWorker, WorkerRound
+
+    names = [name.strip() for name in stages.split(",") if name.strip()]
+    runnable = runnable_stages()
+    unknown = [name for name in names if name not in runnable]
+    if unknown or not names:
+        raise click.BadParameter(
+            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(runnable)}",
+            param_hint="--stages",
+        )
+    ensure_database()
+    clear_leftovers(True)
+
+    def said(done: WorkerRound) -> None:
+        if as_json:
+            click.echo(json.dumps(done.as_json(), default=str))
+            return
+        parts = (
+            ", ".join(f"{stage['stage']} {stage['processed']}" for stage in done.stages if stage["processed"]) or "nothing to do"
+        )
+        say(f"worker round ({done.trigger}): {parts} in {done.seconds:.1f} s; failed {done.failed}", False)
+
+    def stop(signum: int, frame: Any) -> None:
+        raise SystemExit(0)  # unwinds through the claims and the worker row, which free themselves
+
+    signal.signal(signal.SIGTERM, stop)
+    driver = Driver(db.engine)
+    try:
+        with make_executor(executor_kind, workers, scheduler) as executor, driver.running():
+            worker = BackgroundWorker(
+                names,
+                executor,
+                driver,
+                data_dir(),
+                poll_s=poll_s,
+                full_every_s=full_every_s,
+                parent_pid=parent_pid,
+                on_round=said,
+            )
+            if not as_json and not once:
+                say(f"keystone worker {driver.id}: watching for decisions every {poll_s:g} s (Ctrl+C to stop)", False)
+            rounds = worker.run(once=once)
+    except RuntimeError as exc:
+        raise click.ClickException(str(exc)) from exc
+    except KeyboardInterrupt:
+        return
+    if once and any(done.failed for done in rounds):
+        raise SystemExit(1)

@@ -205,7 +205,10 @@ def test_queue_sorts_by_uncertainty_then_card_and_filters(app, synced, person) -
 
 @pytest.mark.both_databases
 def test_accept_change_and_reject_set_the_grade_and_write_before_and_after(app, synced, person) -> None:  # type: ignore[no-untyped-def]
+    from core.db import db
+    from core.models import Card
     from review.tasks import decide
+    from runs.card_state import results_fingerprint
 
     curator = person("carol")
     with app.app_context():
@@ -232,7 +235,11 @@ def test_accept_change_and_reject_set_the_grade_and_write_before_and_after(app, 
             "note": "",
             "reviewer_id": None,
             "version": 1,
+            "accepted_results": None,
         }
+        # the decision is given the results the card has (these cards have a grade only; the
+        # loop's own tests in tests/runs/test_card_state.py give them a rectification)
+        given = results_fingerprint(db.session.get(Card, synced[1]).latest_results())
         assert trail[0].after == {
             "decision": "changed",
             "grade": "failure",
@@ -240,7 +247,9 @@ def test_accept_change_and_reject_set_the_grade_and_write_before_and_after(app, 
             "note": "eyes swapped",
             "reviewer_id": curator.id,
             "version": 2,
+            "accepted_results": given,
         }
+        assert stored.accepted_results == given
         assert (trail[0].actor, trail[0].actor_id, trail[0].why) == ("carol", curator.id, "eyes swapped")
         assert trail[1].before["grade"] == "failure" and trail[1].after["grade"] == "some"
         assert events(synced[2], "review")[0].after["grade"] is None

@@ -233,9 +233,12 @@ def test_a_curators_eye_order_makes_the_rectification_stale_everywhere(
         "disparity": "computed from its rectify result, which is out of date",
         "grade": "computed from its disparity result, which is out of date",
     }
-    blocker = f"its rectify result is out of date ({rectified}), and so is its disparity, grade computed from it; run the pipeline again"
+    blocker = f"its rectify result is out of date ({rectified}), and so is its disparity, grade computed from it; the next pipeline run recomputes it"
     assert state.blockers == [blocker]
-    assert state.sentence == f"This card's rectify result is out of date ({rectified}): the next pipeline run redoes it."
+    assert state.sentence == (
+        f"This card's rectify result is out of date ({rectified}): no background worker is running: "
+        "`keystone worker` or `keystone run` recomputes it."
+    )
 
     # keystone cards: stale entries say so; fresh ones keep the documented shape
     result = runner.invoke(args=["cards", "--json"])
@@ -264,7 +267,7 @@ def test_a_curators_eye_order_makes_the_rectification_stale_everywhere(
         with pytest.raises(ReviewError) as refused:
             decide(review.id, "accept", expected_version=review.version, curator=person)
         assert refused.value.status == 409
-        assert refused.value.message == f"Card {card} cannot be accepted: {blocker}. Run the pipeline again first"
+        assert refused.value.message == f"Card {card} cannot be accepted: {blocker}. It comes back to the queue once it is recomputed (the background worker does it, or keystone run)"
         other = db.session.scalar(select(CardReview).where(CardReview.card_id == fresh))
         assert decide(other.id, "accept", expected_version=other.version, curator=person).decision == "accepted"
         # the release plan leaves it out for the same reason (accepted before the override)

@@ -29,7 +29,7 @@
       busy = true;
       show("Saving…", "info");
       const body = {
-        action, grade: grade || null, version: Number(cfg.version),
+        action, grade: grade || null, version: Number(cfg.version), results: cfg.results || null,
         note: (document.getElementById("note") || {}).value || "",
         kind: (document.getElementById("send-back-kind") || {}).value || "crop",
       };

@@ -33,7 +33,7 @@ def test_installed_entry_point_runs(tmp_path):
     command = [keystone] if keystone else [sys.executable, "-m", "app"]
     out = subprocess.run([*command, "--help"], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
-    for name in ("demo", "ingest", "run", "cards", "bench", "serve", "init", "users"):
+    for name in ("demo", "ingest", "run", "worker", "cards", "bench", "serve", "init", "users"):
         assert name in out.stdout
 
 
@@ -90,6 +90,7 @@ COMMAND_TREE = {
     "users add",
     "users list",
     "verify",
+    "worker",
 }
 
 
@@ -110,7 +111,7 @@ def test_init_reports_json_and_is_idempotent(app, runner):
     result = runner.invoke(cli, ["init", "--json"])
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
-    assert document["revision"] == "0013" and document["migrated"] is False
+    assert document["revision"] == "0014" and document["migrated"] is False
     assert "password" not in document["database"]
 
 
@@ -152,6 +153,6 @@ def test_database_url_from_the_environment(database, tmp_path, monkeypatch):
         db.engine.dispose()  # close pooled connections now, not at garbage collection
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
-    assert document["migrated"] is True and document["revision"] == "0013"
+    assert document["migrated"] is True and document["revision"] == "0014"
     assert document["database"].split(":")[0] == ("postgresql+psycopg" if "postgresql" in url else "sqlite")
     assert document["data_dir"] == str(tmp_path / "store")

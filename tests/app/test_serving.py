@@ -6,6 +6,7 @@ import http.client
 import os
 import re
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -82,12 +83,21 @@ def test_serve_answers_from_the_requested_processes_and_stops_cleanly(tmp_path, 
             connection.close()
         assert statuses == [200] * 12
         # The parent, plus one worker per process when gunicorn forks them (it starts listening
-        # before the last worker is forked).
-        expected = 1 if processes == 1 else processes + 1
+        # before the last worker is forked), plus the background pipeline worker.
+        expected = (1 if processes == 1 else processes + 1) + 1
         deadline = time.monotonic() + 20
         while len(_group_pids(server.pid)) < expected and time.monotonic() < deadline:
             time.sleep(0.05)
         assert len(_group_pids(server.pid)) == expected
+        # the background worker beside them has registered itself
+        with sqlite3.connect(tmp_path / "instance" / "keystone.sqlite3") as database:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                rows = database.execute("SELECT pid, state FROM pipeline_workers").fetchall()
+                if rows:
+                    break
+                time.sleep(0.1)
+        assert len(rows) == 1 and rows[0][0] in _group_pids(server.pid)
     finally:
         rest = _stop_server(server)
     assert "Traceback" not in rest, rest
@@ -195,7 +205,8 @@ def test_default_server_gives_each_request_its_own_identity(tmp_path):
         check=True,
         capture_output=True,
     )
-    options = [] if default_processes() >= 2 else ["--processes", "2"]
+    # Only the web workers here: the background pipeline worker is not one of them.
+    options = ["--no-worker"] + ([] if default_processes() >= 2 else ["--processes", "2"])
     server, port, _ = _start_server(env, *options)
     try:
         expected = max(2, default_processes())

@@ -41,11 +41,13 @@ from core.limits import parse_positive_int
 from core.models import Collection
 
 from . import run_hooks
+from .held_back import held_back, held_back_cards
 from .models import GRADE_NAMES, GRADES, CardReview
 from .tasks import (
     ACTIONS,
     QUEUE_DECISIONS,
     SEND_BACK_KINDS,
+    CardHeldBack,
     QueueFilters,
     ReviewConflict,
     ReviewError,
@@ -92,14 +94,33 @@ DISPUTES_SHOWN = 50
 @bp.errorhandler(ReviewError)
 def review_error(error: ReviewError) -> Any:
     db.session.rollback()
+    # A card held back by a dispute: the answer links to the dispute, which leads back to the card.
+    dispute_url = None
+    if isinstance(error, CardHeldBack) and error.dispute_ids:
+        try:
+            filters = _filters(request.args).query_args()  # the queue's, kept on the way back
+        except ReviewError:
+            filters = {}
+        dispute_url = dispute_link(error.dispute_ids[0], error.card_id, **filters)
     if request.is_json or request.accept_mimetypes.best == "application/json":
-        return jsonify({"error": {"code": error.status, "message": error.message}}), error.status
+        body: dict[str, Any] = {"code": error.status, "message": error.message}
+        if dispute_url is not None:
+            body["dispute_url"] = dispute_url
+        return jsonify({"error": body}), error.status
     return render_template(
         "review/message.html",
         title="Not saved" if error.status == 409 else "Cannot do that",
         message=error.message,
         conflict=isinstance(error, ReviewConflict),
+        dispute_url=dispute_url,
     ), error.status
+
+
+@bp.app_template_global()
+def dispute_link(aggregate_id: int, card_id: int, **filters: Any) -> str:
+    """The page of a dispute on a card, returning to that card's review page once it is settled
+    (``filters``: the queue's filters the card page was opened with, kept on the way back)."""
+    return url_for("review.dispute", aggregate_id=aggregate_id, next=url_for("review.card", card_id=card_id, **filters))
 
 
 def _curator() -> Any:
@@ -143,6 +164,8 @@ def queue() -> Any:
         pages = max(1, math.ceil(result.total / per_page))
         if page > pages:
             abort(404, f"Page {page} is past the last page ({pages}).")
+        # One batch for the page, not a query per row: paging stays linear.
+        held = held_back_cards(row.card_id for row in result.rows)
         disputes, dispute_total = disputed_aggregates(limit=DISPUTES_SHOWN)
         collections = list(db.session.scalars(select(Collection).order_by(Collection.name)))
         return render_template(
@@ -157,6 +180,7 @@ def queue() -> Any:
             decisions=QUEUE_DECISIONS,
             actions=ACTIONS,
             kinds=SEND_BACK_KINDS,
+            held=held,
             disputes=disputes,
             dispute_total=dispute_total,
         )
@@ -288,7 +312,7 @@ def card(card_id: int) -> Any:
             anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
             table=threshold_table(grade_result.metrics) if grade_result is not None else None,
             state_sentence=state.sentence if review is None else "",
-            blockers=state.blockers if review is not None and review.decision == "pending" else [],
+            held=held_back(state) if review is not None and review.decision == "pending" else None,
             orientation_panel=orientation_panel,
         )
 

@@ -13,6 +13,7 @@ import hashlib
 import io
 import math
 from typing import Any
+from urllib.parse import unquote, urlsplit
 
 import numpy as np
 from flask import (
@@ -39,6 +40,7 @@ from core.db import db, read_only
 from core.json_body import load_json_body
 from core.limits import parse_positive_int
 from core.models import Collection
+from core.security import safe_next
 
 from . import run_hooks
 from .held_back import held_back, held_back_cards
@@ -121,6 +123,23 @@ def dispute_link(aggregate_id: int, card_id: int, **filters: Any) -> str:
     """The page of a dispute on a card, returning to that card's review page once it is settled
     (``filters``: the queue's filters the card page was opened with, kept on the way back)."""
     return url_for("review.dispute", aggregate_id=aggregate_id, next=url_for("review.card", card_id=card_id, **filters))
+
+
+def review_return_path(target: str | None) -> str | None:
+    """``target`` if it is a page of review on this site (a path under /review/), else None.
+
+    Where a settled dispute sends the curator back to: only ever a review page, so a crafted
+    link cannot turn the dispute page into an open redirect (:func:`core.security.safe_next`
+    refuses other hosts and schemes) or send a curator elsewhere on the site through "..".
+    """
+    path = safe_next(target)
+    if path is None:
+        return None
+    route = urlsplit(path).path
+    # Browsers resolve "." and ".." segments, percent-encoded ones too ("%2e%2e").
+    if not route.startswith("/review/") or any(unquote(part) in (".", "..") for part in route.split("/")):
+        return None
+    return path
 
 
 def _curator() -> Any:
@@ -587,7 +606,7 @@ def _label_from_form(kind: str, form: Any, questions: dict[str, str]) -> dict[st
     return label
 
 
-def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200) -> Any:
+def _dispute_page(aggregate_id: int, back_to: str | None, error: str | None = None, status: int = 200) -> Any:
     from catalogue.views import get_card_or_404
 
     with read_only():
@@ -621,6 +640,7 @@ def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200
             posterior=posterior_words(aggregate),
             error=error,
             form=request.form,
+            back_to=back_to,
         ), status
 
 
@@ -684,8 +704,11 @@ def posterior_words(aggregate: Any) -> list[str]:
 @bp.route("/disputes/<int:aggregate_id>", methods=["GET", "POST"])
 @role_required("curator")
 def dispute(aggregate_id: int) -> Any:
+    """A disputed crowd answer and the curator's own; once saved, back to ``next`` (the card's
+    review page the curator came from, :func:`review_return_path`), else to the queue's disputes."""
+    back_to = review_return_path(request.args.get("next"))
     if request.method == "GET":
-        return _dispute_page(aggregate_id)
+        return _dispute_page(aggregate_id, back_to)
     with read_only():
         aggregate = db.session.get(Aggregate, aggregate_id)
         if aggregate is None:
@@ -705,10 +728,10 @@ def dispute(aggregate_id: int) -> Any:
         raise
     except ReviewError as exc:
         db.session.rollback()
-        return _dispute_page(aggregate_id, exc.message, exc.status)
+        return _dispute_page(aggregate_id, back_to, exc.message, exc.status)
     flash(
         f"Card {resolved.card_id}: your {kind} answer is now the card's truth"
         + (" and a gold item for later batches." if resolved.gold_id else "."),
         "success",
     )
-    return redirect(url_for("review.queue") + "#disputes", code=303)
+    return redirect(back_to or url_for("review.queue") + "#disputes", code=303)

@@ -502,3 +502,70 @@ def test_accepting_a_disputed_card_answers_409_with_the_disputes_link(app, clien
     )
     assert other.status_code == 409 and "dispute_url" not in other.get_json()["error"]
     assert review_of(app, card_id).decision == "pending"
+
+
+CROP_FORM = {
+    "left_x0": "0",
+    "left_y0": "0",
+    "left_x1": "280",
+    "left_y1": "200",
+    "right_x0": "310",
+    "right_y0": "0",
+    "right_x1": "600",
+    "right_y1": "200",
+}
+
+
+def test_settling_a_dispute_from_the_card_returns_to_the_card(client, login, csrf_token, held) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    card_id, aggregate_id = held["disputed"], held["aggregate"]
+    back = f"/review/cards/{card_id}?grade=some"
+    page = client.get(f"/review/disputes/{aggregate_id}", query_string={"next": back}).get_data(as_text=True)
+    assert f'action="/review/disputes/{aggregate_id}?next=/review/cards/{card_id}?grade%3Dsome"' in page
+    token = csrf_token(f"/review/disputes/{aggregate_id}")
+    # a mistake keeps the way back
+    wrong = client.post(
+        f"/review/disputes/{aggregate_id}", query_string={"next": back}, data={**CROP_FORM, "left_x1": "", "csrf_token": token}
+    )
+    assert wrong.status_code == 400 and f"?next=/review/cards/{card_id}?grade%3Dsome" in wrong.get_data(as_text=True)
+    done = client.post(f"/review/disputes/{aggregate_id}", query_string={"next": back}, data={**CROP_FORM, "csrf_token": token})
+    assert done.status_code == 303 and done.headers["Location"] == back
+    card_page = client.get(back).get_data(as_text=True)
+    assert f"Card {card_id}: your crop answer is now the card&#39;s truth." in card_page
+    assert 'id="card-blockers"' not in card_page
+    assert '<button type="submit" name="choice" value="accept" class="button">' in card_page
+
+
+HOSTILE_NEXT = [
+    "//evil.com",
+    "https://evil.com",
+    "http://evil.com/review/cards/1",
+    "/\\evil.com",
+    "///evil.com",
+    "javascript:alert(1)",
+    "/auth/people",
+    "/review/../auth/people",
+    "/review/%2e%2e/auth/people",
+    "/review/cards/1\r\nLocation: //evil.com",
+    "review/cards/1",
+]
+
+
+@pytest.mark.parametrize("target", ["//evil.com", "https://evil.com", "/review/../auth/people"])
+def test_a_hostile_next_falls_back_to_the_queue(client, login, csrf_token, held, target: str) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    aggregate_id = held["aggregate"]
+    page = client.get(f"/review/disputes/{aggregate_id}", query_string={"next": target}).get_data(as_text=True)
+    assert f'action="/review/disputes/{aggregate_id}"' in page and "evil" not in page
+    token = csrf_token(f"/review/disputes/{aggregate_id}")
+    done = client.post(f"/review/disputes/{aggregate_id}", query_string={"next": target}, data={**CROP_FORM, "csrf_token": token})
+    assert done.status_code == 303 and done.headers["Location"] == "/review/#disputes"
+
+
+@pytest.mark.parametrize("target", HOSTILE_NEXT)
+def test_only_a_review_page_is_a_place_to_return_to(target: str) -> None:
+    from review.views import review_return_path
+
+    assert review_return_path(target) is None
+    assert review_return_path("/review/cards/12?grade=some") == "/review/cards/12?grade=some"
+    assert review_return_path("/review/") == "/review/"

@@ -35,8 +35,7 @@
     function sayWhyHeldBack() {
       const why = document.getElementById("card-blockers-why");
       show(why ? why.textContent : "This card cannot be accepted now.", "conflict");
-      const dispute = document.querySelector("#card-blockers a.dispute-link");
-      if (dispute) addLink(dispute.href, dispute.textContent);
+      for (const dispute of document.querySelectorAll("#card-blockers a.dispute-link")) addLink(dispute.href, dispute.textContent);
     }
 
     async function decide(action, grade) {

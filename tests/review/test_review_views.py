@@ -421,6 +421,20 @@ def test_the_queue_says_which_cards_are_held_back_and_links_the_dispute(client, 
     assert "held-reasons" not in free and 'class="held-back"' not in free
 
 
+def test_a_decided_card_in_the_queue_is_marked_only_for_its_dispute(app, client, login, held) -> None:  # type: ignore[no-untyped-def]
+    from core.db import db
+    from core.models import Person
+    from review.tasks import decide
+
+    carol = login("curator")
+    with app.app_context():
+        for name in ("disputed", "undecided"):  # rejecting is not held back
+            decide(review_of(app, held[name]).id, "reject", expected_version=1, curator=db.session.get(Person, carol.id))
+    page = client.get("/review/?decision=all").get_data(as_text=True)
+    assert "<strong>Disputed:</strong> the crowd disagrees on its crop" in queue_row(page, held["disputed"])
+    assert "held-reasons" not in queue_row(page, held["undecided"])  # not to be accepted, so nothing to say
+
+
 def test_the_queue_reads_held_back_cards_in_a_fixed_number_of_queries(  # type: ignore[no-untyped-def]
     app, client, login, held, make_card, add_stage_result, card_image
 ) -> None:

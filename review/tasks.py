@@ -66,6 +66,16 @@ class ReviewConflict(ReviewError):
         self.changed_at = changed_at
 
 
+class CardHeldBack(ReviewError):
+    """An accept or grade change refused (409) because :mod:`runs.card_state` holds the card back;
+    ``dispute_ids``: the crowd aggregates to resolve first, so the answer can link to them."""
+
+    def __init__(self, message: str, *, card_id: int, dispute_ids: Sequence[int] = ()) -> None:
+        super().__init__(message, 409)
+        self.card_id = card_id
+        self.dispute_ids = tuple(dispute_ids)
+
+
 def _aware(moment: datetime | None) -> datetime | None:
     # SQLite hands back naive datetimes for DateTime(timezone=True); they were stored as UTC.
     return moment if moment is None or moment.tzinfo else moment.replace(tzinfo=UTC)
@@ -695,13 +705,15 @@ def _refuse_a_card_held_back(review: CardReview) -> None:
     from runs.card_state import card_state
 
     state = card_state(review.card)
+    card_id = review.card_id
     if state.disputes:
         db.session.rollback()
         what = " and ".join(wait.reason.removeprefix("the crowd disagrees on ") for wait in state.disputes)
-        raise ReviewError(
-            f"Card {review.card_id} cannot be accepted while the crowd disagrees on {what}: "
+        raise CardHeldBack(
+            f"Card {card_id} cannot be accepted while the crowd disagrees on {what}: "
             "resolve it under Disputed crowd answers first",
-            409,
+            card_id=card_id,
+            dispute_ids=[wait.aggregate_id for wait in state.disputes if wait.aggregate_id is not None],
         )
     if state.blockers:
         db.session.rollback()
@@ -712,7 +724,7 @@ def _refuse_a_card_held_back(review: CardReview) -> None:
             if not is_decided(state.orientation)
             else "It comes back to the queue once it is recomputed (the background worker does it, or keystone run)"
         )
-        raise ReviewError(f"Card {review.card_id} cannot be accepted: {'; '.join(state.blockers)}. {then}", 409)
+        raise CardHeldBack(f"Card {card_id} cannot be accepted: {'; '.join(state.blockers)}. {then}", card_id=card_id)
 
 
 def _send_back(outcome: Decided, kind: str, curator: Person, note: str) -> Decided:

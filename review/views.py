@@ -13,6 +13,7 @@ import hashlib
 import io
 import math
 from typing import Any
+from urllib.parse import unquote, urlsplit
 
 import numpy as np
 from flask import (
@@ -39,13 +40,16 @@ from core.db import db, read_only
 from core.json_body import load_json_body
 from core.limits import parse_positive_int
 from core.models import Collection
+from core.security import safe_next
 
 from . import run_hooks
+from .held_back import held_back, held_back_cards
 from .models import GRADE_NAMES, GRADES, CardReview
 from .tasks import (
     ACTIONS,
     QUEUE_DECISIONS,
     SEND_BACK_KINDS,
+    CardHeldBack,
     QueueFilters,
     ReviewConflict,
     ReviewError,
@@ -93,14 +97,50 @@ DISPUTES_SHOWN = 50
 @bp.errorhandler(ReviewError)
 def review_error(error: ReviewError) -> Any:
     db.session.rollback()
+    # A card held back by a dispute: the answer links to the dispute, which leads back to the card.
+    dispute_url = None
+    if isinstance(error, CardHeldBack) and error.dispute_ids:
+        try:
+            filters = _filters(request.args).query_args()  # the queue's, kept on the way back
+        except ReviewError:
+            filters = {}
+        dispute_url = dispute_link(error.dispute_ids[0], error.card_id, **filters)
     if request.is_json or request.accept_mimetypes.best == "application/json":
-        return jsonify({"error": {"code": error.status, "message": error.message}}), error.status
+        body: dict[str, Any] = {"code": error.status, "message": error.message}
+        if dispute_url is not None:
+            body["dispute_url"] = dispute_url
+        return jsonify({"error": body}), error.status
     return render_template(
         "review/message.html",
         title="Not saved" if error.status == 409 else "Cannot do that",
         message=error.message,
         conflict=isinstance(error, ReviewConflict),
+        dispute_url=dispute_url,
     ), error.status
+
+
+@bp.app_template_global()
+def dispute_link(aggregate_id: int, card_id: int, **filters: Any) -> str:
+    """The page of a dispute on a card, returning to that card's review page once it is settled
+    (``filters``: the queue's filters the card page was opened with, kept on the way back)."""
+    return url_for("review.dispute", aggregate_id=aggregate_id, next=url_for("review.card", card_id=card_id, **filters))
+
+
+def review_return_path(target: str | None) -> str | None:
+    """``target`` if it is a page of review on this site (a path under /review/), else None.
+
+    Where a settled dispute sends the curator back to: only ever a review page, so a crafted
+    link cannot turn the dispute page into an open redirect (:func:`core.security.safe_next`
+    refuses other hosts and schemes) or send a curator elsewhere on the site through "..".
+    """
+    path = safe_next(target)
+    if path is None:
+        return None
+    route = urlsplit(path).path
+    # Browsers resolve "." and ".." segments, percent-encoded ones too ("%2e%2e").
+    if not route.startswith("/review/") or any(unquote(part) in (".", "..") for part in route.split("/")):
+        return None
+    return path
 
 
 def _curator() -> Any:
@@ -144,6 +184,8 @@ def queue() -> Any:
         pages = max(1, math.ceil(result.total / per_page))
         if page > pages:
             abort(404, f"Page {page} is past the last page ({pages}).")
+        # One batch for the page, not a query per row: paging stays linear.
+        held = held_back_cards(row.card_id for row in result.rows)
         disputes, dispute_total = disputed_aggregates(limit=DISPUTES_SHOWN)
         collections = list(db.session.scalars(select(Collection).order_by(Collection.name)))
         return render_template(
@@ -158,6 +200,7 @@ def queue() -> Any:
             decisions=QUEUE_DECISIONS,
             actions=ACTIONS,
             kinds=SEND_BACK_KINDS,
+            held=held,
             disputes=disputes,
             dispute_total=dispute_total,
         )
@@ -289,7 +332,7 @@ def card(card_id: int) -> Any:
             anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
             table=threshold_table(grade_result.metrics) if grade_result is not None else None,
             state_sentence=state.sentence if review is None else "",
-            blockers=state.blockers if review is not None and review.decision == "pending" else [],
+            held=held_back(state) if review is not None and review.decision == "pending" else None,
             orientation_panel=orientation_panel,
             results_digest=card_results_digest(card),
         )
@@ -567,7 +610,7 @@ def _label_from_form(kind: str, form: Any, questions: dict[str, str]) -> dict[st
     return label
 
 
-def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200) -> Any:
+def _dispute_page(aggregate_id: int, back_to: str | None, error: str | None = None, status: int = 200) -> Any:
     from catalogue.views import get_card_or_404
 
     with read_only():
@@ -601,6 +644,7 @@ def _dispute_page(aggregate_id: int, error: str | None = None, status: int = 200
             posterior=posterior_words(aggregate),
             error=error,
             form=request.form,
+            back_to=back_to,
         ), status
 
 
@@ -664,8 +708,11 @@ def posterior_words(aggregate: Any) -> list[str]:
 @bp.route("/disputes/<int:aggregate_id>", methods=["GET", "POST"])
 @role_required("curator")
 def dispute(aggregate_id: int) -> Any:
+    """A disputed crowd answer and the curator's own; once saved, back to ``next`` (the card's
+    review page the curator came from, :func:`review_return_path`), else to the queue's disputes."""
+    back_to = review_return_path(request.args.get("next"))
     if request.method == "GET":
-        return _dispute_page(aggregate_id)
+        return _dispute_page(aggregate_id, back_to)
     with read_only():
         aggregate = db.session.get(Aggregate, aggregate_id)
         if aggregate is None:
@@ -685,10 +732,10 @@ def dispute(aggregate_id: int) -> Any:
         raise
     except ReviewError as exc:
         db.session.rollback()
-        return _dispute_page(aggregate_id, exc.message, exc.status)
+        return _dispute_page(aggregate_id, back_to, exc.message, exc.status)
     flash(
         f"Card {resolved.card_id}: your {kind} answer is now the card's truth"
         + (" and a gold item for later batches." if resolved.gold_id else "."),
         "success",
     )
-    return redirect(url_for("review.queue") + "#disputes", code=303)
+    return redirect(back_to or url_for("review.queue") + "#disputes", code=303)

@@ -83,12 +83,14 @@ class Waiting:
     ``kind``: ``crowd`` (a judgement or crop from the crowd), ``curator`` (a dispute to resolve,
     a review to make), ``decision`` (an undecided orientation, people asked) or ``stage`` (a
     pipeline stage not run yet); ``subject``: what exactly (``judge``, ``crop``, ``dispute``,
-    ``review``, ``orientation`` or a stage name); ``reason``: in words.
+    ``review``, ``orientation`` or a stage name); ``reason``: in words; ``aggregate_id``: for a
+    dispute, the crowd aggregate a curator resolves (pages link straight to it).
     """
 
     kind: WaitKind
     subject: str
     reason: str
+    aggregate_id: int | None = None
 
 
 @dataclass(frozen=True)
@@ -379,6 +381,7 @@ def _waiting_for(
                     "curator",
                     "dispute",
                     f"the crowd disagrees on its {CROWD_WORK[kind]} (batch {aggregate.batch_id}, dispute {aggregate.id})",
+                    aggregate.id,
                 )
             )
     if not _in_flow(card, work):

@@ -103,6 +103,77 @@ def test_a_stale_tab_gets_the_conflict_message(app, server, browser, make_person
     assert decision_of(app, third) == ("rejected", None)
 
 
+@pytest.fixture
+def disputed_in_queue(app, make_card, add_stage_result, card_image, decide_orientation) -> tuple[int, int]:  # type: ignore[no-untyped-def]
+    """A graded card in the queue whose crop boxes the crowd disputes; (card, aggregate) ids."""
+    from annotation.batches import create_batch
+    from annotation.models import Aggregate, Answer, BatchItem
+    from annotation.workers import get_or_create_worker
+    from core.db import db
+    from review.tasks import sync_reviews
+
+    card_id = make_card(card_image(), state="pass")  # 604 x 200 px
+    add_stage_result(card_id, "grade", outcome="some", metrics={"uncertainty": 0.7, "reasons": ["fringes"]})
+    decide_orientation([card_id])
+    with app.app_context():
+        sync_reviews()
+        batch = create_batch([card_id], "crop", 2, 0.0)
+        item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
+        for n, right_x1 in enumerate((600, 470)):
+            db.session.add(
+                Answer(
+                    item_id=item.id,
+                    worker_id=get_or_create_worker("invite", f"w{n}").id,
+                    idempotency_key=f"key-{n}-abcdef",
+                    payload={"left": [0, 0, 280, 200], "right": [310, 0, right_x1, 200]},
+                )
+            )
+        aggregate = Aggregate(
+            batch_id=batch.id,
+            card_id=card_id,
+            kind="crop",
+            state="needs_curator",
+            answers=2,
+            label={"left": [0, 0, 280, 200], "right": [310, 0, 535, 200]},
+            reasons="right box: mean IoU 0.58 < 0.7",
+        )
+        db.session.add(aggregate)
+        db.session.commit()
+        return card_id, aggregate.id
+
+
+def test_a_curator_settles_a_dispute_from_the_queue_and_comes_back_to_the_card(  # type: ignore[no-untyped-def]
+    app, server, browser, make_person, disputed_in_queue, wait_until
+) -> None:
+    card_id, aggregate_id = disputed_in_queue
+    page = log_in(browser, server, make_person("curator", username="carol"))
+    page.goto(f"{server}/review/cards/{card_id}")
+    page.wait_for_selector(f"#review-card[data-card='{card_id}'][data-ready]")
+    assert page.is_disabled("button[value=accept]") and page.is_disabled("button[value='change:few']")
+    page.keyboard.press("a")  # the key says why instead of posting
+    wait_until(page, "!document.getElementById('review-alert').hidden")
+    assert "Not accepted now: the crowd disagrees on its crop" in page.text_content("#review-alert")
+    assert page.locator("#review-alert a", has_text=f"Resolve dispute {aggregate_id}").count() == 1
+    assert decision_of(app, card_id) == ("pending", None)
+
+    page.goto(f"{server}/review/")
+    marker = page.locator(f"tr[data-card='{card_id}'] .held-dispute")
+    assert marker.is_visible() and marker.text_content().startswith("Disputed: the crowd disagrees on its crop")
+    marker.locator("a.dispute-link").click()
+    page.wait_for_selector("#resolve-form")
+    assert page.url.startswith(f"{server}/review/disputes/{aggregate_id}?next=")
+    page.click(".use-answer >> nth=0")  # the first annotator's boxes, 310..600 on the right
+    page.click("#resolve-form button[type=submit]")
+
+    page.wait_for_selector(f"#review-card[data-card='{card_id}'][data-ready]", timeout=10_000)
+    assert page.url == f"{server}/review/cards/{card_id}"
+    assert "your crop answer is now the card's truth" in page.text_content(".flash-success")
+    assert page.is_enabled("button[value=accept]") and page.locator("#card-blockers").count() == 0
+    page.keyboard.press("a")
+    page.wait_for_url(f"{server}/review/", timeout=10_000)  # the only card in the queue: back to it
+    assert decision_of(app, card_id) == ("accepted", "some")
+
+
 def test_an_annotator_cannot_reach_review(server, browser, make_person) -> None:  # type: ignore[no-untyped-def]
     page = log_in(browser, server, make_person("annotator", username="anna"))
     response = page.goto(f"{server}/review/")

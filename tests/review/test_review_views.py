@@ -343,3 +343,243 @@ def test_card_page_shows_the_parallax_preview_when_views_exist(
     page = client.get(f"/review/cards/{with_views}").get_data(as_text=True)
     assert f"/viewer/cards/{with_views}/files/preview" in page and f'href="/viewer/cards/{with_views}"' in page
     assert "/files/preview" not in client.get(f"/review/cards/{without}").get_data(as_text=True)
+
+
+# ------------------------------------------------------------- cards held back: say why, link, come back
+
+
+def add_crop_dispute(app, card_id: int) -> tuple[int, int]:  # type: ignore[no-untyped-def]
+    """A crop aggregate waiting for a curator on ``card_id`` (604 x 200 px); (batch, aggregate) ids."""
+    from annotation.batches import create_batch
+    from annotation.models import Aggregate, Answer, BatchItem
+    from annotation.workers import get_or_create_worker
+    from core.db import db
+
+    with app.app_context():
+        batch = create_batch([card_id], "crop", 2, 0.0)
+        item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
+        for n, right_x1 in enumerate((600, 470)):
+            worker = get_or_create_worker("invite", f"held-{card_id}-{n}")
+            db.session.add(
+                Answer(
+                    item_id=item.id,
+                    worker_id=worker.id,
+                    idempotency_key=f"held-{card_id}-{n}-key",
+                    payload={"left": [0, 0, 280, 200], "right": [310, 0, right_x1, 200]},
+                )
+            )
+        aggregate = Aggregate(
+            batch_id=batch.id,
+            card_id=card_id,
+            kind="crop",
+            state="needs_curator",
+            answers=2,
+            label={"left": [0, 0, 280, 200], "right": [310, 0, 535, 200]},
+            reasons="right box: mean IoU 0.58 < 0.7",
+        )
+        db.session.add(aggregate)
+        db.session.commit()
+        return batch.id, aggregate.id
+
+
+@pytest.fixture
+def held(app, make_card, add_stage_result, card_image, decide_orientation) -> dict[str, int]:  # type: ignore[no-untyped-def]
+    """Three graded cards in the queue: one whose crop the crowd disputes, one whose orientation
+    nobody has decided, and one free to accept; with the dispute's batch and aggregate ids."""
+    from review.tasks import sync_reviews
+
+    cards = {}
+    for n, (name, uncertainty) in enumerate((("disputed", 0.9), ("undecided", 0.6), ("free", 0.3))):
+        cards[name] = make_card(card_image()[:, n:], state="pass")  # the disputed card is 604 x 200 px
+        add_stage_result(cards[name], "grade", outcome="some", metrics={"uncertainty": uncertainty, "reasons": ["fringes"]})
+    decide_orientation([cards["disputed"], cards["free"]])
+    with app.app_context():
+        sync_reviews()
+    batch, aggregate = add_crop_dispute(app, cards["disputed"])
+    return cards | {"batch": batch, "aggregate": aggregate}
+
+
+def queue_row(page: str, card_id: int) -> str:
+    start = page.index(f'<tr data-card="{card_id}"')
+    return page[start : page.index("</tr>", start)]
+
+
+def test_the_queue_says_which_cards_are_held_back_and_links_the_dispute(client, login, held) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    page = client.get("/review/?grade=some").get_data(as_text=True)
+    disputed = queue_row(page, held["disputed"])
+    assert (
+        f"<strong>Disputed:</strong> the crowd disagrees on its crop (batch {held['batch']}, dispute {held['aggregate']})."
+        in disputed
+    )
+    # straight to the dispute, and from there back to the card with the queue's filters
+    assert f'href="/review/disputes/{held["aggregate"]}?next=/review/cards/{held["disputed"]}?grade%3Dsome"' in disputed
+    undecided = queue_row(page, held["undecided"])
+    assert "<strong>Cannot be accepted yet:</strong> its orientation is undecided (waiting for " in undecided
+    assert "Disputed" not in undecided and "/review/disputes/" not in undecided
+    free = queue_row(page, held["free"])
+    assert "held-reasons" not in free and 'class="held-back"' not in free
+
+
+def test_a_decided_card_in_the_queue_is_marked_only_for_its_dispute(app, client, login, held) -> None:  # type: ignore[no-untyped-def]
+    from core.db import db
+    from core.models import Person
+    from review.tasks import decide
+
+    carol = login("curator")
+    with app.app_context():
+        for name in ("disputed", "undecided"):  # rejecting is not held back
+            decide(review_of(app, held[name]).id, "reject", expected_version=1, curator=db.session.get(Person, carol.id))
+    page = client.get("/review/?decision=all").get_data(as_text=True)
+    assert "<strong>Disputed:</strong> the crowd disagrees on its crop" in queue_row(page, held["disputed"])
+    assert "held-reasons" not in queue_row(page, held["undecided"])  # not to be accepted, so nothing to say
+
+
+def test_the_queue_reads_held_back_cards_in_a_fixed_number_of_queries(  # type: ignore[no-untyped-def]
+    app, client, login, held, make_card, add_stage_result, card_image
+) -> None:
+    from sqlalchemy import event
+
+    from core.db import db
+    from review.tasks import sync_reviews
+
+    login("curator")
+
+    def queries() -> int:
+        seen: list[str] = []
+
+        def count(*args: Any) -> None:
+            seen.append(args[2])
+
+        with app.app_context():
+            engine = db.engine
+        event.listen(engine, "before_cursor_execute", count)
+        try:
+            assert client.get("/review/").status_code == 200
+        finally:
+            event.remove(engine, "before_cursor_execute", count)
+        return len(seen)
+
+    three = queries()
+    for n in range(4):  # four more disputed cards, each its own batch
+        card_id = make_card(card_image()[:, n + 3 :], state="pass")
+        add_stage_result(card_id, "grade", outcome="few", metrics={"uncertainty": 0.5, "reasons": ["fringes"]})
+        with app.app_context():
+            sync_reviews()
+        add_crop_dispute(app, card_id)
+    page = client.get("/review/").get_data(as_text=True)
+    assert page.count("<strong>Disputed:</strong>") == 5
+    assert queries() == three
+
+
+def test_the_card_page_disables_accept_while_the_card_is_held_back(client, login, held) -> None:  # type: ignore[no-untyped-def]
+    import re
+
+    login("curator")
+
+    def buttons(card_id: int) -> tuple[dict[str, bool], str]:
+        page = client.get(f"/review/cards/{card_id}").get_data(as_text=True)
+        found = re.findall(r'<button type="submit" name="choice" value="([^"]+)"([^>]*)>', page)
+        return {value: " disabled" in attributes for value, attributes in found}, page
+
+    expected = {"accept": True, "change:few": True, "change:some": True, "change:failure": True, "send_back": False}
+    disabled, page = buttons(held["disputed"])
+    assert disabled == expected | {"reject": False}
+    assert f"Not accepted now: the crowd disagrees on its crop (batch {held['batch']}, dispute {held['aggregate']})." in page
+    link = f'href="/review/disputes/{held["aggregate"]}?next=/review/cards/{held["disputed"]}"'
+    assert f'<a class="button dispute-link" {link}>Resolve dispute {held["aggregate"]}</a>' in page
+    assert 'data-held-back="true"' in page
+
+    disabled, page = buttons(held["undecided"])
+    assert disabled == expected | {"reject": False}
+    assert "Not accepted now: its orientation is undecided (waiting for " in page and "dispute-link" not in page
+
+    disabled, page = buttons(held["free"])
+    assert not any(disabled.values()) and 'id="card-blockers"' not in page and 'data-held-back=""' in page
+
+
+def test_accepting_a_disputed_card_answers_409_with_the_disputes_link(app, client, login, csrf_token, held) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    card_id = held["disputed"]
+    token = csrf_token(f"/review/cards/{card_id}")
+    link = f"/review/disputes/{held['aggregate']}?next=/review/cards/{card_id}"
+    for action in ({"action": "accept"}, {"action": "change", "grade": "few"}):
+        refused = client.post(f"/review/cards/{card_id}/decide", json={**action, "version": 1}, headers={"X-CSRFToken": token})
+        assert refused.status_code == 409
+        error = refused.get_json()["error"]
+        assert error["dispute_url"] == link and "while the crowd disagrees on its crop" in error["message"]
+    form = client.post(f"/review/cards/{card_id}/decide", data={"choice": "accept", "version": "1", "csrf_token": token})
+    assert form.status_code == 409 and f'<a href="{link}" class="dispute-link">' in form.get_data(as_text=True)
+    # held back for another reason: refused, without a dispute to link to
+    other = client.post(
+        f"/review/cards/{held['undecided']}/decide", json={"action": "accept", "version": 1}, headers={"X-CSRFToken": token}
+    )
+    assert other.status_code == 409 and "dispute_url" not in other.get_json()["error"]
+    assert review_of(app, card_id).decision == "pending"
+
+
+CROP_FORM = {
+    "left_x0": "0",
+    "left_y0": "0",
+    "left_x1": "280",
+    "left_y1": "200",
+    "right_x0": "310",
+    "right_y0": "0",
+    "right_x1": "600",
+    "right_y1": "200",
+}
+
+
+def test_settling_a_dispute_from_the_card_returns_to_the_card(client, login, csrf_token, held) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    card_id, aggregate_id = held["disputed"], held["aggregate"]
+    back = f"/review/cards/{card_id}?grade=some"
+    page = client.get(f"/review/disputes/{aggregate_id}", query_string={"next": back}).get_data(as_text=True)
+    assert f'action="/review/disputes/{aggregate_id}?next=/review/cards/{card_id}?grade%3Dsome"' in page
+    token = csrf_token(f"/review/disputes/{aggregate_id}")
+    # a mistake keeps the way back
+    wrong = client.post(
+        f"/review/disputes/{aggregate_id}", query_string={"next": back}, data={**CROP_FORM, "left_x1": "", "csrf_token": token}
+    )
+    assert wrong.status_code == 400 and f"?next=/review/cards/{card_id}?grade%3Dsome" in wrong.get_data(as_text=True)
+    done = client.post(f"/review/disputes/{aggregate_id}", query_string={"next": back}, data={**CROP_FORM, "csrf_token": token})
+    assert done.status_code == 303 and done.headers["Location"] == back
+    card_page = client.get(back).get_data(as_text=True)
+    assert f"Card {card_id}: your crop answer is now the card&#39;s truth." in card_page
+    assert 'id="card-blockers"' not in card_page
+    assert '<button type="submit" name="choice" value="accept" class="button">' in card_page
+
+
+HOSTILE_NEXT = [
+    "//evil.com",
+    "https://evil.com",
+    "http://evil.com/review/cards/1",
+    "/\\evil.com",
+    "///evil.com",
+    "javascript:alert(1)",
+    "/auth/people",
+    "/review/../auth/people",
+    "/review/%2e%2e/auth/people",
+    "/review/cards/1\r\nLocation: //evil.com",
+    "review/cards/1",
+]
+
+
+@pytest.mark.parametrize("target", ["//evil.com", "https://evil.com", "/review/../auth/people"])
+def test_a_hostile_next_falls_back_to_the_queue(client, login, csrf_token, held, target: str) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    aggregate_id = held["aggregate"]
+    page = client.get(f"/review/disputes/{aggregate_id}", query_string={"next": target}).get_data(as_text=True)
+    assert f'action="/review/disputes/{aggregate_id}"' in page and "evil" not in page
+    token = csrf_token(f"/review/disputes/{aggregate_id}")
+    done = client.post(f"/review/disputes/{aggregate_id}", query_string={"next": target}, data={**CROP_FORM, "csrf_token": token})
+    assert done.status_code == 303 and done.headers["Location"] == "/review/#disputes"
+
+
+@pytest.mark.parametrize("target", HOSTILE_NEXT)
+def test_only_a_review_page_is_a_place_to_return_to(target: str) -> None:
+    from review.views import review_return_path
+
+    assert review_return_path(target) is None
+    assert review_return_path("/review/cards/12?grade=some") == "/review/cards/12?grade=some"
+    assert review_return_path("/review/") == "/review/"

@@ -23,9 +23,24 @@
       alertBox.className = "review-alert review-alert-" + kind;
       alertBox.hidden = false;
     };
+    const addLink = (href, text) => {
+      const link = document.createElement("a");
+      link.href = href;
+      link.textContent = text;
+      alertBox.append(" ", link);
+    };
+
+    // A card held back (a dispute, an undecided orientation, a stale result) keeps Accept and
+    // the grade buttons disabled; their keys say why, with the dispute's link, instead of posting.
+    function sayWhyHeldBack() {
+      const why = document.getElementById("card-blockers-why");
+      show(why ? why.textContent : "This card cannot be accepted now.", "conflict");
+      for (const dispute of document.querySelectorAll("#card-blockers a.dispute-link")) addLink(dispute.href, dispute.textContent);
+    }
 
     async function decide(action, grade) {
       if (busy || !cfg.version) return;
+      if (cfg.heldBack && (action === "accept" || action === "change")) { sayWhyHeldBack(); return; }
       busy = true;
       show("Saving…", "info");
       const body = {
@@ -45,11 +60,10 @@
           show(message, response.status === 409 ? "conflict" : "error");
           const login = data.error && data.error.login_url;
           if (login || response.status === 401) {  // the session expired: say so, with the way back
-            const link = document.createElement("a");
-            link.href = login || "/auth/login?next=" + encodeURIComponent(window.location.pathname);
-            link.textContent = " Log in again";
-            alertBox.appendChild(link);
+            addLink(login || "/auth/login?next=" + encodeURIComponent(window.location.pathname), "Log in again");
           }
+          // Held back by a dispute since the page was drawn: the way to settle it, and back here.
+          if (data.error && data.error.dispute_url) addLink(data.error.dispute_url, "Resolve the dispute");
           busy = false;
           return;
         }

@@ -109,7 +109,15 @@ def stream_release_cards(
                 continue
             try:
                 ready.append(
-                    release_card(card, reviews[card.id], crowd.get(card.id, {}), data_dir, with_views, states[card.id].inputs_now)
+                    release_card(
+                        card,
+                        reviews[card.id],
+                        crowd.get(card.id, {}),
+                        data_dir,
+                        with_views,
+                        states[card.id].inputs_now,
+                        (states[card.id].stale or {}).get("views"),
+                    )
                 )
             except ReleaseInputError as exc:
                 if exclusions is not None:
@@ -148,11 +156,14 @@ def release_card(
     data_dir: Path,
     with_views: bool = False,
     inputs_now: dict[str, str] | None = None,
+    stale_views: str | None = None,
 ) -> ReleaseCard:
     """One accepted card as released. ``inputs_now``: the inputs digest each stage would be given
     from people's decisions at release time (:attr:`runs.card_state.CardState.inputs_now`),
     recorded beside the digest each released result was computed from, with the acceptance, so
-    ``keystone verify`` can tell from the release alone that nothing in it was stale."""
+    ``keystone verify`` can tell from the release alone that nothing in it was stale.
+    ``stale_views``: why the card's views are out of date; the card is then released without
+    them (views are optional), and its record says why."""
     latest = card.latest_results()
     rectify, disparity, grade = latest.get("rectify"), latest.get("disparity"), latest.get("grade")
     if rectify is None or rectify.status not in ("done", "skipped"):
@@ -192,7 +203,9 @@ def release_card(
     }
     views: dict[str, Path] = {}
     views_note: str | None = None
-    if with_views:
+    if with_views and stale_views is not None:
+        views, views_note = {}, f"views out of date ({stale_views}): left out until they are recomputed"
+    elif with_views:
         views, views_note = card_views(latest.get("views"), data_dir)
         if views:
             result = latest["views"]

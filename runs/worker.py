@@ -122,16 +122,40 @@ class WorkerRound:
         }
 
 
-def run_round(trigger: str, stage_names: Sequence[str], executor: Any, driver: Any, data_dir: Path) -> WorkerRound:
-    """Run ``stage_names`` once over the catalogue, chained, leaving cards another run holds."""
+def optional_stages_to_refresh(stage_names: Sequence[str]) -> dict[str, set[int]]:
+    """The stages ``keystone run`` runs only when named (views) that some cards already have,
+    with the cards that have none: a round keeps the optional results an operator chose to
+    compute up to date (a stale view is recomputed), and computes none for the other cards."""
+    from core.models import StageResult
+    from pipeline.stages.spec import declared_stages
+
+    leave_out: dict[str, set[int]] = {}
+    for name, declaration in declared_stages().items():
+        if declaration.keystone_run != "on_request" or name in stage_names:
+            continue
+        having = set(db.session.scalars(select(StageResult.card_id).where(StageResult.stage == name).distinct()))
+        if having:
+            leave_out[name] = set(db.session.scalars(select(Card.id))) - having
+    db.session.commit()
+    return leave_out
+
+
+def run_round(
+    trigger: str, stage_names: Sequence[str], executor: Any, driver: Any, data_dir: Path, refresh_optional: bool = True
+) -> WorkerRound:
+    """Run ``stage_names`` once over the catalogue, chained, leaving cards another run holds;
+    with ``refresh_optional``, then the optional stages some cards have, on those cards
+    (:func:`optional_stages_to_refresh`)."""
     from runs.loop import run_stage, run_stages
     from runs.specs import available_stages
 
     began = time.monotonic()
     report = WorkerRound(trigger, utcnow())
     specs = available_stages()  # per round: a grade model fitted meanwhile is used
+    optional = optional_stages_to_refresh(stage_names) if refresh_optional else {}
 
     def run_one(spec: Any, followers: Any, leave_out: Any) -> Any:
+        never = optional.get(spec.name, set())
         return run_stage(
             spec,
             data_dir=data_dir,
@@ -139,10 +163,14 @@ def run_round(trigger: str, stage_names: Sequence[str], executor: Any, driver: A
             driver=driver,
             wait_for_held=False,
             followers=followers,
-            leave_out=leave_out,
+            leave_out={**leave_out, spec.name: set(leave_out.get(spec.name, set())) | never} if never else leave_out,
         )
 
-    for stage_report in run_stages([specs[name] for name in stage_names], run_one, chain=True):
+    # The optional stages after the others and unchained: a chain would take every card the round
+    # rectifies on into them, those that never had them too.
+    reports = list(run_stages([specs[name] for name in stage_names], run_one, chain=True))
+    reports += run_stages([specs[name] for name in optional if name in specs], run_one, chain=False)
+    for stage_report in reports:
         summary = stage_report.as_json()
         report.stages.append(
             {
@@ -172,6 +200,7 @@ class BackgroundWorker:
         full_every_s: float = DEFAULT_FULL_EVERY_S,
         parent_pid: int | None = None,
         on_round: Callable[[WorkerRound], None] | None = None,
+        refresh_optional: bool = True,
     ) -> None:
         self.stage_names = list(stage_names)
         self.executor = executor
@@ -181,6 +210,7 @@ class BackgroundWorker:
         self.full_every_s = full_every_s
         self.parent_pid = parent_pid
         self.on_round = on_round
+        self.refresh_optional = refresh_optional
         self.rounds: list[WorkerRound] = []
         self.stop = threading.Event()
 
@@ -239,7 +269,7 @@ class BackgroundWorker:
                     # The mark read *before* the round: a decision made during it starts another.
                     seen = mark
                     self.beat("computing")
-                    done = run_round(trigger, self.stage_names, self.executor, self.driver, self.data_dir)
+                    done = run_round(trigger, self.stage_names, self.executor, self.driver, self.data_dir, self.refresh_optional)
                     last_full = time.monotonic()
                     self.rounds.append(done)
                     self.beat("idle", done)

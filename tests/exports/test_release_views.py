@@ -25,16 +25,22 @@ def make_views(app, data_dir, add_stage_result):  # type: ignore[no-untyped-def]
         from sqlalchemy import select
 
         from core.db import db
+        from core.hooks import approved_decisions
         from core.models import Card
-        from pipeline.records import CardTask, card_work_dir, param_hash
+        from pipeline.records import CardTask, card_work_dir, inputs_digest, param_hash
         from pipeline.stages.views import views_task
         from pipeline.view_synthesis import ViewsStageParams
+        from runs.specs import available_stages
 
         settings = ViewsStageParams(**{**VIEWS_PARAMS, **params})
         with app.app_context():
             card = db.session.scalar(select(Card).where(Card.id == card_id))
             latest = card.latest_results()
             rectify, disparity = latest["rectify"], latest["disparity"]
+            # the digest keystone run records: of the inputs the views stage builds for the card now
+            recorded = inputs_digest(
+                dict(available_stages()["views"].inputs(card, approved_decisions([card_id]).get(card_id, {})))
+            )
             task = CardTask(
                 card_id=card_id,
                 content_hash=card.content_hash,
@@ -55,7 +61,7 @@ def make_views(app, data_dir, add_stage_result):  # type: ignore[no-untyped-def]
             "views",
             outcome=None,
             param_hash=record.param_hash,
-            metrics={**record.metrics, "inputs_digest": "views-test"},
+            metrics={**record.metrics, "inputs_digest": recorded},
             artifacts=record.artifacts,
         )
         return record.artifacts
@@ -215,3 +221,24 @@ def test_views_is_an_optional_format(runner) -> None:
 
     assert "views" not in default_format_names()
     assert parse_formats("views,keystonedepth") == ("keystonedepth", "views")
+
+
+def test_stale_views_are_left_out_of_a_release_with_the_reason(app, tmp_path, three_cards) -> None:  # type: ignore[no-untyped-def]
+    from sqlalchemy import select
+
+    from core.db import db
+    from core.models import StageResult
+    from exports.verify import verify_release
+
+    ids, _ = three_cards
+    with app.app_context():
+        views = db.session.scalar(select(StageResult).where(StageResult.card_id == ids[0], StageResult.stage == "views"))
+        views.metrics = {**views.metrics, "inputs_digest": "computed-from-an-older-grade"}
+        db.session.commit()
+    report = _publish(app, tmp_path / "out")
+    root = Path(report.path)
+    assert report.cards == 3 and report.summaries["views"]["cards_with_views"] == 0
+    assert not (root / "views" / f"{ids[0]:05d}").exists()
+    record = next(r for r in map(json.loads, (root / "cards.jsonl").read_text().splitlines()) if r["card_id"] == ids[0])
+    assert record["views"]["why_not"].startswith("views out of date (its inputs changed since the views stage ran)")
+    assert verify_release(root, validate_croissant=False).ok

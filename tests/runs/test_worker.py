@@ -149,7 +149,9 @@ def test_a_changed_eye_order_is_recomputed_by_the_worker_and_goes_back_to_the_cu
     assert verify_release(release, validate_croissant=False).problems == []
     records = [json.loads(line) for line in (release / "cards.jsonl").read_text().splitlines()]
     assert all(record["acceptance"]["accepted_results"]["rectify"]["computed_at"] for record in records)
-    assert all(record["acceptance"]["inputs_now"]["rectify"] == record["pipeline"]["rectify"]["inputs_digest"] for record in records)
+    assert all(
+        record["acceptance"]["inputs_now"]["rectify"] == record["pipeline"]["rectify"]["inputs_digest"] for record in records
+    )
 
 
 def test_verify_finds_a_stale_result_or_an_outdated_acceptance_in_the_release_records(tmp_path) -> None:
@@ -251,7 +253,9 @@ def test_the_worker_runs_a_round_when_people_decide_and_not_when_nothing_changed
     with app.app_context():
         driver = Driver(db.engine)
         rounds: list[Any] = []
-        worker = BackgroundWorker(STAGES.split(","), None, driver, data_dir, poll_s=0.2, full_every_s=3600, on_round=rounds.append)
+        worker = BackgroundWorker(
+            STAGES.split(","), None, driver, data_dir, poll_s=0.2, full_every_s=3600, on_round=rounds.append
+        )
         thread_app = app
 
         def run() -> None:
@@ -271,7 +275,11 @@ def test_the_worker_runs_a_round_when_people_decide_and_not_when_nothing_changed
             )
             _until(lambda: len(rounds) >= 2, 180)
             assert rounds[1].trigger == "decisions"
-            assert {stage["stage"]: stage["processed"] for stage in rounds[1].stages} == {"rectify": 1, "disparity": 1, "grade": 1}
+            assert {stage["stage"]: stage["processed"] for stage in rounds[1].stages} == {
+                "rectify": 1,
+                "disparity": 1,
+                "grade": 1,
+            }
         finally:
             worker.stop.set()
             thread.join(60)
@@ -284,3 +292,15 @@ def _until(condition: Any, timeout_s: float) -> None:
     while not condition():
         assert time.monotonic() < deadline, "timed out"
         time.sleep(0.05)
+
+
+def test_a_round_keeps_optional_views_fresh_only_on_the_cards_that_have_them(app, make_card, add_stage_result) -> None:  # type: ignore[no-untyped-def]
+    from runs.worker import optional_stages_to_refresh
+
+    with_views, without = make_card(), make_card(image=_motorcycle(0))
+    with app.app_context():
+        assert optional_stages_to_refresh(STAGES.split(",")) == {}  # nobody computed views: none are started
+    add_stage_result(with_views, "views", outcome=None)
+    with app.app_context():
+        assert optional_stages_to_refresh(STAGES.split(",")) == {"views": {without}}
+        assert optional_stages_to_refresh([*STAGES.split(","), "views"]) == {}  # named: run as asked

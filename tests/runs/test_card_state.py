@@ -267,9 +267,9 @@ def test_a_curators_eye_order_makes_the_rectification_stale_everywhere(
         with pytest.raises(ReviewError) as refused:
             decide(review.id, "accept", expected_version=review.version, curator=person)
         assert refused.value.status == 409
-        assert (
-            refused.value.message
-            == f"Card {card} cannot be accepted: {blocker}. It comes back to the queue once it is recomputed (the background worker does it, or keystone run)"
+        assert refused.value.message == (
+            f"Card {card} cannot be accepted: {blocker}. "
+            "It comes back to the queue once it is recomputed (the background worker does it, or keystone run)"
         )
         other = db.session.scalar(select(CardReview).where(CardReview.card_id == fresh))
         assert decide(other.id, "accept", expected_version=other.version, curator=person).decision == "accepted"

@@ -331,8 +331,13 @@ def card(card_id: int) -> Any:
             kinds=SEND_BACK_KINDS,
             anaglyph_url=_anaglyph_url(card, latest.get("rectify")),
             table=threshold_table(grade_result.metrics) if grade_result is not None else None,
-            state_sentence=state.sentence if review is None else "",
-            held=held_back(state) if review is not None and review.decision == "pending" else None,
+            # the sentence beside a review too while its results are stale, recomputed or recomputing:
+            # that is what the curator waits for
+            state_sentence=state.sentence
+            if review is None or state.stale or state.recomputing or state.outdated_acceptance or state.withdrawn
+            else "",
+            # a decided card is held back from a new accept or grade as much as a pending one
+            held=held_back(state) if review is not None else None,
             orientation_panel=orientation_panel,
             results_digest=card_results_digest(card),
         )
@@ -372,10 +377,21 @@ def orientation_card(card_id: int) -> Any:
     flash(
         f"Card {card_id}: orientation {state}"
         + (f" (decided by {after['decided_by']})" if after["decided_by"] else " (still undecided)")
-        + "; the next pipeline run redoes rectification with it.",
+        + (
+            "; the background worker recomputes its rectification with it now, and the card comes back to the queue."
+            if _worker_alive()
+            else "; no background worker is running: `keystone worker` or `keystone run` recomputes its rectification."
+        ),
         "success",
     )
     return redirect(url_for("review.card", card_id=card_id, **_filters(request.args).query_args()), code=303)
+
+
+def _worker_alive() -> bool:
+    from runs.card_state import live_worker
+
+    with read_only():
+        return live_worker() is not None
 
 
 def _next_url(card_id: int, filters: QueueFilters) -> str:

@@ -233,7 +233,8 @@ class Aggregate(db.Model):
     answers: Mapped[int] = mapped_column(Integer, default=0)
     # Set when a curator decided a disputed aggregate: their label is the card's truth.
     resolved_by: Mapped[int | None] = mapped_column(ForeignKey("people.id", ondelete="SET NULL"))
-    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)
+    # indexed: the background worker's change mark reads the newest (runs.worker.change_mark)
+    updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow, index=True)
 
 
 class GoldAnswer(db.Model):

@@ -39,11 +39,11 @@ def latest_aggregates(card_ids: list[int]) -> dict[int, dict[str, Any]]:
 
 def aggregates_mark() -> tuple[Any, ...]:
     """What moves when the crowd's aggregates do (a new one, or one approved or resolved): the
-    background worker's cue that crowd work arrived (runs.worker.change_mark)."""
-    count, newest, changed = db.session.execute(
-        select(func.count(Aggregate.id), func.max(Aggregate.id), func.max(Aggregate.updated_at))
-    ).one()
-    return (count, newest, str(changed))
+    background worker's cue that crowd work arrived (runs.worker.change_mark). Two index
+    lookups (the id, the indexed ``updated_at``), so a worker can ask every few seconds at any
+    catalogue size; a count would scan the table (126 ms at 500,000 aggregates on SQLite)."""
+    newest, changed = db.session.execute(select(func.max(Aggregate.id), func.max(Aggregate.updated_at))).one()
+    return (newest, str(changed))
 
 
 def register(app: Flask) -> None:

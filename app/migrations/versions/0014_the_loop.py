@@ -10,6 +10,9 @@ decision outdates it).
 starts), beating while it lives, so the pages can say whether stale work will be recomputed
 without anyone at a terminal.
 
+``ix_crowd_aggregates_updated_at``: the worker's cue that crowd work arrived is the newest
+aggregate change, read every few seconds; indexed, it is one lookup at any size.
+
 Revision ID: 0014
 Revises: 0013
 Create Date: 2026-11-27
@@ -28,6 +31,7 @@ depends_on = None
 
 
 def upgrade() -> None:
+    op.create_index("ix_crowd_aggregates_updated_at", "crowd_aggregates", ["updated_at"])
     with op.batch_alter_table("card_reviews") as batch:
         batch.add_column(sa.Column("accepted_results", JSON, nullable=True))
     op.create_table(
@@ -44,6 +48,7 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
+    op.drop_index("ix_crowd_aggregates_updated_at", table_name="crowd_aggregates")
     op.drop_table("pipeline_workers")
     with op.batch_alter_table("card_reviews") as batch:
         batch.drop_column("accepted_results")

@@ -304,3 +304,36 @@ def test_a_round_keeps_optional_views_fresh_only_on_the_cards_that_have_them(app
     with app.app_context():
         assert optional_stages_to_refresh(STAGES.split(",")) == {"views": {without}}
         assert optional_stages_to_refresh([*STAGES.split(","), "views"]) == {}  # named: run as asked
+
+
+def test_a_stale_card_a_driver_holds_says_it_is_being_recomputed(app, runner, two_cards, decide_orientation) -> None:  # type: ignore[no-untyped-def]
+    from datetime import timedelta
+
+    from core.db import db, utcnow
+    from core.models import Card
+    from runs.card_state import card_states
+    from runs.claims import StageClaim
+
+    _worker_once(runner)
+    card = two_cards[0]
+    decide_orientation([card], swapped=True)
+    with app.app_context():
+        now = utcnow()
+        for stage, expires in (("rectify", now + timedelta(seconds=60)), ("disparity", now - timedelta(seconds=1))):
+            db.session.add(
+                StageClaim(
+                    card_id=card,
+                    stage=stage,
+                    param_hash="p",
+                    driver="host:1:abc",
+                    claimed_at=now,
+                    heartbeat_at=now,
+                    expires_at=expires,
+                )
+            )
+        db.session.commit()
+        state = card_states([db.session.get(Card, card)])[card]
+        assert state.recomputing == ("rectify",)  # the lapsed claim on disparity belongs to a dead driver
+        assert state.statuses["rectify"]["recomputing"] is True and "recomputing" not in state.statuses["disparity"]
+        assert state.sentence.endswith(": a pipeline worker is recomputing its rectify now.")
+        assert state.blockers[0].endswith("; it is being recomputed now")

@@ -176,7 +176,13 @@ def _serve_child() -> None:
     setup = json.loads(sys.stdin.readline())
     app = _noop_app if setup.get("noop") else create_app(setup["config"], instance_path=setup["instance_path"])
     serve(
-        app, "127.0.0.1", 0, threads=setup["threads"], processes=setup["processes"], on_ready=lambda port: print(port, flush=True)
+        app,
+        "127.0.0.1",
+        0,
+        threads=setup["threads"],
+        processes=setup["processes"],
+        on_ready=lambda port: print(port, flush=True),
+        with_worker=False,  # the web server alone is measured; a pipeline worker beside it would share its cores
     )
 
 

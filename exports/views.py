@@ -33,7 +33,6 @@ from flask import (
     url_for,
 )
 from flask_login import current_user
-from flask_wtf import FlaskForm
 from sqlalchemy import select
 from sqlalchemy.orm import defer
 from wtforms import (
@@ -49,6 +48,7 @@ from wtforms.widgets import CheckboxInput, ListWidget
 
 from core.auth import add_nav_link, role_required
 from core.db import db, read_only
+from core.json_body import BrowserForm
 from core.limits import parse_positive_int
 
 from .formats import default_format_names, format_names
@@ -67,7 +67,7 @@ RELEASE_DOCUMENTS = {
 }
 
 
-class ReleaseForm(FlaskForm):
+class ReleaseForm(BrowserForm):
     min_grade = SelectField(
         "Lowest grade", choices=[SelectChoice(g, f"{g} artifacts") for g in RELEASABLE_GRADES], default="some"
     )

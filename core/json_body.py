@@ -56,7 +56,10 @@ class BrowserForm(FlaskForm):
     """A FlaskForm for pages people fill in: its data comes from the form body, never from JSON."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
-        if request.is_json and request.method in ("POST", "PUT", "PATCH", "DELETE"):
+        # Only a form that reads the request (no formdata given): an error page re-rendering an
+        # empty form (``formdata=None``) for a JSON request must still render.
+        reads_the_body = not args and "formdata" not in kwargs
+        if reads_the_body and request.is_json and request.method in ("POST", "PUT", "PATCH", "DELETE"):
             raise FormNotJSONError()
         super().__init__(*args, **kwargs)
 

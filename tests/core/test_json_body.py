@@ -111,6 +111,10 @@ FORM_ROUTES = [
 ]
 
 
+# Views that read request.form and render the people page (an empty PersonForm) when they refuse.
+PEOPLE_ACTIONS = ["/auth/people/2147483647/active", "/auth/people/2147483647/password", "/auth/people/2147483647/roles"]
+
+
 @pytest.mark.parametrize(("url", "role"), FORM_ROUTES)
 @pytest.mark.parametrize(
     "raw",
@@ -124,3 +128,11 @@ def test_a_json_body_posted_to_a_browser_form_is_415_never_a_500(app, client, lo
     response = client.post(url, data=raw, content_type="application/json", headers={"X-CSRFToken": token})
     assert response.status_code == 415, response.get_data(as_text=True)[:300]
     assert "form" in response.get_data(as_text=True)
+
+
+@pytest.mark.parametrize("url", PEOPLE_ACTIONS)
+@pytest.mark.parametrize("raw", ['{"kind": "judge"', '{"active": "1"}', "[" * 5000], ids=["malformed", "an object", "nested"])
+def test_a_json_body_to_a_people_action_is_a_4xx_page_never_a_500(app, client, login, csrf_token, url, raw):
+    login("admin")
+    response = client.post(url, data=raw, content_type="application/json", headers={"X-CSRFToken": csrf_token("/auth/people")})
+    assert 400 <= response.status_code < 500, response.get_data(as_text=True)[:300]

@@ -12,7 +12,7 @@ from flask.cli import with_appcontext
 from sqlalchemy import select
 
 from core.db import db
-from core.limits import parse_positive_int
+from core.limits import RECORD_ID, RECORD_IDS, parse_positive_int
 from core.spreadsheet_csv import write_spreadsheet_csv
 
 from .batches import (
@@ -52,13 +52,6 @@ def _emit(document: Any, as_json: bool, human: str) -> None:
         click.echo(human)
 
 
-def _card_ids(text: str) -> list[int]:
-    try:
-        return [parse_positive_int(part, "a card id") for part in text.replace(",", " ").split()]
-    except ValueError as exc:
-        raise click.BadParameter(f"expected card ids like 1,2,3: {exc}", param_hint="--cards") from exc
-
-
 @click.group("crowd")
 def crowd_group() -> None:
     """Crowd annotation: batches of judge and crop tasks, invites, aggregation, export."""
@@ -77,7 +70,7 @@ def crowd_group() -> None:
     help="Add only the cards whose orientation the orientation step could not decide (with --kind confirm: the "
     "cards it proposed an orientation for with a narrow margin; their grids hide gold made from decided cards).",
 )
-@click.option("--cards", "cards", default="", help="Comma-separated card ids.")
+@click.option("--cards", "cards", type=RECORD_IDS, default="", help="Comma-separated card ids.")
 @click.option("--kind", type=click.Choice(TASK_KINDS), default="judge", show_default=True)
 @click.option("--n", "n", type=click.IntRange(min=1), default=3, show_default=True, help="Answers per item.")
 @click.option("--gold-rate", type=click.FloatRange(0.0, 1.0), default=0.1, show_default=True)
@@ -92,7 +85,7 @@ def crowd_group() -> None:
 def create_batch_command(
     from_review: bool,
     from_orientation: bool,
-    cards: str,
+    cards: list[int],
     kind: str,
     n: int,
     gold_rate: float,
@@ -101,7 +94,7 @@ def create_batch_command(
 ) -> None:
     """Create a batch of KIND tasks over the chosen cards."""
     _ensure()
-    ids = _card_ids(cards) + (review_queue_card_ids() if from_review and kind != "confirm" else [])
+    ids = list(cards) + (review_queue_card_ids() if from_review and kind != "confirm" else [])
     if (from_review or from_orientation) and kind == "judge":
         ids = list(dict.fromkeys(ids + orientation_queue_card_ids()))
     if (from_review or from_orientation) and kind == "confirm":
@@ -148,7 +141,7 @@ def invite_command(name: str, base_url: str, as_json: bool) -> None:
 
 
 @crowd_group.command("aggregate")
-@click.argument("batch_id", type=int)
+@click.argument("batch_id", type=RECORD_ID)
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
 @with_appcontext
 def aggregate_command(batch_id: int, as_json: bool) -> None:
@@ -312,7 +305,7 @@ def _box_formats(batch: Batch, out: Path) -> list[str]:
 
 
 @crowd_group.command("export")
-@click.argument("batch_id", type=int)
+@click.argument("batch_id", type=RECORD_ID)
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON document.")
 @with_appcontext

@@ -23,6 +23,7 @@ LAZY_BENCHMARKS = {
     "grade-real": "benchmarks.grade_real:bench_grade_real_command",
     "inpainting": "benchmarks.inpainting:bench_inpainting_command",
     "pipeline": "benchmarks.pipeline_cost:bench_pipeline_command",
+    "probe": "benchmarks.probe:bench_probe_command",
     "rectify": "benchmarks.rectify:bench_rectify_command",
     "views": "benchmarks.views:bench_views_command",
     "workres": "benchmarks.workres:bench_workres_command",

@@ -36,7 +36,6 @@ from flask import (
     url_for,
 )
 from flask_login import current_user, login_user, logout_user
-from flask_wtf import FlaskForm
 from sqlalchemy import func, select, update
 from werkzeug.security import check_password_hash, generate_password_hash
 from werkzeug.wrappers import Response
@@ -52,6 +51,7 @@ from wtforms.widgets import CheckboxInput, ListWidget
 
 from core.db import db, one_writer, read_only
 from core.extensions import login_manager
+from core.json_body import BrowserForm
 from core.limits import parse_positive_int
 from core.login_throttle import (
     Lockout,
@@ -224,7 +224,7 @@ def nav_links() -> list[dict[str, Any]]:
 bp.record_once(lambda state: add_nav_link(state.app, "People", "auth.people", "admin", order=90))
 
 
-class LoginForm(FlaskForm):
+class LoginForm(BrowserForm):
     username = StringField("Username", validators=[DataRequired(), Length(max=120)])
     password = PasswordField("Password", validators=[DataRequired()])
     next = HiddenField()
@@ -236,7 +236,7 @@ class MultiCheckboxField(SelectMultipleField):
     option_widget = CheckboxInput()
 
 
-class PersonForm(FlaskForm):
+class PersonForm(BrowserForm):
     username = StringField(
         "Username",
         validators=[

@@ -12,6 +12,10 @@ RecursionError). :func:`load_json_body` refuses all of those before the view see
   NaN, Infinity and -Infinity are refused;
 - text: no NUL characters and no lone surrogates (no database can store or compare them).
 
+Browser forms (:class:`BrowserForm`) read form bodies only: Flask-WTF would otherwise feed them
+``request.get_json()``, unbounded (a deeply nested array was a RecursionError, a 500) and with
+objects where the fields expect text. A JSON body posted to one is a 415 that says so.
+
 Views call it instead of ``request.get_json``; it raises :class:`JSONBodyError`, an HTTP 400
 (415 for a body that is not JSON at all) that the app's error pages render as JSON for API
 routes. Values the loader lets through still need their own checks (a box inside its card is
@@ -25,6 +29,7 @@ import math
 from typing import Any
 
 from flask import request
+from flask_wtf import FlaskForm
 from werkzeug.exceptions import BadRequest, RequestEntityTooLarge, UnsupportedMediaType
 
 from core.limits import request_body_limit
@@ -39,6 +44,24 @@ class JSONBodyError(BadRequest):
 
 class NotJSONError(UnsupportedMediaType):
     description = "Expected a JSON body (Content-Type: application/json)."
+
+
+class FormNotJSONError(UnsupportedMediaType):
+    description = (
+        "This form takes a form body (Content-Type: application/x-www-form-urlencoded or multipart/form-data), not JSON."
+    )
+
+
+class BrowserForm(FlaskForm):
+    """A FlaskForm for pages people fill in: its data comes from the form body, never from JSON."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        # Only a form that reads the request (no formdata given): an error page re-rendering an
+        # empty form (``formdata=None``) for a JSON request must still render.
+        reads_the_body = not args and "formdata" not in kwargs
+        if reads_the_body and request.is_json and request.method in ("POST", "PUT", "PATCH", "DELETE"):
+            raise FormNotJSONError()
+        super().__init__(*args, **kwargs)
 
 
 def _refuse_constant(name: str) -> Any:

@@ -33,7 +33,6 @@ from flask import (
     url_for,
 )
 from flask_login import current_user
-from flask_wtf import FlaskForm
 from sqlalchemy import select
 from sqlalchemy.orm import defer
 from wtforms import (
@@ -49,6 +48,7 @@ from wtforms.widgets import CheckboxInput, ListWidget
 
 from core.auth import add_nav_link, role_required
 from core.db import db, read_only
+from core.json_body import BrowserForm
 from core.limits import parse_positive_int
 
 from .formats import default_format_names, format_names
@@ -67,7 +67,7 @@ RELEASE_DOCUMENTS = {
 }
 
 
-class ReleaseForm(FlaskForm):
+class ReleaseForm(BrowserForm):
     min_grade = SelectField(
         "Lowest grade", choices=[SelectChoice(g, f"{g} artifacts") for g in RELEASABLE_GRADES], default="some"
     )
@@ -315,12 +315,17 @@ def release_page(version: str) -> Any:
 @role_required("exporter")
 def release_file(version: str, name: str) -> Response:
     root = _release_root(version)
-    target = (root / name).resolve()
-    # Inside the release folder only: "../", absolute paths and links out of it are refused.
-    if not target.is_relative_to(root) or target == root or (root / name).is_symlink():
-        abort(404, f"{name!r} is not a file of release {version}.")
-    if not target.is_file():
-        abort(404, f"Release {version} has no file {name!r}.")
+    try:
+        target = (root / name).resolve()
+        # Inside the release folder only: "../", absolute paths and links out of it are refused.
+        outside = not target.is_relative_to(root) or target == root or (root / name).is_symlink()
+        missing = not target.is_file()
+    except OSError:  # a name the file system refuses (longer than 255 bytes: ENAMETOOLONG) names no file
+        outside, missing = False, True
+    if outside:
+        abort(404, f"{name[:80]!r} is not a file of release {version}.")
+    if missing:
+        abort(404, f"Release {version} has no file {name[:80]!r}.")
     return send_file(target, as_attachment=True, download_name=target.name, conditional=True, max_age=3600)
 
 

@@ -469,6 +469,41 @@ def test_workers_failing_gold_are_flagged_and_no_longer_served(app, client, card
 # CLI
 
 
+@pytest.mark.parametrize("command", ["export", "aggregate"])
+def test_cli_batch_ids_are_read_strictly(app, runner, cards, tmp_path: Path, command):
+    from annotation.cli import crowd_group
+
+    app.cli.add_command(crowd_group)
+    ids = cards(1)
+    for _ in range(10):  # batch 10 exists: `1_0` and a fullwidth digit would otherwise reach it
+        new_batch(app, ids, n=1)
+    out = ["--out", str(tmp_path / "out")] if command == "export" else []
+    for hostile in ("1_0", "\uff11\uff10", "9223372036854775808", "0"):
+        refused = runner.invoke(args=["crowd", command, hostile, *out])
+        assert refused.exit_code == 2, (hostile, refused.output)
+        assert "Expected a record id (ASCII digits, 1 to 2147483647), got" in refused.output
+    assert not (tmp_path / "out").exists()
+    done = runner.invoke(args=["crowd", command, "10", *out, "--json"])
+    assert done.exit_code == 0, done.output
+    assert json.loads(done.output)["batch"] == 10
+
+
+def test_cli_card_ids_are_read_strictly(app, runner, cards):
+    from annotation.cli import crowd_group
+
+    app.cli.add_command(crowd_group)
+    ids = cards(2)
+    for hostile in (f"{ids[0]},1_0", "\uff11", f"{ids[0]} 9223372036854775808"):
+        refused = runner.invoke(args=["crowd", "create-batch", "--cards", hostile])
+        assert refused.exit_code == 2, (hostile, refused.output)
+        assert "Invalid value for '--cards': Expected a record id" in refused.output
+    with app.app_context():
+        assert db.session.scalar(select(func.count()).select_from(Batch)) == 0
+    created = runner.invoke(args=["crowd", "create-batch", "--cards", f"{ids[0]},{ids[1]}", "--gold-rate", "0", "--json"])
+    assert created.exit_code == 0, created.output
+    assert json.loads(created.output)["items"] == 2
+
+
 def test_cli_create_invite_aggregate_export(app, runner, client, cards, tmp_path: Path):
     from annotation.cli import crowd_group
 

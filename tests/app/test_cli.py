@@ -61,6 +61,7 @@ COMMAND_TREE = {
     "bench grade-real",
     "bench inpainting",
     "bench pipeline",
+    "bench probe",
     "bench rectify",
     "bench views",
     "bench workres",

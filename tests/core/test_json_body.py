@@ -98,3 +98,41 @@ def test_the_loader_refuses_bodies_of_the_wrong_type_and_unstorable_text(app):
         assert caught.value.code == 415
     with app.test_request_context("/review/bulk", method="POST", data=b"[1]", content_type="application/json"):
         assert load_json_body(expect=list) == [1]
+
+
+# Found by `keystone bench probe`: Flask-WTF reads a JSON body into a form with request.get_json(),
+# so a deeply nested array posted to a form (with the page's CSRF token in the X-CSRFToken
+# header) was a RecursionError, a 500, and an object holding an object reached the views as a dict.
+FORM_ROUTES = [
+    ("/auth/login", None),
+    ("/auth/people", "admin"),
+    ("/releases/preview", "exporter"),
+    ("/releases/publish", "exporter"),
+]
+
+
+# Views that read request.form and render the people page (an empty PersonForm) when they refuse.
+PEOPLE_ACTIONS = ["/auth/people/2147483647/active", "/auth/people/2147483647/password", "/auth/people/2147483647/roles"]
+
+
+@pytest.mark.parametrize(("url", "role"), FORM_ROUTES)
+@pytest.mark.parametrize(
+    "raw",
+    ["[" * 5000, '{"username": {"a": 1}, "password": ["x"], "min_grade": {"x": 1}}', '"text"', "[1, 2]"],
+    ids=["nested 5000 deep", "objects in fields", "a string", "an array"],
+)
+def test_a_json_body_posted_to_a_browser_form_is_415_never_a_500(app, client, login, csrf_token, url, role, raw):
+    if role:
+        login(role)
+    token = csrf_token("/auth/people" if role == "admin" else "/releases/" if role else "/auth/login")
+    response = client.post(url, data=raw, content_type="application/json", headers={"X-CSRFToken": token})
+    assert response.status_code == 415, response.get_data(as_text=True)[:300]
+    assert "form" in response.get_data(as_text=True)
+
+
+@pytest.mark.parametrize("url", PEOPLE_ACTIONS)
+@pytest.mark.parametrize("raw", ['{"kind": "judge"', '{"active": "1"}', "[" * 5000], ids=["malformed", "an object", "nested"])
+def test_a_json_body_to_a_people_action_is_a_4xx_page_never_a_500(app, client, login, csrf_token, url, raw):
+    login("admin")
+    response = client.post(url, data=raw, content_type="application/json", headers={"X-CSRFToken": csrf_token("/auth/people")})
+    assert 400 <= response.status_code < 500, response.get_data(as_text=True)[:300]

@@ -10,11 +10,13 @@ import re
 import stat
 from pathlib import Path
 
+import click
 import pytest
+from click.testing import CliRunner
 from sqlalchemy import func, select
 from werkzeug.routing import IntegerConverter
 
-from core.limits import DATABASE_ID_MAX, DatabaseIdConverter, parse_positive_int, parse_whole_number
+from core.limits import DATABASE_ID_MAX, RECORD_ID, RECORD_IDS, DatabaseIdConverter, parse_positive_int, parse_whole_number
 
 # Past PostgreSQL's INTEGER, past SQLite's 64-bit INTEGER, past a float, past Python's
 # 4,300-digit int() limit; and 0, which no id is.
@@ -148,6 +150,35 @@ def test_ids_in_urls_are_ascii_digits_only(app):
 def test_parse_positive_int_reads_ids_in_range():
     assert parse_positive_int(" 42 ", "page") == 42
     assert parse_positive_int("000" + str(DATABASE_ID_MAX), "page") == DATABASE_ID_MAX
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "1_0", "\uff15", "\u00b2", "", "1.0", str(DATABASE_ID_MAX + 1), "9" * 5000])
+def test_a_record_id_on_the_command_line_is_ascii_digits_in_range(value):
+    with pytest.raises(click.BadParameter, match=r"Expected a record id \(ASCII digits, 1 to 2147483647\), got '"):
+        RECORD_ID.convert(value, None, None)
+
+
+def test_a_record_id_on_the_command_line_reads_ids_in_range():
+    assert RECORD_ID.convert("10", None, None) == 10
+    assert RECORD_ID.convert(str(DATABASE_ID_MAX), None, None) == DATABASE_ID_MAX
+    assert RECORD_IDS.convert("1,2 3", None, None) == [1, 2, 3]
+    assert RECORD_IDS.convert("", None, None) == []
+
+
+def test_a_bad_record_id_is_a_usage_error_naming_the_argument():
+    @click.command()
+    @click.argument("batch_id", type=RECORD_ID)
+    @click.option("--cards", type=RECORD_IDS, default="")
+    def show(batch_id: int, cards: list[int]) -> None:
+        click.echo(f"{batch_id} {cards}")
+
+    runner = CliRunner()
+    assert runner.invoke(show, ["10", "--cards", "4,5"]).output == "10 [4, 5]\n"
+    refused = runner.invoke(show, ["1_0"])
+    assert refused.exit_code == 2
+    assert "Invalid value for 'BATCH_ID': Expected a record id (ASCII digits, 1 to 2147483647), got '1_0'." in refused.output
+    refused = runner.invoke(show, ["1", "--cards", "4,\uff15"])
+    assert refused.exit_code == 2 and "Invalid value for '--cards'" in refused.output
 
 
 # ------------------------------------------------------------------------------ query strings

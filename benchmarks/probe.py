@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import html
 import http.client
 import inspect
 import io
@@ -703,6 +704,110 @@ class Probe:
             answer = anonymous.send("POST", "/crowd/api/submit", json_body=body, headers=headers, csrf=False)
             self.check(family, f"{who}: POST /crowd/api/submit", answer, (200, 201))
 
+    # -- the loop (issue 32's done-when) ----------------------------------------------------
+
+    def loop(self) -> None:
+        """A curator changes the eye order of an accepted card and of a graded card waiting for
+        review, in the browser's own forms. At once both are stale, the waiting one cannot be
+        accepted, and a dry-run preview leaves the accepted one out; then, with no terminal, the
+        server's background worker recomputes both with the new eye order and they wait for the
+        curator again. ``notes["loop"]`` has the seconds that took."""
+        from sqlalchemy import select
+        from sqlalchemy.orm import selectinload
+
+        from core.db import db
+        from core.models import Card
+        from review.models import CardReview
+        from runs.card_state import card_states
+
+        app = self.instance.app()
+
+        def states(ids: list[int]) -> dict[int, Any]:
+            with app.app_context():
+                cards = list(db.session.scalars(select(Card).where(Card.id.in_(ids)).options(selectinload(Card.stage_results))))
+                found = card_states(cards)
+                reviews = {
+                    r.card_id: r.decision for r in db.session.scalars(select(CardReview).where(CardReview.card_id.in_(ids)))
+                }
+                db.session.remove()
+            return {card: (found[card], reviews.get(card)) for card in ids}
+
+        with app.app_context():
+            decided = list(db.session.scalars(select(CardReview.card_id).where(CardReview.decision.in_(("accepted", "changed")))))
+            pending = list(db.session.scalars(select(CardReview.card_id).where(CardReview.decision == "pending")))
+            db.session.remove()
+        now = states(decided + pending)
+        accepted = next((card for card in decided if not now[card][0].stale), None)
+        waiting = next((card for card in pending if not now[card][0].blockers), None)
+        if accepted is None or waiting is None:
+            self.family("loop").unexpected.append(f"the demo has no accepted card ({accepted}) or clear waiting card ({waiting})")
+            return
+        curator, exporter = self.browsers["curator"], self.browsers["exporter"]
+        flipped = {}
+        started = time.perf_counter()
+        for card in (accepted, waiting):
+            used = now[card][0].orientation
+            flipped[card] = not used["swapped"]
+            form = {flag: "yes" if used[flag] else "no" for flag in ("upside_down", "inverted")}
+            form |= {"swapped": "yes" if flipped[card] else "no", "note": "probe: the eyes are exchanged"}
+            self.check(
+                "loop",
+                f"curator POST /review/cards/{card}/orientation",
+                curator.send("POST", f"/review/cards/{card}/orientation", form=form),
+                (303,),
+            )
+        looked = time.perf_counter() - started
+        after = states([accepted, waiting])
+        stale_at_once = {card: "rectify" in (after[card][0].stale or {}) or bool(after[card][0].recomputing) for card in after}
+        page = self.check("loop", f"curator GET /review/cards/{waiting}", curator.send("GET", f"/review/cards/{waiting}"), (200,))
+        version = re.search(r'data-version="(\d+)"', page.text)
+        shown = re.search(r'data-results="([^"]*)"', page.text)
+        refused = curator.send(
+            "POST",
+            f"/review/cards/{waiting}/decide",
+            json_body={
+                "action": "accept",
+                "version": int(version.group(1)) if version else 0,
+                "results": shown.group(1) if shown else None,
+            },
+            headers={"Accept": "application/json"},
+        )
+        self.check("loop", f"curator POST /review/cards/{waiting}/decide (stale)", refused, (409,))
+        preview = exporter.send(
+            "POST", "/releases/preview", form={"min_grade": "some", "formats": "keystonedepth", "notes": "probe: loop"}
+        )
+        self.check("loop", "exporter POST /releases/preview (after the change)", preview, (200,))
+        left_out = f"card {accepted}: its rectify result is out of date" in html.unescape(preview.text)
+        deadline = time.monotonic() + 300
+        back_after = None
+        while time.monotonic() < deadline:
+            now = states([accepted, waiting])
+            if all(
+                not now[card][0].stale
+                and now[card][1] == "pending"
+                and not now[card][0].recomputing
+                and (now[card][0].statuses["rectify"]["metrics"].get("orientation_used") or {}).get("swapped") is flipped[card]
+                for card in now
+            ):
+                back_after = time.perf_counter() - started
+                break
+            time.sleep(0.5)
+        self.notes["loop"] = {
+            "accepted_card": accepted,
+            "waiting_card": waiting,
+            "changed_in_s": round(looked, 2),
+            "stale_at_once": stale_at_once,
+            "accept_refused": refused.status,
+            "accepted_left_out_of_preview": left_out,
+            "recomputed_and_waiting_after_s": None if back_after is None else round(back_after, 1),
+        }
+        if not all(stale_at_once.values()) and looked < 1.0:
+            self.wrong("loop", f"not stale right after the eye order changed: {stale_at_once}")
+        if not left_out:
+            self.wrong("loop", f"a dry-run preview did not leave out accepted card {accepted} whose eye order changed")
+        if back_after is None:
+            self.wrong("loop", "the two cards were not recomputed and back with the curator within 300 s (no terminal)")
+
     # -- concurrency ------------------------------------------------------------------------
 
     def concurrency(self) -> None:
@@ -1120,7 +1225,7 @@ def live_formulas(text: str) -> list[str]:
 # The command
 
 
-FAMILIES = ("hostile", "role-by-route", "concurrency", "kills", "stored")
+FAMILIES = ("hostile", "role-by-route", "loop", "concurrency", "kills", "stored")
 
 
 def run_probe(folder: Path, *, quick: bool, echo: Callable[[str], None]) -> dict[str, Any]:
@@ -1135,6 +1240,7 @@ def run_probe(folder: Path, *, quick: bool, echo: Callable[[str], None]) -> dict
         steps = (
             ("role-by-route", probe.role_by_route),
             ("hostile", probe.hostile),
+            ("loop", probe.loop),
             ("concurrency", probe.concurrency),
             ("kills", probe.kills),
             ("stored", probe.stored),

@@ -212,6 +212,7 @@ class BackgroundWorker:
         self.on_round = on_round
         self.refresh_optional = refresh_optional
         self.rounds: list[WorkerRound] = []
+        self.failures: list[str] = []  # rounds that raised, in words (the worker went on)
         self.stop = threading.Event()
 
     @contextmanager
@@ -241,6 +242,13 @@ class BackgroundWorker:
                 log.warning("could not remove worker row %s: %s", self.driver.id, exc)
 
     def beat(self, state: str, last: WorkerRound | None = None) -> None:
+        try:
+            self._beat(state, last)
+        except SQLAlchemyError as exc:  # a busy database: the next poll beats again
+            db.session.rollback()
+            log.warning("worker %s could not beat: %s", self.driver.id, exc)
+
+    def _beat(self, state: str, last: WorkerRound | None) -> None:
         row = db.session.get(PipelineWorker, self.driver.id)
         if row is None:  # removed by hand (or by a test): come back
             row = PipelineWorker(
@@ -269,7 +277,19 @@ class BackgroundWorker:
                     # The mark read *before* the round: a decision made during it starts another.
                     seen = mark
                     self.beat("computing")
-                    done = run_round(trigger, self.stage_names, self.executor, self.driver, self.data_dir, self.refresh_optional)
+                    try:
+                        done = run_round(
+                            trigger, self.stage_names, self.executor, self.driver, self.data_dir, self.refresh_optional
+                        )
+                    except Exception as exc:  # a database that went away, a full disk: try again next poll
+                        if once:
+                            raise
+                        db.session.rollback()
+                        log.exception("worker round failed; retrying after %s s", self.poll_s)
+                        self.failures.append(f"{type(exc).__name__}: {exc}")
+                        seen = None  # the decisions it missed are still to do
+                        self._sleep()
+                        continue
                     last_full = time.monotonic()
                     self.rounds.append(done)
                     self.beat("idle", done)

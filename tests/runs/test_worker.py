@@ -337,3 +337,37 @@ def test_a_stale_card_a_driver_holds_says_it_is_being_recomputed(app, runner, tw
         assert state.statuses["rectify"]["recomputing"] is True and "recomputing" not in state.statuses["disparity"]
         assert state.sentence.endswith(": a pipeline worker is recomputing its rectify now.")
         assert state.blockers[0].endswith("; it is being recomputed now")
+
+
+def test_a_round_that_raises_does_not_end_the_worker(app, two_cards, data_dir, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import runs.worker as worker_module
+    from core.db import db
+    from runs.claims import Driver
+    from runs.worker import BackgroundWorker
+
+    real = worker_module.run_round
+    calls: list[str] = []
+
+    def flaky(trigger: str, *args: Any, **kwargs: Any) -> Any:
+        calls.append(trigger)
+        if len(calls) == 1:
+            raise RuntimeError("database is locked")
+        return real(trigger, *args, **kwargs)
+
+    monkeypatch.setattr(worker_module, "run_round", flaky)
+    with app.app_context():
+        driver = Driver(db.engine)
+        rounds: list[Any] = []
+        worker = BackgroundWorker(
+            STAGES.split(","), None, driver, data_dir, poll_s=0.1, full_every_s=3600, on_round=rounds.append
+        )
+
+        def stop_after_a_round(done: Any) -> None:
+            rounds.append(done)
+            worker.stop.set()
+
+        worker.on_round = stop_after_a_round
+        with driver.running():
+            worker.run()
+    assert worker.failures == ["RuntimeError: database is locked"]
+    assert calls == ["start", "start"] and rounds[0].computed == 6  # tried again, as a first round

@@ -546,6 +546,48 @@ def decide_orientation(app) -> Callable[..., list[int]]:  # type: ignore[no-unty
     return decide
 
 
+@pytest.fixture
+def add_crop_dispute(app) -> Callable[..., tuple[int, int]]:  # type: ignore[no-untyped-def]
+    """A crop batch on a card whose two invited annotators disagree on the right box, and its
+    aggregate waiting for a curator; returns (batch id, aggregate id). The defaults fit a
+    604 x 200 px card; ``right_x0``, ``right_x1s`` (one per annotator) and ``consensus_x1`` move
+    the right boxes for another width."""
+    from annotation.batches import create_batch
+    from annotation.models import Aggregate, Answer, BatchItem
+    from annotation.workers import get_or_create_worker
+    from core.db import db
+
+    def add(
+        card_id: int, *, right_x0: int = 310, right_x1s: tuple[int, int] = (600, 470), consensus_x1: int = 535
+    ) -> tuple[int, int]:
+        with app.app_context():
+            batch = create_batch([card_id], "crop", 2, 0.0)
+            item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
+            for n, right_x1 in enumerate(right_x1s):
+                db.session.add(
+                    Answer(
+                        item_id=item.id,
+                        worker_id=get_or_create_worker("invite", f"w{n}").id,
+                        idempotency_key=f"card-{card_id}-key-{n}",
+                        payload={"left": [0, 0, 280, 200], "right": [right_x0, 0, right_x1, 200]},
+                    )
+                )
+            aggregate = Aggregate(
+                batch_id=batch.id,
+                card_id=card_id,
+                kind="crop",
+                state="needs_curator",
+                answers=2,
+                label={"left": [0, 0, 280, 200], "right": [right_x0, 0, consensus_x1, 200]},
+                reasons="right box: mean IoU 0.58 < 0.7",
+            )
+            db.session.add(aggregate)
+            db.session.commit()
+            return batch.id, aggregate.id
+
+    return add
+
+
 # Two photos mounted as a card, a card with real views for the 3D viewer, and a world with
 # something behind every door for the hostile-input tests.
 def _mounted(left: np.ndarray, right: np.ndarray) -> np.ndarray:

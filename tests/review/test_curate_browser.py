@@ -89,38 +89,9 @@ def test_a_curator_reads_the_nearest_threshold_accepts_and_undoes(
 
 
 @pytest.fixture
-def crop_dispute(app, make_card, card_image) -> int:  # type: ignore[no-untyped-def]
-    from annotation.batches import create_batch
-    from annotation.models import Aggregate, Answer, BatchItem
-    from annotation.workers import get_or_create_worker
-    from core.db import db
-
+def crop_dispute(make_card, card_image, add_crop_dispute) -> int:  # type: ignore[no-untyped-def]
     card_id = make_card(card_image(), state="review")  # 604 x 200 px
-    with app.app_context():
-        batch = create_batch([card_id], "crop", 2, 0.0)
-        item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
-        for n, right_x1 in enumerate((600, 470)):
-            worker = get_or_create_worker("invite", f"w{n}")
-            db.session.add(
-                Answer(
-                    item_id=item.id,
-                    worker_id=worker.id,
-                    idempotency_key=f"key-{n}-abcdef",
-                    payload={"left": [0, 0, 280, 200], "right": [310, 0, right_x1, 200]},
-                )
-            )
-        aggregate = Aggregate(
-            batch_id=batch.id,
-            card_id=card_id,
-            kind="crop",
-            state="needs_curator",
-            answers=2,
-            label={"left": [0, 0, 280, 200], "right": [310, 0, 535, 200]},
-            reasons="right box: mean IoU 0.58 < 0.7",
-        )
-        db.session.add(aggregate)
-        db.session.commit()
-        return aggregate.id
+    return add_crop_dispute(card_id)[1]
 
 
 def test_a_curator_draws_crop_boxes_on_a_phone(app, server, screen_page, make_person, crop_dispute, look) -> None:  # type: ignore[no-untyped-def]

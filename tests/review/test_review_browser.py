@@ -104,12 +104,8 @@ def test_a_stale_tab_gets_the_conflict_message(app, server, browser, make_person
 
 
 @pytest.fixture
-def disputed_in_queue(app, make_card, add_stage_result, card_image, decide_orientation) -> tuple[int, int]:  # type: ignore[no-untyped-def]
+def disputed_in_queue(app, make_card, add_stage_result, card_image, decide_orientation, add_crop_dispute) -> tuple[int, int]:  # type: ignore[no-untyped-def]
     """A graded card in the queue whose crop boxes the crowd disputes; (card, aggregate) ids."""
-    from annotation.batches import create_batch
-    from annotation.models import Aggregate, Answer, BatchItem
-    from annotation.workers import get_or_create_worker
-    from core.db import db
     from review.tasks import sync_reviews
 
     card_id = make_card(card_image(), state="pass")  # 604 x 200 px
@@ -117,29 +113,8 @@ def disputed_in_queue(app, make_card, add_stage_result, card_image, decide_orien
     decide_orientation([card_id])
     with app.app_context():
         sync_reviews()
-        batch = create_batch([card_id], "crop", 2, 0.0)
-        item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
-        for n, right_x1 in enumerate((600, 470)):
-            db.session.add(
-                Answer(
-                    item_id=item.id,
-                    worker_id=get_or_create_worker("invite", f"w{n}").id,
-                    idempotency_key=f"key-{n}-abcdef",
-                    payload={"left": [0, 0, 280, 200], "right": [310, 0, right_x1, 200]},
-                )
-            )
-        aggregate = Aggregate(
-            batch_id=batch.id,
-            card_id=card_id,
-            kind="crop",
-            state="needs_curator",
-            answers=2,
-            label={"left": [0, 0, 280, 200], "right": [310, 0, 535, 200]},
-            reasons="right box: mean IoU 0.58 < 0.7",
-        )
-        db.session.add(aggregate)
-        db.session.commit()
-        return card_id, aggregate.id
+    _, aggregate_id = add_crop_dispute(card_id)
+    return card_id, aggregate_id
 
 
 def test_a_curator_settles_a_dispute_from_the_queue_and_comes_back_to_the_card(  # type: ignore[no-untyped-def]

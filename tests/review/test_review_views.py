@@ -253,38 +253,10 @@ def test_the_history_page_lists_every_change(app, client, login, csrf_token, gra
 
 
 @pytest.fixture
-def crop_dispute(app, make_card, card_image) -> tuple[int, int]:  # type: ignore[no-untyped-def]
-    from annotation.batches import create_batch
-    from annotation.models import Aggregate, Answer, BatchItem
-    from annotation.workers import get_or_create_worker
-    from core.db import db
-
+def crop_dispute(make_card, card_image, add_crop_dispute) -> tuple[int, int]:  # type: ignore[no-untyped-def]
     card_id = make_card(card_image()[:, 30:], state="review")  # 574 x 200 px
-    with app.app_context():
-        batch = create_batch([card_id], "crop", 2, 0.0)
-        item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
-        for n, right_x1 in enumerate((560, 470)):
-            worker = get_or_create_worker("invite", f"w{n}")
-            db.session.add(
-                Answer(
-                    item_id=item.id,
-                    worker_id=worker.id,
-                    idempotency_key=f"key-{n}-abcdef",
-                    payload={"left": [0, 0, 280, 200], "right": [290, 0, right_x1, 200]},
-                )
-            )
-        aggregate = Aggregate(
-            batch_id=batch.id,
-            card_id=card_id,
-            kind="crop",
-            state="needs_curator",
-            answers=2,
-            label={"left": [0, 0, 280, 200], "right": [290, 0, 515, 200]},
-            reasons="right box: mean IoU 0.58 < 0.7",
-        )
-        db.session.add(aggregate)
-        db.session.commit()
-        return card_id, aggregate.id
+    _, aggregate_id = add_crop_dispute(card_id, right_x0=290, right_x1s=(560, 470), consensus_x1=515)
+    return card_id, aggregate_id
 
 
 def test_disputes_are_listed_shown_with_boxes_and_resolved_as_gold(app, client, login, csrf_token, crop_dispute) -> None:  # type: ignore[no-untyped-def]
@@ -348,42 +320,8 @@ def test_card_page_shows_the_parallax_preview_when_views_exist(
 # ------------------------------------------------------------- cards held back: say why, link, come back
 
 
-def add_crop_dispute(app, card_id: int) -> tuple[int, int]:  # type: ignore[no-untyped-def]
-    """A crop aggregate waiting for a curator on ``card_id`` (604 x 200 px); (batch, aggregate) ids."""
-    from annotation.batches import create_batch
-    from annotation.models import Aggregate, Answer, BatchItem
-    from annotation.workers import get_or_create_worker
-    from core.db import db
-
-    with app.app_context():
-        batch = create_batch([card_id], "crop", 2, 0.0)
-        item = db.session.scalar(select(BatchItem).where(BatchItem.batch_id == batch.id))
-        for n, right_x1 in enumerate((600, 470)):
-            worker = get_or_create_worker("invite", f"held-{card_id}-{n}")
-            db.session.add(
-                Answer(
-                    item_id=item.id,
-                    worker_id=worker.id,
-                    idempotency_key=f"held-{card_id}-{n}-key",
-                    payload={"left": [0, 0, 280, 200], "right": [310, 0, right_x1, 200]},
-                )
-            )
-        aggregate = Aggregate(
-            batch_id=batch.id,
-            card_id=card_id,
-            kind="crop",
-            state="needs_curator",
-            answers=2,
-            label={"left": [0, 0, 280, 200], "right": [310, 0, 535, 200]},
-            reasons="right box: mean IoU 0.58 < 0.7",
-        )
-        db.session.add(aggregate)
-        db.session.commit()
-        return batch.id, aggregate.id
-
-
 @pytest.fixture
-def held(app, make_card, add_stage_result, card_image, decide_orientation) -> dict[str, int]:  # type: ignore[no-untyped-def]
+def held(app, make_card, add_stage_result, card_image, decide_orientation, add_crop_dispute) -> dict[str, int]:  # type: ignore[no-untyped-def]
     """Three graded cards in the queue: one whose crop the crowd disputes, one whose orientation
     nobody has decided, and one free to accept; with the dispute's batch and aggregate ids."""
     from review.tasks import sync_reviews
@@ -395,7 +333,7 @@ def held(app, make_card, add_stage_result, card_image, decide_orientation) -> di
     decide_orientation([cards["disputed"], cards["free"]])
     with app.app_context():
         sync_reviews()
-    batch, aggregate = add_crop_dispute(app, cards["disputed"])
+    batch, aggregate = add_crop_dispute(cards["disputed"])
     return cards | {"batch": batch, "aggregate": aggregate}
 
 
@@ -436,7 +374,7 @@ def test_a_decided_card_in_the_queue_is_marked_only_for_its_dispute(app, client,
 
 
 def test_the_queue_reads_held_back_cards_in_a_fixed_number_of_queries(  # type: ignore[no-untyped-def]
-    app, client, login, held, make_card, add_stage_result, card_image
+    app, client, login, held, make_card, add_stage_result, card_image, add_crop_dispute
 ) -> None:
     from sqlalchemy import event
 
@@ -466,7 +404,7 @@ def test_the_queue_reads_held_back_cards_in_a_fixed_number_of_queries(  # type: 
         add_stage_result(card_id, "grade", outcome="few", metrics={"uncertainty": 0.5, "reasons": ["fringes"]})
         with app.app_context():
             sync_reviews()
-        add_crop_dispute(app, card_id)
+        add_crop_dispute(card_id)
     page = client.get("/review/").get_data(as_text=True)
     assert page.count("<strong>Disputed:</strong>") == 5
     assert queries() == three

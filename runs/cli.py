@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 import click
 from flask.cli import with_appcontext
@@ -44,20 +44,50 @@ def _chain_help() -> str:
     )
 
 
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def where_it_runs(command: F) -> F:
+    """The options ``keystone run`` and ``keystone worker`` share: which stages, and on what."""
+    options = (
+        click.option("--stages", default=",".join(default_run_stages()), show_default=True, help=_stages_help()),
+        click.option(
+            "--workers",
+            default=1,
+            show_default=True,
+            type=click.IntRange(1, 256),
+            help="Worker processes (1 runs inline on one core).",
+        ),
+        click.option(
+            "--executor",
+            "executor_kind",
+            type=click.Choice(["local", "dask"]),
+            default="local",
+            show_default=True,
+            help="Where per-card work runs: a local process pool or a dask cluster.",
+        ),
+        click.option("--scheduler", help="dask scheduler address (with --executor dask); default a local cluster."),
+    )
+    for option in reversed(options):
+        command = option(command)
+    return command
+
+
+def chosen_stages(stages: str) -> list[str]:
+    """The ``--stages`` names, checked against the stages that can run."""
+    names = [name.strip() for name in stages.split(",") if name.strip()]
+    runnable = runnable_stages()
+    unknown = [name for name in names if name not in runnable]
+    if unknown or not names:
+        raise click.BadParameter(
+            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(runnable)}",
+            param_hint="--stages",
+        )
+    return names
+
+
 @click.command("run")
-@click.option("--stages", default=",".join(default_run_stages()), show_default=True, help=_stages_help())
-@click.option(
-    "--workers", default=1, show_default=True, type=click.IntRange(1, 256), help="Worker processes (1 runs inline on one core)."
-)
-@click.option(
-    "--executor",
-    "executor_kind",
-    type=click.Choice(["local", "dask"]),
-    default="local",
-    show_default=True,
-    help="Where per-card work runs: a local process pool or a dask cluster.",
-)
-@click.option("--scheduler", help="dask scheduler address (with --executor dask); default a local cluster.")
+@where_it_runs
 @click.option(
     "--wait/--no-wait",
     "wait_for_held",
@@ -120,14 +150,7 @@ def run_command(
     from core.console import data_dir, emit_json, ensure_database, progress_bar, say
     from runs.leftovers import clear_leftovers
 
-    names = [name.strip() for name in stages.split(",") if name.strip()]
-    runnable = runnable_stages()
-    unknown = [name for name in names if name not in runnable]
-    if unknown or not names:
-        raise click.BadParameter(
-            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(runnable)}",
-            param_hint="--stages",
-        )
+    names = chosen_stages(stages)
     ensure_database()
     clear_leftovers(as_json)  # what killed runs and exports left behind
     specs = available_stages()
@@ -298,19 +321,7 @@ def cards_command(stage: str | None, state: str | None, collection_name: str | N
 
 @click.command("worker")
 @click.option("--once", is_flag=True, help="Run one round over the catalogue, then exit (0 done, 1 if any card failed).")
-@click.option("--stages", default=",".join(default_run_stages()), show_default=True, help=_stages_help())
-@click.option(
-    "--workers", default=1, show_default=True, type=click.IntRange(1, 256), help="Worker processes (1 runs inline on one core)."
-)
-@click.option(
-    "--executor",
-    "executor_kind",
-    type=click.Choice(["local", "dask"]),
-    default="local",
-    show_default=True,
-    help="Where per-card work runs: a local process pool or a dask cluster (--scheduler).",
-)
-@click.option("--scheduler", help="dask scheduler address (with --executor dask); default a local cluster.")
+@where_it_runs
 @click.option(
     "--poll-s",
     type=click.FloatRange(min=0.1),
@@ -356,14 +367,7 @@ def worker_command(
     from runs.leftovers import clear_leftovers
     from runs.worker import BackgroundWorker, WorkerRound
 
-    names = [name.strip() for name in stages.split(",") if name.strip()]
-    runnable = runnable_stages()
-    unknown = [name for name in names if name not in runnable]
-    if unknown or not names:
-        raise click.BadParameter(
-            f"unknown or unavailable stage(s): {', '.join(unknown) or '(none)'}; available: {', '.join(runnable)}",
-            param_hint="--stages",
-        )
+    names = chosen_stages(stages)
     ensure_database()
     clear_leftovers(True)
 

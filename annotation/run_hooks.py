@@ -42,8 +42,12 @@ def aggregates_mark() -> tuple[Any, ...]:
     background worker's cue that crowd work arrived (runs.worker.change_mark). Two index
     lookups (the id, the indexed ``updated_at``), so a worker can ask every few seconds at any
     catalogue size; a count would scan the table (126 ms at 500,000 aggregates on SQLite)."""
-    newest, changed = db.session.execute(select(func.max(Aggregate.id), func.max(Aggregate.updated_at))).one()
-    return (newest, str(changed))
+    # Two scalar subqueries: SQLite answers a lone max() from the index, but not two in one SELECT
+    # (112 ms at 500,000 aggregates that way, 0.03 ms this way).
+    newest = select(func.max(Aggregate.id)).scalar_subquery()
+    changed = select(func.max(Aggregate.updated_at)).scalar_subquery()
+    found = db.session.execute(select(newest, changed)).one()
+    return (found[0], str(found[1]))
 
 
 def register(app: Flask) -> None:

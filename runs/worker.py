@@ -159,7 +159,8 @@ def run_round(
     optional = optional_stages_to_refresh(stage_names) if refresh_optional else {}
 
     def run_one(spec: Any, followers: Any, leave_out: Any) -> Any:
-        never = optional.get(spec.name, set())
+        # an optional stage leaves out the cards that never had it
+        leave_out = {**leave_out, spec.name: set(leave_out.get(spec.name, ())) | optional.get(spec.name, set())}
         return run_stage(
             spec,
             data_dir=data_dir,
@@ -167,7 +168,7 @@ def run_round(
             driver=driver,
             wait_for_held=False,
             followers=followers,
-            leave_out={**leave_out, spec.name: set(leave_out.get(spec.name, set())) | never} if never else leave_out,
+            leave_out=leave_out,
         )
 
     # The optional stages after the others and unchained: a chain would take every card the round
@@ -326,7 +327,7 @@ def worker_command_line(parent_pid: int) -> list[str]:
 
 def start_server_worker(env: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
     """Start a ``keystone worker`` beside a server; it exits when this process does."""
-    return subprocess.Popen(worker_command_line(os.getpid()), env=env or dict(os.environ), start_new_session=False)
+    return subprocess.Popen(worker_command_line(os.getpid()), env=env or dict(os.environ))
 
 
 def stop_server_worker(process: subprocess.Popen[bytes], timeout_s: float = 30.0) -> None:

@@ -64,6 +64,11 @@ def _open_checked(path: Path, max_pixels: int) -> Image.Image:
         raise ImageReadError("not an image (no decoder recognises its contents)") from exc
     except OSError as exc:
         raise ImageReadError(f"cannot open: {exc}") from exc
+    except Exception as exc:
+        # Pillow's header parsers raise what they meet: ValueError for a zTXt or iCCP chunk that
+        # inflates past its limit (a 2 KB PNG), SyntaxError, struct.error, EOFError, its
+        # DecompressionBombError. Whatever it is, the file is refused with a reason, not a crash.
+        raise ImageReadError(f"cannot open: {type(exc).__name__}: {exc}") from exc
     width, height = image.size
     if width < 1 or height < 1:
         image.close()
@@ -80,9 +85,10 @@ def _open_checked(path: Path, max_pixels: int) -> Image.Image:
 def _decode(image: Image.Image) -> None:
     try:
         image.load()
-    except (OSError, SyntaxError, ValueError) as exc:
-        # PIL reports truncated JPEGs/PNGs as OSError("image file is truncated ...").
-        raise ImageReadError(f"corrupt or truncated image data: {exc}") from exc
+    except Exception as exc:
+        # PIL reports truncated JPEGs/PNGs as OSError("image file is truncated ..."); its decoders
+        # also raise ValueError, SyntaxError, struct.error, EOFError or worse on hostile data.
+        raise ImageReadError(f"corrupt or truncated image data: {type(exc).__name__}: {exc}") from exc
 
 
 def probe_image(path: str | os.PathLike[str], max_pixels: int = DEFAULT_MAX_PIXELS) -> ImageInfo:

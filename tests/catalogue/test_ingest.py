@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import stat
@@ -147,6 +148,11 @@ def test_every_bad_input_is_rejected_with_a_reason_and_the_rest_goes_on(app, run
     (bad / "empty.jpg").write_bytes(b"")
     (bad / "text.tif").write_text("this is not a TIFF")
     png_bomb(bad / "bomb.png")
+    text_bomb = io.BytesIO()
+    Image.new("RGB", (64, 32)).save(text_bomb, "PNG")
+    chunk = b"k\0\0" + zlib.compress(b"A" * (2 << 20))  # a 2 KB PNG whose zTXt inflates to 2 MiB
+    packed = struct.pack(">I", len(chunk)) + b"zTXt" + chunk + struct.pack(">I", zlib.crc32(b"zTXt" + chunk))
+    (bad / "ztxt.png").write_bytes(text_bomb.getvalue()[:33] + packed + text_bomb.getvalue()[33:])
     (bad / "dangling.jpg").symlink_to(tmp_path / "nowhere.jpg")
     missing = tmp_path / "missing-folder"
     unsupported = tmp_path / "scan.gif"
@@ -161,6 +167,7 @@ def test_every_bad_input_is_rejected_with_a_reason_and_the_rest_goes_on(app, run
     assert "empty file" in reasons["empty.jpg"]
     assert "not an image" in reasons["text.tif"]
     assert "decompression bomb" in reasons["bomb.png"] and "3,600,000,000" in reasons["bomb.png"]
+    assert reasons["ztxt.png"] == "cannot open: ValueError: Decompressed data too large for PngImagePlugin.MAX_TEXT_CHUNK"
     assert "symbolic link" in reasons["dangling.jpg"] or "no such file" in reasons["dangling.jpg"]
     assert "no such file or folder" in reasons["missing-folder"]
     assert "unsupported file type '.gif'" in reasons["scan.gif"]

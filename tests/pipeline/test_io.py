@@ -44,6 +44,33 @@ def test_bad_files_raise_typed_errors(tmp_path: Path, content: bytes, match: str
         read_image(path)
 
 
+def _png_with_chunk(kind: bytes, data: bytes) -> bytes:
+    """A 64 x 32 PNG with one more ancillary chunk right after its header."""
+    import io
+    import struct
+    import zlib
+
+    buffer = io.BytesIO()
+    Image.new("RGB", (64, 32)).save(buffer, "PNG")
+    png = buffer.getvalue()
+    chunk = struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    return png[:33] + chunk + png[33:]
+
+
+@pytest.mark.parametrize("kind", [b"zTXt", b"iCCP"])
+def test_a_chunk_that_inflates_past_pillows_limit_is_a_typed_refusal(tmp_path: Path, kind: bytes):
+    """A 2 KB PNG whose compressed text or colour profile inflates past 1 MiB: Pillow raises
+    ValueError while opening it; the reader refuses the file with the reason instead."""
+    import zlib
+
+    path = tmp_path / "bomb.png"
+    path.write_bytes(_png_with_chunk(kind, b"k\0\0" + zlib.compress(b"A" * (2 << 20))))
+    assert path.stat().st_size < 4096
+    for reader in (probe_image, read_image):
+        with pytest.raises(ImageReadError, match="cannot open: ValueError: Decompressed data too large"):
+            reader(path)
+
+
 def test_truncated_file(tmp_path: Path):
     rng = np.random.default_rng(1)
     Image.fromarray(rng.integers(0, 256, (200, 200, 3), dtype=np.uint8)).save(tmp_path / "full.jpg")

@@ -35,6 +35,7 @@ from core.db import db
 from core.models import Card, Collection, MetadataRecord
 from pipeline.errors import ImageReadError
 from pipeline.io import IMAGE_SUFFIXES, probe_image
+from pipeline.split import MIN_HEIGHT, MIN_WIDTH
 
 if TYPE_CHECKING:
     from catalogue.stereo_ingest import StereoOptions
@@ -336,6 +337,12 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
         return
     try:
         info = probe_image(path, max_pixels=max_pixels)
+        if info.width < MIN_WIDTH or info.height < MIN_HEIGHT:
+            # the filter refuses it at once: say so at the door rather than after a run
+            raise ImageReadError(
+                f"too small to be a stereo card: {info.width}x{info.height} px "
+                f"(the smallest card the pipeline splits is {MIN_WIDTH}x{MIN_HEIGHT} px)"
+            )
         relative = store_original(path, content_hash, data_dir)
     except ImageReadError as exc:
         report.rejected.append({"path": str(path), "reason": str(exc)})

@@ -102,6 +102,9 @@ def probe_image(path: str | os.PathLike[str], max_pixels: int = DEFAULT_MAX_PIXE
     with image:
         fmt, mode, (width, height) = image.format or "unknown", image.mode, image.size
         _decode(image)
+        if mode == "F" and not np.isfinite(np.asarray(image)).any():
+            # the reader would refuse it on first use (_to_uint8): refuse it at the door instead
+            raise ImageReadError("image holds no finite pixel values")
     return ImageInfo(width=width, height=height, format=fmt, mode=mode, byte_size=path.stat().st_size)
 
 

@@ -523,8 +523,11 @@ def _crowd_status(
 def _review_status(review: Any, latest: dict[str, StageResult]) -> dict[str, Any]:
     if review is None or review.decision == "pending":
         grade = latest.get("grade")
-        if grade is None and "disparity" in latest and latest["disparity"].status == "failed":
-            return _status("skipped", f"not run: disparity failed ({latest['disparity'].reason})")
+        failed = next(
+            (latest[name] for name in ("rectify", "disparity") if name in latest and latest[name].status == "failed"), None
+        )
+        if grade is None and failed is not None:
+            return _status("skipped", f"not run: {failed.stage} failed ({failed.reason})")
         return _status("pending", "waiting for a curator" if review is not None else None)
     metrics = {"grade": review.grade, "auto_grade": review.auto_grade, "version": review.version}
     if review.decision == "sent_back":
@@ -538,6 +541,7 @@ def _statuses(
     """The stage status map of ``keystone cards --json``: every stage, ``pending`` if not run."""
     statuses: dict[str, dict[str, Any]] = {}
     undecided_in_flow = _in_flow(card, work) and not is_decided(orientation)
+    filter_failed = latest["filter"] if "filter" in latest and latest["filter"].status == "failed" else None
     for stage in flow_stages() if only_stage is None else (only_stage,):
         result = latest.get(stage)
         if stage == "judge" and undecided_in_flow and "orientation" in latest:
@@ -555,6 +559,15 @@ def _statuses(
         elif card.state == "culled" and stage in DOWNSTREAM_OF_CULL and result is None:
             filter_reason = latest["filter"].reason if "filter" in latest else "culled"
             statuses[stage] = _status("skipped", f"not needed: the card was culled by the filter ({filter_reason})")
+        elif filter_failed is not None and stage in DOWNSTREAM_OF_CULL and result is None:
+            # a card the filter could not read goes no further: every later stage says why
+            statuses[stage] = _status("skipped", f"not run: the filter failed ({filter_failed.reason or 'no reason recorded'})")
+        elif stage == "crop" and work.get("crop") is None and "rectify" in latest and latest["rectify"].status == "failed":
+            statuses[stage] = _status(
+                "skipped",
+                f"not asked: rectification failed ({latest['rectify'].reason}); a curator can send the card to the "
+                "crowd for crop boxes",
+            )
         elif stage in ("judge", "crop"):
             statuses[stage] = _crowd_status(stage, card, work.get(stage), latest, orientation)
         elif stage == "review":

@@ -205,6 +205,32 @@ def test_culled_rectify_failed_and_graded_failure(app, make_card, add_stage_resu
     assert states[failure].sentence == "This card is graded but not yet in the review queue: sync the queue with the grader."
 
 
+def test_every_stage_after_a_failed_filter_or_rectification_says_why(app, make_card, add_stage_result, card_image) -> None:  # type: ignore[no-untyped-def]
+    """A card the filter could not read, and the crop of a card whose rectification failed, are
+    not left pending with no reason (issue 35.5): each such stage is skipped and says why."""
+    unreadable = make_card(card_image()[:, 5:], state="failed")
+    add_stage_result(
+        unreadable, "filter", status="failed", outcome=None, reason="unreadable_image: image holds no finite pixel values"
+    )
+    broken = _passed(make_card, add_stage_result, card_image()[:, 6:])
+    add_stage_result(broken, "rectify", status="failed", outcome=None, reason="too_few_matches: 9 < 12")
+    states = _states(app, unreadable, broken)
+
+    why = "not run: the filter failed (unreadable_image: image holds no finite pixel values)"
+    after_filter = {stage: info for stage, info in states[unreadable].statuses.items() if stage != "filter"}
+    assert after_filter == dict.fromkeys(after_filter, {"status": "skipped", "outcome": None, "reason": why, "metrics": {}})
+    assert set(after_filter) == {"orientation", "judge", "crop", "rectify", "disparity", "grade", "review", "views"}
+    assert states[broken].statuses["crop"]["status"] == "skipped"
+    assert states[broken].statuses["crop"]["reason"] == (
+        "not asked: rectification failed (too_few_matches: 9 < 12); a curator can send the card to the crowd for crop boxes"
+    )
+    assert {
+        stage: info["reason"]
+        for stage, info in states[broken].statuses.items()
+        if info["status"] != "done" and not info["reason"]
+    } == {}
+
+
 # ----------------------------------------------------------------------------- staleness
 
 

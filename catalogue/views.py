@@ -441,6 +441,19 @@ def card_image_url(card: Card, variant: str = "original") -> str:
 
 
 @bp.app_template_global()
+def image_artifacts(result: StageResult | None) -> list[str]:
+    """The names of ``result``'s artifacts a page can show as images (the filter also records
+    its matches as a ``.npy``: listing every artifact put a broken image on every card page)."""
+    if result is None:
+        return []
+    return [
+        name
+        for name, relative in (result.artifacts or {}).items()
+        if isinstance(relative, str) and Path(relative).suffix.lower() in ARTIFACT_IMAGE_TYPES
+    ]
+
+
+@bp.app_template_global()
 def artifact_image_url(card: Card, result: StageResult, name: str) -> str:
     return url_for(
         "catalog.artifact_image", card_id=card.id, stage=result.stage, name=name, v=url_version(artifact_etag(card, result, name))

@@ -411,3 +411,21 @@ def test_card_page_shows_the_grade_with_its_reasons(client, login, make_card, ad
     assert '<span class="grade grade-failure">failure</span>' in html and "uncertainty 0.25" in html
     assert "<li>failure: rows of the two views are misaligned by 6.0 px (&gt; 4 px)</li>" in html
     assert "Open the 3D viewer" not in html  # no views result yet
+
+
+def test_every_image_on_a_processed_card_page_loads(app, client, login, runner, make_card, decide_orientation) -> None:  # type: ignore[no-untyped-def]
+    """The card page lists only the artifacts that are images (issue 33.4: the filter's matches,
+    a .npy, was shown as an image and answered 404 on every card) and every one of them loads."""
+    import re
+
+    card = make_card()
+    decide_orientation([card])
+    result = runner.invoke(args=["run", "--stages", "filter,rectify,disparity,grade", "--json"])
+    assert result.exit_code == 0, result.output
+    login("curator")
+    page = client.get(f"/cards/{card}").get_data(as_text=True)
+    sources = re.findall(r'<img[^>]+src="([^"]+)"', page)
+    assert any("/image/filter/" in source for source in sources) and not any("/image/filter/matches" in s for s in sources)
+    for source in sources:
+        answer = client.get(source.replace("&amp;", "&"))
+        assert answer.status_code == 200 and answer.mimetype.startswith("image/"), (source, answer.status_code)

@@ -15,4 +15,4 @@ from . import run_hooks
 bp = Blueprint("crowd", __name__, url_prefix="/crowd", template_folder="templates", static_folder="static")
 bp.record_once(lambda state: add_nav_link(state.app, "Crowd", "crowd.batches", "curator", order=40))
 bp.record_once(lambda state: run_hooks.register(state.app))
-bp.record_once(lambda state: add_nav_link(state.app, "My tasks", "crowd.mine", "annotator", order=35))
+bp.record_once(lambda state: add_nav_link(state.app, "My tasks", "crowd.mine", "annotator", order=35, home_of=("annotator",)))

@@ -22,7 +22,7 @@ from sqlalchemy import ColumnElement, and_, false, func, not_, or_, select
 from sqlalchemy.orm import selectinload
 from werkzeug.wrappers import Response
 
-from core.auth import add_nav_link, role_required
+from core.auth import add_nav_link, role_home, role_required
 from core.db import db, read_only
 from core.http_images import not_modified, send_image, url_version
 from core.limits import parse_positive_int
@@ -50,7 +50,7 @@ ARTIFACT_IMAGE_TYPES = {
     ".gif": "image/gif",
 }
 
-bp.record_once(lambda state: add_nav_link(state.app, "Cards", "catalog.cards", *STAFF_ROLES, order=10))
+bp.record_once(lambda state: add_nav_link(state.app, "Cards", "catalog.cards", *STAFF_ROLES, order=10, home_of=("admin",)))
 
 
 # ----------------------------------------------------------------------------- loaders
@@ -197,9 +197,11 @@ def filter_conditions(filters: CardFilters, *, with_state: bool = True) -> list[
 def index() -> Any:
     if not current_user.is_authenticated:
         return redirect(url_for("auth.login"))
-    if current_user.has_role(*STAFF_ROLES):
-        return redirect(url_for("catalog.cards"))
-    # Annotators reach their tasks through invite links; there is no catalogue for them.
+    # Each role lands where its work starts (a curator on Review, an exporter on Releases, an
+    # annotator with an account on My tasks, an admin on Cards); someone with no role is welcomed.
+    home = role_home()
+    if home is not None:
+        return redirect(home)
     return render_template("catalog/home.html")
 
 

@@ -198,27 +198,44 @@ class NavLink:
     endpoint: str
     roles: tuple[str, ...]
     order: int = 50
+    home_of: tuple[str, ...] = ()  # the roles whose work starts here (where they land after logging in)
 
 
-def add_nav_link(app: Flask, label: str, endpoint: str, *roles: str, order: int = 50) -> None:
-    """Show a link in the top bar to people with one of ``roles`` (admins see all links).
+def add_nav_link(
+    app: Flask, label: str, endpoint: str, *roles: str, order: int = 50, home_of: tuple[str, ...] = ()
+) -> None:
+    """Show a link in the top bar to people with one of ``roles`` (admins see all links);
+    ``home_of``: the roles that land on it after logging in (:func:`role_home`).
 
     Call it from a blueprint's ``record_once`` so each feature owns its own entry.
     """
-    app.extensions.setdefault("keystone_nav", []).append(NavLink(label, endpoint, roles, order))
+    app.extensions.setdefault("keystone_nav", []).append(NavLink(label, endpoint, roles, order, home_of))
+
+
+def _links() -> list[NavLink]:
+    return sorted(current_app.extensions.get("keystone_nav", []), key=lambda link: (link.order, link.label))
+
+
+def role_home() -> str | None:
+    """Where the logged-in person's work starts: the first top-bar link (in bar order) that is
+    the landing page of one of their own roles (a curator's Review, an exporter's Releases, an
+    annotator's My tasks, an admin's Cards); None for someone with no role."""
+    mine = current_user.roles
+    return next((url_for(link.endpoint) for link in _links() if mine.intersection(link.home_of)), None)
 
 
 @bp.app_template_global()
 def nav_links() -> list[dict[str, Any]]:
     if not current_user.is_authenticated:
         return []
-    here = (request.endpoint or "").split(".")[0]
-    links = sorted(current_app.extensions.get("keystone_nav", []), key=lambda link: (link.order, link.label))
-    return [
-        {"label": link.label, "url": url_for(link.endpoint), "active": link.endpoint.split(".")[0] == here}
-        for link in links
-        if current_user.has_role(*link.roles)
-    ]
+    links = [link for link in _links() if current_user.has_role(*link.roles)]
+    # One link is current: the one for this very page, else the first of its feature's (Crowd
+    # and My tasks are both the crowd's, and were both highlighted).
+    endpoint = request.endpoint or ""
+    current = next((link for link in links if link.endpoint == endpoint), None) or next(
+        (link for link in links if link.endpoint.split(".")[0] == endpoint.split(".")[0]), None
+    )
+    return [{"label": link.label, "url": url_for(link.endpoint), "active": link is current} for link in links]
 
 
 bp.record_once(lambda state: add_nav_link(state.app, "People", "auth.people", "admin", order=90))

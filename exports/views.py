@@ -56,7 +56,7 @@ from .models import Release
 from .records import RELEASABLE_GRADES
 
 bp = Blueprint("exports", __name__, url_prefix="/releases", template_folder="templates")
-bp.record_once(lambda state: add_nav_link(state.app, "Releases", "exports.index", "exporter", order=70))
+bp.record_once(lambda state: add_nav_link(state.app, "Releases", "exports.index", "exporter", order=70, home_of=("exporter",)))
 
 FILES_LISTED = 1000  # a release page lists this many files; the archive and SHA256SUMS hold them all
 RELEASE_DOCUMENTS = {

@@ -77,7 +77,7 @@ bp = Blueprint(
     static_folder="static",
     static_url_path="/review-static",
 )
-bp.record_once(lambda state: add_nav_link(state.app, "Review", "review.queue", "curator", order=30))
+bp.record_once(lambda state: add_nav_link(state.app, "Review", "review.queue", "curator", order=30, home_of=("curator",)))
 bp.record_once(lambda state: run_hooks.register(state.app))
 
 

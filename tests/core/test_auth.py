@@ -34,7 +34,33 @@ def test_login_with_the_right_password_logs_in_and_goes_to_the_catalogue(client,
     )
     assert response.status_code == 302 and response.headers["Location"] == "/"
     assert logged_in_as(client) == str(person.id)
-    assert client.get("/").headers["Location"] == "/cards"
+    assert client.get("/").headers["Location"] == "/review/"  # a curator's work starts at the review queue
+
+
+@pytest.mark.parametrize(
+    ("roles", "home"),
+    [
+        (("curator",), "/review/"),
+        (("exporter",), "/releases/"),
+        (("admin",), "/cards"),
+        (("curator", "exporter"), "/review/"),
+        (("annotator",), "/crowd/mine"),
+    ],
+)
+def test_each_role_lands_where_its_work_starts(client, make_person, csrf_token, roles, home):
+    person = make_person(*roles)
+    client.post("/auth/login", data={"username": person.username, "password": person.password, "csrf_token": csrf_token()})
+    assert client.get("/").headers["Location"] == home
+
+
+def test_one_top_bar_link_is_current_on_a_page(client, login):
+    """Crowd and My tasks are both the crowd's pages: only the page's own link is current."""
+    import re
+
+    login("admin")
+    page = client.get("/crowd/batches").get_data(as_text=True)
+    current = re.findall(r'<a href="([^"]+)" aria-current="page">', page)
+    assert current == ["/crowd/batches"]
 
 
 def test_login_with_a_wrong_password_fails(client, make_person, csrf_token):

@@ -201,9 +201,7 @@ class NavLink:
     home_of: tuple[str, ...] = ()  # the roles whose work starts here (where they land after logging in)
 
 
-def add_nav_link(
-    app: Flask, label: str, endpoint: str, *roles: str, order: int = 50, home_of: tuple[str, ...] = ()
-) -> None:
+def add_nav_link(app: Flask, label: str, endpoint: str, *roles: str, order: int = 50, home_of: tuple[str, ...] = ()) -> None:
     """Show a link in the top bar to people with one of ``roles`` (admins see all links);
     ``home_of``: the roles that land on it after logging in (:func:`role_home`).
 

@@ -46,14 +46,16 @@ def test_root_sends_anonymous_people_to_log_in(client):
     assert client.get("/").headers["Location"] == "/auth/login"
 
 
-@pytest.mark.parametrize("role", ["curator", "exporter", "admin"])
-def test_root_sends_staff_to_the_catalogue(client, login, role):
+@pytest.mark.parametrize(
+    ("role", "home"), [("curator", "/review/"), ("exporter", "/releases/"), ("admin", "/cards"), ("annotator", "/crowd/mine")]
+)
+def test_root_sends_each_role_where_its_work_starts(client, login, role, home):
     login(role)
-    assert client.get("/").headers["Location"] == "/cards"
+    assert client.get("/").headers["Location"] == home
 
 
-def test_root_greets_annotators_without_the_catalogue(client, login):
-    login("annotator")
+def test_root_greets_someone_with_no_role_without_the_catalogue(client, login):
+    login()
     response = client.get("/")
     assert response.status_code == 200 and "invite" in response.get_data(as_text=True)
 

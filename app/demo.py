@@ -364,12 +364,24 @@ def build_demo(folder: Path, workers: int = 2, echo=click.echo) -> dict:  # type
     show_default=True,
     help="Serve with the background worker that recomputes as people decide (as keystone serve).",
 )
-def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: int, with_worker: bool) -> None:
-    """Build the demo collection end to end (embedded SQLite in --dir), then serve the app."""
+@click.option(
+    "--serve-only",
+    is_flag=True,
+    help="Serve the demo built before in --dir (by keystone demo --no-serve), without building it again.",
+)
+def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: int, with_worker: bool, serve_only: bool) -> None:
+    """Build the demo collection end to end (embedded SQLite in --dir), then serve the app.
+
+    A demo built with --no-serve is served again, as it was left, by `keystone demo --dir D
+    --serve-only` (its catalogue, store and releases all live in D)."""
     from app import create_app
     from app.serving import serve
 
+    if no_serve and serve_only:
+        raise click.UsageError("--no-serve and --serve-only ask for opposite things; give one")
     folder = folder.resolve()
+    if serve_only and not (folder / "keystone.sqlite3").is_file():
+        raise click.UsageError(f"no demo is built in {folder}: run `keystone demo --dir {folder}` (or with --no-serve) first")
     folder.mkdir(parents=True, exist_ok=True)
     app = create_app(
         {
@@ -379,6 +391,16 @@ def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: in
         },
         instance_path=folder / "instance",
     )
+    if serve_only:
+        logins = folder / "demo-logins.txt"
+        click.echo(f"serving the demo built in {folder}")
+        if logins.is_file():
+            click.echo(
+                "logins (from demo-logins.txt): "
+                + ", ".join(" / ".join(line.split()) for line in logins.read_text().splitlines())
+            )
+        serve(app, host=host, port=port, with_worker=with_worker)
+        return
     with app.app_context():
         summary = build_demo(folder, workers=workers)
     click.echo(f"demo built in {summary['seconds']:.1f} s in {folder}")
@@ -386,5 +408,7 @@ def demo_command(no_serve: bool, folder: Path, host: str, port: int, workers: in
     unexpected = [row["source"] for row in summary["cards"] if not row["as_expected"]]
     if unexpected:
         click.echo(f"warning: {len(unexpected)} card(s) routed unexpectedly: {', '.join(unexpected)}", err=True)
-    if not no_serve:
+    if no_serve:
+        click.echo(f"serve it again later with: keystone demo --dir {folder} --serve-only")
+    else:
         serve(app, host=host, port=port, with_worker=with_worker)

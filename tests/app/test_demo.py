@@ -86,3 +86,23 @@ def test_demo_builds_routes_and_is_rerunnable(tmp_path: Path, monkeypatch):
         if card["orientation"]["decided_by"] is None:
             assert card["stages"]["grade"]["status"] != "done", card["source"]
             assert card["id"] not in released, card["source"]
+
+    # Served again as it was left, without building it (issue 33.11: a plain `keystone serve` opened
+    # an empty instance, and reaching the demo took four environment variables).
+    assert f"keystone demo --dir {folder.resolve()} --serve-only" in result.output
+    served: dict[str, object] = {}
+
+    def fake_serve(app, host, port, with_worker):  # type: ignore[no-untyped-def]
+        served.update(database=app.config["SQLALCHEMY_DATABASE_URI"], data=app.config["KEYSTONE_DATA_DIR"], worker=with_worker)
+
+    monkeypatch.setattr("app.serving.serve", fake_serve)
+    again = runner.invoke(cli, ["demo", "--serve-only", "--dir", str(folder)])
+    assert again.exit_code == 0, again.output
+    assert served == {
+        "database": f"sqlite:///{folder.resolve() / 'keystone.sqlite3'}",
+        "data": str(folder.resolve() / "data"),
+        "worker": True,
+    }
+    assert "processed" not in again.output and "curator / " in again.output
+    empty = runner.invoke(cli, ["demo", "--serve-only", "--dir", str(tmp_path / "nothing-here")])
+    assert empty.exit_code == 2 and "no demo is built in" in empty.output

@@ -683,11 +683,11 @@ def _results_given(review: CardReview, shown_results: str | None) -> dict[str, A
 
 
 def results_digest(fingerprint: dict[str, Any]) -> str:
-    """A short digest of a results fingerprint, for a page to send back with a decision."""
-    import hashlib
-    import json
+    """A short digest of a results fingerprint, for a page to send back with a decision (the
+    pipeline's sorted-JSON digest, as each result's inputs are digested)."""
+    from pipeline.records import inputs_digest
 
-    return hashlib.sha256(json.dumps(fingerprint, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return inputs_digest(fingerprint)
 
 
 def card_results_digest(card: Card) -> str:

@@ -176,13 +176,12 @@ def run_round(
     reports = list(run_stages([specs[name] for name in stage_names], run_one, chain=True))
     reports += run_stages([specs[name] for name in optional if name in specs], run_one, chain=False)
     for stage_report in reports:
-        summary = stage_report.as_json()
         report.stages.append(
             {
                 "stage": stage_report.stage,
                 "processed": stage_report.processed,
                 "failed": stage_report.failed,
-                "outcomes": summary.get("outcomes", {}),
+                "outcomes": dict(stage_report.outcomes),
                 "held_by_other_run": stage_report.held_by_other_run,
                 "seconds": round(stage_report.seconds, 3),
             }

@@ -190,6 +190,7 @@ def test_boundary_mask_picks_the_nearer_side():
     assert not flat.any()
 
 
+@pytest.mark.bench  # a timing: kept out of the default run, run with -m bench
 def test_reprojection_of_256_is_fast():
     gd = _two_planes()
     cam = corner_cameras(gd)[0]

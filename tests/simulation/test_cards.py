@@ -114,6 +114,7 @@ def test_same_seed_gives_byte_identical_cards_and_another_seed_does_not(cards):
     assert other[0].truth["crop_window"] != cards[0].truth["crop_window"]
 
 
+@pytest.mark.bench  # a timing: kept out of the default run, run with -m bench
 def test_generation_is_fast(cards):
     clock = time.perf_counter()
     make_demo_cards(seed=5)  # sources already loaded by the fixture

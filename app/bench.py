@@ -22,6 +22,7 @@ LAZY_BENCHMARKS = {
     "grade": "benchmarks.grade:bench_grade_command",
     "grade-real": "benchmarks.grade_real:bench_grade_real_command",
     "inpainting": "benchmarks.inpainting:bench_inpainting_command",
+    "invariance": "benchmarks.invariance:bench_invariance_command",
     "pipeline": "benchmarks.pipeline_cost:bench_pipeline_command",
     "probe": "benchmarks.probe:bench_probe_command",
     "rectify": "benchmarks.rectify:bench_rectify_command",

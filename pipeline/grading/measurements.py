@@ -4,8 +4,13 @@ and the earlier stages' metrics into :class:`GradeMeasurements` (units in its do
 Conventions as in :mod:`pipeline.disparity`: a left pixel ``(x, y)`` is seen in the right view at
 ``x_right = x_left - d_left``; a right pixel at ``x_left = x_right + d_right``. Views are uint8
 ``(H, W)`` grey or ``(H, W, 3)`` RGB; pixels that are 0 in every channel of a view are the
-warp's black fill, outside the photograph. Every measurement is taken in the rectified view's
-own pixels (the disparity maps must have the views' shape).
+warp's black fill, outside the photograph. The disparity maps must have the views' shape.
+
+Units do not change with the scan's size: a measurement in pixels is given at a view
+:data:`REFERENCE_SIDE` px on its longer side (the measurement in the stored view's own pixels x
+``REFERENCE_SIDE / longer side``, i.e. the same fraction of the view whatever the scan's
+resolution), and texture and row alignment are measured on copies resampled to exactly
+:data:`WORK_SIDE` px (down or up), so that a card scanned at 0.5x or 4x measures as at 1x.
 """
 
 from __future__ import annotations
@@ -27,7 +32,11 @@ from . import scene_checks
 __all__ = ["MEASUREMENT_NAMES", "TEXT_FIELDS", "GradeMeasurements", "finite_or_none", "measure_card"]
 
 MIN_SIDE = 16  # px: as the disparity stage; smaller views have nothing to measure
-WORK_SIDE = 512  # px: texture and row alignment are measured at this longer side (see measure_card)
+# px: the longer side of the view at which every pixel measurement is stated. The filter's SIFT
+# side (FilterParams.max_side), where the matches that rectification reuses are found: a p95 |dy|
+# of 2 px here is rectification's own refusal (RectifyParams.max_dy_p95) on any scan over 600 px.
+REFERENCE_SIDE = 600
+WORK_SIDE = 512  # px: texture and row alignment are measured on copies resampled to this longer side
 TEXTURE_GRADIENT = 3.0  # grey levels / px at WORK_SIDE: a pixel at least this steep counts as textured
 CONSISTENCY_PX = 1.0  # left-right check tolerance (px), as the disparity stage's default
 
@@ -42,7 +51,8 @@ class GradeMeasurements:
 
     From the rectify stage (the worse of the two views where it measures both):
 
-    * ``dy_p95_px``: px, 95th percentile of inlier ``|y_l - y_r|`` after rectification.
+    * ``dy_p95_px``: px at :data:`REFERENCE_SIDE`, 95th percentile of inlier ``|y_l - y_r|``
+      after rectification.
     * ``shear_deg``: deg, ``90 - midline_angle``: how far the images of the midlines are from
       perpendicular (0 = no shear).
     * ``aspect_change``: ratio >= 1, change of the midline length ratio (1 = none).
@@ -52,10 +62,10 @@ class GradeMeasurements:
 
     Measured here from the rectified views and the disparity maps:
 
-    * ``row_misalignment_px``: px at full resolution, largest ``|v|`` at the four corners of a
-      robust plane ``v = c0 + c1 x + c2 y`` fitted to the vertical component of DIS optical flow
-      from the left to the right view over textured pixels (at ``WORK_SIDE``): what a viewer sees
-      as vertical parallax, whatever the rectification reported.
+    * ``row_misalignment_px``: px at :data:`REFERENCE_SIDE`, largest ``|v|`` at the four corners
+      of a robust plane ``v = c0 + c1 x + c2 y`` fitted to the vertical component of DIS optical
+      flow from the left to the right view over textured pixels (views resampled to
+      ``WORK_SIDE``): what a viewer sees as vertical parallax, whatever the rectification reported.
     * ``coverage``: share (0..1) of the left view's photograph (non-black pixels) with a finite
       left disparity (NaN, inf and ``|d|`` above the view width count as none).
     * ``lr_consistency``: share (0..1) of covered left pixels whose match ``x - d_L`` lies inside
@@ -64,7 +74,7 @@ class GradeMeasurements:
     * ``disparity_range_px``: px, p95 - p5 of the finite left disparities on the photograph;
       ``disparity_range_rel`` is the same over the view width (0.05 = 5 % of the width).
     * ``texture_gradient``: grey levels per px, median Sobel gradient magnitude of the grey left
-      view at ``WORK_SIDE``; ``textured_fraction``: share (0..1) of the photograph at least
+      view resampled to ``WORK_SIDE``; ``textured_fraction``: share (0..1) of the photograph at least
       ``TEXTURE_GRADIENT`` steep there.
     * ``photometric_error``: grey levels (0..255), mean ``|L(x, y) - R(x - d_L, y)|`` over covered
       pixels whose match falls on the right photograph, after removing the median brightness
@@ -227,13 +237,26 @@ def _rectify_values(rectify: Mapping[str, Any], notes: dict[str, str]) -> dict[s
     return out
 
 
+def _work_size(shape: tuple[int, ...]) -> tuple[int, int]:
+    """``(width, height)`` of a view of ``shape`` resampled to :data:`WORK_SIDE` on its longer side."""
+    h, w = shape[:2]
+    scale = WORK_SIDE / max(h, w)
+    return max(MIN_SIDE, round(w * scale)), max(MIN_SIDE, round(h * scale))
+
+
+def _at_work_side(grey: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``grey`` resampled to ``size``: area filter down, bilinear up (a small scan is measured as
+    the same print scanned larger, not at its own coarser pixel)."""
+    if grey.shape[1::-1] == size:
+        return grey
+    shrinking = size[0] < grey.shape[1]
+    return np.asarray(cv2.resize(grey, size, interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR))
+
+
 def _row_misalignment(grey_l: np.ndarray, grey_r: np.ndarray, inside: np.ndarray) -> float | None:
-    """px at full resolution (see :class:`GradeMeasurements`); None without textured pixels."""
-    h, w = grey_l.shape
-    scale = min(1.0, WORK_SIDE / max(h, w))
-    size = (max(MIN_SIDE, round(w * scale)), max(MIN_SIDE, round(h * scale)))
-    small_l = cv2.resize(grey_l, size, interpolation=cv2.INTER_AREA) if scale < 1 else grey_l
-    small_r = cv2.resize(grey_r, size, interpolation=cv2.INTER_AREA) if scale < 1 else grey_r
+    """px at :data:`REFERENCE_SIDE` (see :class:`GradeMeasurements`); None without textured pixels."""
+    size = _work_size(grey_l.shape)
+    small_l, small_r = _at_work_side(grey_l, size), _at_work_side(grey_r, size)
     mask = cv2.resize(inside.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     mask = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     flow = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(small_l, small_r, None)  # type: ignore[call-overload]
@@ -255,7 +278,7 @@ def _row_misalignment(grey_l: np.ndarray, grey_r: np.ndarray, inside: np.ndarray
         inliers = residual <= max(float(np.percentile(residual, 70)), 1e-6)
     sw, sh = size
     corners = np.array([[1, 0, 0], [1, sw - 1, 0], [1, 0, sh - 1], [1, sw - 1, sh - 1]], np.float64) @ coeffs
-    return float(np.abs(corners).max() / (sw / w))
+    return float(np.abs(corners).max() * REFERENCE_SIDE / max(sw, sh))
 
 
 def _gradient(grey: np.ndarray) -> np.ndarray:
@@ -267,10 +290,8 @@ def _gradient(grey: np.ndarray) -> np.ndarray:
 
 
 def _texture(grey_l: np.ndarray, inside: np.ndarray) -> tuple[float | None, float | None]:
-    h, w = grey_l.shape
-    scale = min(1.0, WORK_SIDE / max(h, w))
-    size = (max(MIN_SIDE, round(w * scale)), max(MIN_SIDE, round(h * scale)))
-    small = cv2.resize(grey_l, size, interpolation=cv2.INTER_AREA) if scale < 1 else grey_l
+    size = _work_size(grey_l.shape)
+    small = _at_work_side(grey_l, size)
     inside_u8 = cv2.resize(inside.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
     # The black fill's edge is steep but is not the photograph's texture.
     mask = np.asarray(cv2.erode(inside_u8, np.ones((5, 5), np.uint8)) > 0)
@@ -320,6 +341,8 @@ def measure_card(
     if values["good_match_fraction"] is None:
         notes["good_match_fraction"] = "no filter metrics" if not filter_metrics else "not in the filter metrics"
     values.update(_rectify_values(stages.get("rectify") or {}, notes))
+    if values["dy_p95_px"] is not None:  # the stored view's px -> px at REFERENCE_SIDE
+        values["dy_p95_px"] *= REFERENCE_SIDE / max(shape)
 
     grey_l, grey_r = to_grey(np.ascontiguousarray(left)), to_grey(np.ascontiguousarray(right))
     inside_l, inside_r = photograph_mask(left), photograph_mask(right)

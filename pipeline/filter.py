@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 
 from .contracts import check_image
+from .contrast import stretch_contrast
 from .errors import InvalidInputError
 from .split import CardSplit, SplitParams, crop_halves, split_card
 
@@ -233,7 +234,8 @@ def consistent_matches(offsets: np.ndarray, params: FilterParams) -> int:
 
 
 def _prepare(half: np.ndarray, max_side: int) -> np.ndarray:
-    """Grey ``uint8`` copy with the longer side at most ``max_side`` (area filter)."""
+    """Grey ``uint8`` copy with the longer side at most ``max_side`` (area filter), its contrast
+    stretched (:func:`pipeline.contrast.stretch_contrast`: a faded print keeps its keypoints)."""
     grey = half if half.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(half), cv2.COLOR_RGB2GRAY)
     height, width = grey.shape
     longer = max(height, width)
@@ -241,7 +243,7 @@ def _prepare(half: np.ndarray, max_side: int) -> np.ndarray:
         scale = max_side / longer
         size = (max(1, round(width * scale)), max(1, round(height * scale)))
         grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(grey)
+    return stretch_contrast(np.ascontiguousarray(grey))
 
 
 # Relative closeness below which a float32 distance of OpenCV's and a float64 one of ours might

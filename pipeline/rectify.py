@@ -83,6 +83,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from .contracts import check_image
+from .contrast import stretch_contrast
 from .errors import InvalidInputError, PipelineError
 
 __all__ = [
@@ -356,7 +357,8 @@ def _grey_scaled(image: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
     if scale < 1.0:
         grey = cv2.resize(grey, (max(1, round(width * scale)), max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
         scale = grey.shape[1] / width  # the scale actually applied in x (y within a pixel)
-    return np.ascontiguousarray(grey), scale
+    # As the filter's: a faded print keeps its keypoints (pipeline.contrast).
+    return stretch_contrast(np.ascontiguousarray(grey)), scale
 
 
 def _check_view(image: object, name: str) -> np.ndarray:

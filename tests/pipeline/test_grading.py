@@ -112,7 +112,7 @@ def test_right_view_six_px_down_is_a_failure_that_names_the_value(pair):
     assert m.row_misalignment_px == pytest.approx(6.0 * REFERENCE_SIDE / left.shape[1], abs=1.0)
     result = grade(m)
     assert result.grade == "failure" and result.deciding == ["row_misalignment_px"]
-    assert result.reasons[0] == f"failure: rows of the two views are misaligned by {m.row_misalignment_px:.1f} px (> 3 px)"
+    assert result.reasons[0] == f"failure: rows of the two views are misaligned by {m.row_misalignment_px:.1f} px (> 4 px)"
     # The warped view no longer reproduces the left one: about half-way to unrelated images.
     assert m.photometric_error_rel > 0.4
 
@@ -227,16 +227,16 @@ def test_missing_measurements_are_skipped_with_notes():
 
 def test_uncertainty_is_one_on_a_threshold_and_falls_with_the_log_ratio():
     assert grade(GradeMeasurements(coverage=0.8)).uncertainty == 1.0  # on the "some" line, still few
-    # 0.75 px against the 1.5 px "some" threshold: ln 2 away, u = 1 - ln 2 / ln 4 = 0.5
-    assert grade(GradeMeasurements(row_misalignment_px=0.75)).uncertainty == pytest.approx(0.5)
-    # a sole failure at 6 px is ln 2 above its 3 px threshold
-    alone = grade(GradeMeasurements(row_misalignment_px=6.0))
+    # 1 px against the 2 px "some" threshold: ln 2 away, u = 1 - ln 2 / ln 4 = 0.5
+    assert grade(GradeMeasurements(row_misalignment_px=1.0)).uncertainty == pytest.approx(0.5)
+    # a sole failure at 8 px is ln 2 above its 4 px threshold
+    alone = grade(GradeMeasurements(row_misalignment_px=8.0))
     assert alone.grade == "failure" and alone.uncertainty == pytest.approx(0.5)
     # two independent failures: no single crossing changes the grade
     both = grade(GradeMeasurements(row_misalignment_px=8.0, coverage=0.1))
     assert both.uncertainty == 0.0 and both.deciding == ["row_misalignment_px", "coverage"]
-    # two some-level measurements: either one crossing into failure changes the grade (2.25 vs 3 px)
-    assert grade(GradeMeasurements(row_misalignment_px=2.25, coverage=0.7)).uncertainty == pytest.approx(
+    # two some-level measurements: either one crossing into failure changes the grade (3 vs 4 px)
+    assert grade(GradeMeasurements(row_misalignment_px=3.0, coverage=0.7)).uncertainty == pytest.approx(
         1 - math.log(4 / 3) / math.log(4), abs=1e-4
     )
     # with the some level switched off, the failure threshold is the one that matters for a few card
@@ -260,7 +260,7 @@ def test_uncertainty_is_one_on_a_threshold_and_falls_with_the_log_ratio():
 def test_thresholds_round_trip_through_json_and_hash_stably():
     base = GradeThresholds()
     document = json.loads(json.dumps(base.to_dict()))
-    assert document["row_misalignment_px"] == {"direction": "above", "some": 1.5, "failure": 3.0}
+    assert document["row_misalignment_px"] == {"direction": "above", "some": 2.0, "failure": 4.0}
     assert GradeThresholds.from_dict(document) == base
     assert param_hash(GradeParams(GradeThresholds.from_dict(document))) == param_hash(GradeParams())
     moved = GradeThresholds.from_dict({"coverage": {"direction": "below", "some": 0.9, "failure": 0.5}})
@@ -343,7 +343,7 @@ def test_fitted_thresholds_agree_with_curators_on_held_out_labels():
     fitted = report.thresholds
     assert 0.7 <= fitted.row_misalignment_px.some <= 1.4 and 2.0 <= fitted.row_misalignment_px.failure <= 3.0
     assert 0.25 <= fitted.photometric_error_rel.some <= 0.35
-    assert any(change.startswith("row_misalignment_px some: 1.5 -> ") for change in report.changed)
+    assert any(change.startswith("row_misalignment_px some: 2 -> ") for change in report.changed)
     document = json.loads(json.dumps(report.as_dict(), allow_nan=False))
     assert GradeThresholds.from_dict(document["thresholds"]) == fitted
     # Training agreement is at least the held-out one (it is fitted on those labels).

@@ -35,8 +35,7 @@ def _measurements(rng: np.random.Generator) -> dict:
 
 @pytest.fixture
 def labelled(app, make_card, add_stage_result, card_image):  # type: ignore[no-untyped-def]
-    """60 graded cards whose curators judged by row misalignment alone, stricter than the default
-    thresholds (1.5 / 3 px): < 0.8 px few, < 2.2 px some."""
+    """60 graded cards whose curators judged by row misalignment alone: < 1 px few, < 2.5 px some."""
     from core.db import db
     from review.models import CardReview
 
@@ -44,7 +43,7 @@ def labelled(app, make_card, add_stage_result, card_image):  # type: ignore[no-u
     for index in range(60):
         metrics = _measurements(rng)
         rows = metrics["row_misalignment_px"]
-        label = "few" if rows < 0.8 else "some" if rows < 2.2 else "failure"
+        label = "few" if rows < 1.0 else "some" if rows < 2.5 else "failure"
         card_id = make_card(card_image()[:, index:], state="pass")
         add_stage_result(card_id, "grade", outcome="few", metrics=metrics)
         with app.app_context():

@@ -101,6 +101,7 @@ class WalkResult:
     server_errors: list[str] = field(default_factory=list)
     broken_images: list[str] = field(default_factory=list)
     slow: list[dict[str, Any]] = field(default_factory=list)
+    contrast: list[dict[str, Any]] = field(default_factory=list)  # with --contrast: axe-core's violations per page
 
 
 # ---------------------------------------------------------------------------------------------
@@ -215,8 +216,8 @@ def served(folder: Path, port: int, log: Path) -> Iterator[str]:
 class Walk:
     """A page for one role on one screen, with what it records. ``act`` presses or taps."""
 
-    def __init__(self, page: Any, base: str, result: WalkResult, shots: Path | None) -> None:
-        self.page, self.base, self.result, self.shots = page, base, result, shots
+    def __init__(self, page: Any, base: str, result: WalkResult, shots: Path | None, contrast: bool = False) -> None:
+        self.page, self.base, self.result, self.shots, self.contrast = page, base, result, shots, contrast
         self.touch = result.screen == "phone"
         self.started: float | None = None
         self.paused = 0.0  # seconds spent on checks and screenshots, taken off the walk's time
@@ -293,6 +294,8 @@ class Walk:
                 entry = f"{self._short(self.page.url)}: {self._short(src)}"
                 if entry not in self.result.broken_images:
                     self.result.broken_images.append(entry)
+            if self.contrast:
+                self._audit_contrast(name)
             if self.shots is not None:
                 self.step_count += 1
                 slug = re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
@@ -301,6 +304,15 @@ class Walk:
         except Exception:  # a page that is gone or busy is not checked; the walk's own steps say what failed
             pass
         self.paused += time.monotonic() - began
+
+    def _audit_contrast(self, name: str) -> None:
+        from benchmarks.contrast import audit_contrast
+
+        where = self._short(self.page.url).split("?")[0]
+        seen = {(entry["page"], entry["selector"]) for entry in self.result.contrast}
+        for violation in audit_contrast(self.page)["violations"]:
+            if (where, violation["selector"]) not in seen:
+                self.result.contrast.append({"page": where, "step": name, **violation})
 
     def act(self, locator: Any, key: str = "Enter") -> None:
         """Press ``key`` on ``locator`` (desktop) or tap it (phone)."""
@@ -490,11 +502,14 @@ WALKS: dict[str, Callable[[Walk], None]] = {
 }
 
 
-def run_walk(browser: Any, base: str, role: str, screen: str, password: str, shots: Path | None) -> WalkResult:
+def run_walk(
+    browser: Any, base: str, role: str, screen: str, password: str, shots: Path | None, contrast: bool = False
+) -> WalkResult:
     result = WalkResult(role=role, screen=screen)
-    context = browser.new_context(**SCREENS[screen])
+    # The contrast audit injects axe-core, which the pages' CSP would refuse.
+    context = browser.new_context(**SCREENS[screen], bypass_csp=contrast)
     try:
-        walk = Walk(context.new_page(), base, result, shots)
+        walk = Walk(context.new_page(), base, result, shots, contrast)
         try:
             walk.log_in(role, password)
             WALKS[role](walk)
@@ -512,6 +527,7 @@ def run_walks(
     screens: tuple[str, ...] = tuple(SCREENS),
     shots: Path | None = None,
     echo: Callable[[str], None] = click.echo,
+    contrast: bool = False,
 ) -> dict[str, Any]:
     """Every role's walk on every screen, each screen on its own served copy of ``demo``."""
     from playwright.sync_api import sync_playwright
@@ -535,7 +551,7 @@ def run_walks(
                         add_annotator_batches(folder)
                     with served(folder, free_port(), Path(scratch) / "server.log") as base:
                         for role in roles:
-                            result = run_walk(browser, base, role, screen, logins[role], shots)
+                            result = run_walk(browser, base, role, screen, logins[role], shots, contrast)
                             echo(
                                 f"{role:<10} {screen:<8} "
                                 + (
@@ -564,13 +580,15 @@ def seconds(walk: dict[str, Any]) -> str:
 
 def format_table(report: dict[str, Any]) -> str:
     lines = [
-        f"{'role':<10} {'screen':<8} {'result':<7} {'seconds':>7} {'loads':>5} {'docs':>4} {'console':>7} {'5xx':>3} {'broken':>6} {'slow':>4}",
+        f"{'role':<10} {'screen':<8} {'result':<7} {'seconds':>7} {'loads':>5} {'docs':>4} {'console':>7} {'5xx':>3} "
+        f"{'broken':>6} {'slow':>4} {'contrast':>8}",
     ]
     for walk in report["walks"]:
         lines.append(
             f"{walk['role']:<10} {walk['screen']:<8} {'done' if walk['ok'] else 'FAILED':<7} "
             f"{seconds(walk):>7} {walk['navigations']:>5} {walk['documents']:>4} "
-            f"{len(walk['console_errors']):>7} {len(walk['server_errors']):>3} {len(walk['broken_images']):>6} {len(walk['slow']):>4}"
+            f"{len(walk['console_errors']):>7} {len(walk['server_errors']):>3} {len(walk['broken_images']):>6} {len(walk['slow']):>4} "
+            f"{len(walk.get('contrast', [])):>8}"
         )
     lines.append("")
     lines.append("seconds: from the loaded login page to the job done, checks and screenshots excluded; (>N): failed after N s")
@@ -586,6 +604,11 @@ def format_table(report: dict[str, Any]) -> str:
             lines.append(f"{label}: server error: {error}")
         for image in walk["broken_images"]:
             lines.append(f"{label}: broken image: {image}")
+        for found in walk.get("contrast", []):
+            lines.append(
+                f"{label}: contrast {found['ratio']}:1 < {found['expected']} on {found['page']} ({found['step']}): "
+                f"{found['selector']} ({found['colour']} on {found['background']}, {found['font']})"
+            )
         for slow in walk["slow"]:
             lines.append(f"{label}: slow ({slow['step']}): {slow['method']} {slow['url']} [{slow['kind']}] {slow['ms']} ms")
     return "\n".join(lines)
@@ -605,20 +628,43 @@ def format_table(report: dict[str, Any]) -> str:
 @click.option(
     "--shots", type=click.Path(file_okay=False, path_type=Path), default=None, help="Save a screenshot of each step's page here."
 )
+@click.option(
+    "--contrast",
+    is_flag=True,
+    help="Also audit the text contrast of each step's page with axe-core (WCAG AA; needs `npm ci`); a violation fails the run.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the results as JSON.")
 @click.option(
     "--save", type=click.Path(dir_okay=False, path_type=Path), default=None, help="Also write the JSON results to this file."
 )
 def bench_walks_command(
-    demo: Path, roles: tuple[str, ...], screens: tuple[str, ...], shots: Path | None, as_json: bool, save: Path | None
+    demo: Path,
+    roles: tuple[str, ...],
+    screens: tuple[str, ...],
+    shots: Path | None,
+    contrast: bool,
+    as_json: bool,
+    save: Path | None,
 ) -> None:
     """Each role's main job walked in headless Chromium from the login page, timed, on a laptop
     (keyboard) and a phone (touch), against a served copy of a built demo."""
     chosen_roles = tuple(role for role in ROLES if role in roles) if roles else ROLES
     chosen_screens = tuple(screen for screen in SCREENS if screen in screens) if screens else tuple(SCREENS)
-    report = run_walks(demo.resolve(), chosen_roles, chosen_screens, shots, echo=(lambda _line: None) if as_json else click.echo)
+    if contrast:
+        from benchmarks.contrast import AXE_MISSING, axe_installed
+
+        if not axe_installed():
+            raise click.ClickException(AXE_MISSING)
+    report = run_walks(
+        demo.resolve(),
+        chosen_roles,
+        chosen_screens,
+        shots,
+        echo=(lambda _line: None) if as_json else click.echo,
+        contrast=contrast,
+    )
     if save is not None:
         save.write_text(json.dumps(report, indent=2) + "\n")
     click.echo(json.dumps(report, indent=2) if as_json else "\n" + format_table(report))
-    if not all(walk["ok"] for walk in report["walks"]):
+    if not all(walk["ok"] and not walk["contrast"] for walk in report["walks"]):
         sys.exit(1)

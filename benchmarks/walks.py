@@ -223,7 +223,7 @@ class Walk:
         self.paused = 0.0  # seconds spent on checks and screenshots, taken off the walk's time
         self.step_name = ""
         self.step_count = 0
-        page.set_default_timeout(STEP_TIMEOUT_MS)
+        page.set_default_timeout(STEP_TIMEOUT_MS)  # read at run time: a test may shorten it
         page.on("framenavigated", self._navigated)
         page.on("response", self._response)
         page.on("console", self._console)
@@ -327,7 +327,8 @@ class Walk:
         if not checkbox.is_checked():
             self.act(checkbox, key="Space")
 
-    def expect(self, locator: Any, what: str, timeout_ms: int = STEP_TIMEOUT_MS) -> Any:
+    def expect(self, locator: Any, what: str, timeout_ms: int | None = None) -> Any:
+        timeout_ms = timeout_ms or STEP_TIMEOUT_MS
         try:
             locator.first.wait_for(state="visible", timeout=timeout_ms)
         except Exception as exc:
@@ -503,15 +504,24 @@ WALKS: dict[str, Callable[[Walk], None]] = {
 
 
 def run_walk(
-    browser: Any, base: str, role: str, screen: str, password: str, shots: Path | None, contrast: bool = False
+    browser: Any,
+    base: str,
+    role: str,
+    screen: str,
+    password: str,
+    shots: Path | None,
+    contrast: bool = False,
+    username: str | None = None,
 ) -> WalkResult:
+    """``role``'s walk on ``screen`` against the app at ``base``, logging in as ``username``
+    (default: the demo's login named after the role)."""
     result = WalkResult(role=role, screen=screen)
     # The contrast audit injects axe-core, which the pages' CSP would refuse.
     context = browser.new_context(**SCREENS[screen], bypass_csp=contrast)
     try:
         walk = Walk(context.new_page(), base, result, shots, contrast)
         try:
-            walk.log_in(role, password)
+            walk.log_in(username or role, password)
             WALKS[role](walk)
             walk.done()
         except StepFailed as failed:

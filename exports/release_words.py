@@ -1,4 +1,4 @@
-"""What a release changes, in words, for the releases pages (issue 33.9).
+"""What a release changes, in words, for the releases pages (issue 33.8).
 
 A release that only adds a format read "a patch release after 1.0.0: 0 added, 0 removed, 0
 changed", which says nothing. These functions say what it is ("format-only release: adds

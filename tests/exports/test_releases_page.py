@@ -141,6 +141,11 @@ def test_a_format_only_release_says_so_and_names_its_cards(
     assert "a format added or dropped writes the same cards&#39; data in another form, so it is a patch" in html
     page = client.get("/releases/1.0.1/").get_data(as_text=True)
     assert "Format-only release: adds webdataset; same cards as 1.0.0." in page
+    changelog = client.get("/releases/1.0.1/CHANGELOG.md").get_data(as_text=True)
+    assert (
+        "a patch release (0 added, 0 removed, 0 changed).\n\nFormat-only release: adds webdataset; same cards as 1.0.0.\n"
+        in changelog
+    )
 
     # A card added: by its title and id, linked to its page (it was a bare "Added: 7").
     review_card(ids[1], "some")

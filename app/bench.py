@@ -27,6 +27,7 @@ LAZY_BENCHMARKS = {
     "probe": "benchmarks.probe:bench_probe_command",
     "rectify": "benchmarks.rectify:bench_rectify_command",
     "views": "benchmarks.views:bench_views_command",
+    "walks": "benchmarks.walks:bench_walks_command",
     "workres": "benchmarks.workres:bench_workres_command",
 }
 

@@ -119,4 +119,6 @@ def config_from_environment(instance_path: str) -> dict[str, Any]:
         "CATALOG_PAGE_SIZE": 48,
         "KEYSTONE_INPAINT_CHECKPOINT": env.get("KEYSTONE_INPAINT_CHECKPOINT") or None,
         "KEYSTONE_RELEASES_DIR": env.get("KEYSTONE_RELEASES_DIR") or None,
+        # A release page's Verify runs `keystone verify` in a child process stopped after this.
+        "KEYSTONE_VERIFY_TIMEOUT_S": _positive_number(env, "KEYSTONE_VERIFY_TIMEOUT_S", 60),
     }

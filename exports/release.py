@@ -54,6 +54,7 @@ from .formats import (
 )
 from .models import Release
 from .records import Changes, compare_manifests, grades_at_or_above, next_version
+from .release_words import release_summary
 from .staging import (
     Leftover,
     PublishBusy,
@@ -135,13 +136,15 @@ class ReleaseReport:
 class _Previous:
     version: str | None
     manifest: dict[str, dict[str, Any]] | None
+    formats: tuple[str, ...] = ()
+    min_grade: str | None = None
 
 
 def _previous() -> _Previous:
     row = latest_release()
     if row is None:
         return _Previous(None, None)
-    return _Previous(row.version, dict((row.stats or {}).get("manifest") or {}))
+    return _Previous(row.version, dict((row.stats or {}).get("manifest") or {}), tuple(row.formats or ()), row.min_grade)
 
 
 def _count_grades(manifest: dict[str, dict[str, Any]]) -> dict[str, int]:
@@ -409,7 +412,9 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     excluded = plan.excluded + [{"card_id": e.card_id, "reason": e.reason} for e in exclusions]
     summaries = {written.name: summary for written, writer in writers if (summary := writer.summary()) is not None}
     sections = [line for written in chosen for line in written.changelog(summaries.get(written.name))]
-    ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, sections).encode())
+    # In words, as the releases pages say it: "Format-only release: adds webdataset; same cards as 1.0.0".
+    summary = release_summary(changes.as_json(), list(fmt), list(previous.formats), plan.min_grade, previous.min_grade)
+    ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, sections, summary).encode())
     ledger.write_bytes(
         "README.md",
         dataset_card(version, plan.date, len(manifest), grades, chosen, summaries, plan.notes, changes, plan.min_grade).encode(),
@@ -470,10 +475,12 @@ def changelog(
     changes: Changes,
     excluded: list[dict[str, Any]],
     format_sections: Sequence[str] = (),
+    summary: str | None = None,
 ) -> str:
-    """CHANGELOG.md: cards added, removed and changed against the previous release, and why;
-    then the formats' own sections (``format_sections``, lines; e.g. how many cards have views and why the others
-    have none), then the accepted cards left out."""
+    """CHANGELOG.md: cards added, removed and changed against the previous release, and why, with
+    ``summary`` (:func:`exports.release_words.release_summary`, e.g. a format-only release) under
+    the counts; then the formats' own sections (``format_sections``, lines; e.g. how many cards
+    have views and why the others have none), then the accepted cards left out."""
     day = date[:10]
     lines = ["# Changelog", "", f"## {version} ({day})", ""]
     if changes.previous_version is None:
@@ -483,6 +490,8 @@ def changelog(
             f"Against {changes.previous_version}: a {changes.kind} release "
             f"({len(changes.added)} added, {len(changes.removed)} removed, {len(changes.changed)} changed)."
         )
+        if summary:
+            lines += ["", summary]
     if changes.previous_version is not None:
         sections = (
             ("Added", [f"- card {key_of(i)}" for i in changes.added]),

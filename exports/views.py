@@ -54,11 +54,14 @@ from core.limits import parse_positive_int
 from .formats import default_format_names, format_names
 from .models import Release
 from .records import RELEASABLE_GRADES
+from .release_words import release_summary, version_reason
 
 bp = Blueprint("exports", __name__, url_prefix="/releases", template_folder="templates")
 bp.record_once(lambda state: add_nav_link(state.app, "Releases", "exports.index", "exporter", order=70, home_of=("exporter",)))
 
 FILES_LISTED = 1000  # a release page lists this many files; the archive and SHA256SUMS hold them all
+CARDS_LISTED = 50  # added, removed and changed cards named on a page (each list); the CHANGELOG has all
+DEFAULT_VERIFY_TIMEOUT_S = 60.0  # KEYSTONE_VERIFY_TIMEOUT_S: a web verify that takes longer is stopped
 RELEASE_DOCUMENTS = {
     "README.md": "text/markdown",
     "CHANGELOG.md": "text/markdown",
@@ -129,6 +132,50 @@ def same_as_last_release(plan: Any) -> str | None:
         return last.version if same else None
 
 
+def change_details(changes: dict[str, Any], formats: list[str], min_grade: str) -> dict[str, Any]:
+    """What a release (or a preview) changes, for ``exports/_changes.html``: a sentence, why its
+    version is what it is, and the added, removed and changed cards with their titles and
+    accession numbers (the first :data:`CARDS_LISTED` of each)."""
+    from catalogue.views import card_title
+    from core.models import Card
+
+    changes = changes or {}
+    added, removed = list(changes.get("added") or []), list(changes.get("removed") or [])
+    changed = list(changes.get("changed") or [])
+    with read_only():
+        previous = None
+        if changes.get("previous_version"):
+            previous = db.session.execute(
+                select(Release.formats, Release.min_grade).where(Release.version == changes["previous_version"])
+            ).first()
+        wanted = {int(i) for i in added[:CARDS_LISTED] + removed[:CARDS_LISTED]} | {
+            int(entry["card_id"]) for entry in changed[:CARDS_LISTED]
+        }
+        cards = {card.id: card for card in db.session.scalars(select(Card).where(Card.id.in_(wanted)))} if wanted else {}
+        labels = {card_id: {"title": card_title(card), "accession": card.accession} for card_id, card in cards.items()}
+
+    def listed(card_id: Any, **extra: Any) -> dict[str, Any]:
+        label = labels.get(int(card_id))  # a card deleted since is named by its id alone
+        return {
+            "id": int(card_id),
+            "title": label["title"] if label else None,
+            "accession": label["accession"] if label else None,
+            **extra,
+        }
+
+    previous_formats = list(previous.formats or []) if previous is not None else None
+    return {
+        "previous_version": changes.get("previous_version"),
+        "kind": changes.get("kind"),
+        "summary": release_summary(changes, formats, previous_formats, min_grade, previous.min_grade if previous else None),
+        "version_reason": version_reason(changes, formats, previous_formats),
+        "counts": {"added": len(added), "removed": len(removed), "changed": len(changed)},
+        "added": [listed(i) for i in added[:CARDS_LISTED]],
+        "removed": [listed(i) for i in removed[:CARDS_LISTED]],
+        "changed": [listed(entry["card_id"], why=entry.get("why") or []) for entry in changed[:CARDS_LISTED]],
+    }
+
+
 def releases_dir() -> Path:
     configured = current_app.config.get("KEYSTONE_RELEASES_DIR")
     return Path(configured) if configured else Path(current_app.config["KEYSTONE_DATA_DIR"]) / "releases"
@@ -182,6 +229,7 @@ def _preview_page(form: ReleaseForm, plan: Any, *, changed: dict[str, Any] | Non
         releases=_releases(),
         form=form,
         preview=plan,
+        story=change_details(plan.changes, list(plan.formats), plan.min_grade),
         identical_to=same_as_last_release(plan),
         changed=changed,
     ), status
@@ -296,7 +344,7 @@ def release_files(root: Path) -> list[tuple[str, int]]:
 
 @bp.route("/<version>/")
 @role_required("exporter")
-def release_page(version: str) -> Any:
+def release_page(version: str, verification: dict[str, Any] | None = None) -> Any:
     root = _release_root(version)
     with read_only():
         release = db.session.scalar(select(Release).where(Release.version == version).options(defer(Release.stats)))
@@ -305,10 +353,54 @@ def release_page(version: str) -> Any:
     return render_template(
         "exports/release.html",
         release=release,
+        story=change_details(release.changes, list(release.formats or []), release.min_grade),
+        verification=verification,
         files=files[:FILES_LISTED],
         file_count=len(files),
         total=sum(size for _, size in files),
     )
+
+
+# Runs in a child process, so a check that takes too long can be stopped (a thread cannot be).
+_VERIFY_CHILD = (
+    "import json, sys\nfrom exports.verify import verify_release\nprint(json.dumps(verify_release(sys.argv[1]).as_json()))\n"
+)
+
+
+def verify_in_child(root: Path, timeout_s: float) -> dict[str, Any]:
+    """:func:`exports.verify.verify_release` on ``root`` (the check ``keystone verify`` runs), in a
+    child process stopped after ``timeout_s``. Its report (``ok``, ``checked``, ``problems``) plus
+    ``seconds``; or ``timed_out``; or ``error`` when the check itself failed."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    package_parent = str(Path(__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [package_parent, os.environ.get("PYTHONPATH")]))}
+    clock = time.monotonic()
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _VERIFY_CHILD, str(root)], capture_output=True, text=True, timeout=timeout_s, env=env
+        )
+    except subprocess.TimeoutExpired:
+        return {"timed_out": True, "timeout_s": timeout_s}
+    seconds = round(time.monotonic() - clock, 1)
+    try:
+        report = json.loads(done.stdout.strip().splitlines()[-1])
+    except (IndexError, json.JSONDecodeError):
+        tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
+        return {"error": tail[0][:500], "seconds": seconds}
+    return {**report, "seconds": seconds}
+
+
+@bp.route("/<version>/verify", methods=["POST"])
+@role_required("exporter")
+def verify(version: str) -> Any:
+    """Check the release on disk as ``keystone verify`` does and show the result on its page."""
+    root = _release_root(version)
+    timeout_s = float(current_app.config.get("KEYSTONE_VERIFY_TIMEOUT_S", DEFAULT_VERIFY_TIMEOUT_S))
+    return release_page(version, verification={**verify_in_child(root, timeout_s), "folder": str(root)})
 
 
 @bp.route("/<version>/files/<path:name>")

@@ -53,6 +53,11 @@ def render_text(report: dict[str, Any]) -> str:
         f"Automatic grade vs curators: {block['labels']} labels, accuracy {_percent(block['accuracy'])}, "
         f"Cohen's kappa {block['cohen_kappa'] if block['cohen_kappa'] is not None else '-'}"
     )
+    basis = block.get("labels_from") or {}
+    lines.append(
+        f"    from {basis.get('accepted', 0)} accepted automatic grade(s) (agreeing by construction) "
+        f"and {basis.get('changed', 0)} changed by a curator"
+    )
     if block["labels"]:
         lines.append("    curator \\ automatic   few  some  failure")
         for grade, row in zip(block["order"], block["confusion"]):

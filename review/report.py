@@ -41,10 +41,20 @@ def latest_auto_grades() -> dict[int, str]:
 def agreement(pairs: list[tuple[str, str]]) -> dict[str, Any]:
     """Confusion matrix (rows = curator label, columns = automatic grade, order few/some/failure),
     accuracy, Cohen's kappa, macro-F1 and per-class precision/recall of the automatic grade."""
-    from pipeline.grading import agreement as grading_agreement
+    # pipeline.grade_agreement, not pipeline.grading: that package imports SciPy (1.5-3 s the first
+    # time a server process drew this page).
+    from pipeline.grade_agreement import agreement as grade_agreement
 
     index = {g: i for i, g in enumerate(GRADES)}
-    return grading_agreement([index[truth] for truth, _ in pairs], [index[auto] for _, auto in pairs])
+    return grade_agreement([index[truth] for truth, _ in pairs], [index[auto] for _, auto in pairs], GRADES)
+
+
+def label_sources(reviews: list[Any], auto: dict[int, str]) -> dict[str, int]:
+    """What the agreement is computed from: per decision, the cards with an automatic grade and a
+    curator's grade. An accepted card's grade *is* its automatic grade (agreement by construction);
+    only changed cards can disagree. Rejected, sent-back and pending cards carry no grade label."""
+    counted = Counter(r.decision for r in reviews if r.decision in LABELLED_DECISIONS and r.grade and r.card_id in auto)
+    return {decision: counted.get(decision, 0) for decision in LABELLED_DECISIONS}
 
 
 def crowd_agreement() -> list[dict[str, Any]]:
@@ -115,7 +125,7 @@ def build_report() -> dict[str, Any]:
     return {
         "paper": {"fractions": PAPER_DISTRIBUTION, "sample": PAPER_SAMPLE},
         "collections": collections_out,
-        "automatic_vs_curator": agreement(pairs),
+        "automatic_vs_curator": {**agreement(pairs), "labels_from": label_sources(list(reviews.values()), auto)},
         "grade_model": None
         if model is None
         else {

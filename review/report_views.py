@@ -10,6 +10,7 @@ from flask import Blueprint, Response, render_template, request
 from core.auth import add_nav_link, role_required
 
 from .report import build_report, plot_confusion, plot_distribution
+from .report_charts import confusion_shades, grade_bars
 
 bp = Blueprint("reports", __name__, url_prefix="/reports", template_folder="templates")
 bp.record_once(lambda state: add_nav_link(state.app, "Report", "reports.index", "curator", "exporter", order=60))
@@ -20,7 +21,13 @@ PLOTS = {"grades": plot_distribution, "agreement": plot_confusion}
 @bp.route("/")
 @role_required("curator", "exporter")
 def index() -> Any:
-    return render_template("report/index.html", report=build_report())
+    report = build_report()
+    return render_template(
+        "report/index.html",
+        report=report,
+        bars=grade_bars(report),
+        shades=confusion_shades(report["automatic_vs_curator"]["confusion"]),
+    )
 
 
 @bp.route("/<name>.png")

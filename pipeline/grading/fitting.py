@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import grade_agreement
 from ..cross_validation import stratified_folds
 from ..errors import InvalidInputError, PipelineError
 from .measurements import GradeMeasurements
@@ -30,55 +31,14 @@ class NotEnoughLabelsError(PipelineError):
 
 
 def agreement(truth: Sequence[int] | np.ndarray, predicted: Sequence[int] | np.ndarray) -> dict[str, Any]:
-    """Confusion matrix (rows = curator label, columns = automatic grade, order few/some/failure),
-    accuracy, Cohen's kappa, macro-F1 and per-class precision / recall / support. Labels and
-    grades are indices into :data:`GRADES`. Undefined figures (no such class) are ``None``."""
-    k = len(GRADES)
-    matrix = np.zeros((k, k), np.int64)
-    np.add.at(matrix, (np.asarray(truth, np.int64), np.asarray(predicted, np.int64)), 1)
-    n = int(matrix.sum())
-    out: dict[str, Any] = {
-        "labels": n,
-        "order": list(GRADES),
-        "confusion": matrix.tolist(),
-        "accuracy": None,
-        "cohen_kappa": None,
-        "macro_f1": None,
-        "per_class": {},
-    }
-    if n == 0:
-        return out
-    rows, columns = matrix.sum(1), matrix.sum(0)
-    observed = float(np.trace(matrix)) / n
-    expected = float(rows @ columns) / (n * n)
-    out["accuracy"] = round(observed, 4)
-    # kappa is undefined when chance agreement is total (one class on both sides).
-    out["cohen_kappa"] = round((observed - expected) / (1 - expected), 4) if expected < 1 else None
-    out["macro_f1"] = round(_macro_f1(matrix), 4)
-    for i, name in enumerate(GRADES):
-        out["per_class"][name] = {
-            "precision": round(int(matrix[i, i]) / int(columns[i]), 4) if columns[i] else None,
-            "recall": round(int(matrix[i, i]) / int(rows[i]), 4) if rows[i] else None,
-            "support": int(rows[i]),
-        }
-    return out
-
-
-def _macro_f1(matrix: np.ndarray) -> float:
-    """Mean F1 over the classes the curators used (a class nobody labelled has no recall)."""
-    scores = []
-    for i in range(matrix.shape[0]):
-        support, predicted, hit = matrix[i].sum(), matrix[:, i].sum(), matrix[i, i]
-        if support == 0:
-            continue
-        scores.append(2.0 * hit / (support + predicted))
-    return float(np.mean(scores)) if scores else 0.0
+    """:func:`pipeline.grade_agreement.agreement` over :data:`GRADES` (indices into it)."""
+    return grade_agreement.agreement(truth, predicted, GRADES)
 
 
 def _f1_of(truth: np.ndarray, predicted: np.ndarray) -> float:
     matrix = np.zeros((3, 3), np.int64)
     np.add.at(matrix, (truth, predicted), 1)
-    return _macro_f1(matrix)
+    return grade_agreement.macro_f1(matrix)
 
 
 @dataclass(frozen=True)

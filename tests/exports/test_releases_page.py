@@ -43,7 +43,8 @@ def test_preview_then_publish_from_the_page(app, client, login, csrf_token, proc
     page = client.post("/releases/preview", data=form)
     assert page.status_code == 200
     html = page.get_data(as_text=True)
-    assert "Would publish 1.0.0" in html and "2 cards" in html and "few 1, some 1" in html and "The first release." in html
+    assert "Would publish 1.0.0" in html and "2 cards" in html and "few 1, some 1" in html
+    assert "First release: 2 cards in keystonedepth and parquet." in html
     assert not (tmp_path / "releases").exists()
 
     bad = client.post("/releases/preview", data={**form, "formats": []})
@@ -66,8 +67,12 @@ def test_preview_then_publish_from_the_page(app, client, login, csrf_token, proc
     # The next preview compares with what was just published.
     review_card(ids[1], "few", decision="changed", auto_grade="some")
     html = client.post("/releases/preview", data=form).get_data(as_text=True)
-    assert "Would publish 2.0.0" in html and "after 1.0.0" in html
-    assert re.search(rf"card {ids[1]}: grade changed \(some -&gt; few\)", html)
+    assert "Would publish 2.0.0" in html and "Against 1.0.0: changes 1 card." in html
+    # The changed card by its title and id, linked to its page, with the reason.
+    assert re.search(
+        rf'<a href="/cards/{ids[1]}">[^<]+</a>\s*<span class="muted">\(#{ids[1]}[^)]*\)</span>: grade changed \(some -&gt; few\)',
+        html,
+    )
 
     with app.app_context():
         from sqlalchemy import select
@@ -106,3 +111,73 @@ def test_a_stale_plan_with_absurd_card_ids_is_400_not_500(app, client, login, cs
     assert response.status_code == 400, response.status_code
     assert "Preview the release again" in response.get_data(as_text=True)
     assert not (tmp_path / "releases").exists()
+
+
+def _publish(client, form: dict, version: str) -> str:  # type: ignore[no-untyped-def]
+    """Preview ``form`` then publish it as previewed; the preview's HTML."""
+    html = client.post("/releases/preview", data=form).get_data(as_text=True)
+    digest = re.search(r'name="plan_digest"[^>]*value="([0-9a-f]{64})"', html).group(1)
+    cards = re.search(r'name="planned_cards"[^>]*value="([0-9,]*)"', html).group(1)
+    published = client.post(
+        "/releases/publish", data={**form, "plan_digest": digest, "planned_version": version, "planned_cards": cards}
+    )
+    assert published.status_code == 303, published.get_data(as_text=True)[:500]
+    return html
+
+
+def test_a_format_only_release_says_so_and_names_its_cards(
+    app, client, login, csrf_token, processed_cards, review_card, tmp_path
+) -> None:  # type: ignore[no-untyped-def]
+    app.config["KEYSTONE_RELEASES_DIR"] = str(tmp_path / "releases")
+    ids = processed_cards(2)
+    review_card(ids[0], "few")
+    login("exporter")
+    form = {"csrf_token": csrf_token("/releases/"), "min_grade": "some", "formats": ["keystonedepth"], "notes": ""}
+    _publish(client, form, "1.0.0")
+
+    html = _publish(client, {**form, "formats": ["keystonedepth", "webdataset"]}, "1.0.1")
+    assert "Would publish 1.0.1" in html
+    assert "Format-only release: adds webdataset; same cards as 1.0.0." in html
+    assert "a format added or dropped writes the same cards&#39; data in another form, so it is a patch" in html
+    page = client.get("/releases/1.0.1/").get_data(as_text=True)
+    assert "Format-only release: adds webdataset; same cards as 1.0.0." in page
+    changelog = client.get("/releases/1.0.1/CHANGELOG.md").get_data(as_text=True)
+    assert (
+        "a patch release (0 added, 0 removed, 0 changed).\n\nFormat-only release: adds webdataset; same cards as 1.0.0.\n"
+        in changelog
+    )
+
+    # A card added: by its title and id, linked to its page (it was a bare "Added: 7").
+    review_card(ids[1], "some")
+    html = _publish(client, {**form, "formats": ["keystonedepth", "webdataset"]}, "1.1.0")
+    assert "Against 1.0.1: adds 1 card." in html and "Added (1)" in html
+    assert re.search(rf'<li><a href="/cards/{ids[1]}">[^<]+</a>\s*<span class="muted">\(#{ids[1]}', html)
+    page = client.get("/releases/1.1.0/").get_data(as_text=True)
+    assert f'<a href="/cards/{ids[1]}">' in page and "A minor release: it only adds cards" in page
+
+
+def test_verify_a_release_from_its_page(app, client, login, csrf_token, processed_cards, review_card, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    app.config["KEYSTONE_RELEASES_DIR"] = str(tmp_path / "releases")
+    review_card(processed_cards(1)[0], "few")
+    login("exporter")
+    token = csrf_token("/releases/")
+    _publish(client, {"csrf_token": token, "min_grade": "some", "formats": ["keystonedepth"], "notes": ""}, "1.0.0")
+    page = client.get("/releases/1.0.0/").get_data(as_text=True)
+    assert 'action="/releases/1.0.0/verify#verify"' in page and 'name="csrf_token"' in page
+
+    assert client.post("/releases/1.0.0/verify").status_code == 400  # no CSRF token
+    assert client.post("/releases/9.9.9/verify", data={"csrf_token": token}).status_code == 404
+    checked = client.post("/releases/1.0.0/verify", data={"csrf_token": token})
+    html = checked.get_data(as_text=True)
+    assert checked.status_code == 200 and "Release 1.0.0 verified:" in html and "no problem found" in html
+    files = int(re.search(r"verified: ([\d,]+) files checked", html).group(1).replace(",", ""))
+    assert files == len((tmp_path / "releases" / "1.0.0" / "SHA256SUMS").read_text().splitlines())
+
+    (tmp_path / "releases" / "1.0.0" / "README.md").write_text("tampered\n")
+    html = client.post("/releases/1.0.0/verify", data={"csrf_token": token}).get_data(as_text=True)
+    assert re.search(r"Release 1\.0\.0 failed verification:\s+1 problem in \d+ files checked", html)
+    assert "<code>README.md</code>: sha256 does not match SHA256SUMS (file changed or corrupted)" in html
+
+    app.config["KEYSTONE_VERIFY_TIMEOUT_S"] = 0.01  # no check finishes this fast: it is stopped, and the page says so
+    html = client.post("/releases/1.0.0/verify", data={"csrf_token": token}).get_data(as_text=True)
+    assert "The check did not finish within 0.01 s and was stopped" in html and "keystone verify" in html

@@ -4,6 +4,7 @@ the automatic grade with curators (confusion, kappa, precision/recall), crowd ag
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -51,7 +52,7 @@ def test_report_json_counts_fractions_and_agreement(runner, graded) -> None:  # 
     assert collection["decisions"] == {"accepted": 4, "changed": 2, "pending": 1, "rejected": 1}
 
     block = report["automatic_vs_curator"]
-    assert block["labels"] == 6
+    assert block["labels"] == 6 and block["labels_from"] == {"accepted": 4, "changed": 2}
     assert block["confusion"] == [[1, 0, 0], [1, 2, 0], [0, 1, 1]]
     assert block["accuracy"] == pytest.approx(4 / 6, abs=1e-4)
     # kappa = (po - pe) / (1 - pe) with po = 4/6, pe = (1*2 + 3*3 + 2*1) / 36 = 13/36.
@@ -71,6 +72,7 @@ def test_report_text_names_the_paper_and_the_confusion(runner, graded) -> None: 
     assert "paper, 711 cards: 23 % / 49 % / 28 %" in result.output
     assert "stereo views: 8 cards" in result.output
     assert "6 labels, accuracy 67 %" in result.output
+    assert "from 4 accepted automatic grade(s) (agreeing by construction) and 2 changed by a curator" in result.output
 
 
 def test_report_on_an_empty_catalogue(runner) -> None:  # type: ignore[no-untyped-def]
@@ -99,3 +101,62 @@ def test_report_plots_are_pngs_with_etags(client, login, graded) -> None:  # typ
         again = client.get(f"/reports/{name}.png", headers={"If-None-Match": response.headers["ETag"]})
         assert again.status_code == 304
     assert client.get("/reports/nothing.png").status_code == 404
+
+
+def test_the_page_says_what_the_agreement_is_computed_from(client, login, graded) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    page = client.get("/reports/").get_data(as_text=True)
+    assert re.search(
+        r"Computed from 6 cards a curator graded:\s+4 accepted with the automatic grade and 2 given another grade\.", page
+    )
+    assert "Rejected, sent-back and undecided cards carry no grade and are not counted." in page
+    assert "agreement is complete by construction" not in page  # two grades were changed
+
+
+def test_a_kappa_of_accepted_grades_alone_is_called_what_it_is(
+    app, client, login, make_card, add_stage_result, card_image
+) -> None:  # type: ignore[no-untyped-def]
+    from core.db import db
+    from review.models import CardReview
+
+    for index, grade in enumerate(("few", "some", "failure")):
+        card_id = make_card(card_image()[:, index:], state="pass")
+        add_stage_result(card_id, "grade", outcome=grade)
+        with app.app_context():
+            db.session.add(CardReview(card_id=card_id, auto_grade=grade, grade=grade, decision="accepted"))
+            db.session.commit()
+    login("curator")
+    page = client.get("/reports/").get_data(as_text=True)
+    assert "Cohen&#39;s kappa 1.0" in page or "Cohen's kappa 1.0" in page
+    assert re.search(
+        r"Computed from 3 cards a curator graded:\s+3 accepted with the automatic grade and 0 given another grade", page
+    )
+    assert re.search(r"the agreement is complete by construction\s+and says nothing about the grader", page)
+
+
+def test_the_charts_are_drawn_in_the_page(client, login, graded) -> None:  # type: ignore[no-untyped-def]
+    login("curator")
+    page = client.get("/reports/").get_data(as_text=True)
+    assert "<img" not in page.split("<main", 1)[1]  # no picture for the server to draw
+    # paper 23/49/28 %, automatic 25/50/25 %, curated 1/3/2 of 6: nine segments, each with its share
+    assert len(re.findall(r'<rect class="grade-(?:few|some|failure)" x=', page)) == 9 + 3  # and the legend's three
+    assert re.search(r"<title>stereo views: curated: some 50%</title>", page)
+    # the confusion table: counts shaded by their share of the largest (2)
+    assert re.search(r'<th scope="row">some</th><td class="num shade-2">1</td><td class="num shade-4">2</td>', page)
+
+
+def test_the_report_does_not_load_scipy_or_matplotlib() -> None:
+    """The page's agreement figures come from pipeline.grade_agreement (numpy alone): importing
+    the grading package loaded SciPy, 1.5-3 s the first time a server process drew the report."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from review.report import agreement\n"
+        "from review.report_charts import grade_bars\n"
+        "assert agreement([('few', 'some')])['labels'] == 1\n"
+        "print(sorted(m for m in ('scipy', 'matplotlib', 'pipeline.grading') if m in sys.modules))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"

@@ -67,6 +67,13 @@ def create_app(test_config: dict[str, Any] | None = None, instance_path: str | o
     from runs.leftovers import register_staging_cleaner
 
     register_staging_cleaner(app, remove_stale_partials)
+
+    # Browsers ask for /favicon.ico on pages that name no icon (JSON, images opened alone): the
+    # app's icon, not a 404 in every console.
+    @app.get("/favicon.ico")
+    def favicon() -> Any:
+        return app.send_static_file("favicon.svg")
+
     return app
 
 

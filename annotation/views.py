@@ -288,8 +288,10 @@ def api_renew() -> Any:
 @bp.route("/api/undo", methods=["POST"])
 def api_undo() -> Any:
     caller, _ = _api_entry()
-    task = undo_last(caller.worker_id, session=caller.session_id)
-    return jsonify({"task": _task_json(task), "answered": caller.answered - 1})
+    undone = undo_last(caller.worker_id, session=caller.session_id)
+    # The withdrawn answer comes back with its task: the page shows it again, so a quick Enter
+    # resends what was said rather than a blank card.
+    return jsonify({"task": _task_json(undone.task), "answer": undone.answer, "answered": caller.answered - 1})
 
 
 @bp.route("/finish")

@@ -40,6 +40,13 @@
       select(p ? "left" : "left");
       render();
     },
+    restore(answer) {
+      // An undone answer: its boxes, as sent, to correct (Undo edit goes back to the proposal).
+      if (!Array.isArray(answer.left) || !Array.isArray(answer.right)) return;
+      remember();
+      boxes = { left: answer.left.slice(), right: answer.right.slice() };
+      render();
+    },
     showPreview() {},
     hide() { image.hidden = true; boxes = { left: null, right: null }; render(); },
     answer() {

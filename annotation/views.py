@@ -51,7 +51,7 @@ from .pictures import (
     sample_card_picture,
 )
 from .progress import answer_count, batch_positions
-from .proposals import proposed_boxes
+from .proposals import proposed_boxes, proposed_crop_boxes
 from .providers import (
     MTURK_SUBMIT_ORIGINS,
     PROVIDERS,
@@ -233,7 +233,7 @@ def _task_json(task: Any) -> dict[str, Any]:
     elif task.kind == "crop":
         with read_only():
             card = db.session.get(Card, task.card_id)
-            proposal = proposed_boxes(card) if card is not None else None
+            proposal = proposed_crop_boxes(card) if card is not None else None
         document["proposed"] = proposal.as_json() if proposal is not None else None
     return document
 

@@ -214,7 +214,13 @@ def _check_reservation(held: Any, worker_id: int, session: int | None, now: date
         raise TaskError(f"Your reservation of this task expired at {as_utc(held.expires_at):%H:%M:%S} UTC; fetch a new task", 409)
 
 
-def undo_last(worker: Worker | int, now: datetime | None = None, session: int | None = None) -> Task:
+@dataclass(frozen=True)
+class Undone:
+    task: Task  # the withdrawn answer's task, reserved again for the worker
+    answer: dict[str, Any]  # what the withdrawn answer said: the page shows it again to correct, not to redo
+
+
+def undo_last(worker: Worker | int, now: datetime | None = None, session: int | None = None) -> Undone:
     """Withdraw the latest answer of the worker's ``session`` while it is not aggregated; its task is reserved again.
 
     Never another session's answer, even of the same worker: a participant id in a URL is no
@@ -237,10 +243,10 @@ def undo_last(worker: Worker | int, now: datetime | None = None, session: int | 
     )
     if aggregated:
         raise TaskError("That answer was already counted in the results and cannot be undone", 409)
-    item_id = last.item_id
+    item_id, answer = last.item_id, dict(last.payload or {})
     db.session.delete(last)
     reservation = store_reservation(item_id, worker_id, session, now + reservation_ttl())
     task = task_of(reservation)
     recount_items([item_id])
     db.session.commit()
-    return task
+    return Undone(task, answer)

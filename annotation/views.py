@@ -51,7 +51,7 @@ from .pictures import (
     sample_card_picture,
 )
 from .progress import answer_count, batch_positions
-from .proposals import proposed_boxes
+from .proposals import proposed_boxes, proposed_crop_boxes
 from .providers import (
     MTURK_SUBMIT_ORIGINS,
     PROVIDERS,
@@ -233,7 +233,7 @@ def _task_json(task: Any) -> dict[str, Any]:
     elif task.kind == "crop":
         with read_only():
             card = db.session.get(Card, task.card_id)
-            proposal = proposed_boxes(card) if card is not None else None
+            proposal = proposed_crop_boxes(card) if card is not None else None
         document["proposed"] = proposal.as_json() if proposal is not None else None
     return document
 
@@ -288,8 +288,10 @@ def api_renew() -> Any:
 @bp.route("/api/undo", methods=["POST"])
 def api_undo() -> Any:
     caller, _ = _api_entry()
-    task = undo_last(caller.worker_id, session=caller.session_id)
-    return jsonify({"task": _task_json(task), "answered": caller.answered - 1})
+    undone = undo_last(caller.worker_id, session=caller.session_id)
+    # The withdrawn answer comes back with its task: the page shows it again, so a quick Enter
+    # resends what was said rather than a blank card.
+    return jsonify({"task": _task_json(undone.task), "answer": undone.answer, "answered": caller.answered - 1})
 
 
 @bp.route("/finish")

@@ -65,6 +65,11 @@ gutter),
 the result falls back to the split's boxes, says why in ``fallback_reason`` and has a
 confidence of at most ``fallback_confidence``: never a silent guess.
 
+A crop task asks for the whole photo, not a safe part of it: :func:`grow_to_photo_edges` grows
+boxes (these, or others) back out to the photos' edges over the same non-photo mask, stopping at
+a straight edge (mean IoU with the demo cards' prints 0.68 -> 0.93, with the hand-drawn boxes
+above 0.76 -> 0.86; about 0.05 s CPU a card).
+
 Conventions: cards are ``uint8`` or ``uint16`` arrays, ``(H, W)`` grey or ``(H, W, 3)`` RGB
 (16-bit is stretched to its used range, as :func:`pipeline.io.read_image` does). Boxes are
 ``(x0, y0, x1, y1)`` in the card's pixels, ``x1``/``y1`` exclusive; the left box lies in
@@ -73,6 +78,7 @@ Conventions: cards are ``uint8`` or ``uint16`` arrays, ``(H, W)`` grey or ``(H, 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -968,3 +974,108 @@ def find_photo_areas(card: np.ndarray, params: PhotoAreaParams = PhotoAreaParams
         fallback_reason=None,
         split=split,
     )
+
+
+# ---------------------------------------------------------------------- crop proposals
+
+
+def _photo_line(mask: _Mask, axis: int, line: int, step: int, span: slice, photo_share: float, params: PhotoAreaParams) -> bool:
+    """Whether working-scale row (``axis`` 0) or column (1) ``line``, reached by moving ``step``
+    (-1 or +1) out of a photo, is still photo along ``span``: at least ``photo_share`` of it is
+    not in the non-photo mask, and between the line before it and the one after it most pixels
+    do not change the same way (a print's straight edge, as ``straight_edge`` measures one)."""
+    if np.mean(~np.take(mask.non_photo, line, axis=axis)[span]) < photo_share:
+        return False
+    size = mask.grey.shape[axis]
+    inner = np.take(mask.grey, line - step, axis=axis)[span]
+    beyond = np.take(mask.grey, min(size - 1, max(0, line + step)), axis=axis)[span]
+    change = beyond - inner
+    share = max(float(np.mean(change > params.edge_step)), float(np.mean(change < -params.edge_step)))
+    return share < params.straight_edge
+
+
+def _grow_side(mask: _Mask, axis: int, start: int, limit: int, span: slice, photo_share: float, params: PhotoAreaParams) -> int:
+    """From line ``start``, move one line at a time towards ``limit`` (inclusive) while the next
+    line is photo (:func:`_photo_line`); returns where the side stops."""
+    step = -1 if limit < start else 1
+    position = start
+    while position != limit and _photo_line(mask, axis, position + step, step, span, photo_share, params):
+        position += step
+    return position
+
+
+def grow_to_photo_edges(
+    card: np.ndarray,
+    boxes: Sequence[Box],
+    params: PhotoAreaParams = PhotoAreaParams(),
+    *,
+    reach: float = 0.35,
+    core: float = 0.8,
+    photo_share: float = 0.5,
+    pad: float = 0.004,
+) -> tuple[Box, ...]:
+    """Each of ``boxes`` grown outwards to the edges of the photo it lies in: what a crop task
+    starts from, so that annotators trim a box rather than pull each side out to the photo.
+
+    :func:`find_photo_areas` is safe by design (every box strictly inside the photo, arches,
+    bands and stamps cut off, inset by ``params.inset``): on the demo cards its boxes cover
+    50-80 % of the prints. Here each side moves out, one working-scale line at a time, while the
+    next line is photo on at least ``photo_share`` of its middle ``core`` fraction (the middle,
+    so an arched top or a rounded corner does not stop the side early), by at most ``reach`` of
+    the box's size; the non-photo mask is the one :func:`find_photo_areas` uses (mount colour,
+    dark and white plain strips flooded from the card's frame, printed text closed over). Then
+    each side is pulled in by ``pad`` of the card's width (a print's edge is blurred).
+
+    ``card`` as :func:`find_photo_areas` takes it; ``boxes`` ``(x0, y0, x1, y1)`` in card pixels,
+    exclusive ends. A grown box never becomes smaller than the box it started from, and a box
+    with no room in the working copy comes back as it was.
+    """
+    card = as_card(card)
+    height, width = card.shape[:2]
+    mask = _measure(card, params)
+    rows, columns = mask.non_photo.shape
+    inset = round(pad * width)
+    # A box grows up to the middle of the gap to its neighbour, never into the other photo.
+    order = sorted(range(len(boxes)), key=lambda i: boxes[i][0])
+    left_limit = [0.0] * len(boxes)
+    right_limit = [float(width)] * len(boxes)
+    for a, b in zip(order, order[1:]):
+        middle = (boxes[a][2] + boxes[b][0]) / 2
+        right_limit[a], left_limit[b] = middle, middle
+    grown: list[Box] = []
+    for index, box in enumerate(boxes):
+        x0, y0, x1, y1 = (int(v) for v in box)
+        # Working px, rounded inwards: the start is photo wherever the box was.
+        bx0, by0 = int(np.ceil(x0 / mask.scale_x)), int(np.ceil(y0 / mask.scale_y))
+        bx1, by1 = int(np.floor(x1 / mask.scale_x)) - 1, int(np.floor(y1 / mask.scale_y)) - 1  # inclusive
+        if not (0 <= bx0 < bx1 < columns and 0 <= by0 < by1 < rows):
+            grown.append((x0, y0, x1, y1))
+            continue
+        reach_x, reach_y = round(reach * (bx1 - bx0 + 1)), round(reach * (by1 - by0 + 1))
+        for _ in range(2):  # the sides meet at the corners: the second pass sees the others' new extent
+            cx, cw = bx0 + (1 - core) / 2 * (bx1 - bx0), core * (bx1 - bx0)
+            cy, ch = by0 + (1 - core) / 2 * (by1 - by0), core * (by1 - by0)
+            middle_columns = slice(int(cx), max(int(cx) + 1, int(cx + cw)))
+            middle_rows = slice(int(cy), max(int(cy) + 1, int(cy + ch)))
+            by0 = _grow_side(mask, 0, by0, max(0, by0 - reach_y), middle_columns, photo_share, params)
+            by1 = _grow_side(mask, 0, by1, min(rows - 1, by1 + reach_y), middle_columns, photo_share, params)
+            low = max(0, bx0 - reach_x, int(np.ceil(left_limit[index] / mask.scale_x)))
+            high = min(columns - 1, bx1 + reach_x, int(np.floor(right_limit[index] / mask.scale_x)) - 1)
+            bx0 = _grow_side(mask, 1, bx0, min(bx0, low), middle_rows, photo_share, params)
+            bx1 = _grow_side(mask, 1, bx1, max(bx1, high), middle_rows, photo_share, params)
+        out = (
+            int(np.ceil(bx0 * mask.scale_x)) + inset,
+            int(np.ceil(by0 * mask.scale_y)) + inset,
+            int(np.floor((bx1 + 1) * mask.scale_x)) - inset,
+            int(np.floor((by1 + 1) * mask.scale_y)) - inset,
+        )
+        # Never smaller than the start, never outside the card.
+        grown.append(
+            (
+                max(0, min(out[0], x0)),
+                max(0, min(out[1], y0)),
+                min(width, max(out[2], x1)),
+                min(height, max(out[3], y1)),
+            )
+        )
+    return tuple(grown)

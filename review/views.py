@@ -45,6 +45,7 @@ from core.security import safe_next
 from . import run_hooks
 from .held_back import held_back, held_back_cards
 from .models import GRADE_NAMES, GRADES, CardReview
+from .plain_words import certainty_words, crowd_reason_words, grade_reason_words, orientation_evidence_words
 from .tasks import (
     ACTIONS,
     QUEUE_DECISIONS,
@@ -340,7 +341,20 @@ def card(card_id: int) -> Any:
             held=held_back(state) if review is not None else None,
             orientation_panel=orientation_panel,
             results_digest=card_results_digest(card),
+            crowd_words=_crowd_words(view),
+            certainty_words=certainty_words,
+            grade_reason_words=grade_reason_words,
+            orientation_evidence_words=orientation_evidence_words,
         )
+
+
+def _crowd_words(view: Any) -> list[str]:
+    """Why the crowd's answers on the card wait for a curator, in words (review.plain_words)."""
+    lines = []
+    for aggregate in (view.judge, view.crop):
+        if aggregate is not None and aggregate.state == "needs_curator" and aggregate.reasons:
+            lines += crowd_reason_words(aggregate.reasons, aggregate.label if aggregate.kind == "judge" else None)
+    return lines
 
 
 def _orientation_panel(card: Any, orientation: dict[str, Any]) -> dict[str, Any]:

@@ -68,6 +68,7 @@ def test_a_curator_reads_the_nearest_threshold_accepts_and_undoes(
     from pipeline.grading import GradeThresholds
 
     some = GradeThresholds().dy_p95_px.some  # the default "some artifacts" threshold, px
+    page.click("#review-details > summary")  # the numbers wait behind the details disclosure (issue 33.1)
     nearest = page.inner_text("#nearest")
     assert "dy p95 px" in nearest and "1.2 px" in nearest and f"> {some:g} px" in nearest
     assert f"{1.2 - some:+.1f} px" in nearest

@@ -3,7 +3,8 @@
 // Boxes are kept in ORIGINAL image pixels (the image shown may be a smaller preview).
 // Fingers: one finger draws, moves and resizes (44 px corner handles); two fingers pinch to
 // zoom and pan (any edit the first finger began is put back). On-screen Delete box and Undo
-// edit do what Delete and Z do on a keyboard.
+// edit do what Delete and Z do on a keyboard; arrow keys move the selected box, Shift+arrows
+// resize it, Alt makes either ten times larger.
 (function () {
   "use strict";
   const root = document.getElementById("crowd-task");
@@ -38,6 +39,13 @@
       image.src = task.image_url;
       image.hidden = false;
       select(p ? "left" : "left");
+      render();
+    },
+    restore(answer) {
+      // An undone answer: its boxes, as sent, to correct (Undo edit goes back to the proposal).
+      if (!Array.isArray(answer.left) || !Array.isArray(answer.right)) return;
+      remember();
+      boxes = { left: answer.left.slice(), right: answer.right.slice() };
       render();
     },
     showPreview() {},
@@ -122,7 +130,7 @@
   }
 
   function remember() { history.push(copy(boxes)); if (history.length > 50) history.shift(); }
-  function undoLastEdit() { if (!history.length) return; boxes = history.pop(); render(); clearError(); }
+  function undoLastEdit() { if (!history.length) return; boxes = history.pop(); keyRun = null; render(); clearError(); }
   function deleteBox() { if (!boxes[active]) return; remember(); boxes[active] = null; render(); }
 
   function normalise(b) {
@@ -225,13 +233,47 @@
   document.getElementById("show-help").addEventListener("click", help.open);
   document.querySelectorAll(".half-button").forEach(b => b.addEventListener("click", () => { select(b.dataset.half); render(); }));
 
+  // Arrow keys: move the selected box by one screen pixel's worth of the card (Alt: ten), or
+  // with Shift resize it by its right and bottom edges. A run of presses is one Undo edit step.
+  const ARROWS = { arrowleft: [-1, 0], arrowright: [1, 0], arrowup: [0, -1], arrowdown: [0, 1] };
+  let keyRun = null;
+  function nudge(event) {
+    const t = task(), b = boxes[active];
+    if (!t || !b || preview) return false;
+    const [dx, dy] = ARROWS[event.key.toLowerCase()];
+    const rect = image.getBoundingClientRect();
+    const step = (event.altKey ? 10 : 1) * t.card_width / Math.max(1, rect.width);  // original px per screen px
+    if (keyRun !== active) { remember(); keyRun = active; }
+    if (event.shiftKey) {
+      const x1 = clamp(b[2] + dx * step, b[0] + minBox, t.card_width);
+      const y1 = clamp(b[3] + dy * step, b[1] + minBox, t.card_height);
+      boxes[active] = [b[0], b[1], x1, y1];
+    } else {
+      const mx = clamp(dx * step, -b[0], t.card_width - b[2]);
+      const my = clamp(dy * step, -b[1], t.card_height - b[3]);
+      boxes[active] = [b[0] + mx, b[1] + my, b[2] + mx, b[3] + my];
+    }
+    clearError();
+    render();
+    return true;
+  }
+  document.addEventListener("keyup", (event) => { if (!(event.key.toLowerCase() in ARROWS)) keyRun = null; });
+  stage.addEventListener("pointerdown", () => { keyRun = null; });
+
   document.addEventListener("keydown", (event) => {
-    if (event.ctrlKey || event.metaKey || event.altKey || help.isOpen()) return;
+    if (event.ctrlKey || event.metaKey || help.isOpen()) return;
     const key = event.key.toLowerCase();
+    if (key in ARROWS) {
+      const target = event.target;
+      if (target && ["INPUT", "SELECT", "TEXTAREA"].includes(target.tagName)) return;
+      if (nudge(event)) event.preventDefault();
+      return;
+    }
+    if (event.altKey) return;
     if (key === "enter") { event.preventDefault(); client.submit(); }
     else if (key === "u") { event.preventDefault(); client.undo(); }
     else if (key === "z") { event.preventDefault(); undoLastEdit(); }
-    else if (key === "l" || key === "r") { select(key === "l" ? "left" : "right"); render(); }
+    else if (key === "l" || key === "r") { select(key === "l" ? "left" : "right"); keyRun = null; render(); }
     else if (key === "+" || key === "=") setZoom(zoom * 1.25, centreAnchor());
     else if (key === "-") setZoom(zoom / 1.25, centreAnchor());
     else if (key === "delete" || key === "backspace") deleteBox();

@@ -42,6 +42,11 @@
       document.getElementById("status").textContent = "A card like the ones in this task. Accept the HIT to answer.";
       form.querySelectorAll("input, .eye-order-pick").forEach(input => { input.disabled = true; });
     },
+    restore(answer) {
+      // An undone answer: tick the boxes it ticked (an answer other than an untouched box's).
+      questions.forEach(q => { if (q.key in answer) boxOf(q).checked = answer[q.key] !== q.default; });
+      showPick();
+    },
     hide() { image.hidden = true; for (const order in eyeOrders) if (eyeOrders[order]) eyeOrders[order].hidden = true; },
     answer() {
       // A ticked box gives the other answer than an untouched one ("Not a stereo pair": is_stereo false).

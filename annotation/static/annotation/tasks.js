@@ -54,8 +54,9 @@ window.KeystoneTasks = (function () {
     out.submit();
   }
 
-  // page: { kind, show(task), hide(), answer() -> payload (throws Error to refuse), undoneText,
-  //         cardText(n, total) }; elements: status, error, answered, position, submit button.
+  // page: { kind, show(task), hide(), answer() -> payload (throws Error to refuse), restore(answer)
+  //         (an undone answer shown again), undoneText, cardText(n, total) }; elements: status,
+  //         error, answered, position, submit button.
   function create(root, page) {
     const cfg = root.dataset;
     const preview = cfg.preview === "true";
@@ -205,6 +206,8 @@ window.KeystoneTasks = (function () {
         queue = [data.task].concat(queue.filter(t => t.token !== data.task.token));
         keys.delete(data.task.token);
         show(true);
+        // The withdrawn answer is back on screen to correct: Enter resends it, never a blank card.
+        if (data.answer && page.restore) page.restore(data.answer);
         say(page.undoneText);
       } catch (err) { fail(err.message); } finally { busy = false; }
     }
@@ -221,7 +224,17 @@ window.KeystoneTasks = (function () {
   // The instructions: shown the first time (remembered per page kind) and on demand (button or H).
   function instructions(help, storageKey) {
     const seen = () => { try { return localStorage.getItem(storageKey) === "1"; } catch (e) { return false; } };
-    const open = () => { if (help && typeof help.showModal === "function" && !help.open) help.showModal(); };
+    // Opened at its top with its example pictures loading: lazy pictures inside a dialog that
+    // scrolls wait until they are scrolled to, and focusing the Start button at the end
+    // scrolled the dialog down to it (so a phone showed the end, and blank pictures).
+    const open = () => {
+      if (!help || typeof help.showModal !== "function" || help.open) return;
+      help.querySelectorAll("img[loading=lazy]").forEach(img => { img.loading = "eager"; });
+      help.showModal();
+      const start = help.querySelector("form[method=dialog] button");
+      if (start) start.focus({ preventScroll: true });
+      help.scrollTop = 0;
+    };
     if (help) help.addEventListener("close", () => { try { localStorage.setItem(storageKey, "1"); } catch (e) { /* iframes may block storage */ } });
     // A tap outside the dialog's box closes it (phones have no Escape key).
     if (help) help.addEventListener("click", (event) => { if (event.target === help) help.close(); });

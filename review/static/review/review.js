@@ -86,6 +86,8 @@
       else if (GRADE_KEYS[key]) decide("change", GRADE_KEYS[key]);
       else if (key === "b") decide("send_back");
       else if (key === "r") decide("reject");
+      else if (key === "d") { const dispute = document.querySelector("#card-blockers a.dispute-link"); if (dispute) go(dispute.href); else return; }
+      else if (key === "o") { const first = document.querySelector("#orientation-form select"); if (first) { first.focus(); first.scrollIntoView({ block: "center" }); } else return; }
       else if (key === "j") go(cfg.nextUrl);
       else if (key === "k") go(cfg.prevUrl);
       else if (key === "w" && wiggle) wiggle.classList.toggle("paused");
@@ -105,6 +107,14 @@
       });
     }
     if (wiggle) wiggle.addEventListener("click", () => wiggle.classList.toggle("paused"));
+    // The list of keys is one click away too (the line under the buttons says so).
+    const showKeys = document.getElementById("show-keys");
+    if (showKeys) {
+      showKeys.hidden = false;
+      showKeys.addEventListener("click", () => { help.hidden = false; });
+    }
+    help.addEventListener("click", (event) => { if (event.target === help || event.target.closest("#close-keys")) help.hidden = true; });
+    root.classList.add("has-keys");
     root.dataset.ready = "true";  // keys work from here on (tests wait for it)
   }
 

@@ -143,6 +143,11 @@ def test_a_phone_walk_taps_the_wrong_cards_and_a_double_submit_stores_once(  # t
 ):
     page = screen_page("phone")
     page.goto(_link(app, server, "pat") + "?kind=confirm")
+    # The first-time help opens at its top with its example pictures (it opened scrolled to the
+    # Start button at its end, the pictures still blank, as the judge page's did).
+    assert page.is_visible("#help")
+    wait_until(page, "[...document.querySelectorAll('#help img')].every(i => i.complete && i.naturalWidth > 0)")
+    assert page.evaluate("document.getElementById('help').scrollTop") == 0
     page.tap("#help button[type=submit]")
     items = _items_on_screen(app, _grid(page, wait_until))
     assert 2 <= _columns(page) <= 3

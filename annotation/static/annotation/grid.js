@@ -164,7 +164,16 @@
 
   // The instructions: shown the first time (remembered) and on demand (button or H).
   const seen = () => { try { return localStorage.getItem("keystone-grid-help-seen") === "1"; } catch (e) { return false; } };
-  const openHelp = () => { if (help && typeof help.showModal === "function" && !help.open) help.showModal(); };
+  // As the judge page's help (tasks.js): opened at its top with its example pictures loading;
+  // focusing the Start button at the end used to scroll a phone's dialog down to it.
+  const openHelp = () => {
+    if (!help || typeof help.showModal !== "function" || help.open) return;
+    help.querySelectorAll("img[loading=lazy]").forEach(img => { img.loading = "eager"; });
+    help.showModal();
+    const start = help.querySelector("form[method=dialog] button");
+    if (start) start.focus({ preventScroll: true });
+    help.scrollTop = 0;
+  };
   if (help) {
     help.addEventListener("close", () => { try { localStorage.setItem("keystone-grid-help-seen", "1"); } catch (e) { /* iframes may block storage */ } focusCard(focused, false); });
     help.addEventListener("click", (event) => { if (event.target === help) help.close(); });

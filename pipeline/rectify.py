@@ -851,7 +851,16 @@ def _rectify_matches(
     n = len(pts_l)
     if n < params.min_matches:
         raise TooFewMatchesError(f"{n} matches < {params.min_matches}")
-    F, mask = _fit_f(pts_l, pts_r, params, sift_scale)
+    # The pair decides what it is before F is trusted: with enough matches and no F (OpenCV's
+    # USAC finds no model when the matches fix no epipolar geometry: a pure shift of a textured
+    # pair, a planar or far scene), the already-aligned test and the row alignments still run on
+    # every match, as for a planar scene; only when those fail too is the pair refused, saying so.
+    no_f: PlanarSceneError | None = None
+    try:
+        F, mask = _fit_f(pts_l, pts_r, params, sift_scale)
+    except TooFewMatchesError as exc:
+        no_f = PlanarSceneError(f"{exc} from {n} matches: they fix no epipolar geometry (planar, far or purely shifted)")
+        F, mask = np.zeros((3, 3)), np.ones(n, bool)
     n_f = int(mask.sum())
     if n_f < params.min_inliers:
         raise TooFewMatchesError(f"{n_f} fundamental-matrix inliers < {params.min_inliers} (of {n} matches)")
@@ -914,9 +923,9 @@ def _rectify_matches(
                 inlier_points=(pts_l[fit0], pts_r[fit0]),
             )
 
-    n_h = _homography_inliers(pts_l, pts_r, params, sift_scale)
-    planar = None
-    if n_h >= params.planar_ratio * n_f:
+    n_h = _homography_inliers(pts_l, pts_r, params, sift_scale) if no_f is None else 0
+    planar = no_f
+    if no_f is None and n_h >= params.planar_ratio * n_f:
         # F is degenerate and its epipole arbitrary: Loop-Zhang is not tried. A far scene of a
         # nearly rectified pair still has well-defined rows, so the row alignments may rectify it
         # if they turn no view more than PLANAR_MAX_TURN; else the pair is refused.
@@ -930,12 +939,14 @@ def _rectify_matches(
     # (see _choose), not by which one failed first.
     refused: list[RectificationError] = []
     proposals: list[tuple[str, np.ndarray, np.ndarray]] = []
-    e_l, e_r = epipoles(F)
-    near = [
-        name
-        for name, e, (w_, h_) in (("left", e_l, (wl, hl)), ("right", e_r, (wr, hr)))
-        if _epipole_near(e, w_, h_, params.epipole_margin)
-    ]
+    near = []
+    if no_f is None:
+        e_l, e_r = epipoles(F)
+        near = [
+            name
+            for name, e, (w_, h_) in (("left", e_l, (wl, hl)), ("right", e_r, (wr, hr)))
+            if _epipole_near(e, w_, h_, params.epipole_margin)
+        ]
     if planar is not None:
         refused.append(planar)
     elif near:

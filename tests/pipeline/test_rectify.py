@@ -681,3 +681,32 @@ def test_a_real_card_with_its_right_photo_moved_down_rectifies_with_any_seed(sha
     assert {rect.method for rect in found} == {"row_affine"}
     p95 = [rect.dy_p95 for rect in found]
     assert max(p95) < 1.0 and max(p95) - min(p95) < 0.05, p95  # the robust row fit samples: hundredths apart
+
+
+def test_when_opencv_finds_no_f_the_pair_is_still_tested_for_aligned_rows(monkeypatch) -> None:
+    """Issue 35.2: OpenCV's USAC can find no F model (``!model.empty()``) for matches that fix no
+    epipolar geometry. The pair then still goes through the already-aligned test and the row
+    alignments, and a refusal says what happened (planar_or_far_scene), never "too few matches"."""
+    import pipeline.rectify as rectify_module
+
+    def no_model(*_args, **_kwargs):
+        raise rectify_module.TooFewMatchesError("no fundamental matrix: (-215:Assertion failed) !model.empty()")
+
+    monkeypatch.setattr(rectify_module, "_fit_f", no_model)
+    rng = np.random.default_rng(5)
+    texture = cv2.GaussianBlur((rng.random((260, 420)) * 255).astype(np.uint8), (3, 3), 0)
+    left, right = np.ascontiguousarray(texture[:, 0:400]), np.ascontiguousarray(texture[:, 4:404])
+    aligned = rectify_pair(left, right)
+    assert aligned.method == "identity" and aligned.reason.startswith("already rectified within tolerance")
+    # Moved 3 px down: the rows need aligning, which the row models do without F.
+    down = np.zeros_like(right)
+    down[3:] = right[:-3]
+    rows = rectify_pair(left, down)
+    assert rows.method.startswith("row_") and rows.dy_p95 < 1.0
+    assert "far or planar scene: F undetermined" in rows.reason
+    # Random matches: no F, no rows; refused as such.
+    pts_l = rng.uniform(0, 399, (60, 2))
+    pts_r = rng.uniform(0, 399, (60, 2))
+    with pytest.raises(PipelineError) as info:
+        rectify_matches(pts_l, pts_r, (400, 260), (400, 260))
+    assert info.value.code != "too_few_matches"

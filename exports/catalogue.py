@@ -243,6 +243,14 @@ def release_card(
         views=views,
         views_note=views_note,
         stereo_source=card.stereo_source,
+        iiif_source=card.iiif_source,
+        annotation_facts={
+            "scanned_boxes": rectify.metrics.get("scanned_boxes"),
+            "orientation_used": rectify.metrics.get("orientation_used"),
+            "orientation_source": orientation.get("source") or orientation.get("reason"),
+            "grade_reasons": list((grade.metrics.get("reasons") if grade is not None else None) or []),
+            "box_source": rectify.metrics.get("box_source"),
+        },
         acceptance={
             "decided_at": None if review.decided_at is None else _utc(review.decided_at).isoformat(),
             "accepted_results": review.accepted_results,

@@ -36,8 +36,13 @@ DEFAULT_CARDS = Path(os.environ.get("KEYSTONE_SHARED_DATA", REPO.parent / "share
 RIGHTS = "https://creativecommons.org/publicdomain/mark/1.0/"
 
 
-def serve_cards(folder: Path, root: Path) -> tuple[Any, str, list[str], dict[str, np.ndarray]]:
-    """A StaticIiif serving every image of ``folder``; returns (server, collection URL, canvas ids, images)."""
+def serve_cards(
+    folder: Path, root: Path, canvas_scale: int = 1, faults: bool = False
+) -> tuple[Any, str, list[str], dict[str, np.ndarray]]:
+    """A StaticIiif serving every image of ``folder`` (canvases ``canvas_scale`` times the served
+    size, as a museum whose canvas is its master scan's); ``faults`` adds a manifest whose canvases
+    a museum's server lets down (a 404, no service, over the pixel cap) and a manifest that is gone.
+    Returns (server, collection URL, canvas ids that should become cards, images as served)."""
     from PIL import Image
 
     from benchmarks.iiif_server import StaticIiif
@@ -56,7 +61,7 @@ def serve_cards(folder: Path, root: Path) -> tuple[Any, str, list[str], dict[str
             )
         )
         name = f"manifests/{path.stem}.json"
-        canvas = [(path.stem, array.shape[1], array.shape[0], service)]
+        canvas = [(path.stem, array.shape[1] * canvas_scale, array.shape[0] * canvas_scale, service)]
         title = path.stem.removeprefix("nypl_").replace("_", " ")
         if version == 3:
             document = server.manifest_v3(
@@ -86,6 +91,19 @@ def serve_cards(folder: Path, root: Path) -> tuple[Any, str, list[str], dict[str
             )
         manifests.append(server.add_document(name, document))
         canvases.append(f"{server.url}/{name}/canvas/{path.stem}")
+    if faults:
+        over_cap = server.add_image("over-cap", np.full((1, 1, 3), 128, np.uint8))
+        info = root / "image" / "over-cap" / "info.json"
+        info.write_text(info.read_text().replace('"width": 1,', '"width": 24000,').replace('"height": 1', '"height": 13000'))
+        broken = [
+            ("gone", 2000, 1000, f"{server.url}/image/gone"),
+            ("no-service", 2000, 1000, None),
+            ("over-cap", 24000, 13000, over_cap),
+        ]
+        manifests.append(
+            server.add_document("manifests/faults.json", server.manifest_v3("manifests/faults.json", "Faults", broken))
+        )
+        manifests.append(f"{server.url}/manifests/withdrawn.json")
     collection = server.add_document(
         "collection.json",
         {
@@ -109,8 +127,10 @@ def _ingest(command: list[str], env: dict[str, str]) -> tuple[dict[str, Any], fl
         raise click.ClickException(f"ingest printed no JSON (exit {done.returncode}): {done.stderr[-2000:]}") from None
 
 
-def run_bench(cards_dir: Path, kill_after: int | None, release: bool, work: Path) -> dict[str, Any]:
-    server, collection, canvas_ids, images = serve_cards(cards_dir, work / "iiif")
+def run_bench(
+    cards_dir: Path, kill_after: int | None, release: bool, work: Path, canvas_scale: int = 1, faults: bool = False
+) -> dict[str, Any]:
+    server, collection, canvas_ids, images = serve_cards(cards_dir, work / "iiif", canvas_scale, faults)
     try:
         (work / "instance").mkdir()
         env = {
@@ -164,6 +184,7 @@ def run_bench(cards_dir: Path, kill_after: int | None, release: bool, work: Path
             "cards": sum(per_canvas.values()),
             "canvases_on_more_than_one_card": sorted(c for c, n in per_canvas.items() if n != 1),
             "canvases_without_card": sorted(set(canvas_ids) - set(per_canvas)),
+            "canvas_scale": canvas_scale,
             "image_requests": sum(1 for p in server.requests if p.endswith("default.jpg")),
             "titles": titles,
             "requests_before_ingest": len(images_requested),
@@ -286,14 +307,18 @@ def keystone_python(env: dict[str, str], code: str) -> Any:
     "--kill-after", type=int, default=None, help="Kill the first ingest while this image is on its way (default: half)."
 )
 @click.option("--release/--no-release", default=True, show_default=True, help="Run the pipeline, release and check the boxes.")
+@click.option("--canvas-scale", type=click.IntRange(1, 8), default=2, show_default=True, help="Canvas size / served image size.")
+@click.option("--faults/--no-faults", default=False, show_default=True, help="Add canvases and a manifest that fail.")
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as one JSON document.")
-def bench_iiif_command(cards_dir: Path, kill_after: int | None, release: bool, as_json: bool) -> None:
+def bench_iiif_command(
+    cards_dir: Path, kill_after: int | None, release: bool, canvas_scale: int, faults: bool, as_json: bool
+) -> None:
     """IIIF in and out on cards served on loopback: a killed ingest and its rerun, then a release
     whose manifest's crop boxes are checked against the pipeline's crops."""
     if not cards_dir.is_dir():
         raise click.ClickException(f"{cards_dir} not present: give --cards-dir")
     with tempfile.TemporaryDirectory(prefix="keystone-bench-iiif-") as folder:
-        result = run_bench(cards_dir, kill_after, release, Path(folder))
+        result = run_bench(cards_dir, kill_after, release, Path(folder), canvas_scale, faults)
     if as_json:
         click.echo(json.dumps(result, indent=1))
         return

@@ -77,6 +77,12 @@ def is_url(text: str) -> bool:
     return bool(re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text))
 
 
+def is_iiif_source(raw: object) -> bool:
+    """A URL, or a ``.json`` file: what ingest reads as a IIIF manifest or collection."""
+    text = str(raw)
+    return is_url(text) or text.lower().endswith(".json")
+
+
 def check_fetchable(url: str) -> str:
     """``url`` if ingest may fetch it (http or https with a host); raises :class:`IiifError`."""
     parts = urlsplit(url)

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
@@ -50,7 +50,15 @@ from pipeline.split import MIN_HEIGHT, MIN_WIDTH
 if TYPE_CHECKING:
     import requests
 
-    from catalogue.ingest import IngestReport
+
+class IngestReport(Protocol):
+    """What ingest reports into (catalogue.ingest.IngestReport; named here, not imported, so the
+    two modules do not import each other)."""
+
+    ingested: list[dict[str, Any]]
+    duplicates: list[dict[str, Any]]
+    rejected: list[dict[str, str]]
+
 
 IMAGE_SUFFIXES_BY_TYPE = {"image/jpeg": ".jpg", "image/png": ".png", "image/tiff": ".tif", "image/webp": ".webp"}
 
@@ -238,12 +246,6 @@ def _load(source: str, client: IiifClient) -> dict[str, Any]:
     except OSError as exc:
         raise IiifError(f"cannot read it: {exc.strerror or exc}") from None
     return parse_json(data, source)
-
-
-def is_iiif_source(raw: str | Path) -> bool:
-    """A URL, or a ``.json`` file: what ingest reads as a IIIF manifest or collection."""
-    text = str(raw)
-    return is_url(text) or text.lower().endswith(".json")
 
 
 def ingest_canvases(

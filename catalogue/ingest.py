@@ -22,7 +22,7 @@ from flask.cli import with_appcontext
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
-from catalogue.iiif_ingest import is_iiif_source
+from catalogue.iiif import is_iiif_source
 from catalogue.metadata import MetadataFormatError, MetadataRow, card_keys, read_metadata, row_keys
 from catalogue.originals import (
     card_with_hash,

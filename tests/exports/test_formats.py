@@ -126,7 +126,9 @@ def test_format_names_are_parsed_into_the_canonical_order() -> None:
 
     assert parse_formats("stereo, keystonedepth,views") == ("keystonedepth", "views", "stereo")
     assert [fmt.name for fmt in chosen_formats(["parquet", "webdataset"])] == ["parquet", "webdataset"]
-    with pytest.raises(ValueError, match="Expected formats from keystonedepth, parquet, webdataset, views, stereo, iiif, got csv"):
+    with pytest.raises(
+        ValueError, match="Expected formats from keystonedepth, parquet, webdataset, views, stereo, iiif, got csv"
+    ):
         parse_formats("keystonedepth,csv")
     with pytest.raises(ValueError, match="got none"):
         parse_formats(" , ")

@@ -134,13 +134,15 @@ class IiifClient:
         return parse_json(data, url)
 
     def download(self, url: str, folder: Path) -> tuple[Path, str, str]:
-        """Stream ``url`` into a new file in ``folder``; returns (path, sha256, content type)."""
+        """Stream ``url`` into a new file in ``folder``; returns (path, sha256, the image's file suffix)."""
         import requests
 
         response = self._get(url, accept="image/*")
         content_type = (response.headers.get("Content-Type") or "").split(";")[0].strip().lower()
         suffix = IMAGE_SUFFIXES_BY_TYPE.get(content_type) or _url_suffix(url)
-        fd, name = tempfile.mkstemp(dir=folder, prefix=".iiif-", suffix=suffix)
+        # A hidden .tmp name: a download killed halfway is cleared by the next `keystone run`
+        # (runs.leftovers), as a killed file ingest's copy is.
+        fd, name = tempfile.mkstemp(dir=folder, prefix=".iiif-", suffix=".tmp")
         digest, size, started = hashlib.sha256(), 0, time.monotonic()
         try:
             with os.fdopen(fd, "wb") as out:
@@ -160,7 +162,7 @@ class IiifClient:
             raise
         finally:
             response.close()
-        return Path(name), digest.hexdigest(), content_type
+        return Path(name), digest.hexdigest(), suffix
 
 
 def _read_limited(response: requests.Response, limit: int, options: FetchOptions) -> bytes:
@@ -302,12 +304,12 @@ def ingest_canvas(
     try:
         info = client.get_json(f"{canvas.service.id}/info.json")
         request = choose_image_request(canvas.service, info, max_pixels)
-        downloaded, content_hash, _ = client.download(request.url, staging)
+        downloaded, content_hash, suffix = client.download(request.url, staging)
     except (IiifError, FetchError) as exc:
         reject(str(exc))
         return
     try:
-        _store_canvas(canvas, request, downloaded, content_hash, collection_id, data_dir, max_pixels, report)
+        _store_canvas(canvas, request, downloaded, suffix, content_hash, collection_id, data_dir, max_pixels, report)
     finally:
         downloaded.unlink(missing_ok=True)
 
@@ -337,6 +339,7 @@ def _store_canvas(
     canvas: IiifCanvas,
     request: ImageRequest,
     downloaded: Path,
+    suffix: str,
     content_hash: str,
     collection_id: int,
     data_dir: Path,
@@ -364,7 +367,7 @@ def _store_canvas(
                 f"too small to be a stereo card: {info.width}x{info.height} px "
                 f"(the smallest card the pipeline splits is {MIN_WIDTH}x{MIN_HEIGHT} px)"
             )
-        relative = store_original(downloaded, content_hash, data_dir)
+        relative = store_original(downloaded, content_hash, data_dir, suffix=suffix)
     except ImageReadError as exc:
         reject(f"the image from {request.url}: {exc}")
         return
@@ -376,7 +379,7 @@ def _store_canvas(
         collection_id=collection_id,
         content_hash=content_hash,
         stored_path=str(relative),
-        source_name=f"{service_name}{downloaded.suffix}",
+        source_name=f"{service_name}{suffix}",
         source_path=request.url,
         accession=canvas.accession,
         width=info.width,

@@ -299,3 +299,19 @@ def test_real_cards_served_as_iiif_become_cards(app, runner, iiif_server, shared
     assert result.exit_code == 0, result.output
     assert json.loads(result.output)["ingested"] == len(files)
     assert {card.iiif_canvas_id for card in _cards(app)} == {f"{url}/canvas/{p.stem}" for p in files}
+
+
+def test_a_download_killed_halfway_is_a_temporary_file_the_next_run_clears(tmp_path):
+    """Downloads go to a hidden ``.tmp`` file in the store; the one a killed ingest leaves is
+    removed by ``keystone run``'s leftovers sweep once untouched for ten minutes."""
+    from runs.leftovers import remove_leftovers
+
+    staging = tmp_path / "originals" / ".iiif-downloads"
+    staging.mkdir(parents=True)
+    left = staging / ".iiif-k1ll3d.tmp"
+    left.write_bytes(b"\xff\xd8 half a jpeg")
+    os.utime(left, (time.time() - 3600, time.time() - 3600))
+    fresh = staging / ".iiif-running.tmp"
+    fresh.write_bytes(b"\xff\xd8 being written")
+    report = remove_leftovers(tmp_path)
+    assert report.paths == [str(left)] and not left.exists() and fresh.exists()

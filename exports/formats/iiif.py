@@ -224,7 +224,11 @@ class IiifWriter:
         used = card.annotation_facts.get("orientation_used") or {}
         flags = {"upside_down": "upside down", "inverted": "a negative", "swapped": "eyes swapped"}
         found = [words for flag, words in flags.items() if used.get(flag)]
-        decided = card.annotation_facts.get("orientation_source") or "the orientation step"
+        facts = card.annotation_facts
+        who = {"auto": "the orientation step", "crowd": "the crowd", "curator": "a curator", "operator": "an operator"}
+        decided = who.get(str(facts.get("orientation_decided_by")), "the orientation step")
+        if facts.get("orientation_source"):
+            decided += f" ({facts['orientation_source']})"
         text = (
             "Orientation: "
             + (", ".join(found) if found else "upright, positive, eyes in order")

@@ -21,6 +21,7 @@ LAZY_BENCHMARKS = {
     "filter": "benchmarks.filter:bench_filter_command",
     "grade": "benchmarks.grade:bench_grade_command",
     "grade-real": "benchmarks.grade_real:bench_grade_real_command",
+    "iiif": "benchmarks.iiif:bench_iiif_command",
     "inpainting": "benchmarks.inpainting:bench_inpainting_command",
     "invariance": "benchmarks.invariance:bench_invariance_command",
     "pipeline": "benchmarks.pipeline_cost:bench_pipeline_command",

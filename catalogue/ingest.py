@@ -22,6 +22,7 @@ from flask.cli import with_appcontext
 from sqlalchemy import select
 from sqlalchemy.exc import SQLAlchemyError
 
+from catalogue.iiif import is_iiif_source
 from catalogue.metadata import MetadataFormatError, MetadataRow, card_keys, read_metadata, row_keys
 from catalogue.originals import (
     card_with_hash,
@@ -38,6 +39,7 @@ from pipeline.io import IMAGE_SUFFIXES, probe_image
 from pipeline.split import MIN_HEIGHT, MIN_WIDTH
 
 if TYPE_CHECKING:
+    from catalogue.iiif_ingest import FetchOptions
     from catalogue.stereo_ingest import StereoOptions
 
 DEFAULT_COLLECTION = "default"
@@ -207,10 +209,12 @@ def ingest(
     metadata_csv: Path | None = None,
     max_pixels: int,
     on_start: Callable[[int], None] | None = None,
-    on_file: Callable[[Path], None] | None = None,
+    on_file: Callable[[Any], None] | None = None,
     stereo: StereoOptions | None = None,
+    fetch: FetchOptions | None = None,
 ) -> IngestReport:
-    """Ingest files and folders (and a metadata CSV): every problem is a ``rejected`` entry with
+    """Ingest files and folders, IIIF manifests and collections (URLs or ``.json`` files, see
+    :mod:`catalogue.iiif_ingest`) and a metadata CSV: every problem is a ``rejected`` entry with
     its reason and the rest goes on; a database that refuses writes (a full disk) rejects each
     file it touches, and no original stays in the store without its card."""
     report = IngestReport()
@@ -232,7 +236,15 @@ def ingest(
     if metadata_csv is not None:
         metadata_ids = _ingest_metadata(collection_id, metadata_csv, report)
 
-    files = list(discover_files(paths, report))
+    paths = list(paths)
+    iiif_sources = [str(raw) for raw in paths if is_iiif_source(raw)]
+    canvases: list[Any] = []
+    if iiif_sources:
+        from catalogue.iiif_ingest import FetchOptions as _FetchOptions, IiifClient, gather_canvases
+
+        client = IiifClient(fetch or _FetchOptions())
+        canvases = gather_canvases(iiif_sources, client, report)
+    files = list(discover_files([raw for raw in paths if not is_iiif_source(raw)], report))
     # ---- stereo hook: MPOs, left/right pairs and JPS / side-by-side eye order (catalogue.stereo_ingest)
     # become cards there; the other files go on to the one-file-per-card ingest below.
     from catalogue.stereo_ingest import StereoOptions as _StereoOptions, ingest_stereo_inputs
@@ -240,7 +252,24 @@ def ingest(
     files = ingest_stereo_inputs(files, stereo or _StereoOptions(), collection_id, data_dir, max_pixels, report)
     # ---- end of the stereo hook
     if on_start is not None:
-        on_start(len(files))
+        on_start(len(canvases) + len(files))
+    if canvases:
+        from catalogue.iiif_ingest import ingest_canvases
+
+        try:
+            ingest_canvases(
+                canvases,
+                client,
+                collection_id=collection_id,
+                data_dir=data_dir,
+                max_pixels=max_pixels,
+                report=report,
+                on_canvas=on_file,
+            )
+        finally:
+            client.close()
+    elif iiif_sources:
+        client.close()
     for path in files:
         _ingest_one(path, collection_id, data_dir, max_pixels, report)
         if on_file is not None:
@@ -399,7 +428,8 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
 @click.command("ingest")
 # readable=False: click would end the whole command (exit 2) on one unreadable path; ingest
 # rejects that path alone, with its reason, and goes on with the others.
-@click.argument("paths", nargs=-1, type=click.Path(path_type=Path, readable=False))
+# path_type=str: a URL stays a URL (pathlib would fold its "//").
+@click.argument("paths", nargs=-1, type=click.Path(path_type=str, readable=False))
 @click.option(
     "--metadata",
     "metadata_csv",
@@ -425,17 +455,31 @@ def _ingest_one(path: Path, collection_id: int, data_dir: Path, max_pixels: int,
     help="Eye order of side-by-side files: cross (right view on the left) or parallel. "
     "JPS files default to cross; giving it treats every plain file as side by side.",
 )
+@click.option(
+    "--timeout",
+    "timeout_s",
+    type=click.FloatRange(min=0.1),
+    default=30.0,
+    show_default=True,
+    help="IIIF: seconds to wait for a server to answer (each request; failed ones are tried twice more).",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the report as one JSON document.")
 @with_appcontext
 def ingest_command(
-    paths: tuple[Path, ...],
+    paths: tuple[str, ...],
     metadata_csv: Path | None,
     collection_name: str,
     pairs_csv: Path | None,
     sbs_order: str | None,
+    timeout_s: float,
     as_json: bool,
 ) -> None:
     """Copy scans (files or folders, recursively: jpg, png, tif, jps, mpo) into the catalogue.
+
+    A PATH may also be a IIIF Presentation 3 or 2.1 manifest or collection, as an http(s) URL or
+    a .json file: each canvas's image is fetched through its Image API service (the largest size
+    the service and KEYSTONE_MAX_PIXELS allow) and becomes a card with the manifest's catalogue
+    record; the canvas id stays on the card, so a rerun fetches no canvas twice.
 
     An MPO's two frames, and a left/right pair (named <stem>_L/_R, <stem>L/R, -left/-right, or
     listed in --pairs), each become one card; JPS files are read as cross-eyed unless
@@ -444,6 +488,7 @@ def ingest_command(
     Duplicates by content are a no-op; rerunning an interrupted ingest carries on where it
     stopped. Exits 1 when any file or metadata row was rejected (each is listed with a reason).
     """
+    from catalogue.iiif_ingest import FetchOptions as _FetchOptions
     from catalogue.stereo_ingest import StereoOptions as _StereoOptions
     from core.console import data_dir, emit_json, ensure_database, progress_bar, say
 
@@ -460,6 +505,7 @@ def ingest_command(
             on_start=progress.start,
             on_file=progress.advance,
             stereo=_StereoOptions(pairs_csv=pairs_csv, sbs_order=sbs_order),
+            fetch=_FetchOptions(timeout_s=timeout_s),
         )
     if as_json:
         emit_json(report.as_json())

@@ -73,9 +73,10 @@ def sha256_regular_file(path: Path) -> str:
     return digest.hexdigest()
 
 
-def store_original(source: Path, content_hash: str, data_dir: Path) -> Path:
-    """Copy ``source`` into the store atomically and make it read-only; returns the relative path."""
-    relative = Path("originals") / content_hash[:2] / f"{content_hash}{source.suffix.lower()}"
+def store_original(source: Path, content_hash: str, data_dir: Path, suffix: str | None = None) -> Path:
+    """Copy ``source`` into the store atomically and make it read-only; returns the relative path.
+    ``suffix``: the stored name's extension when the source's own name does not carry it (a download)."""
+    relative = Path("originals") / content_hash[:2] / f"{content_hash}{(source.suffix if suffix is None else suffix).lower()}"
     target = data_dir / relative
     if target.exists():  # left by an interrupted run, or shared by name: same bytes by construction
         return relative

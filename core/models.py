@@ -104,6 +104,11 @@ class Card(db.Model):
     # side-by-side file with a declared eye order: its originals, hashes, eye order and the check
     # of that order (catalogue.stereo_ingest). NULL for an ordinary scan.
     stereo_source: Mapped[dict[str, Any] | None] = mapped_column(JSONType, nullable=True)
+    # Set when the card was ingested from a IIIF canvas (catalogue.iiif_ingest): the canvas id
+    # (unique: a canvas is one card however often ingest is retried) and where it came from:
+    # manifest, canvas size, Image API service, the size fetched, the rights statement.
+    iiif_canvas_id: Mapped[str | None] = mapped_column(String(1000), nullable=True, unique=True, index=True)
+    iiif_source: Mapped[dict[str, Any] | None] = mapped_column(JSONType, nullable=True)
     state: Mapped[str] = mapped_column(String(20), default="ingested", index=True)
     created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     updated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow, onupdate=utcnow)

@@ -117,6 +117,7 @@ def stream_release_cards(
                         with_views,
                         states[card.id].inputs_now,
                         (states[card.id].stale or {}).get("views"),
+                        states[card.id].orientation,
                     )
                 )
             except ReleaseInputError as exc:
@@ -157,6 +158,7 @@ def release_card(
     with_views: bool = False,
     inputs_now: dict[str, str] | None = None,
     stale_views: str | None = None,
+    orientation_now: dict[str, Any] | None = None,
 ) -> ReleaseCard:
     """One accepted card as released. ``inputs_now``: the inputs digest each stage would be given
     from people's decisions at release time (:attr:`runs.card_state.CardState.inputs_now`),
@@ -243,6 +245,17 @@ def release_card(
         views=views,
         views_note=views_note,
         stereo_source=card.stereo_source,
+        iiif_source=card.iiif_source,
+        annotation_facts={
+            "scanned_boxes": rectify.metrics.get("scanned_boxes"),
+            "orientation_used": rectify.metrics.get("orientation_used"),
+            # Who decided the orientation rectify used: nothing stale is released, so the card's
+            # orientation now (runs.card_state) is the one its results were computed with.
+            "orientation_decided_by": (orientation_now or {}).get("decided_by"),
+            "orientation_source": (orientation_now or {}).get("source") or orientation.get("source"),
+            "grade_reasons": list((grade.metrics.get("reasons") if grade is not None else None) or []),
+            "box_source": rectify.metrics.get("box_source"),
+        },
         acceptance={
             "decided_at": None if review.decided_at is None else _utc(review.decided_at).isoformat(),
             "accepted_results": review.accepted_results,

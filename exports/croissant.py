@@ -150,6 +150,18 @@ def jsonl_record_set(name: str, fields: Sequence[tuple[str, str, str]], descript
     }
 
 
+PUBLIC_DOMAIN_MARK = "https://creativecommons.org/publicdomain/mark/1.0/"
+
+
+def release_licence(rights: Mapping[str, int], card_count: int) -> str | list[str]:
+    """The release's licence: the museums' own rights statements, unchanged (``rights``: statement
+    URL -> cards carrying it), plus the public domain mark for cards that came with none."""
+    statements = sorted(rights)
+    if sum(rights.values()) < card_count or not statements:
+        statements.append(PUBLIC_DOMAIN_MARK)
+    return statements[0] if len(statements) == 1 else statements
+
+
 def croissant_document(
     *,
     version: str,
@@ -162,6 +174,7 @@ def croissant_document(
     name: str = "keystone-stereographs",
     record_sets: Sequence[dict[str, Any]] = (),
     encodings: Mapping[str, str] | None = None,
+    rights: Mapping[str, int] | None = None,
 ) -> dict[str, Any]:
     """The Croissant JSON-LD document (``files``: relative path -> (sha256, bytes)); ``record_sets``
     (the formats' own, after ``cards``) and ``encodings`` (suffix -> MIME type beyond
@@ -199,7 +212,7 @@ def croissant_document(
         ).strip(),
         "version": version,
         "datePublished": date,
-        "license": "https://creativecommons.org/publicdomain/mark/1.0/",
+        "license": release_licence(rights or {}, card_count),
         "url": "https://github.com/keystone-stereo/keystone",
         "creator": {"@type": "sc:Organization", "name": "Keystone curators"},
         "keywords": ["stereo", "stereograph", "disparity", "depth estimation", "cultural heritage", "KeystoneDepth"],

@@ -101,6 +101,11 @@ class ReleaseCard:
     # What the curator's acceptance was given and when, and the inputs digest each released
     # stage would be given at release time (keystone verify checks the release against them).
     acceptance: dict[str, Any] | None = None
+    # Where the card came from when it was ingested from a IIIF canvas (cards.iiif_source), and
+    # what the release's IIIF manifest says on that canvas (exports.formats.iiif): the boxes as
+    # scanned (rectify's ``scanned_boxes``), the orientation used and who decided it, the grade's reasons.
+    iiif_source: dict[str, Any] | None = None
+    annotation_facts: dict[str, Any] = field(default_factory=dict)
 
     @property
     def key(self) -> str:
@@ -158,6 +163,7 @@ class ReleaseCard:
             **({} if self.views_note is None else {"views": self.views_record()}),
             **({} if self.stereo_source is None else {"stereo_source": released_stereo_source(self.stereo_source)}),
             **({} if self.acceptance is None else {"acceptance": self.acceptance}),
+            **({} if self.iiif_source is None else {"iiif": released_iiif_source(self.iiif_source)}),
         }
 
     def views_record(self) -> dict[str, Any]:
@@ -165,6 +171,21 @@ class ReleaseCard:
         if self.views:
             return {"folder": f"{VIEWS_FOLDER}/{self.key}", "why_not": None}
         return {"folder": None, "why_not": self.views_note}
+
+
+def released_iiif_source(source: dict[str, Any]) -> dict[str, Any]:
+    """Where a card came from in the museum's IIIF: manifest, canvas, image service, the size fetched."""
+    keys = (
+        "manifest",
+        "canvas",
+        "canvas_width",
+        "canvas_height",
+        "service",
+        "service_version",
+        "fetched_width",
+        "fetched_height",
+    )
+    return {key: source.get(key) for key in keys}
 
 
 def released_stereo_source(source: dict[str, Any]) -> dict[str, Any]:

@@ -379,6 +379,7 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     manifest: dict[str, dict[str, Any]] = {}
     exclusions: list[Exclusion] = []
     crowd_answers = crowd_cards = 0
+    rights: Counter[str] = Counter()  # the museums' rights statements, carried into croissant.json and README.md
     with read_only(), open(root / "cards.jsonl", "wb") as cards_file:
         ids = [int(key) for key in sorted(plan.manifest, key=int)]
         plan.manifest = {}  # the ids are all that is needed from the plan: keep one manifest in memory
@@ -389,6 +390,9 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
                 exclusions.append(Exclusion(card.card_id, f"unreadable output: {exc}"))
                 continue
             cards_file.write(payload.record_json + b"\n")
+            statement = card.metadata.get("rights")
+            if isinstance(statement, str) and statement:
+                rights[statement] += 1
             for _, writer in writers:
                 writer.add(payload)
             manifest[str(card.card_id)] = payload.card.manifest_entry()  # the card as written (views may be dropped)
@@ -417,7 +421,9 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
     ledger.write_bytes("CHANGELOG.md", changelog(version, plan.date, changes, excluded, sections, summary).encode())
     ledger.write_bytes(
         "README.md",
-        dataset_card(version, plan.date, len(manifest), grades, chosen, summaries, plan.notes, changes, plan.min_grade).encode(),
+        dataset_card(
+            version, plan.date, len(manifest), grades, chosen, summaries, plan.notes, changes, plan.min_grade, dict(rights)
+        ).encode(),
     )
     crowd = {"answers_per_card": crowd_answers / crowd_cards if crowd_cards else None, "cards_with_crowd": crowd_cards}
     with open(root / "croissant.json", "wb") as handle:
@@ -434,6 +440,7 @@ def _write(root: Path, plan: ReleaseReport, fmt: tuple[str, ...], data_dir: Path
                 record_set for written in chosen for record_set in written.record_sets(summaries.get(written.name), len(manifest))
             ],
             encodings=format_encodings(),
+            rights=dict(rights),
         )
     ledger.record_file("croissant.json")
     sums_hash = hashlib.sha256()
@@ -526,15 +533,18 @@ def dataset_card(
     notes: str,
     changes: Changes,
     min_grade: str,
+    rights: dict[str, int] | None = None,
 ) -> str:
     """README.md in the Hugging Face dataset-card layout (YAML header, then the template's sections);
     each format adds its header lines and its items of "Dataset Structure"."""
     size = "n<1K" if cards < 1000 else "1K<n<10K" if cards < 10_000 else "10K<n<100K"
+    rights = rights or {}
     header = [
         "---",
         "pretty_name: Keystone stereographs",
         "license: other",
-        "license_name: public-domain-mark-where-applicable",
+        "license_name: " + ("museum-rights-statements" if rights else "public-domain-mark-where-applicable"),
+        *([f"license_link: {next(iter(rights))}"] if len(rights) == 1 and sum(rights.values()) == cards else []),
         "task_categories:",
         "- depth-estimation",
         "tags:",
@@ -586,6 +596,7 @@ def dataset_card(
         "",
         "Scans of stereo cards with the holding museum's catalogue records (accession number, title, date, "
         "creator, publisher, place, URL where known). Each card's metadata travels in `cards.jsonl`.",
+        *_rights_lines(rights, cards),
         "",
         "## Annotations",
         "",
@@ -613,6 +624,24 @@ def dataset_card(
         "",
     ]
     return "\n".join(header + body)
+
+
+def _rights_lines(rights: dict[str, int], cards: int) -> list[str]:
+    """The museums' rights statements as they gave them, with how many cards each covers."""
+    if not rights:
+        return []
+    lines = [
+        "",
+        "### Rights",
+        "",
+        "Each card keeps its holder's rights statement unchanged (`metadata.rights` in `cards.jsonl`):",
+        "",
+    ]
+    lines += [f"- {statement}: {count} card(s)" for statement, count in sorted(rights.items())]
+    without = cards - sum(rights.values())
+    if without:
+        lines.append(f"- no statement from the holder ({without} card(s)): public domain mark where applicable")
+    return lines
 
 
 __all__ = ["CardPayload", "ReleaseError", "ReleaseReport", "plan_release", "publish_release"]

@@ -734,3 +734,16 @@ def post_at_once(app, client) -> Callable[..., list[Any]]:  # type: ignore[no-un
         return answers
 
     return post
+
+
+# ---- a IIIF server on loopback (catalogue/iiif_ingest.py, exports/formats/iiif.py) ----
+
+
+@pytest.fixture
+def iiif_server(tmp_path: Path) -> Iterator[Any]:
+    """A level-0 static IIIF server on loopback (benchmarks.iiif_server.StaticIiif), closed after the test."""
+    from benchmarks.iiif_server import StaticIiif
+
+    served = StaticIiif(tmp_path / "iiif-root")
+    yield served
+    served.close()

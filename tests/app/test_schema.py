@@ -41,7 +41,7 @@ def test_models_and_migrations_agree(app):
 
 def test_migrations_reach_head_and_ensure_is_idempotent(app):
     with app.app_context():
-        assert current_revision(db.engine) == head_revision(db.engine) == "0014"
+        assert current_revision(db.engine) == head_revision(db.engine) == "0015"
         assert ensure_schema(db.engine) is False
         tables = set(inspect(db.engine).get_table_names())
     assert {"collections", "cards", "stage_results", "people", "person_roles", "metadata_records", "stage_claims"} <= tables

@@ -67,7 +67,7 @@ def test_export_refuses_an_unknown_format(runner, tmp_path) -> None:
     result = runner.invoke(args=["export", "--out", str(tmp_path / "out"), "--format", "zip"])
     assert (
         result.exit_code == 2
-        and "Expected formats from keystonedepth, parquet, webdataset, views, stereo, got zip" in result.output
+        and "Expected formats from keystonedepth, parquet, webdataset, views, stereo, iiif, got zip" in result.output
     )
 
 

@@ -16,7 +16,7 @@ from exports.croissant import jsonl_record_set
 from exports.formats import Problems, ReleaseFormat, WriteContext
 from exports.writers import CardPayload, FileLedger
 
-BUILT_IN = ("keystonedepth", "parquet", "webdataset", "views", "stereo")
+BUILT_IN = ("keystonedepth", "parquet", "webdataset", "views", "stereo", "iiif")
 
 
 class ToyWriter:
@@ -90,7 +90,7 @@ def test_every_module_of_the_package_registers_one_format_in_the_canonical_order
     from exports.formats.registry import NOT_FORMAT_MODULES
 
     assert format_names() == BUILT_IN
-    assert default_format_names() == ("keystonedepth", "parquet")
+    assert default_format_names() == ("keystonedepth", "parquet", "iiif")
     modules = {
         f"exports.formats.{module.name}"
         for module in pkgutil.iter_modules(exports.formats.__path__)
@@ -126,7 +126,9 @@ def test_format_names_are_parsed_into_the_canonical_order() -> None:
 
     assert parse_formats("stereo, keystonedepth,views") == ("keystonedepth", "views", "stereo")
     assert [fmt.name for fmt in chosen_formats(["parquet", "webdataset"])] == ["parquet", "webdataset"]
-    with pytest.raises(ValueError, match="Expected formats from keystonedepth, parquet, webdataset, views, stereo, got csv"):
+    with pytest.raises(
+        ValueError, match="Expected formats from keystonedepth, parquet, webdataset, views, stereo, iiif, got csv"
+    ):
         parse_formats("keystonedepth,csv")
     with pytest.raises(ValueError, match="got none"):
         parse_formats(" , ")

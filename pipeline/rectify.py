@@ -818,7 +818,8 @@ def rectify_matches(
 ) -> Rectification:
     """:func:`rectify_pair` from given matches: ``pts_l``, ``pts_r`` ``(N, 2)`` px in views of
     ``left_size`` / ``right_size`` ``(width, height)`` px. ``match_scale``: px per matching px
-    (>= 1; the thresholds in ``params`` are at the matching scale). Same decisions, same errors."""
+    (> 0: under 1 when small views were matched upsampled, as the filter does; the thresholds in
+    ``params`` are at the matching scale). Same decisions, same errors."""
     pts_l, pts_r = (np.asarray(p, np.float64) for p in (pts_l, pts_r))
     if pts_l.ndim != 2 or pts_l.shape[1:] != (2,) or pts_l.shape != pts_r.shape:
         raise InvalidInputError(f"Expected two (N, 2) point arrays, got {pts_l.shape} and {pts_r.shape}")
@@ -828,8 +829,8 @@ def rectify_matches(
     if any(len(size) != 2 or min(size) < MIN_SIDE for size in sizes):
         raise InvalidInputError(f"Expected view sizes (width, height) of at least {MIN_SIDE} px, got {sizes}")
     left_wh, right_wh = ((size[0], size[1]) for size in sizes)  # both (width, height), checked above
-    if not (math.isfinite(match_scale) and match_scale >= 1.0):
-        raise InvalidInputError(f"Expected match_scale >= 1, got {match_scale}")
+    if not (math.isfinite(match_scale) and match_scale > 0.0):
+        raise InvalidInputError(f"Expected match_scale > 0, got {match_scale}")
     try:
         return _rectify_matches(pts_l, pts_r, left_wh, right_wh, params, principal_point, time.perf_counter(), match_scale)
     except PipelineError:

@@ -51,8 +51,11 @@ class GradeMeasurements:
 
     From the rectify stage (the worse of the two views where it measures both):
 
-    * ``dy_p95_px``: px at :data:`REFERENCE_SIDE`, 95th percentile of inlier ``|y_l - y_r|``
-      after rectification.
+    * ``dy_p95_px``: px at the resolution the matches were found at (the filter matches every
+      half resampled to 600 px, :data:`REFERENCE_SIDE`, whatever the scan's size), 95th percentile
+      of inlier ``|y_l - y_r|`` after rectification: the figure rectification's own 2 px limit
+      applies to (the rectify metrics' ``dy_p95_match``; a record without it: the stored view's
+      ``dy_p95`` x ``REFERENCE_SIDE`` / the view's longer side).
     * ``shear_deg``: deg, ``90 - midline_angle``: how far the images of the midlines are from
       perpendicular (0 = no shear).
     * ``aspect_change``: ratio >= 1, change of the midline length ratio (1 = none).
@@ -340,8 +343,12 @@ def measure_card(
     values["good_match_fraction"] = finite_or_none(filter_metrics.get("good_match_fraction"))
     if values["good_match_fraction"] is None:
         notes["good_match_fraction"] = "no filter metrics" if not filter_metrics else "not in the filter metrics"
-    values.update(_rectify_values(stages.get("rectify") or {}, notes))
-    if values["dy_p95_px"] is not None:  # the stored view's px -> px at REFERENCE_SIDE
+    rectify_metrics = stages.get("rectify") or {}
+    values.update(_rectify_values(rectify_metrics, notes))
+    at_matching = finite_or_none(rectify_metrics.get("dy_p95_match"))
+    if at_matching is not None:  # px at the matching resolution (the filter's 600 px halves)
+        values["dy_p95_px"] = at_matching
+    elif values["dy_p95_px"] is not None:  # older records: the stored view's px -> px at REFERENCE_SIDE
         values["dy_p95_px"] *= REFERENCE_SIDE / max(shape)
 
     grey_l, grey_r = to_grey(np.ascontiguousarray(left)), to_grey(np.ascontiguousarray(right))

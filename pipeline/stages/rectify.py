@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, cast
@@ -60,10 +61,11 @@ def orient_card(card: np.ndarray, inputs: dict[str, Any]) -> tuple[np.ndarray, d
 
 def filter_matches(task: CardTask, card_shape: tuple[int, ...]) -> tuple[np.ndarray, float] | None:
     """The filter's good matches ``(N, 4)`` in px of the card as oriented here, and their scale
-    (card px per SIFT px), or None when the filter left none (older runs) or they cannot be read.
-    A card turned 180 deg turns its matches with it; an inverted one keeps them (same places)."""
+    (card px per SIFT px; under 1 when a small scan's halves were matched upsampled), or None when
+    the filter left none (older runs) or they cannot be read. A card turned 180 deg turns its
+    matches with it; an inverted one keeps them (same places)."""
     relative, scale = task.inputs.get("filter_matches"), task.inputs.get("filter_match_scale")
-    if not isinstance(relative, str) or not isinstance(scale, (int, float)) or not scale >= 1:
+    if not isinstance(relative, str) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and scale > 0):
         return None
     try:
         matches = np.load(Path(task.data_dir) / relative, allow_pickle=False)
@@ -170,8 +172,11 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     principal_point = ((full[0] + full[2] - 1) / 2 - boxes[0][0], (full[1] + full[3] - 1) / 2 - boxes[0][1])
     if matches is None:
         rect_full = rectify_pair(left, right, params, principal_point=principal_point)
+        # rectify_pair matches views downscaled to params.max_side (never up)
+        matched_scale = max(1.0, max(*left.shape[:2], *right.shape[:2]) / params.max_side)
     else:
         pts_l, pts_r, match_scale = matches  # match_scale: crop px per SIFT px
+        matched_scale = match_scale
         rect_full = rectify_matches(
             pts_l, pts_r, left.shape[1::-1], right.shape[1::-1], params, principal_point=principal_point, match_scale=match_scale
         )
@@ -229,6 +234,9 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     metrics["implied_pose"] = implied_pose(rect_full.H_l, rect_full.H_r, rect_full.K)  # the full-resolution frame's
     metrics["full_size"] = [int(v) for v in rect_full.size]
     metrics["dy_p95_full"] = float(rect_full.dy_p95)
+    # px at the resolution the matches were found at (600 px halves from the filter, whatever the
+    # scan's size): where rectification's own |dy| limit applies, and what the grade reads.
+    metrics["dy_p95_match"] = float(rect_full.dy_p95 / matched_scale)
     metrics["orientation"] = orientation
     # What this result was computed with: a later change (crowd, curator) makes it stale.
     metrics["orientation_used"] = {flag: task.inputs.get(flag) for flag in ("upside_down", "inverted", "swapped")}

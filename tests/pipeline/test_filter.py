@@ -247,7 +247,9 @@ def test_real_stereo_cards_pass_or_go_to_review(load_card, name):
     card = load_card(name)
     _, result = filter_card(card)
     assert result.outcome in ("pass", "review"), (result.good_match_fraction, result.reason)
-    assert result.good_match_fraction > 0.15  # measured 18.7-50.7 %
+    # measured 9.0-45.8 % with every half matched at 600 px (18.7-50.7 % when small halves were
+    # matched at their own size: upsampled, a small scan gives more keypoints, the denominator)
+    assert result.good_match_fraction > 0.07
 
 
 @pytest.mark.parametrize("name", ["nypl_c7980740_back.jpg", "nypl_f0bf5ba0_back.jpg"])

@@ -134,10 +134,10 @@ OPEN_BATCHES = (
     select(Batch.id, Batch.answers_per_item, Batch.gold_rate)
     .where(
         Batch.kind == bindparam("kind"),
-        batch_takes_new_tasks(),
         select(_items.c.id)
         .where(_items.c.batch_id == Batch.id, _items.c.is_gold.is_(False), _items.c.answers < Batch.answers_per_item)
         .exists(),
+        batch_takes_new_tasks(),  # after: only batches with open items read the audit trail
     )
     .order_by(Batch.id)
 )

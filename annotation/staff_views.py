@@ -91,7 +91,7 @@ def invite_qr_svg(link: str) -> Markup:
 
     buffer = io.BytesIO()
     segno.make(link, error="m").save(
-        buffer, kind="svg", scale=3, border=2, xmldecl=False, svgns=True, svgclass="invite-qr", lineclass=None
+        buffer, kind="svg", scale=4, border=4, xmldecl=False, svgns=True, svgclass="invite-qr", lineclass=None
     )
     return Markup(buffer.getvalue().decode("ascii"))
 
@@ -102,6 +102,7 @@ class NewBatchForm:
 
     values: dict[str, str] = field(default_factory=dict)
     errors: dict[str, str] = field(default_factory=dict)
+    status: int = 400  # 404 when what refused is a card id that names no card
 
     @classmethod
     def defaults(cls, waiting: Mapping[str, int]) -> NewBatchForm:
@@ -216,6 +217,7 @@ def _read_new_batch(form: NewBatchForm) -> tuple[list[int], str, int, float, str
         if missing:
             shown = ", ".join(map(str, missing[:10])) + (f" and {len(missing) - 10} more" if len(missing) > 10 else "")
             form.errors["cards"] = f"No card with id {shown}"
+            form.status = 404
     if form.values["from_review"] and "kind" not in form.errors:
         with read_only():
             ids += [c for c in waiting_card_ids(kind) if c not in ids]
@@ -235,7 +237,7 @@ def new_batch() -> Response | tuple[str, int]:
     form.values["kind"] = form.values["kind"] or "judge"
     ids, kind, n, gold_rate, name = _read_new_batch(form)
     if form.errors:
-        return _batches_page(form, 400)
+        return _batches_page(form, form.status if set(form.errors) == {"cards"} else 400)
     key = request.form.get("request_key") or None
     if key is not None and not REQUEST_KEY.fullmatch(key):
         raise TaskError("This form is out of date: reload the batches page and submit it again")
@@ -255,7 +257,7 @@ def new_batch() -> Response | tuple[str, int]:
         return redirect(url_for("crowd.batches", _anchor=f"batch-{done.batch_id}"), code=303)
     except TaskError as exc:  # e.g. a confirm card nobody proposed a way up for
         form.errors["cards"] = exc.message
-        return _batches_page(form, 400)
+        return _batches_page(form, exc.status)
     if name:
         name_batch(batch.id, name, current_user)
     progress = batch_progress(batch)

@@ -18,6 +18,7 @@ from core.models import Card, Person, StageResult
 from . import assignment as strategy, confirm as confirm_flags
 from .answers import validate_payload
 from .crowd_settings import grid_size
+from .labels import batch_not_closed, batch_takes_new_tasks
 from .models import TASK_KINDS, Aggregate, Batch, BatchItem
 from .task_errors import TaskError
 
@@ -157,6 +158,44 @@ def review_queue_card_ids() -> list[int]:
     return list(db.session.scalars(select(Card.id).where(Card.state == "review").order_by(Card.id)))
 
 
+def cards_in_open_batches(kind: str, card_ids: Sequence[int], *, answered_too: bool = True) -> set[int]:
+    """Of ``card_ids``, those with a regular item in a ``kind`` batch that is not closed: work
+    already asked for (a paused batch's cards wait for it). ``answered_too=False`` leaves out
+    items the crowd's answer was reached for (an aggregate), as the orientation queues do: a card
+    a grid could not agree on goes to a judge batch again."""
+    busy: set[int] = set()
+    ids = list(card_ids)
+    for start in range(0, len(ids), 500):
+        query = (
+            select(BatchItem.card_id)
+            .join(Batch, Batch.id == BatchItem.batch_id)
+            .where(Batch.kind == kind, BatchItem.card_id.in_(ids[start : start + 500]), ~BatchItem.is_gold, batch_not_closed())
+        )
+        if not answered_too:
+            query = query.where(
+                ~select(Aggregate.id)
+                .where(Aggregate.batch_id == BatchItem.batch_id, Aggregate.card_id == BatchItem.card_id)
+                .exists()
+            )
+        busy.update(db.session.scalars(query))
+    return busy
+
+
+def waiting_card_ids(kind: str) -> list[int]:
+    """The cards a new ``kind`` batch made "from the queue" on the batches page takes, none that
+    is already in a batch of that kind that is not closed: judge, the filter's review band and the
+    cards whose orientation waits for people; crop, the review band; confirm, the cards waiting
+    for a grid (``keystone crowd create-batch --from-review`` takes the queues as they are)."""
+    if kind == "confirm":
+        return confirm_queue_card_ids()
+    band = review_queue_card_ids()
+    busy = cards_in_open_batches(kind, band)
+    ids = [card_id for card_id in band if card_id not in busy]
+    if kind == "judge":
+        ids = list(dict.fromkeys(ids + orientation_queue_card_ids()))
+    return ids
+
+
 def _step_outcomes(card_ids: list[int]) -> dict[int, str | None]:
     """The outcome of each card's latest orientation result (the latest row, as Card.latest_results)."""
     outcomes: dict[int, str | None] = {}
@@ -207,7 +246,7 @@ def _waiting_for_orientation(kind: str) -> list[int]:
     waiting = [
         card_id for card_id in waiting if (outcomes.get(card_id) == "confirm" and card_id not in escalated) == (kind == "confirm")
     ]
-    # A card already in a batch of this kind whose answers are not aggregated yet is on its way.
+    # A card already in a batch of this kind (not closed) whose answers are not aggregated yet is on its way.
     in_flight: set[int] = set()
     for start in range(0, len(waiting), 500):
         chunk = waiting[start : start + 500]
@@ -219,6 +258,7 @@ def _waiting_for_orientation(kind: str) -> list[int]:
                     Batch.kind == kind,
                     BatchItem.card_id.in_(chunk),
                     ~BatchItem.is_gold,
+                    batch_not_closed(),
                     ~select(Aggregate.id)
                     .where(Aggregate.batch_id == BatchItem.batch_id, Aggregate.card_id == BatchItem.card_id)
                     .exists(),
@@ -300,7 +340,12 @@ def preview_card() -> Card | None:
         select(Card)
         .join(BatchItem, BatchItem.card_id == Card.id)
         .join(Batch, Batch.id == BatchItem.batch_id)
-        .where(Batch.kind == "judge", BatchItem.is_gold.is_(False), BatchItem.answers < Batch.answers_per_item)
+        .where(
+            Batch.kind == "judge",
+            BatchItem.is_gold.is_(False),
+            BatchItem.answers < Batch.answers_per_item,
+            batch_takes_new_tasks(),
+        )
         .order_by(Batch.id, BatchItem.id)
         .limit(1)
     )

@@ -10,7 +10,7 @@ from sqlalchemy import and_, case, func, or_, select
 
 from core.db import db, utcnow
 
-from .models import Answer, Batch, BatchItem, CrowdSession, Reservation, Worker
+from .models import Aggregate, Answer, Batch, BatchItem, CrowdSession, Reservation, Worker
 from .queries import ANSWER_COUNT, as_utc, run_prebuilt, worker_id_of
 from .workers import gold_label
 
@@ -129,6 +129,42 @@ def batch_progress(batch: Batch, now: datetime | None = None) -> dict[str, Any]:
     }
 
 
+# A worker who agrees with the crowd's answer on fewer than this share of at least
+# AGREEMENT_MIN_ANSWERS answers is marked on the staff page (never flagged by it: the crowd's
+# answer can be wrong, and careful workers on hard cards disagree too).
+LOW_AGREEMENT = 0.5
+AGREEMENT_MIN_ANSWERS = 5
+
+
+def crowd_agreement() -> dict[int, list[int]]:
+    """Per worker, for each of their answers on a regular item the crowd's answer was reached for
+    (an aggregate, approved or waiting for a curator): 1 when it matches that answer, by the rule
+    gold uses (:func:`annotation.workers.gold_label`; a question the crowd left undecided is not
+    compared), else 0.
+
+    Gold answers are few (a worker meets each gold card once, and one draw in several is gold),
+    so a worker can answer a whole batch before gold can judge them: the demo's spammer met one
+    gold card in seven answers. Agreement with the crowd needs no gold: a coin-flipping judge
+    agrees on all four questions about one time in sixteen.
+    """
+    out: dict[int, list[int]] = {}
+    for worker_id, payload, label, kind in db.session.execute(
+        select(Answer.worker_id, Answer.payload, Aggregate.label, Batch.kind)
+        .join(BatchItem, Answer.item_id == BatchItem.id)
+        .join(Batch, BatchItem.batch_id == Batch.id)
+        .join(Aggregate, and_(Aggregate.batch_id == BatchItem.batch_id, Aggregate.card_id == BatchItem.card_id))
+        .where(BatchItem.is_gold.is_(False))
+    ):
+        decided = {key: value for key, value in (label or {}).items() if value is not None}
+        if not decided or not isinstance(payload, dict):
+            continue
+        try:
+            out.setdefault(worker_id, []).append(gold_label(kind, payload, decided))
+        except (KeyError, TypeError, ValueError):
+            continue  # a label without the fields this answer gives (an older aggregate's shape)
+    return out
+
+
 def worker_progress() -> list[dict[str, Any]]:
     """Every worker across batches: answers, flagged answers, gold accuracy and whether they are flagged.
 
@@ -164,11 +200,13 @@ def worker_progress() -> list[dict[str, Any]]:
     ):
         if gold_answer:
             gold.setdefault(worker_id, []).append(gold_label(kind, payload, gold_answer))
+    agreement = crowd_agreement()
     rows = []
     for worker in db.session.scalars(select(Worker).order_by(Worker.id)):
         total, flagged = counts.get(worker.id, (0, 0))
         opened, completed, refused = sessions.get(worker.id, (0, 0, 0))
         labels = gold.get(worker.id, [])
+        agreed = agreement.get(worker.id, [])
         rows.append(
             {
                 "worker": worker.id,
@@ -179,6 +217,9 @@ def worker_progress() -> list[dict[str, Any]]:
                 "gold_correct": sum(labels),
                 "gold_total": len(labels),
                 "gold_accuracy": round(sum(labels) / len(labels), 4) if labels else None,
+                "agreed": sum(agreed),
+                "compared": len(agreed),
+                "agreement": round(sum(agreed) / len(agreed), 4) if agreed else None,
                 "served": not worker.flagged,
                 "sessions": int(opened),
                 "completed_sessions": int(completed),

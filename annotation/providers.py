@@ -26,6 +26,7 @@ from sqlalchemy import bindparam, func, select
 from core.db import db
 
 from .crowd_settings import token_lifetime_s
+from .labels import invite_statuses
 from .models import Answer, CrowdSession, Worker
 from .sessions import invite_session, open_session
 from .task_errors import TaskError
@@ -81,6 +82,9 @@ class InviteProvider:
         worker = db.session.scalar(select(Worker).where(Worker.provider == "invite", Worker.token == token))
         if worker is None:
             raise TaskError("This invite link is not valid; ask for a new one", 404)
+        refusal = invite_statuses([worker.id])[worker.id].refusal()
+        if refusal is not None:
+            raise TaskError(refusal, 410)
         return Entry(self.name, worker, session=invite_session(worker))
 
     def finish(self, context: dict[str, str]) -> dict[str, Any]:

@@ -17,6 +17,7 @@ from sqlalchemy import Integer, and_, bindparam, func, inspect as sa_inspect, or
 from core.db import db
 from core.models import Card
 
+from .labels import batch_takes_new_tasks
 from .models import Answer, Batch, BatchItem, CrowdSession, Reservation, Worker
 
 
@@ -127,7 +128,8 @@ ANSWER_COUNT = (
         Answer.worker_id == bindparam("worker_id"), Answer.session_id.is_not_distinct_from(bindparam("session_id", type_=Integer))
     )
 )
-# Batches with a regular item below N usable answers: one index seek per batch.
+# Batches with a regular item below N usable answers, not paused or closed by a curator
+# (annotation.labels): one index seek per batch.
 OPEN_BATCHES = (
     select(Batch.id, Batch.answers_per_item, Batch.gold_rate)
     .where(
@@ -135,6 +137,7 @@ OPEN_BATCHES = (
         select(_items.c.id)
         .where(_items.c.batch_id == Batch.id, _items.c.is_gold.is_(False), _items.c.answers < Batch.answers_per_item)
         .exists(),
+        batch_takes_new_tasks(),  # after: only batches with open items read the audit trail
     )
     .order_by(Batch.id)
 )

@@ -68,7 +68,17 @@ from .workers import account_worker
 TOKEN_HEADER = "X-Crowd-Token"
 # Curators' pages (annotation.staff_views): their errors render in the staff layout.
 STAFF_ENDPOINTS = frozenset(
-    {"crowd.batches", "crowd.new_batch", "crowd.new_invite", "crowd.flag_worker", "crowd.check_submissions", "crowd.answers_csv"}
+    {
+        "crowd.batches",
+        "crowd.new_batch",
+        "crowd.rename_batch",
+        "crowd.batch_state",
+        "crowd.new_invite",
+        "crowd.revoke_invite_link",
+        "crowd.flag_worker",
+        "crowd.check_submissions",
+        "crowd.answers_csv",
+    }
 )
 
 

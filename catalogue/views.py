@@ -10,22 +10,24 @@ any other URL must revalidate with its ETag, so a rerun stage never leaves a sta
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import os
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from flask import Blueprint, abort, current_app, redirect, render_template, request, url_for
 from flask_login import current_user
-from sqlalchemy import ColumnElement, and_, false, func, not_, or_, select
+from sqlalchemy import ColumnElement, Text, and_, cast, false, func, not_, or_, select
 from sqlalchemy.orm import selectinload
 from werkzeug.wrappers import Response
 
 from core.auth import add_nav_link, role_home, role_required
 from core.db import db, read_only
 from core.http_images import not_modified, send_image, url_version
-from core.limits import parse_positive_int
+from core.limits import DATABASE_ID_MAX, parse_positive_int
 from core.models import CARD_STATES, Card, Collection, MetadataRecord, StageResult
 from pipeline.errors import ImageReadError
 from pipeline.io import atomic_write, encode_jpeg, read_image
@@ -94,6 +96,10 @@ def inside_data_dir(relative: str) -> Path:
 # ----------------------------------------------------------------------------- filters
 
 
+# The longest search the cards list runs; a longer one is cut here and the page says so.
+MAX_SEARCH = 200
+
+
 @dataclass(frozen=True)
 class CardFilters:
     collection_id: int | None = None
@@ -101,10 +107,13 @@ class CardFilters:
     stage: str | None = None
     status: str | None = None
     page: int = 1
+    search: str = ""
+    search_cut: bool = False  # the search as typed was longer than MAX_SEARCH
 
     def query_args(self, **changes: Any) -> dict[str, Any]:
         """Query-string arguments for a link to these filters with ``changes`` applied."""
         args = {
+            "q": self.search,
             "collection": self.collection_id,
             "state": self.state,
             "stage": self.stage,
@@ -136,7 +145,11 @@ def parse_filters(args: Any) -> CardFilters:
     stage, status = choice("stage", FILTERABLE_STAGES), choice("status", STAGE_FILTER_STATUSES)
     if status and not stage:
         abort(400, "A status filter needs a stage too, e.g. ?stage=filter&status=done.")
+    # Control and formatting characters (PostgreSQL refuses NUL in text) and runs of spaces: one space.
+    typed = " ".join("".join(c if c.isprintable() else " " for c in args.get("q") or "").split())
     return CardFilters(
+        search=typed[:MAX_SEARCH],
+        search_cut=len(typed) > MAX_SEARCH,
         collection_id=positive_int("collection"),
         state=choice("state", CARD_STATES),
         stage=stage,
@@ -179,8 +192,60 @@ def stage_status_condition(stage: str, status: str) -> ColumnElement[bool]:
     return latest_status == status
 
 
+def _like_pattern(text: str) -> str:
+    """``%text%`` for LIKE with ``\\`` as the escape character: ``%`` and ``_`` in the search are literal."""
+    return "%" + text.replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_") + "%"
+
+
+def search_condition(search: str) -> ColumnElement[bool]:
+    """SQL for "the card matches ``search``": its id (``12`` or ``#12``), or the text, ignoring
+    case, anywhere in its accession number, file name, title or any other catalogue field (the
+    card's own metadata and the metadata CSV rows matched to it). Bound parameters only.
+
+    The catalogue fields are JSON columns, searched as their JSON text: SQLite stores non-ASCII
+    letters and quotes escaped (``\\u00e9``, ``\\"``), so the search's JSON-escaped spellings are
+    tried too. Case is ignored for ASCII letters on SQLite (its LIKE), for all on PostgreSQL (ILIKE).
+    Field names match as well (a search for ``title`` finds every card with a title).
+    """
+    plain = _like_pattern(search)
+    # Only the escaped spellings in JSON text: a bare backslash would match every escaped quote.
+    spellings = dict.fromkeys([json.dumps(search)[1:-1], json.dumps(search, ensure_ascii=False)[1:-1]])
+    in_json = [_like_pattern(spelling) for spelling in spellings]
+
+    def any_like(column: Any, patterns: list[str]) -> ColumnElement[bool]:
+        return or_(*(column.ilike(pattern, escape="\\") for pattern in patterns))
+
+    records = (
+        select(MetadataRecord.id)
+        .where(
+            MetadataRecord.card_id == Card.id,
+            or_(
+                any_like(MetadataRecord.accession, [plain]),
+                any_like(MetadataRecord.file_name, [plain]),
+                any_like(cast(MetadataRecord.fields, Text), in_json),
+            ),
+        )
+        .correlate(Card)
+        .exists()
+    )
+    conditions = [
+        any_like(Card.accession, [plain]),
+        any_like(Card.source_name, [plain]),
+        any_like(cast(Card.source_metadata, Text), in_json),
+        records,
+    ]
+    number = search.removeprefix("#")
+    if number.isascii() and number.isdigit() and len(number) <= 18:
+        card_id = int(number)
+        if 1 <= card_id <= DATABASE_ID_MAX:
+            conditions.insert(0, Card.id == card_id)
+    return or_(*conditions)
+
+
 def filter_conditions(filters: CardFilters, *, with_state: bool = True) -> list[ColumnElement[bool]]:
     conditions: list[ColumnElement[bool]] = []
+    if filters.search:
+        conditions.append(search_condition(filters.search))
     if filters.collection_id is not None:
         conditions.append(Card.collection_id == filters.collection_id)
     if filters.stage and filters.status:
@@ -247,7 +312,20 @@ def cards() -> Any:
             state_counts={state: state_counts.get(state, 0) for state in CARD_STATES},
             stages=FILTERABLE_STAGES,
             statuses=STAGE_FILTER_STATUSES,
+            max_search=MAX_SEARCH,
+            bulk=_bulk_form(),
         )
+
+
+# A feature above the catalogue (the crowd) takes the ticked cards: named by endpoint, never
+# imported, and offered only where that feature is installed and the person may use it.
+BULK_ENDPOINT, BULK_ROLE = "crowd.new_batch", "curator"
+
+
+def _bulk_form() -> dict[str, str] | None:
+    if BULK_ENDPOINT not in current_app.view_functions or not current_user.has_role(BULK_ROLE):
+        return None
+    return {"action": url_for(BULK_ENDPOINT), "request_key": secrets.token_urlsafe(18)}
 
 
 @bp.route("/cards/<int:card_id>")

@@ -839,6 +839,45 @@ def undo_decision(review_id: int, *, expected_version: int, curator: Person) -> 
     return Decided(review.id, review.card_id, review.decision, review.grade, review.version)
 
 
+def redo_decision(review_id: int, *, expected_version: int, curator: Person) -> Decided:
+    """Make again the decision the review's latest undo took back (accept, change, send back,
+    reject), with its grade, note and crowd task, as a new decision by ``curator``.
+
+    ``expected_version`` is the version the undo left; refused as a :class:`ReviewConflict` if
+    anyone changed the card since, and (409) unless the latest change to the review is an undo.
+    An accept or a grade change is given the card's results as they are now, as any decision is;
+    a send-back makes a new crowd batch (the undo removed the first one).
+    """
+    if isinstance(expected_version, bool) or not isinstance(expected_version, int):
+        raise ReviewError(f"Expected the review version to redo from as a whole number, got {expected_version!r}")
+    review = _review_at_version(review_id, expected_version)
+    events = select(AuditEvent).where(AuditEvent.entity == "review", AuditEvent.entity_id == review.id)
+    last = db.session.scalar(events.order_by(AuditEvent.id.desc()).limit(1))
+    undone = (
+        db.session.scalar(
+            events.where(AuditEvent.id < last.id, AuditEvent.action.in_(ACTIONS)).order_by(AuditEvent.id.desc()).limit(1)
+        )
+        if last is not None and last.action == "undo"
+        else None
+    )
+    if undone is None or not isinstance(undone.after, dict):
+        db.session.rollback()
+        raise ReviewError(f"Card {review.card_id} has no undone decision to redo", 409)
+    card_id, after = review.card_id, undone.after
+    db.session.rollback()  # decide() reads the review afresh at the same version
+    decided = decide(
+        review_id,
+        undone.action,
+        expected_version=expected_version,
+        curator=curator,
+        grade=after.get("grade") if undone.action == "change" else None,
+        note=str(after.get("note") or ""),
+        kind=str(after.get("sent_to") or "crop"),
+    )
+    assert decided.card_id == card_id
+    return decided
+
+
 @dataclass(frozen=True)
 class BulkOutcome:
     review_id: int

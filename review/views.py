@@ -63,6 +63,7 @@ from .tasks import (
     disputed_aggregates,
     grade_reasons,
     queue_neighbours,
+    redo_decision,
     resolve_aggregate,
     review_queue,
     sync_reviews,
@@ -509,6 +510,30 @@ def undo(card_id: int) -> Any:
         + ".",
         "success",
     )
+    # The bar the next page shows (base.html) offers the decision back, once.
+    session["keystone_undo"] = {
+        "message": f"Card {card_id}: changed your mind again?",
+        "link": None,
+        "action": url_for("review.redo", card_id=card_id),
+        "fields": {"version": restored.version},
+        "button": "Redo",
+    }
+    return redirect(url_for("review.card", card_id=card_id), code=303)
+
+
+@bp.route("/cards/<int:card_id>/redo", methods=["POST"])
+@role_required("curator")
+def redo(card_id: int) -> Any:
+    try:
+        version = parse_positive_int(request.form.get("version") or "", "version")
+    except ValueError as exc:
+        raise ReviewError(str(exc)) from None
+    with read_only():
+        review_id = db.session.scalar(select(CardReview.id).where(CardReview.card_id == card_id))
+    if review_id is None:
+        raise ReviewError(f"Card {card_id} has no review, so no decision to redo", 404)
+    decided = redo_decision(review_id, expected_version=version, curator=_curator())
+    _offer_undo(decided)
     return redirect(url_for("review.card", card_id=card_id), code=303)
 
 

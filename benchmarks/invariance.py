@@ -2,7 +2,8 @@
 
 Each card of ``--cards`` (default: the shared NYPL cards) is rescaled to each of ``--scales``
 (area filter down, bicubic up: an upscaled copy stands for a scan made at a higher resolution
-of the same print) and saved as each of ``--formats`` (``png``, ``jpegQ`` at quality Q). The
+of the same print) and saved as each of ``--formats`` (``png``, ``jpegQ`` at quality Q, ``faded``:
+a faded print as PNG, see :func:`faded`). The
 variants are ingested into a throwaway instance and taken through ``keystone run`` with the
 default stages, exactly as an operator would (subprocesses of this checkout's ``keystone``), and
 ``keystone cards --json`` is read back.
@@ -28,6 +29,7 @@ from typing import Any
 
 import click
 import cv2
+import numpy as np
 
 DEFAULT_SCALES = (0.25, 0.5, 1.0, 2.0, 4.0)
 DEFAULT_FORMATS = ("png", "jpeg75", "jpeg95")
@@ -52,9 +54,20 @@ def _shared_cards() -> Path:
     return Path(__file__).resolve().parents[2] / "shared" / "data" / "stereocards" / "full_cards"
 
 
+def faded(image: np.ndarray, floor: float = 185.0, kept: float = 0.22, seed: int = 0) -> np.ndarray:
+    """A faded, yellowed print (BGR as OpenCV reads it): the range squeezed to ``kept`` of itself
+    above ``floor`` grey levels, less blue, a little grain (sigma 1.5 grey levels)."""
+    rng = np.random.default_rng(seed)
+    out = floor + image.astype(np.float32) * kept
+    if out.ndim == 3:
+        out[..., 0] *= 0.93
+    out += rng.normal(0.0, 1.5, out.shape).astype(np.float32)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
 def variant_name(stem: str, scale: float, fmt: str) -> str:
     """``<stem>__x<scale>__<fmt>.<ext>``: the card, the scale and the format, readable back."""
-    ext = "png" if fmt == "png" else "jpg"
+    ext = "png" if fmt in ("png", "faded") else "jpg"
     return f"{stem}__x{scale:g}__{fmt}.{ext}"
 
 
@@ -84,10 +97,12 @@ def write_variants(cards: list[Path], scales: tuple[float, ...], formats: tuple[
                 target = out / variant_name(card.stem, scale, fmt)
                 if fmt == "png":
                     ok = cv2.imwrite(str(target), resized)
+                elif fmt == "faded":
+                    ok = cv2.imwrite(str(target), faded(resized))
                 elif fmt.startswith("jpeg") and fmt[4:].isdigit():
                     ok = cv2.imwrite(str(target), resized, [cv2.IMWRITE_JPEG_QUALITY, int(fmt[4:])])
                 else:
-                    raise click.BadParameter(f"unknown format {fmt!r}: png or jpegQ (e.g. jpeg90)")
+                    raise click.BadParameter(f"unknown format {fmt!r}: png, faded (a faded print, PNG) or jpegQ (e.g. jpeg90)")
                 if not ok:
                     raise click.ClickException(f"cannot write {target}")
                 written.append(target)
@@ -168,7 +183,12 @@ def summarise(cards: list[dict[str, Any]]) -> dict[str, Any]:
 @click.option(
     "--scales", default=",".join(f"{s:g}" for s in DEFAULT_SCALES), show_default=True, help="Comma-separated scale factors."
 )
-@click.option("--formats", default=",".join(DEFAULT_FORMATS), show_default=True, help="Comma-separated: png, jpegQ.")
+@click.option(
+    "--formats",
+    default=",".join(DEFAULT_FORMATS),
+    show_default=True,
+    help="Comma-separated: png, jpegQ (quality Q), faded (the card faded to 22 % of its range, as PNG).",
+)
 @click.option("--workers", type=click.IntRange(min=1), default=2, show_default=True)
 @click.option(
     "--keep",

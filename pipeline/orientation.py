@@ -160,8 +160,8 @@ Distorted pairs (issue 35.4: one photo enlarged, turned or cut unevenly against 
 no evidence where a cue cannot read them, never confident evidence: the stereo cues are 0 where
 the photos' rows cannot be matched and the keypoints show one photo turned or stretched beyond
 :data:`MAX_ROW_DISTORTION` against the other, or the flow's row fit shows such a stretch
-(``details["stereo_unread"]`` says why); the arches are not counted where photo_area could not
-read the photo areas (it falls back when the halves' areas differ). ``python -m
+(``details["stereo_unread"]`` says why); the arches are not counted where photo_area fell back
+because the halves' photo areas differ. ``python -m
 benchmarks.orientation_distorted`` measures the step on such variants and on each card at
 0.25x-4x, JPEG and PNG.
 
@@ -994,6 +994,11 @@ def _smooth_bright(left: np.ndarray, right: np.ndarray) -> float:
     return float((smooth.mean() - np.median(both)) / spread) if smooth.size else 0.0
 
 
+UNLIKE_HALVES = "the halves' photo areas"
+"""How :func:`pipeline.photo_area.find_photo_areas` begins the reasons it falls back for when the
+two halves' photo areas differ in size or share too few rows."""
+
+
 def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str], PhotoAreas | None]:
     """Arched photo tops minus arched photo bottoms that
     :func:`pipeline.photo_area.find_photo_areas` reports on the card as scanned, over 2 (so in
@@ -1011,9 +1016,12 @@ def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str], PhotoAr
         return 0.0, [f"photo areas failed (OpenCV: {str(exc).strip()[:80]})"], None
     counts = {end: _arched_ends(areas.evidence, end) for end in ("top", "bottom")}
     notes = [f"{count} arched {end}(s) as scanned" for end, count in counts.items() if count]
-    if areas.is_fallback and notes:
-        # photo_area could not read the photos (e.g. the halves' areas differ too much: one photo
-        # enlarged or cut unevenly), so what it saw of their ends is no evidence either (issue 35.4).
+    if notes and (areas.fallback_reason or "").startswith(UNLIKE_HALVES):
+        # The two photos' areas do not match (one photo enlarged, turned or cut unevenly against
+        # the other: issue 35.4), so what photo_area saw of their ends is no evidence either
+        # (measured: an NYPL card with its right photo enlarged 1.3x read "arched bottom").
+        # Its other fallbacks keep the arches: on the shared cards they were right there (depthy's
+        # pair, read as more than one photo a half, arched top on all its upright variants).
         return 0.0, [*notes, f"not counted: photo areas not found ({areas.fallback_reason})"], areas
     return float(np.clip(counts["top"] - counts["bottom"], -2, 2)) / 2.0, notes, areas
 

@@ -813,8 +813,8 @@ def _row_distortion(left: np.ndarray, right: np.ndarray) -> tuple[float, float] 
     matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
     if len(matches) < 20:
         return None
-    src = np.float32([kl[m.queryIdx].pt for m in matches])
-    dst = np.float32([kr[m.trainIdx].pt for m in matches])
+    src = np.array([kl[m.queryIdx].pt for m in matches], np.float32)
+    dst = np.array([kr[m.trainIdx].pt for m in matches], np.float32)
     affine, inliers = cv2.estimateAffine2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=3.0)
     if affine is None or inliers is None or int(inliers.sum()) < 15:
         return None

@@ -156,6 +156,15 @@ to people; every decided flag right (upside_down 63/63, inverted 60/60, swapped 
 lean against the swap: they are proposed, rightly, for a confirmation grid (``decision``
 "confirm"). The report's ``cues`` table gives each cue's fire rate, right and wrong, per split.
 
+Distorted pairs (issue 35.4: one photo enlarged, turned or cut unevenly against the other) give
+no evidence where a cue cannot read them, never confident evidence: the stereo cues are 0 where
+the photos' rows cannot be matched and the keypoints show one photo turned or stretched beyond
+:data:`MAX_ROW_DISTORTION` against the other, or the flow's row fit shows such a stretch
+(``details["stereo_unread"]`` says why); the arches are not counted where photo_area fell back
+because the halves' photo areas differ. ``python -m
+benchmarks.orientation_distorted`` measures the step on such variants and on each card at
+0.25x-4x, JPEG and PNG.
+
 Degenerate inputs never get a silent guess: bad arrays, boxes and tiny photos raise
 :class:`OrientationInputError` (a numerical failure inside OpenCV raises
 :class:`OrientationFailedError`); blank photos, identical photos and a card with a third photo
@@ -782,6 +791,62 @@ def _stereo_cues(left: np.ndarray, right: np.ndarray) -> tuple[float, float, dic
     return occlusion, ground, details, forward
 
 
+MAX_ROW_DISTORTION = 0.03
+"""The most the right photo's rows may turn (radians) or stretch (fraction) against the left's
+for the stereo cues to read the pair: prints of a pair are mounted within about 1 deg and 1 %
+of each other (the 15 shared real pairs 0.002-0.006 where the flow fits; the demo's cards up
+to 1 deg); one photo enlarged 1.3x or the two turned by 3-5 deg either way is 0.1-0.3."""
+
+
+def _row_distortion(left: np.ndarray, right: np.ndarray) -> tuple[float, float] | None:
+    """(turn, stretch) of the right photo's rows against the left's from matched ORB keypoints:
+    the vertical row of a RANSAC affine fit, ``y_r = c1 x + (1 + c2) y + c0`` (a stereo pair's
+    parallax is horizontal, so this row sees the prints' mounting alone); None when too few
+    keypoints match to say. Used where the dense flow fits no plane (:func:`_align_rows`): a
+    big turn or enlargement is beyond what the fast flow follows, and its failure alone does not
+    tell that from a low-texture scene (demo2's valley, Daibutsu's crop)."""
+    orb = cv2.ORB.create(nfeatures=1500)
+    kl, dl = orb.detectAndCompute(left, None)
+    kr, dr = orb.detectAndCompute(right, None)
+    if dl is None or dr is None or len(kl) < 20 or len(kr) < 20:
+        return None
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
+    if len(matches) < 20:
+        return None
+    src = np.array([kl[m.queryIdx].pt for m in matches], np.float32)
+    dst = np.array([kr[m.trainIdx].pt for m in matches], np.float32)
+    affine, inliers = cv2.estimateAffine2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=3.0)
+    if affine is None or inliers is None or int(inliers.sum()) < 15:
+        return None
+    return float(affine[1, 0]), float(affine[1, 1] - 1.0)
+
+
+def _stereo_unread(left: np.ndarray, right: np.ndarray, stereo_details: dict[str, Any]) -> str | None:
+    """Why the stereo cues cannot read the pair (so give no evidence: issue 35.4), or None.
+    Their rows must match first (:func:`_align_rows`). Where the dense flow fits a plane, its
+    turn is undone; a stretch is not (it is vertical only), so a stretch beyond
+    :data:`MAX_ROW_DISTORTION` means the photos are not printed alike. Where it fits none, the
+    keypoints say whether the photos are turned or stretched against each other, and beyond
+    that the disparity left over is the distortion's, not the scene's. Measured on an upright
+    NYPL card with its photos turned -5 and +5 deg: the ground plane read -0.82 and both
+    occlusion cues "swapped", and the card was decided swapped at P 0.99."""
+    rows = stereo_details["alignment"]["rows"]
+    if rows is not None:
+        if abs(rows[2]) > MAX_ROW_DISTORTION:
+            return f"one photo is {abs(rows[2]):.0%} taller than the other: not printed alike"
+        return None
+    distortion = _row_distortion(left, right)
+    stereo_details["alignment"]["keypoint_rows"] = None if distortion is None else [round(v, 4) for v in distortion]
+    if distortion is None:
+        return None
+    turn, stretch = distortion
+    if abs(turn) > MAX_ROW_DISTORTION:
+        return f"the photos are turned {math.degrees(turn):+.1f} deg against each other"
+    if abs(stretch) > MAX_ROW_DISTORTION:
+        return f"one photo is {abs(stretch):.0%} taller than the other: not printed alike"
+    return None
+
+
 def _occlusion_fill(left: np.ndarray, right: np.ndarray, forward: _StereoPass) -> tuple[float, dict[str, list[int]]]:
     """``occlusion_fill`` and its votes: measured on the pair as given (``forward``) and on the
     pair exchanged (a second stereo pass), and half their difference taken. The exchange negates
@@ -929,6 +994,11 @@ def _smooth_bright(left: np.ndarray, right: np.ndarray) -> float:
     return float((smooth.mean() - np.median(both)) / spread) if smooth.size else 0.0
 
 
+UNLIKE_HALVES = "the halves' photo areas"
+"""How :func:`pipeline.photo_area.find_photo_areas` begins the reasons it falls back for when the
+two halves' photo areas differ in size or share too few rows."""
+
+
 def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str], PhotoAreas | None]:
     """Arched photo tops minus arched photo bottoms that
     :func:`pipeline.photo_area.find_photo_areas` reports on the card as scanned, over 2 (so in
@@ -946,6 +1016,13 @@ def _arched_top(card: np.ndarray, width: int) -> tuple[float, list[str], PhotoAr
         return 0.0, [f"photo areas failed (OpenCV: {str(exc).strip()[:80]})"], None
     counts = {end: _arched_ends(areas.evidence, end) for end in ("top", "bottom")}
     notes = [f"{count} arched {end}(s) as scanned" for end, count in counts.items() if count]
+    if notes and (areas.fallback_reason or "").startswith(UNLIKE_HALVES):
+        # The two photos' areas do not match (one photo enlarged, turned or cut unevenly against
+        # the other: issue 35.4), so what photo_area saw of their ends is no evidence either
+        # (measured: an NYPL card with its right photo enlarged 1.3x read "arched bottom").
+        # Its other fallbacks keep the arches: on the shared cards they were right there (depthy's
+        # pair, read as more than one photo a half, arched top on all its upright variants).
+        return 0.0, [*notes, f"not counted: photo areas not found ({areas.fallback_reason})"], areas
     return float(np.clip(counts["top"] - counts["bottom"], -2, 2)) / 2.0, notes, areas
 
 
@@ -1345,11 +1422,18 @@ def estimate_orientation(
             clock,
             details,
         )
+    unread = _stereo_unread(stereo_left, stereo_right, stereo_details)
+    if unread is not None:
+        details["stereo_unread"] = unread
+        occlusion, ground = 0.0, 0.0
     values.update(occlusion_side=occlusion, occlusion_fill=0.0, ground_plane=ground, text_upright=0.0, face_upright=0.0)
     # The fill cue needs a second stereo pass (about a third of the step). It is measured only
     # where its value could change the outcome: elsewhere the card is decided, or sent to
     # people, the same either way.
-    skipped = _fill_not_needed(values, weights, params, known) if params.fill_only_when_it_could_matter else None
+    if unread is not None:
+        skipped: str | None = f"not measured: {unread}"
+    else:
+        skipped = _fill_not_needed(values, weights, params, known) if params.fill_only_when_it_could_matter else None
     if skipped is not None:
         details["occlusion_fill_votes"] = skipped
     else:
@@ -1382,6 +1466,10 @@ def estimate_orientation(
     else:
         values["text_upright"], details["text"] = _text_upright(255 - scan if tone < 0 else scan, params.text_detect_side)
     meanings = {c: _meaning(c, float(values[c])) for c in CUE_FLAGS}
+    if unread is not None:  # no evidence, and why
+        meanings.update({c: f"not read: {unread}" for c in ("occlusion_side", "occlusion_fill", "ground_plane")})
+    if any(note.startswith("not counted:") for note in details["arches"]):
+        meanings["arched_top"] = "arches " + details["arches"][-1]
     if values["text_upright"] != 0.0 and isinstance(details.get("text"), dict):
         # what was read, so a person can check it at a glance
         read = [line["text"] for line in details["text"]["lines"] if line["text"]][:2]

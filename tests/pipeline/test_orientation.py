@@ -187,7 +187,7 @@ def test_evidence_is_in_words_and_serialisable(scene_card):
     swapped_cues = [c["cue"] for c in document["flags"]["swapped"]["evidence"]]
     assert swapped_cues == ["occlusion_side", "occlusion_fill", "ground_plane"]
     assert "not swapped" in document["flags"]["swapped"]["evidence"][0]["meaning"]
-    assert 0 < estimate.seconds < 5
+    assert estimate.seconds > 0  # measured, not bounded: no test passes or fails on the clock
 
 
 def test_stereo_cues_read_the_photo_areas_not_the_mount_window(scene_card):

@@ -189,7 +189,11 @@ def crowd_reason_words(reasons: str, label: Mapping[str, Any] | None = None) -> 
 
 
 GRADE_WORDS = {"few": "few artifacts", "some": "some artifacts", "failure": "failure"}
-_MEASUREMENT_NAME = re.compile(r"\b(" + "|".join(sorted(map(re.escape, MEASUREMENT_WORDS), key=len, reverse=True)) + r")\b")
+# Only identifiers (with an underscore): "swapped" and "coverage" are also plain English in the
+# grader's sentences ("eyes swapped" read "eyes photos exchanged").
+_MEASUREMENT_NAME = re.compile(
+    r"\b(" + "|".join(sorted((re.escape(n) for n in MEASUREMENT_WORDS if "_" in n), key=len, reverse=True)) + r")\b"
+)
 
 
 def grade_reason_words(reason: str) -> str:

@@ -53,6 +53,12 @@ def test_grade_reasons_name_measurements_in_words() -> None:
         "few artifacts: every measurement within thresholds; nearest: vertical misalignment after rectification 1.9 px "
         "is 0.14 px from its some threshold (> 2 px)"
     )
+    # Plain words that are also measurement names stay as written ("eyes swapped" once read
+    # "eyes photos exchanged").
+    depth = "some: the top comes out nearer (upside down, eyes swapped, or a near blob high up); coverage is full"
+    assert grade_reason_words(depth) == (
+        "some artifacts: the top comes out nearer (upside down, eyes swapped, or a near blob high up); coverage is full"
+    )
     assert [certainty_words(u) for u in (0.95, 0.5, 0.1, None)] == [
         "a close call: a measurement is right at its limit",
         "fairly sure",

@@ -59,11 +59,14 @@ COMMAND_TREE = {
     "bench filter",
     "bench grade",
     "bench grade-real",
+    "bench iiif",
     "bench inpainting",
+    "bench invariance",
     "bench pipeline",
     "bench probe",
     "bench rectify",
     "bench views",
+    "bench walks",
     "bench workres",
     "cards",
     "check-homographies",
@@ -112,7 +115,7 @@ def test_init_reports_json_and_is_idempotent(app, runner):
     result = runner.invoke(cli, ["init", "--json"])
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
-    assert document["revision"] == "0014" and document["migrated"] is False
+    assert document["revision"] == "0015" and document["migrated"] is False
     assert "password" not in document["database"]
 
 
@@ -154,6 +157,6 @@ def test_database_url_from_the_environment(database, tmp_path, monkeypatch):
         db.engine.dispose()  # close pooled connections now, not at garbage collection
     assert result.exit_code == 0, result.output
     document = json.loads(result.stdout)
-    assert document["migrated"] is True and document["revision"] == "0014"
+    assert document["migrated"] is True and document["revision"] == "0015"
     assert document["database"].split(":")[0] == ("postgresql+psycopg" if "postgresql" in url else "sqlite")
     assert document["data_dir"] == str(tmp_path / "store")

@@ -394,6 +394,14 @@ def verify_in_child(root: Path, timeout_s: float) -> dict[str, Any]:
     return {**report, "seconds": seconds}
 
 
+@bp.route("/<version>/verify", methods=["GET"], endpoint="verify_again")
+@role_required("exporter")
+def back_to_the_release(version: str) -> Any:
+    # A reload or a bookmark of the verify address (it answers the Verify button's POST) goes back
+    # to the release's page, rather than to a release file named "verify" (a 404).
+    return redirect(url_for("exports.release_page", version=version))
+
+
 @bp.route("/<version>/verify", methods=["POST"])
 @role_required("exporter")
 def verify(version: str) -> Any:

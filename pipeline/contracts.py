@@ -79,6 +79,7 @@ class RectifyMetrics(TypedDict, total=False):
     full_size: list[int]  # (W, H) the rectified views would have at the crops' full resolution
     view_scale: float  # stored view px per full-resolution px (<= 1); H, K, dy are in stored px
     dy_p95_full: float  # |dy| p95 in full-resolution px
+    dy_p95_match: float  # |dy| p95 in px of the images matched on (600 px halves), never under a scan px
     K: list[list[float]]  # 3x3 camera matrix; K[0][0] the focal length in px
     R: list[list[float]]
     t: list[float]

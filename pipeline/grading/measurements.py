@@ -52,7 +52,8 @@ class GradeMeasurements:
     From the rectify stage (the worse of the two views where it measures both):
 
     * ``dy_p95_px``: px at the resolution the matches were found at (the filter matches every
-      half resampled to 600 px, :data:`REFERENCE_SIDE`, whatever the scan's size), 95th percentile
+      half resampled to 600 px, :data:`REFERENCE_SIDE`, whatever the scan's size), but never finer
+      than a pixel of the scan (a scan whose halves are under 600 px: its own px), 95th percentile
       of inlier ``|y_l - y_r|`` after rectification: the figure rectification's own 2 px limit
       applies to (the rectify metrics' ``dy_p95_match``; a record without it: the stored view's
       ``dy_p95`` x ``REFERENCE_SIDE`` / the view's longer side).

@@ -235,8 +235,9 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     metrics["full_size"] = [int(v) for v in rect_full.size]
     metrics["dy_p95_full"] = float(rect_full.dy_p95)
     # px at the resolution the matches were found at (600 px halves from the filter, whatever the
-    # scan's size): where rectification's own |dy| limit applies, and what the grade reads.
-    metrics["dy_p95_match"] = float(rect_full.dy_p95 / matched_scale)
+    # scan's size), never finer than a pixel of the scan: where rectification's own |dy| limit
+    # applies (pipeline.rectify.rectify_matches), and what the grade reads.
+    metrics["dy_p95_match"] = float(rect_full.dy_p95 / max(1.0, matched_scale))
     metrics["orientation"] = orientation
     # What this result was computed with: a later change (crowd, curator) makes it stale.
     metrics["orientation_used"] = {flag: task.inputs.get(flag) for flag in ("upside_down", "inverted", "swapped")}

@@ -97,6 +97,9 @@ def test_reloading_the_preview_or_publish_address_goes_back_to_the_form(client, 
     for address in ("/releases/preview", "/releases/publish"):
         response = client.get(address)
         assert response.status_code == 302 and response.headers["Location"].endswith("/releases/"), address
+    # The Verify button's address, reloaded: back to the release's page, not a 404 for a file "verify".
+    response = client.get("/releases/1.0.0/verify")
+    assert response.status_code == 302 and response.headers["Location"].endswith("/releases/1.0.0/")
 
 
 @pytest.mark.both_databases

@@ -70,7 +70,5 @@ def test_faded_variants_of_the_shared_cards_pass_the_filter_and_rectify(path):
     assert result.outcome == "pass", result.reason
     left, right = crop_halves(faded, split)
     pts_l, pts_r = result.points
-    rect = rectify_matches(
-        pts_l, pts_r, left.shape[1::-1], right.shape[1::-1], RectifyParams(), match_scale=result.match_scale
-    )
-    assert rect.dy_p95 < 2.0 * result.match_scale
+    rect = rectify_matches(pts_l, pts_r, left.shape[1::-1], right.shape[1::-1], RectifyParams(), match_scale=result.match_scale)
+    assert rect.dy_p95 < 2.0 * max(1.0, result.match_scale)  # thresholds never under a scan pixel

@@ -190,6 +190,41 @@ def _record_v3(document: dict[str, Any]) -> tuple[dict[str, Any], str | None, st
     )
 
 
+def _canvas(
+    canvas_id: str,
+    manifest_id: str,
+    index: int,
+    size: tuple[Any, Any],
+    service: Any,
+    image_id: Any,
+    label: str,
+    record: dict[str, Any],
+    accession: str | None,
+    rights: str | None,
+    problem: str | None,
+) -> IiifCanvas:
+    """One canvas as either version reads it; a width or height that is not a positive whole
+    number is the canvas's problem (and both are 0)."""
+    width, height = size
+    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+        problem = f"the canvas has no usable width and height (got {width!r} x {height!r})"
+        width = height = 0
+    return IiifCanvas(
+        canvas_id=canvas_id,
+        manifest_id=manifest_id,
+        index=index,
+        width=width,
+        height=height,
+        service=service,
+        image_id=image_id,
+        label=label,
+        record={**record, "iiif_canvas": canvas_id, "canvas_label": label},
+        accession=accession,
+        rights=rights,
+        problem=problem,
+    )
+
+
 def _canvas_v3(
     canvas: dict[str, Any], manifest_id: str, index: int, record: dict[str, Any], accession: str | None, rights: str | None
 ) -> IiifCanvas:
@@ -205,22 +240,8 @@ def _canvas_v3(
         service = _service_of(body.get("service"))
         if service is None:
             problem = "the canvas's image has no IIIF Image API service"
-    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
-        problem = f"the canvas has no usable width and height (got {width!r} x {height!r})"
-        width = height = 0
-    return IiifCanvas(
-        canvas_id=canvas["id"],
-        manifest_id=manifest_id,
-        index=index,
-        width=width,
-        height=height,
-        service=service,
-        image_id=image_id,
-        label=label,
-        record={**record, "iiif_canvas": canvas["id"], "canvas_label": label},
-        accession=accession,
-        rights=rights,
-        problem=problem,
+    return _canvas(
+        canvas["id"], manifest_id, index, (width, height), service, image_id, label, record, accession, rights, problem
     )
 
 
@@ -331,22 +352,8 @@ def _canvas_v2(
         service = _service_of(resource.get("service"))
         if service is None:
             problem = "the canvas's image has no IIIF Image API service"
-    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
-        problem = f"the canvas has no usable width and height (got {width!r} x {height!r})"
-        width = height = 0
-    return IiifCanvas(
-        canvas_id=canvas["@id"],
-        manifest_id=manifest_id,
-        index=index,
-        width=width,
-        height=height,
-        service=service,
-        image_id=image_id,
-        label=label,
-        record={**record, "iiif_canvas": canvas["@id"], "canvas_label": label},
-        accession=accession,
-        rights=rights,
-        problem=problem,
+    return _canvas(
+        canvas["@id"], manifest_id, index, (width, height), service, image_id, label, record, accession, rights, problem
     )
 
 

@@ -492,9 +492,9 @@ def _offer_undo(decided: Any) -> None:
     }
 
 
-@bp.route("/cards/<int:card_id>/undo", methods=["POST"])
-@role_required("curator")
-def undo(card_id: int) -> Any:
+def _review_and_version(card_id: int, verb: str) -> tuple[int, int]:
+    """The card's review id and the form's ``version`` for an undo or a redo; a ReviewError (400,
+    or 404 when the card has no review) otherwise."""
     try:
         version = parse_positive_int(request.form.get("version") or "", "version")
     except ValueError as exc:
@@ -502,7 +502,14 @@ def undo(card_id: int) -> Any:
     with read_only():
         review_id = db.session.scalar(select(CardReview.id).where(CardReview.card_id == card_id))
     if review_id is None:
-        raise ReviewError(f"Card {card_id} has no review, so no decision to undo", 404)
+        raise ReviewError(f"Card {card_id} has no review, so no decision to {verb}", 404)
+    return review_id, version
+
+
+@bp.route("/cards/<int:card_id>/undo", methods=["POST"])
+@role_required("curator")
+def undo(card_id: int) -> Any:
+    review_id, version = _review_and_version(card_id, "undo")
     restored = undo_decision(review_id, expected_version=version, curator=_curator())
     flash(
         f"Undone: card {card_id} is {DECISION_WORDS.get(restored.decision, restored.decision)} again"
@@ -524,14 +531,7 @@ def undo(card_id: int) -> Any:
 @bp.route("/cards/<int:card_id>/redo", methods=["POST"])
 @role_required("curator")
 def redo(card_id: int) -> Any:
-    try:
-        version = parse_positive_int(request.form.get("version") or "", "version")
-    except ValueError as exc:
-        raise ReviewError(str(exc)) from None
-    with read_only():
-        review_id = db.session.scalar(select(CardReview.id).where(CardReview.card_id == card_id))
-    if review_id is None:
-        raise ReviewError(f"Card {card_id} has no review, so no decision to redo", 404)
+    review_id, version = _review_and_version(card_id, "redo")
     decided = redo_decision(review_id, expected_version=version, curator=_curator())
     _offer_undo(decided)
     return redirect(url_for("review.card", card_id=card_id), code=303)

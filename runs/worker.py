@@ -238,7 +238,13 @@ class BackgroundWorker:
         try:
             yield self
         finally:
-            db.session.rollback()
+            # A stop (SIGTERM -> SystemExit) can land in the middle of a commit, which leaves the
+            # session unusable ("in 'committed' state"): drop it and remove the row from a fresh one.
+            try:
+                db.session.rollback()
+            except SQLAlchemyError:
+                pass
+            db.session.remove()
             try:
                 db.session.execute(delete(PipelineWorker).where(PipelineWorker.id == self.driver.id))
                 db.session.commit()

@@ -371,3 +371,33 @@ def test_a_round_that_raises_does_not_end_the_worker(app, two_cards, data_dir, m
             worker.run()
     assert worker.failures == ["RuntimeError: database is locked"]
     assert calls == ["start", "start"] and rounds[0].computed == 6  # tried again, as a first round
+
+
+def test_a_stop_in_the_middle_of_a_commit_still_removes_the_worker_row(app, data_dir, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """SIGTERM becomes SystemExit wherever the worker is, a commit included, which leaves the
+    session unusable ("in 'committed' state"): the worker still leaves without a traceback of its
+    own and takes its row with it (seen once on a loaded machine as a traceback at serve's stop)."""
+    from sqlalchemy import select
+    from sqlalchemy.exc import InvalidRequestError
+
+    from core.db import db
+    from runs.claims import Driver
+    from runs.worker import BackgroundWorker, PipelineWorker
+
+    with app.app_context():
+        driver = Driver(db.engine)
+        worker = BackgroundWorker(STAGES.split(","), None, driver, data_dir, poll_s=0.1, full_every_s=3600)
+        real_rollback = db.session.rollback
+
+        def broken_rollback() -> None:
+            monkeypatch.setattr(db.session, "rollback", real_rollback)  # once: as after the interrupted commit
+            raise InvalidRequestError("This session is in 'committed' state; no further SQL can be emitted")
+
+        try:
+            with worker.registered():
+                assert len(db.session.scalars(select(PipelineWorker)).all()) == 1
+                monkeypatch.setattr(db.session, "rollback", broken_rollback)
+                raise SystemExit(0)
+        except SystemExit:
+            pass
+        assert db.session.scalars(select(PipelineWorker)).all() == []

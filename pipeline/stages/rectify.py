@@ -176,7 +176,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
         matched_scale = max(1.0, max(*left.shape[:2], *right.shape[:2]) / params.max_side)
     else:
         pts_l, pts_r, match_scale = matches  # match_scale: crop px per SIFT px
-        matched_scale = match_scale
+        matched_scale = max(1.0, match_scale)  # as rectify_matches: never under one crop pixel
         rect_full = rectify_matches(
             pts_l, pts_r, left.shape[1::-1], right.shape[1::-1], params, principal_point=principal_point, match_scale=match_scale
         )
@@ -237,7 +237,7 @@ def rectify_task(task: CardTask, params: RectifyParams) -> StageOutput:
     # px at the resolution the matches were found at (600 px halves from the filter, whatever the
     # scan's size), never finer than a pixel of the scan: where rectification's own |dy| limit
     # applies (pipeline.rectify.rectify_matches), and what the grade reads.
-    metrics["dy_p95_match"] = float(rect_full.dy_p95 / max(1.0, matched_scale))
+    metrics["dy_p95_match"] = float(rect_full.dy_p95 / matched_scale)
     metrics["orientation"] = orientation
     # What this result was computed with: a later change (crowd, curator) makes it stale.
     metrics["orientation_used"] = {flag: task.inputs.get(flag) for flag in ("upside_down", "inverted", "swapped")}
